@@ -1,0 +1,1 @@
+"""The firmware protocol: truck.dbc and the codecs, framing and checks built on it."""

@@ -1,0 +1,1 @@
+"""Command line: one small module per subcommand, calling the library only."""

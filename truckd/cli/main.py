@@ -1,0 +1,57 @@
+"""``truckd`` entry point: dispatches to one module per subcommand.
+
+Exit codes (CONTRACTS.md section 1): 0 success, 2 bad usage or input (one line naming
+the file, line or key and what was expected), 1 other failures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from collections.abc import Sequence
+
+from truckd.errors import InputError, TruckdError
+
+# Subcommand name -> module with add_subparser(subparsers) and run(args) -> int.
+SUBCOMMANDS: dict[str, str] = {
+    "params": "truckd.cli.params",
+    "simulate": "truckd.cli.simulate",
+}
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> None:  # type: ignore[override]
+        self.print_usage(sys.stderr)
+        print(f"truckd: error: {message}", file=sys.stderr)
+        raise SystemExit(2)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(prog="truckd", description="Model-scale truck controller and tools.")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    sub.required = True
+    for name, module in SUBCOMMANDS.items():
+        importlib.import_module(module).add_subparser(sub)
+        assert name in sub.choices, f"{module} must register '{name}'"
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        code = int(args.run(args))
+    except InputError as exc:
+        print(f"truckd {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except TruckdError as exc:
+        print(f"truckd {args.command}: failed: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        return 130
+    return code
+
+
+if __name__ == "__main__":
+    sys.exit(main())

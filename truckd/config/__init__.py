@@ -1,0 +1,1 @@
+"""Configuration: typed sections, validated on load (see :mod:`truckd.config.schema`)."""

@@ -1,0 +1,122 @@
+"""Effects the seed model lacks (CONTRACTS.md section 4), as physical extensions.
+
+Each is off at its default (0).  The simulated plant switches them on; the diagnosis
+fits them; an extended model written by ``diagnose`` carries them to the MPC.
+
+========================  ==================  =============================================
+name                      parameter           physics
+========================  ==================  =============================================
+``viscous_friction``      N m s/rad           torque ``b * omega_m`` at the motor shaft
+``aero_drag``             N/(m/s)^2           force ``c * v * |v|`` at the wheels
+``load_force``            N                   force opposing forward motion, independent of
+                                              speed and direction (grade, towing, offset);
+                                              ``load_force_amplitude`` (N) and
+                                              ``load_force_wavelength`` (m) add
+                                              ``A sin(2 pi x / lambda)`` (rolling terrain)
+``input_delay``           s                   dead time between command and actuation
+``dead_zone``             V                   the driver outputs 0 for ``|u| < u_dz``
+``voltage_saturation``    V                   applied voltage clipped to ``+-u_sat``
+``battery_sag``           ohm                 battery internal resistance ``R_b``: with duty
+                                              ``d = u / V_batt`` the motor sees
+                                              ``u - R_b d^2 i`` (supply droops with current)
+``sensor_lag``            s                   measured speed low-pass filtered, time const.
+========================  ==================  =============================================
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from truckd.config.schema import spec
+from truckd.model.params import VehicleParams
+
+EFFECT_NAMES: tuple[str, ...] = (
+    "viscous_friction",
+    "aero_drag",
+    "load_force",
+    "input_delay",
+    "dead_zone",
+    "voltage_saturation",
+    "battery_sag",
+    "sensor_lag",
+)
+
+
+@dataclass(frozen=True)
+class Effects:
+    """Parameters of the optional effects; 0 switches an effect off."""
+
+    viscous_friction: float = spec(
+        "viscous friction at the motor shaft", unit="N m s/rad", lo=0.0, hi=1.0, default=0.0
+    )
+    aero_drag: float = spec(
+        "drag coefficient, force c v|v|", unit="N/(m/s)^2", lo=0.0, hi=100.0, default=0.0
+    )
+    load_force: float = spec(
+        "constant force opposing forward motion", unit="N", lo=-1e3, hi=1e3, default=0.0
+    )
+    load_force_amplitude: float = spec(
+        "amplitude of the position-dependent load force", unit="N", lo=0.0, hi=1e3, default=0.0
+    )
+    load_force_wavelength: float = spec(
+        "wavelength of the position-dependent load force",
+        unit="m",
+        lo=0.0,
+        lo_open=True,
+        hi=1e4,
+        default=10.0,
+    )
+    input_delay: float = spec(
+        "dead time command -> actuation", unit="s", lo=0.0, hi=1.0, default=0.0
+    )
+    dead_zone: float = spec("driver dead zone half-width", unit="V", lo=0.0, hi=50.0, default=0.0)
+    voltage_saturation: float = spec(
+        "applied-voltage clip, 0 = off (the battery voltage still limits)",
+        unit="V",
+        lo=0.0,
+        hi=100.0,
+        default=0.0,
+    )
+    battery_sag: float = spec(
+        "battery internal resistance", unit="ohm", lo=0.0, hi=10.0, default=0.0
+    )
+    sensor_lag: float = spec(
+        "speed sensor low-pass time constant", unit="s", lo=0.0, hi=5.0, default=0.0
+    )
+
+    def active(self) -> tuple[str, ...]:
+        """Names (from :data:`EFFECT_NAMES`) of the effects switched on."""
+        return tuple(n for n in EFFECT_NAMES if getattr(self, n) != 0.0)
+
+
+def driver_output(u_cmd: float, eff: Effects, v_batt: float) -> tuple[float, float]:
+    """What the motor driver makes of a voltage command (V).
+
+    Returns ``(open-circuit voltage at the motor (V), extra series resistance (ohm))``:
+    dead zone, then the clip at the battery voltage (and ``voltage_saturation``), then
+    the battery's resistance seen through the duty cycle.
+    """
+    u = u_cmd if abs(u_cmd) >= eff.dead_zone else 0.0
+    limit = v_batt if eff.voltage_saturation == 0.0 else min(v_batt, eff.voltage_saturation)
+    u = max(-limit, min(limit, u))
+    duty = u / v_batt
+    return u, eff.battery_sag * duty * duty
+
+
+def load_torque(p: VehicleParams, eff: Effects, x: float) -> float:
+    """Load torque at the motor shaft (N m) at vehicle position x (m)."""
+    force = eff.load_force
+    if eff.load_force_amplitude != 0.0:
+        force += eff.load_force_amplitude * math.sin(2.0 * math.pi * x / eff.load_force_wavelength)
+    return p.force_to_torque(force)
+
+
+def drag_linearisation(p: VehicleParams, eff: Effects, omega0: float) -> tuple[float, float]:
+    """Aero drag ``c v|v|`` as torque at the motor linearised about omega0 (rad/s).
+
+    Returns ``(viscous slope (N m s/rad), constant torque (N m))`` such that the drag
+    torque is ``slope * omega + constant`` near omega0 (exact at omega0).
+    """
+    c = eff.aero_drag * p.ratio**3
+    return 2.0 * c * abs(omega0), -c * omega0 * abs(omega0)

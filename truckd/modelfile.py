@@ -1,0 +1,59 @@
+"""MODEL.yaml: a fitted model, written by ``identify``/``diagnose``, read by ``sim``,
+``simulate`` and the MPC.
+
+Format (YAML, validated like the configuration)::
+
+    vehicle: {R_m: ..., L_m: ..., ...}     # complete VehicleParams (SI)
+    effects: {viscous_friction: ..., ...}  # optional; the effects found (0 = absent)
+    source: "diagnose LOG.csv"             # optional free text
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from pathlib import Path
+
+import yaml
+
+from truckd.config.schema import load_dataclass, spec, to_plain
+from truckd.config.truck import TruckConfig
+from truckd.errors import InputError
+from truckd.model.effects import Effects
+from truckd.model.params import VehicleParams
+
+
+@dataclass(frozen=True)
+class ModelFile:
+    """A fitted truck model: seed parameters plus effects."""
+
+    vehicle: VehicleParams = spec("motor, drivetrain and friction parameters")
+    effects: Effects = spec("effects found in the data", default_factory=Effects)
+    source: str = spec("where the model came from", default="")
+
+
+def read_model(path: str | Path) -> ModelFile:
+    """Load and validate a model file."""
+    p = Path(path)
+    try:
+        data = yaml.safe_load(p.read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise InputError(f"{p}: cannot read model: {exc.strerror}") from None
+    except yaml.YAMLError as exc:
+        raise InputError(f"{p}: is not valid YAML: {exc}") from None
+    return load_dataclass(ModelFile, data, str(p))
+
+
+def write_model(path: str | Path, model: ModelFile) -> None:
+    """Write a model file (round-trips through :func:`read_model`)."""
+    text = "# truckd model file (SI units); see truckd/modelfile.py\n" + yaml.safe_dump(
+        to_plain(model), sort_keys=False
+    )
+    Path(path).write_text(text, encoding="utf-8")
+
+
+def load_model_into(cfg: TruckConfig, path: str | Path) -> TruckConfig:
+    """The configuration with the simulated truck replaced by the model in ``path``."""
+    model = read_model(path)
+    plant = dataclasses.replace(cfg.plant, effects=model.effects)
+    return dataclasses.replace(cfg, vehicle=model.vehicle, plant=plant)

@@ -1,0 +1,1 @@
+"""Simulated plant, simulated firmware and scenarios (stand-ins for the hardware)."""

@@ -1,0 +1,235 @@
+"""The simulated truck: the seed model plus switchable effects and sensor models.
+
+The plant holds its own time.  ``command(u)`` sets the voltage command from now on (it
+acts after ``input_delay``); ``advance(h)`` integrates exactly (see
+:mod:`truckd.model.motor`), splitting the step wherever a delayed command takes effect;
+``measure()`` returns what sensors would report.  Pure numerics, no clock.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from truckd.config.schema import spec
+from truckd.model.effects import Effects, drag_linearisation, driver_output, load_torque
+from truckd.model.motor import MotorState, SegmentInputs, advance
+from truckd.model.params import VehicleParams
+
+
+@dataclass(frozen=True)
+class PlantConfig:
+    """The simulated truck's effects and sensor imperfections."""
+
+    effects: Effects = spec("effects the seed model lacks", default_factory=Effects)
+    noise_v: float = spec("speed measurement noise (std)", unit="m/s", lo=0.0, hi=10.0, default=0.0)
+    noise_i: float = spec(
+        "current measurement noise (std)", unit="A", lo=0.0, hi=100.0, default=0.0
+    )
+    encoder_ticks_per_rev: int = spec(
+        "encoder ticks per wheel revolution, 0 = ideal speed sensor",
+        lo=0,
+        hi=1_000_000,
+        default=0,
+    )
+    seed: int = spec("random seed of the sensor noise", lo=0, default=0)
+
+
+@dataclass(frozen=True)
+class PlantOutput:
+    """One sample of the plant's sensors.
+
+    ``t`` s; ``v`` measured speed (m/s, with lag, quantisation and noise); ``v_true``
+    m/s; ``i`` measured current (A); ``x`` true position (m); ``ticks`` encoder count
+    (per wheel, unwrapped); ``vbat`` battery terminal voltage (V); ``u_applied`` the
+    open-circuit voltage the driver applies (V).
+    """
+
+    t: float
+    v: float
+    v_true: float
+    i: float
+    x: float
+    ticks: int
+    vbat: float
+    u_applied: float
+
+
+@dataclass
+class _SensorState:
+    v_lag: float = 0.0
+    ticks_prev: int = 0
+    h_last: float = 0.0
+    v_quant: float = 0.0
+
+
+class Plant:
+    """Simulated truck (see module docstring).  All quantities SI."""
+
+    def __init__(self, params: VehicleParams, config: PlantConfig | None = None) -> None:
+        self.p = params
+        self.cfg = config or PlantConfig()
+        self.rng = np.random.default_rng(self.cfg.seed)
+        self.t = 0.0
+        self.x = 0.0
+        self.motor = MotorState()
+        self._u_active = 0.0
+        self._pending: deque[tuple[float, float]] = deque()
+        self._sensor = _SensorState()
+        self._tick_len = (
+            2.0 * math.pi * params.r_w / self.cfg.encoder_ticks_per_rev
+            if self.cfg.encoder_ticks_per_rev
+            else 0.0
+        )
+
+    def reset(self, v: float = 0.0, i: float | None = None) -> None:
+        """Start at speed v (m/s); current i (A), default the steady value for that speed."""
+        omega = self.p.omega(v)
+        if i is None:
+            i = math.copysign(self.p.K_coulomb / self.p.K_T, omega) if omega else 0.0
+        self.motor = MotorState(
+            i=i, omega=omega, direction=(0 if omega == 0 else (1 if omega > 0 else -1))
+        )
+        self._sensor = _SensorState(v_lag=v, v_quant=v)
+
+    @property
+    def v(self) -> float:
+        """True vehicle speed (m/s)."""
+        return self.p.speed(self.motor.omega)
+
+    def command(self, u: float) -> None:
+        """Voltage command (V) from now on; acts after the input delay."""
+        if not math.isfinite(u):
+            u = 0.0  # a driver treats a non-finite command as zero
+        delay = self.cfg.effects.input_delay
+        if delay <= 0.0:
+            self._u_active = u
+            self._pending.clear()
+        else:
+            self._pending.append((self.t + delay, u))
+
+    def _segment(self, h: float) -> None:
+        eff = self.cfg.effects
+        volts, r_extra = driver_output(self._u_active, eff, self.p.V_batt)
+        visc_drag, t_drag = drag_linearisation(self.p, eff, self.motor.omega)
+        inputs = SegmentInputs(
+            voltage=volts,
+            load_torque=load_torque(self.p, eff, self.x) + t_drag,
+            viscous=eff.viscous_friction + visc_drag,
+            extra_resistance=r_extra,
+        )
+        angle = advance(self.p, self.motor, inputs, h)
+        self.x += angle * self.p.ratio
+        self.t += h
+
+    def advance(self, h: float) -> None:
+        """Integrate h seconds (h > 0) under the active and pending commands."""
+        if not h > 0.0:
+            raise ValueError(f"plant step must be positive, got {h!r}")
+        end = self.t + h
+        x0 = self.x
+        while self._pending and self._pending[0][0] < end:
+            t_apply, u = self._pending.popleft()
+            if t_apply > self.t:
+                self._segment(t_apply - self.t)
+            self._u_active = u
+        if end > self.t:
+            self._segment(end - self.t)
+        self.t = end
+        self._update_sensors(h, (self.x - x0) / h)
+
+    def _update_sensors(self, h: float, v_mean: float) -> None:
+        s = self._sensor
+        tau = self.cfg.effects.sensor_lag
+        if tau > 0.0:
+            s.v_lag += (1.0 - math.exp(-h / tau)) * (v_mean - s.v_lag)
+        if self._tick_len:
+            ticks = self.ticks
+            s.v_quant = (ticks - s.ticks_prev) * self._tick_len / h
+            s.ticks_prev = ticks
+        s.h_last = h
+
+    @property
+    def ticks(self) -> int:
+        """Encoder count of one wheel (unwrapped; 0 when the encoder is ideal)."""
+        return math.floor(self.x / self._tick_len) if self._tick_len else 0
+
+    def measure(self) -> PlantOutput:
+        """What the sensors report now."""
+        eff = self.cfg.effects
+        s = self._sensor
+        if eff.sensor_lag > 0.0:
+            v = s.v_lag
+        elif self._tick_len:
+            v = s.v_quant
+        else:
+            v = self.v
+        if self.cfg.noise_v:
+            v += float(self.rng.normal(0.0, self.cfg.noise_v))
+        i = self.motor.i
+        if self.cfg.noise_i:
+            i += float(self.rng.normal(0.0, self.cfg.noise_i))
+        volts, _ = driver_output(self._u_active, eff, self.p.V_batt)
+        duty = volts / self.p.V_batt
+        vbat = self.p.V_batt - eff.battery_sag * duty * self.motor.i
+        return PlantOutput(
+            t=self.t,
+            v=v,
+            v_true=self.v,
+            i=i,
+            x=self.x,
+            ticks=self.ticks,
+            vbat=vbat,
+            u_applied=volts - eff.battery_sag * duty * duty * self.motor.i,
+        )
+
+
+@dataclass
+class SimulatedLog:
+    """Columns of an open-loop run (numpy arrays, SI)."""
+
+    t: np.ndarray
+    u: np.ndarray
+    v: np.ndarray
+    i: np.ndarray
+    x: np.ndarray
+    vbat: np.ndarray
+    v_true: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+
+def simulate_open_loop(
+    params: VehicleParams,
+    t: np.ndarray,
+    u: np.ndarray,
+    config: PlantConfig | None = None,
+    v0: float = 0.0,
+    i0: float | None = None,
+) -> SimulatedLog:
+    """Run the plant on a log's input: ``u[k]`` (V) held over ``[t[k], t[k+1])``.
+
+    Sample k of the output is the sensor reading at ``t[k]``.
+    """
+    plant = Plant(params, config)
+    plant.reset(v=v0, i=i0)
+    plant.t = float(t[0]) if len(t) else 0.0
+    n = len(t)
+    cols = np.zeros((6, n))
+    for k in range(n):
+        out = plant.measure()
+        cols[0, k], cols[1, k], cols[2, k] = out.v, out.i, out.x
+        cols[3, k], cols[4, k] = out.vbat, out.v_true
+        plant.command(float(u[k]))
+        if k + 1 < n:
+            plant.advance(float(t[k + 1] - t[k]))
+    return SimulatedLog(
+        t=np.asarray(t, float),
+        u=np.asarray(u, float),
+        v=cols[0],
+        i=cols[1],
+        x=cols[2],
+        vbat=cols[3],
+        v_true=cols[4],
+    )
