@@ -1,0 +1,188 @@
+"""Supervisor modes from plain inputs: every cause, its mode, its timing, and recovery."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from truckd.control.supervisor import (
+    Decision,
+    Mode,
+    Supervisor,
+    SupervisorConfig,
+    SupervisorInputs,
+)
+
+P = 0.01  # control period, s
+
+
+def healthy(t: float, **kw: object) -> SupervisorInputs:
+    base = SupervisorInputs(
+        t=t,
+        link_up=True,
+        link_age=0.002,
+        encoder_age=0.004,
+        range_age=0.02,
+        range_value=1.0 + 1e-3 * math.sin(37 * t),  # noisy real sensor
+        speed=1.0,
+    )
+    return dataclasses.replace(base, **kw)  # type: ignore[arg-type]
+
+
+def run(
+    sup: Supervisor, t0: float, t1: float, make: Callable[[float], SupervisorInputs]
+) -> list[Decision]:
+    out = []
+    n = round((t1 - t0) / P)
+    for k in range(n):
+        out.append(sup.update(make(t0 + k * P)))
+    return out
+
+
+def active_supervisor(**cfg: object) -> tuple[Supervisor, float]:
+    sup = Supervisor(SupervisorConfig(**cfg))  # type: ignore[arg-type]
+    ds = run(sup, 0.0, 0.1, healthy)
+    assert ds[-1].mode == Mode.ACTIVE
+    return sup, 0.1
+
+
+def test_init_until_link_and_sensors_fresh() -> None:
+    sup = Supervisor()
+    inf = math.inf
+    assert sup.update(healthy(0.0, link_up=False)).mode == Mode.INIT
+    assert sup.update(healthy(0.01, encoder_age=inf, range_age=inf)).mode == Mode.INIT
+    assert sup.update(healthy(0.02, range_age=inf)).mode == Mode.INIT
+    d = sup.update(healthy(0.03))
+    assert d.mode == Mode.ACTIVE
+    assert d.transition is not None and d.transition.old == Mode.INIT
+
+
+@pytest.mark.parametrize(
+    ("field", "cause"),
+    [("encoder_age", "encoder_stale"), ("link_age", "link_stale"), ("range_age", "range_stale")],
+)
+def test_stale_data_stops_on_the_detection_cycle(field: str, cause: str) -> None:
+    sup, t = active_supervisor()
+    cfg = sup.config
+    timeout = {
+        "encoder_age": cfg.encoder_timeout_s,
+        "link_age": cfg.link_timeout_s,
+        "range_age": cfg.range_timeout_s,
+    }[field]
+    stopped_at = None
+    # the data stops arriving at t: its age grows with time
+    for k in range(100):
+        tk = t + k * P
+        d = sup.update(healthy(tk, **{field: k * P}))
+        if d.mode != Mode.ACTIVE:
+            stopped_at = k * P
+            assert d.mode == Mode.SAFE_STOP
+            assert cause in d.causes
+            break
+    assert stopped_at is not None
+    # detected on the first cycle whose age exceeds the timeout (within one period)
+    assert timeout < stopped_at <= timeout + P + 1e-9
+
+
+def test_link_down_is_fault_and_recovers_after_recovery_time() -> None:
+    sup, t = active_supervisor(recovery_s=0.3)
+    d = sup.update(healthy(t, link_up=False))
+    assert d.mode == Mode.FAULT and "link_down" in d.causes
+    ds = run(sup, t + P, t + 0.5, lambda tk: healthy(tk, link_up=False, link_age=tk - t))
+    assert all(x.mode == Mode.FAULT for x in ds)
+    t2 = t + 0.5
+    ds = run(sup, t2, t2 + 0.5, healthy)
+    modes = [x.mode for x in ds]
+    back = modes.index(Mode.ACTIVE)
+    assert all(m == Mode.FAULT for m in modes[:back])
+    assert back * P == pytest.approx(0.3, abs=P + 1e-9)
+
+
+@pytest.mark.parametrize(("action", "mode"), [("stop", Mode.SAFE_STOP), ("cruise", Mode.DEGRADED)])
+def test_lead_lost_by_config(action: str, mode: Mode) -> None:
+    sup, t = active_supervisor(lead_lost_action=action)
+    d = sup.update(healthy(t, lead_valid=False))
+    assert d.mode == mode and "lead_lost" in d.causes
+
+
+def test_solver_failures_degrade_then_stop_then_recover() -> None:
+    sup, t = active_supervisor(solver_fail_limit=4, recovery_s=0.1)
+    modes = [sup.update(healthy(t + k * P, solver_ok=False)).mode for k in range(6)]
+    assert modes == [Mode.DEGRADED] * 3 + [Mode.SAFE_STOP] * 3
+    ds = run(sup, t + 0.06, t + 0.3, healthy)
+    assert ds[0].mode == Mode.SAFE_STOP
+    assert ds[-1].mode == Mode.ACTIVE
+
+
+def test_overruns_degrade_then_stop() -> None:
+    sup, t = active_supervisor(overrun_limit=3)
+    modes = [sup.update(healthy(t + k * P, loop_missed=True)).mode for k in range(4)]
+    assert modes == [Mode.DEGRADED, Mode.DEGRADED, Mode.SAFE_STOP, Mode.SAFE_STOP]
+    # one good cycle resets the consecutive count but the stop holds for recovery_s
+    assert sup.update(healthy(t + 0.04)).mode == Mode.SAFE_STOP
+
+
+def test_frozen_range_detected_only_while_moving() -> None:
+    sup, t = active_supervisor(range_frozen_s=0.3)
+    ds = run(sup, t, t + 1.0, lambda tk: healthy(tk, range_value=1.234, speed=0.0))
+    assert all(d.mode == Mode.ACTIVE for d in ds)
+    ds = run(sup, t + 1.0, t + 2.0, lambda tk: healthy(tk, range_value=1.234, speed=1.0))
+    first = next(k for k, d in enumerate(ds) if d.mode != Mode.ACTIVE)
+    assert ds[first].mode == Mode.SAFE_STOP and "range_frozen" in ds[first].causes
+    assert first * P == pytest.approx(0.3, abs=P + 1e-9)
+
+
+def test_transitions_are_logged_in_order() -> None:
+    sup, t = active_supervisor(recovery_s=0.05)
+    sup.update(healthy(t, link_up=False))
+    run(sup, t + P, t + 0.2, healthy)
+    seq = [(tr.old, tr.new) for tr in sup.transitions]
+    assert seq == [(Mode.INIT, Mode.ACTIVE), (Mode.ACTIVE, Mode.FAULT), (Mode.FAULT, Mode.ACTIVE)]
+    assert sup.transitions[1].as_dict()["causes"] == ["link_down"]
+
+
+ages = st.one_of(st.floats(0, 1.0), st.just(math.inf), st.just(math.nan))
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    st.lists(
+        st.tuples(st.booleans(), ages, ages, ages, st.booleans(), st.booleans(), st.booleans()),
+        min_size=1,
+        max_size=40,
+    )
+)
+def test_never_active_with_a_stale_or_missing_input(
+    seq: list[tuple[bool, float, float, float, bool, bool, bool]],
+) -> None:
+    sup = Supervisor()
+    cfg = sup.config
+    for k, (up, la, ea, ra, lead, solver, missed) in enumerate(seq):
+        x = SupervisorInputs(
+            t=k * P,
+            link_up=up,
+            link_age=la,
+            encoder_age=ea,
+            range_age=ra,
+            range_value=float(k),
+            speed=1.0,
+            lead_valid=lead,
+            solver_ok=solver,
+            loop_missed=missed,
+        )
+        d = sup.update(x)
+        fresh = (
+            up
+            and la <= cfg.link_timeout_s
+            and ea <= cfg.encoder_timeout_s
+            and ra <= cfg.range_timeout_s
+        )
+        if not fresh:
+            assert d.mode in (Mode.INIT, Mode.SAFE_STOP, Mode.FAULT)
+        if d.mode == Mode.ACTIVE:
+            assert fresh and lead and solver and not missed

@@ -1,0 +1,225 @@
+"""The supervisor: the daemon's operating mode from sensor freshness, link health, solver
+status and loop timing.  Pure: plain inputs each cycle (times in seconds from the caller's
+clock), a :class:`Decision` out; no clock, no I/O.
+
+Modes (the daemon maps them to commands):
+
+- ``INIT``: start-up, until the link is up and encoder and range data are fresh; motor off.
+- ``ACTIVE``: everything fresh and healthy; the controller drives.
+- ``DEGRADED``: still driving, with something wrong that the controller can cover: the
+  solver failed recently (the controller's fallback law is in use), the loop overran, or the
+  lead is lost and ``lead_lost_action`` is ``cruise``.
+- ``SAFE_STOP``: a controlled stop (voltage ramped to zero): encoder or link stale, range
+  sensor stale or frozen, the solver failing ``solver_fail_limit`` cycles in a row, the loop
+  overrunning ``overrun_limit`` cycles in a row, or the lead lost with action ``stop``.
+- ``FAULT``: the link is down (device gone, bus off) or the firmware reports a fault: motor
+  off, nothing to command through.
+
+The mode is decided on every call, so a stop starts on the cycle the staleness is detected.
+Leaving a degraded mode for ``ACTIVE`` needs every cause clear for ``recovery_s``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from enum import StrEnum
+
+from truckd.config.schema import spec
+
+
+class Mode(StrEnum):
+    """Operating modes, ordered by severity (see module docstring)."""
+
+    INIT = "INIT"
+    ACTIVE = "ACTIVE"
+    DEGRADED = "DEGRADED"
+    SAFE_STOP = "SAFE_STOP"
+    FAULT = "FAULT"
+
+
+_SEVERITY = {Mode.ACTIVE: 0, Mode.DEGRADED: 1, Mode.SAFE_STOP: 2, Mode.FAULT: 3, Mode.INIT: 4}
+
+
+@dataclass(frozen=True)
+class SupervisorConfig:
+    """Thresholds of the supervisor."""
+
+    encoder_timeout_s: float = spec(
+        "encoder data older than this is stale", unit="s", lo=0.0, lo_open=True, default=0.05
+    )
+    range_timeout_s: float = spec(
+        "range data older than this is stale", unit="s", lo=0.0, lo_open=True, default=0.15
+    )
+    link_timeout_s: float = spec(
+        "no valid message for this long: link stale", unit="s", lo=0.0, lo_open=True, default=0.05
+    )
+    range_frozen_s: float = spec(
+        "range value bit-identical this long while moving: frozen sensor",
+        unit="s",
+        lo=0.0,
+        lo_open=True,
+        default=0.5,
+    )
+    frozen_min_speed: float = spec(
+        "frozen-range check only while faster than this", unit="m/s", lo=0.0, default=0.05
+    )
+    lead_lost_action: str = spec(
+        "what to do when the lead is lost", choices=("stop", "cruise"), default="stop"
+    )
+    solver_fail_limit: int = spec(
+        "consecutive solver failures before a controlled stop", lo=1, default=10
+    )
+    overrun_limit: int = spec(
+        "consecutive deadline misses before a controlled stop", lo=1, default=5
+    )
+    recovery_s: float = spec(
+        "every cause clear this long before returning to ACTIVE", unit="s", lo=0.0, default=0.5
+    )
+
+    def validate(self) -> str | None:
+        return None
+
+
+@dataclass(frozen=True)
+class SupervisorInputs:
+    """What the supervisor sees each cycle.  Ages in seconds (``inf`` = never received)."""
+
+    t: float
+    link_up: bool
+    link_age: float
+    encoder_age: float
+    range_age: float
+    range_value: float | None = None
+    speed: float = 0.0
+    lead_valid: bool = True
+    solver_ok: bool = True
+    loop_missed: bool = False
+    firmware_fault: bool = False
+
+
+@dataclass(frozen=True)
+class Transition:
+    """A mode change: when, from, to, and the causes active at that moment."""
+
+    t: float
+    old: Mode
+    new: Mode
+    causes: tuple[str, ...]
+
+    def as_dict(self) -> dict[str, object]:
+        return {
+            "t": self.t,
+            "from": self.old.value,
+            "to": self.new.value,
+            "causes": list(self.causes),
+        }
+
+
+@dataclass(frozen=True)
+class Decision:
+    """The supervisor's output for one cycle."""
+
+    mode: Mode
+    causes: tuple[str, ...]
+    transition: Transition | None = None
+
+
+@dataclass
+class _Counters:
+    solver_fails: int = 0
+    overruns: int = 0
+    frozen_since: float | None = None
+    frozen_value: float | None = None
+    clear_since: float | None = None
+    ever_ready: bool = False
+
+
+def _stale(age: float, timeout: float) -> bool:
+    return not (math.isfinite(age) and age <= timeout)
+
+
+@dataclass
+class Supervisor:
+    """Mode state machine (see module docstring)."""
+
+    config: SupervisorConfig = field(default_factory=SupervisorConfig)
+    mode: Mode = Mode.INIT
+    transitions: list[Transition] = field(default_factory=list)
+    _c: _Counters = field(default_factory=_Counters)
+
+    def _frozen(self, x: SupervisorInputs) -> bool:
+        c, cfg = self._c, self.config
+        v = x.range_value
+        moving = math.isfinite(x.speed) and abs(x.speed) > cfg.frozen_min_speed
+        if v is None or not moving or v != c.frozen_value:
+            c.frozen_value = v
+            c.frozen_since = x.t
+            return False
+        assert c.frozen_since is not None
+        return x.t - c.frozen_since >= cfg.range_frozen_s
+
+    def causes(self, x: SupervisorInputs) -> dict[str, Mode]:
+        """Every active cause with the mode it calls for (updates the counters)."""
+        cfg, c = self.config, self._c
+        c.solver_fails = 0 if x.solver_ok else c.solver_fails + 1
+        c.overruns = c.overruns + 1 if x.loop_missed else 0
+        out: dict[str, Mode] = {}
+        if not x.link_up:
+            out["link_down"] = Mode.FAULT
+        if x.firmware_fault:
+            out["firmware_fault"] = Mode.FAULT
+        if _stale(x.link_age, cfg.link_timeout_s):
+            out["link_stale"] = Mode.SAFE_STOP
+        if _stale(x.encoder_age, cfg.encoder_timeout_s):
+            out["encoder_stale"] = Mode.SAFE_STOP
+        if _stale(x.range_age, cfg.range_timeout_s):
+            out["range_stale"] = Mode.SAFE_STOP
+        if self._frozen(x):
+            out["range_frozen"] = Mode.SAFE_STOP
+        if not x.lead_valid and "range_stale" not in out and "range_frozen" not in out:
+            out["lead_lost"] = Mode.SAFE_STOP if cfg.lead_lost_action == "stop" else Mode.DEGRADED
+        if c.solver_fails >= cfg.solver_fail_limit:
+            out["solver_failed"] = Mode.SAFE_STOP
+        elif c.solver_fails > 0:
+            out["solver_failing"] = Mode.DEGRADED
+        if c.overruns >= cfg.overrun_limit:
+            out["loop_overrun"] = Mode.SAFE_STOP
+        elif c.overruns > 0:
+            out["loop_late"] = Mode.DEGRADED
+        return out
+
+    def update(self, x: SupervisorInputs) -> Decision:
+        """Decide this cycle's mode."""
+        causes = self.causes(x)
+        c = self._c
+        worst = max(causes.values(), key=lambda m: _SEVERITY[m], default=Mode.ACTIVE)
+        if not c.ever_ready:
+            # INIT until the first time everything is fresh and the link is up
+            blocking = {k for k, m in causes.items() if m in (Mode.SAFE_STOP, Mode.FAULT)}
+            blocking -= {"solver_failed", "loop_overrun", "lead_lost"}
+            if blocking:
+                return self._set(x.t, Mode.INIT, causes)
+            c.ever_ready = True
+        if worst == Mode.ACTIVE:
+            if self.mode == Mode.ACTIVE or (c.ever_ready and self.mode == Mode.INIT):
+                c.clear_since = x.t
+                return self._set(x.t, Mode.ACTIVE, causes)
+            if c.clear_since is None:
+                c.clear_since = x.t
+            if x.t - c.clear_since >= self.config.recovery_s:
+                return self._set(x.t, Mode.ACTIVE, causes)
+            # hold a driving mode while recovering; a stop/fault holds its stop (as DEGRADED
+            # would drive again before the recovery time)
+            return self._set(x.t, self.mode, causes)
+        c.clear_since = None
+        return self._set(x.t, worst, causes)
+
+    def _set(self, t: float, mode: Mode, causes: dict[str, Mode]) -> Decision:
+        names = tuple(sorted(causes))
+        tr = None
+        if mode != self.mode:
+            tr = Transition(t, self.mode, mode, names)
+            self.transitions.append(tr)
+            self.mode = mode
+        return Decision(mode, names, tr)

@@ -1,0 +1,1 @@
+"""The daemon's runtime: rate keeper, systemd notify, Zenoh telemetry, recorder, wiring."""
