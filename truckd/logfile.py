@@ -73,6 +73,7 @@ def read_log(path: str | Path, require: Sequence[str] = ("t",)) -> Log:
                     f"{src}: line 1: missing column '{col}' (header has: {', '.join(names)})"
                 )
         rows: list[list[float]] = []
+        lines: list[int] = []
         try:
             for row in reader:
                 lineno = reader.line_num
@@ -96,6 +97,7 @@ def read_log(path: str | Path, require: Sequence[str] = ("t",)) -> Log:
                         )
                     vals.append(val)
                 rows.append(vals)
+                lines.append(lineno)
         except csv.Error as exc:
             raise InputError(f"{src}: line {reader.line_num}: {exc}") from None
     if not rows:
@@ -108,15 +110,10 @@ def read_log(path: str | Path, require: Sequence[str] = ("t",)) -> Log:
         if bad.size:
             k = int(bad[0]) + 1
             raise InputError(
-                f"{src}: line {_data_line(k)}: time t={cols['t'][k]!r} does not increase "
-                f"(previous {cols['t'][k - 1]!r}); t must be strictly increasing"
+                f"{src}: line {lines[k]}: time t={float(cols['t'][k])!r} does not increase "
+                f"(previous {float(cols['t'][k - 1])!r}); t must be strictly increasing"
             )
     return Log(cols, src)
-
-
-def _data_line(k: int) -> int:
-    """File line of data row k (0-based), assuming no blank lines (header is line 1)."""
-    return k + 2
 
 
 def require_io(log: Log) -> None:

@@ -39,7 +39,7 @@ class MotorState:
     direction: int = 0
 
 
-@dataclass(frozen=True)
+@dataclass(slots=True)
 class SegmentInputs:
     """What acts on the motor during one step (held constant over it).
 

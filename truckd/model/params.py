@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from functools import cached_property
 
 from truckd.config.schema import spec
 
@@ -51,7 +52,7 @@ class VehicleParams:
             )
         return None
 
-    @property
+    @cached_property
     def ratio(self) -> float:
         """Speed per motor speed, ``r_w / (n_g n_fd)``, m/rad."""
         return self.r_w / (self.n_g * self.n_fd)

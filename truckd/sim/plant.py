@@ -79,6 +79,11 @@ class Plant:
         self._u_active = 0.0
         self._pending: deque[tuple[float, float]] = deque()
         self._sensor = _SensorState()
+        self._ratio = params.ratio
+        eff = self.cfg.effects
+        self._constant_load = eff.aero_drag == 0.0 and eff.load_force_amplitude == 0.0
+        self._load0 = load_torque(params, eff, 0.0)
+        self._inputs = SegmentInputs(voltage=0.0)
         self._tick_len = (
             2.0 * math.pi * params.r_w / self.cfg.encoder_ticks_per_rev
             if self.cfg.encoder_ticks_per_rev
@@ -113,16 +118,17 @@ class Plant:
 
     def _segment(self, h: float) -> None:
         eff = self.cfg.effects
-        volts, r_extra = driver_output(self._u_active, eff, self.p.V_batt)
-        visc_drag, t_drag = drag_linearisation(self.p, eff, self.motor.omega)
-        inputs = SegmentInputs(
-            voltage=volts,
-            load_torque=load_torque(self.p, eff, self.x) + t_drag,
-            viscous=eff.viscous_friction + visc_drag,
-            extra_resistance=r_extra,
-        )
+        inputs = self._inputs
+        inputs.voltage, inputs.extra_resistance = driver_output(self._u_active, eff, self.p.V_batt)
+        if self._constant_load:
+            inputs.load_torque = self._load0
+            inputs.viscous = eff.viscous_friction
+        else:
+            visc_drag, t_drag = drag_linearisation(self.p, eff, self.motor.omega)
+            inputs.load_torque = load_torque(self.p, eff, self.x) + t_drag
+            inputs.viscous = eff.viscous_friction + visc_drag
         angle = advance(self.p, self.motor, inputs, h)
-        self.x += angle * self.p.ratio
+        self.x += angle * self._ratio
         self.t += h
 
     def advance(self, h: float) -> None:
@@ -159,6 +165,20 @@ class Plant:
 
     def measure(self) -> PlantOutput:
         """What the sensors report now."""
+        v, i, vbat, u_applied = self._sample()
+        return PlantOutput(
+            t=self.t,
+            v=v,
+            v_true=self.v,
+            i=i,
+            x=self.x,
+            ticks=self.ticks,
+            vbat=vbat,
+            u_applied=u_applied,
+        )
+
+    def _sample(self) -> tuple[float, float, float, float]:
+        """Measured speed (m/s), current (A), battery voltage (V), applied voltage (V)."""
         eff = self.cfg.effects
         s = self._sensor
         if eff.sensor_lag > 0.0:
@@ -172,19 +192,13 @@ class Plant:
         i = self.motor.i
         if self.cfg.noise_i:
             i += float(self.rng.normal(0.0, self.cfg.noise_i))
+        if eff.battery_sag == 0.0 and eff.dead_zone == 0.0 and eff.voltage_saturation == 0.0:
+            limit = self.p.V_batt
+            return v, i, limit, max(-limit, min(limit, self._u_active))
         volts, _ = driver_output(self._u_active, eff, self.p.V_batt)
         duty = volts / self.p.V_batt
         vbat = self.p.V_batt - eff.battery_sag * duty * self.motor.i
-        return PlantOutput(
-            t=self.t,
-            v=v,
-            v_true=self.v,
-            i=i,
-            x=self.x,
-            ticks=self.ticks,
-            vbat=vbat,
-            u_applied=volts - eff.battery_sag * duty * duty * self.motor.i,
-        )
+        return v, i, vbat, volts - eff.battery_sag * duty * duty * self.motor.i
 
 
 @dataclass
@@ -216,14 +230,16 @@ def simulate_open_loop(
     plant.reset(v=v0, i=i0)
     plant.t = float(t[0]) if len(t) else 0.0
     n = len(t)
-    cols = np.zeros((6, n))
+    tl = [float(x) for x in t]
+    ul = [float(x) for x in u]
+    v_meas, i_meas, xs, vbat, v_true = ([0.0] * n for _ in range(5))
     for k in range(n):
-        out = plant.measure()
-        cols[0, k], cols[1, k], cols[2, k] = out.v, out.i, out.x
-        cols[3, k], cols[4, k] = out.vbat, out.v_true
-        plant.command(float(u[k]))
+        v_meas[k], i_meas[k], vbat[k], _ = plant._sample()
+        xs[k], v_true[k] = plant.x, plant.motor.omega * plant._ratio
+        plant.command(ul[k])
         if k + 1 < n:
-            plant.advance(float(t[k + 1] - t[k]))
+            plant.advance(tl[k + 1] - tl[k])
+    cols = np.array([v_meas, i_meas, xs, vbat, v_true])
     return SimulatedLog(
         t=np.asarray(t, float),
         u=np.asarray(u, float),

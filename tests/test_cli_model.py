@@ -1,0 +1,105 @@
+"""`truckd params` and `truckd simulate` through the real entry point."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from truckd.cli.main import main
+from truckd.logfile import read_log, write_log
+from truckd.model.motor import steady_speed
+from truckd.model.params import VehicleParams
+from truckd.modelfile import ModelFile, write_model
+
+CONTRACT_KEYS = {
+    "R_m",
+    "L_m",
+    "K_v",
+    "K_T",
+    "J_S",
+    "n_g",
+    "n_fd",
+    "r_w",
+    "m",
+    "K_coulomb",
+    "K_stiction",
+}
+
+
+def test_params_json_has_the_contract_keys(
+    capsys: pytest.CaptureFixture[str], params: VehicleParams
+) -> None:
+    assert main(["params", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert CONTRACT_KEYS <= set(out)
+    assert out["K_T"] == params.K_T and out["r_w"] == params.r_w
+
+
+def test_console_script_runs() -> None:
+    exe = Path(sys.executable).parent / "truckd"
+    res = subprocess.run(
+        [str(exe), "params", "--json"], capture_output=True, text=True, check=False
+    )
+    assert res.returncode == 0, res.stderr
+    assert CONTRACT_KEYS <= set(json.loads(res.stdout))
+
+
+def test_simulate_writes_the_log_format(tmp_path: Path, params: VehicleParams) -> None:
+    t = np.arange(0.0, 3.0, 0.01)
+    src = tmp_path / "in.csv"
+    write_log(src, {"u": np.full_like(t, 5.0), "t": t, "note": np.arange(len(t))})
+    out = tmp_path / "out.csv"
+    assert main(["simulate", str(src), "--out", str(out)]) == 0
+    log = read_log(out)
+    assert {"t", "u", "v", "i", "x", "note"} <= set(log.columns)
+    assert log["v"][-1] == pytest.approx(params.speed(steady_speed(params, 5.0)), rel=0.005)
+    np.testing.assert_array_equal(log["note"], np.arange(len(t)))
+
+
+def test_simulate_with_model_file_uses_its_effects(tmp_path: Path, params: VehicleParams) -> None:
+    t = np.arange(0.0, 3.0, 0.01)
+    src = tmp_path / "in.csv"
+    write_log(src, {"t": t, "u": np.full_like(t, 6.0)})
+    model = tmp_path / "model.yaml"
+    from truckd.model.effects import Effects
+
+    write_model(model, ModelFile(vehicle=params, effects=Effects(voltage_saturation=3.0)))
+    out = tmp_path / "out.csv"
+    assert main(["simulate", str(src), "--out", str(out), "--model", str(model)]) == 0
+    v_end = read_log(out)["v"][-1]
+    assert v_end == pytest.approx(params.speed(steady_speed(params, 3.0)), rel=0.005)
+
+
+@pytest.mark.parametrize(
+    ("text", "expected"),
+    [
+        ("t,v\n0,0\n0.01,0\n", "missing column 'u'"),
+        ("t,u\n0,0\n0.01,abc\n", "line 3: column 'u': 'abc' is not a number"),
+        ("t,u\n0,0\n0.01,1\n0.01,2\n", "line 4: time t=0.01 does not increase"),
+        ("t,u\n0,0\n0.01,1,5\n", "line 3: 3 cells, header has 2"),
+        ("t,u\n0,nan\n0.01,1\n", "line 2: column 'u': 'nan' is not finite"),
+        ("", "empty file"),
+        ("t,u\n", "no data rows"),
+    ],
+)
+def test_simulate_rejects_malformed_csv_with_the_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], text: str, expected: str
+) -> None:
+    src = tmp_path / "bad.csv"
+    src.write_text(text)
+    assert main(["simulate", str(src), "--out", str(tmp_path / "o.csv")]) == 2
+    err = capsys.readouterr().err
+    assert expected in err and str(src) in err
+    assert not (tmp_path / "o.csv").exists()
+
+
+def test_bad_usage_exits_2(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exc:
+        main(["simulate"])
+    assert exc.value.code == 2
+    assert main(["params", "--config", "/nonexistent/truck.yaml"]) == 2

@@ -1,0 +1,84 @@
+"""Configuration validation: bad files are rejected whole, naming the key."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import yaml
+
+from truckd.config.truck import default_config_path, load_config, parse_config
+from truckd.errors import InputError
+
+GOOD = yaml.safe_load(default_config_path().read_text())
+
+
+def mutate(path: str, value: object) -> str:
+    data = yaml.safe_load(default_config_path().read_text())
+    *parents, last = path.split(".")
+    node = data
+    for k in parents:
+        node = node[k]
+    if value is KeyError:
+        del node[last]
+    else:
+        node[last] = value
+    return yaml.safe_dump(data)
+
+
+BAD = [
+    ("vehicle.R_m", KeyError, "missing key 'vehicle.R_m'"),
+    ("vehicle.R_m", -0.1, "'vehicle.R_m' = -0.1"),
+    ("vehicle.R_m", 0.0, "'vehicle.R_m' = 0.0"),
+    ("vehicle.K_T", "0.003", "'vehicle.K_T'"),
+    ("vehicle.J_S", float("nan"), "'vehicle.J_S'"),
+    ("vehicle.m", True, "'vehicle.m'"),
+    ("vehicle.K_stiction", 0.001, "K_stiction"),
+    ("vehicle.Kv", 0.1, "unknown key 'vehicle.Kv'"),
+    ("vehicle", [1, 2], "'vehicle'"),
+    ("plant.effects.input_delay", -0.01, "'plant.effects.input_delay'"),
+    ("plant.effects.battery_sag", 20.0, "'plant.effects.battery_sag' = 20.0"),
+    ("plant.effects.wind", 1.0, "unknown key 'plant.effects.wind'"),
+    ("plant.encoder_ticks_per_rev", 12.5, "'plant.encoder_ticks_per_rev'"),
+    ("vehicle_id", 7, "'vehicle_id'"),
+    ("extra_section", {}, "unknown key 'extra_section'"),
+]
+
+
+def test_shipped_default_loads() -> None:
+    cfg = load_config()
+    assert cfg.vehicle_id == "truck1"
+    assert cfg.vehicle.K_stiction >= cfg.vehicle.K_coulomb > 0
+
+
+@pytest.mark.parametrize(("key", "value", "expected"), BAD)
+def test_bad_file_is_rejected_naming_the_key(
+    tmp_path: Path, key: str, value: object, expected: str
+) -> None:
+    f = tmp_path / "truck.yaml"
+    f.write_text(mutate(key, value))
+    with pytest.raises(InputError) as err:
+        load_config(f)
+    msg = str(err.value)
+    assert expected in msg
+    assert str(f) in msg
+    assert "\n" not in msg
+
+
+def test_range_message_says_what_is_allowed(tmp_path: Path) -> None:
+    with pytest.raises(InputError, match=r"expected a number in \(0.0, 100.0\] ohm"):
+        parse_config(mutate("vehicle.R_m", -1.0), "t.yaml")
+
+
+def test_unreadable_and_malformed_files(tmp_path: Path) -> None:
+    with pytest.raises(InputError, match="cannot read configuration"):
+        load_config(tmp_path / "absent.yaml")
+    f = tmp_path / "broken.yaml"
+    f.write_text("vehicle:\n  R_m: [1,\n")
+    with pytest.raises(InputError, match="not valid YAML"):
+        load_config(f)
+
+
+def test_optional_sections_take_their_defaults() -> None:
+    cfg = parse_config(yaml.safe_dump({"vehicle": GOOD["vehicle"]}), "minimal.yaml")
+    assert cfg.plant.effects.active() == ()

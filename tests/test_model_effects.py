@@ -1,0 +1,154 @@
+"""Each effect switch changes the simulated truck the way its physics says."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from truckd.model.effects import EFFECT_NAMES, Effects
+from truckd.model.motor import steady_speed
+from truckd.model.params import VehicleParams
+from truckd.sim.plant import Plant, PlantConfig, simulate_open_loop
+
+T = np.arange(0.0, 5.0, 0.01)
+
+
+def run(p: VehicleParams, u: np.ndarray, t: np.ndarray = T, **effects: float) -> np.ndarray:
+    return simulate_open_loop(p, t, u, PlantConfig(effects=Effects(**effects))).v
+
+
+def step(volts: float, at: float = 0.5, t: np.ndarray = T) -> np.ndarray:
+    return np.where(t >= at - 1e-12, volts, 0.0)
+
+
+def test_all_contract_effects_are_switches() -> None:
+    assert set(EFFECT_NAMES) == {
+        "viscous_friction",
+        "aero_drag",
+        "load_force",
+        "input_delay",
+        "dead_zone",
+        "voltage_saturation",
+        "battery_sag",
+        "sensor_lag",
+    }
+    assert Effects().active() == ()
+    assert Effects(dead_zone=1.0, sensor_lag=0.1).active() == ("dead_zone", "sensor_lag")
+
+
+def test_input_delay_shifts_the_step_response_by_the_delay(params: VehicleParams) -> None:
+    """Delay 37.5 ms (not a multiple of the 10 ms step): equals the undelayed model with the
+    step moved by 37.5 ms, simulated on a 0.5 ms grid."""
+    delay = 0.0375
+    delayed = run(params, step(4.0, 0.5), input_delay=delay)
+    fine_t = np.arange(0.0, 5.0, 0.0005)
+    moved = run(params, step(4.0, 0.5 + delay, fine_t), t=fine_t)[::20]
+    assert np.max(np.abs(delayed - moved)) < 1e-9
+    assert np.all(delayed[T < 0.5 + delay] == 0.0)
+
+
+def test_voltage_saturation_caps_the_steady_speed(params: VehicleParams) -> None:
+    v = run(params, step(7.0), voltage_saturation=4.0)
+    assert v[-1] == pytest.approx(params.speed(steady_speed(params, 4.0)), rel=0.005)
+    assert v[-1] < 0.95 * run(params, step(7.0))[-1]
+
+
+def test_dead_zone_ignores_small_commands(params: VehicleParams) -> None:
+    assert np.all(run(params, step(1.5), dead_zone=2.0) == 0.0)  # 1.5 V alone would move it
+    assert run(params, step(1.5))[-1] > 0.1
+    np.testing.assert_allclose(run(params, step(3.0), dead_zone=2.0), run(params, step(3.0)))
+
+
+def test_viscous_friction_lowers_speed_by_the_closed_form(params: VehicleParams) -> None:
+    b = 2e-6  # N m s/rad
+    v = run(params, step(5.0), viscous_friction=b)
+    assert v[-1] == pytest.approx(params.speed(steady_speed(params, 5.0, viscous=b)), rel=0.005)
+
+
+def test_aero_drag_steady_state_balances_the_quadratic(params: VehicleParams) -> None:
+    c = 2.0  # N/(m/s)^2
+    v = run(params, step(6.0), aero_drag=c)[-1]
+    # Steady state: K_T i = K_c + c r v^2 and 6 V = R i + K_v w.
+    i = (params.K_coulomb + params.force_to_torque(c * v * v)) / params.K_T
+    w = (6.0 - params.R_m * i) / params.K_v
+    assert v == pytest.approx(params.speed(w), rel=0.005)
+    assert v < 0.9 * run(params, step(6.0))[-1]
+
+
+def test_load_force_acts_in_one_direction_whatever_the_motion(params: VehicleParams) -> None:
+    f = 3.0  # N opposing forward motion (uphill)
+    fwd = run(params, step(4.0), load_force=f)[-1]
+    back = run(params, step(-4.0), load_force=f)[-1]
+    extra = params.force_to_torque(f)
+    i_f = (params.K_coulomb + extra) / params.K_T
+    i_b = (-params.K_coulomb + extra) / params.K_T
+    assert fwd == pytest.approx(params.speed((4.0 - params.R_m * i_f) / params.K_v), rel=0.005)
+    assert back == pytest.approx(params.speed((-4.0 - params.R_m * i_b) / params.K_v), rel=0.005)
+    assert abs(back) > abs(fwd)
+
+
+def test_load_force_larger_than_stiction_rolls_the_truck_back(params: VehicleParams) -> None:
+    f = 1.5 * params.K_stiction / params.ratio  # steep hill, no power
+    v = run(params, np.zeros_like(T), load_force=f)
+    assert v[-1] < -0.01
+
+
+def test_position_dependent_load_varies_with_position(params: VehicleParams) -> None:
+    sim = simulate_open_loop(
+        params,
+        T,
+        step(5.0),
+        PlantConfig(effects=Effects(load_force_amplitude=4.0, load_force_wavelength=2.0)),
+    )
+    moving = sim.v[T > 2.0]
+    assert moving.max() - moving.min() > 0.05  # speed ripples as the terrain passes
+
+
+def test_battery_sag_is_a_current_dependent_resistance(params: VehicleParams) -> None:
+    r_b = 0.05
+    sim = simulate_open_loop(params, T, step(6.0), PlantConfig(effects=Effects(battery_sag=r_b)))
+    duty = 6.0 / params.V_batt
+    i = params.K_coulomb / params.K_T
+    w = (6.0 - (params.R_m + r_b * duty**2) * i) / params.K_v
+    assert sim.v[-1] == pytest.approx(params.speed(w), rel=0.005)
+    start = sim.vbat[(T > 0.5) & (T < 0.6)]
+    assert start.min() < params.V_batt - 0.5  # the supply droops under the start current
+    assert sim.vbat[-1] == pytest.approx(params.V_batt - r_b * duty * i, rel=1e-6)
+
+
+def test_sensor_lag_filters_the_measured_speed(params: VehicleParams) -> None:
+    tau = 0.2
+    sim = simulate_open_loop(params, T, step(4.0), PlantConfig(effects=Effects(sensor_lag=tau)))
+    # Offline first-order filter of the true speed's interval means reproduces it.
+    mean_v = np.diff(sim.x) / np.diff(T)
+    lag = np.zeros_like(sim.v)
+    for k in range(1, len(T)):
+        lag[k] = lag[k - 1] + (1 - math.exp(-(T[k] - T[k - 1]) / tau)) * (
+            mean_v[k - 1] - lag[k - 1]
+        )
+    np.testing.assert_allclose(sim.v, lag, atol=1e-12)
+    assert np.all(sim.v[T < 1.0] <= sim.v_true[T < 1.0] + 1e-12)
+    assert sim.v[-1] == pytest.approx(sim.v_true[-1], rel=1e-3)
+
+
+def test_noise_and_encoder_quantisation(params: VehicleParams) -> None:
+    noisy = simulate_open_loop(params, T, step(4.0), PlantConfig(noise_v=0.02, seed=3))
+    resid = noisy.v - noisy.v_true
+    assert np.std(resid) == pytest.approx(0.02, rel=0.1)
+    ticks = 120
+    quant = simulate_open_loop(params, T, step(4.0), PlantConfig(encoder_ticks_per_rev=ticks))
+    tick_len = 2 * math.pi * params.r_w / ticks
+    counts = quant.v * 0.01 / tick_len
+    np.testing.assert_allclose(counts, np.round(counts), atol=1e-6)
+    assert np.mean(quant.v[T > 3]) == pytest.approx(quant.v_true[-1], rel=0.01)
+
+
+def test_non_finite_command_is_treated_as_zero(params: VehicleParams) -> None:
+    plant = Plant(params)
+    plant.command(5.0)
+    plant.advance(0.5)
+    plant.command(float("nan"))
+    plant.advance(2.0)
+    assert plant.v == 0.0 and math.isfinite(plant.motor.i)
