@@ -15,6 +15,7 @@ import yaml
 from truckd.config.schema import load_dataclass, spec
 from truckd.errors import InputError
 from truckd.model.params import VehicleParams
+from truckd.runtime.config import RuntimeConfig
 from truckd.sim.plant import PlantConfig
 
 
@@ -26,6 +27,9 @@ class TruckConfig:
     vehicle_id: str = spec("name used in Zenoh keys", default="truck1")
     plant: PlantConfig = spec(
         "the simulated truck's effects and sensors", default_factory=PlantConfig
+    )
+    runtime: RuntimeConfig = spec(
+        "the daemon: loop, backend, supervisor, telemetry, recorder", default_factory=RuntimeConfig
     )
 
 

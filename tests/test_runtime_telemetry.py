@@ -1,0 +1,113 @@
+"""Zenoh telemetry: keys, payloads, liveliness, params query, and never blocking the loop."""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from typing import Any
+
+import zenoh
+from runtime_support import endpoint, free_port
+
+from truckd.runtime.config import TelemetryConfig
+from truckd.runtime.telemetry import Telemetry, keys, zenoh_config
+
+
+def _wait(pred: Any, timeout: float = 5.0) -> bool:
+    t_end = time.monotonic() + timeout
+    while time.monotonic() < t_end:
+        if pred():
+            return True
+        time.sleep(0.01)
+    return bool(pred())
+
+
+def test_shipped_zenoh_config_is_loopback_only() -> None:
+    conf = zenoh_config()
+    assert json.loads(conf.get_json("mode")) == "peer"
+    assert json.loads(conf.get_json("listen/endpoints")) == ["tcp/127.0.0.1:7447"]
+    assert json.loads(conf.get_json("scouting/multicast/enabled")) is False
+    assert json.loads(conf.get_json("scouting/gossip/enabled")) is False
+
+
+def test_state_health_params_and_liveliness_over_zenoh() -> None:
+    port = free_port()
+    cfg = TelemetryConfig(listen=(endpoint(port),))
+    tel = Telemetry("truckT", cfg, lambda: {"vehicle": {"R_m": 0.0847}, "rate_hz": 100.0})
+    tel.start()
+    got: list[tuple[str, dict[str, Any]]] = []
+    alive: list[tuple[str, bool]] = []
+    sub_conf = zenoh_config(listen=[], connect=[endpoint(port)])
+    s = zenoh.open(sub_conf)
+    try:
+        s.declare_subscriber(
+            "truckd/*/*",
+            lambda smp: got.append((str(smp.key_expr), json.loads(smp.payload.to_bytes()))),
+        )
+        s.liveliness().declare_subscriber(
+            "truckd/*/alive",
+            lambda smp: alive.append((str(smp.key_expr), smp.kind == zenoh.SampleKind.PUT)),
+            history=True,
+        )
+        assert _wait(lambda: ("truckd/truckT/alive", True) in alive)
+        # the subscriber is matched once the publisher sees it
+        assert _wait(lambda: tel._pubs["state"].matching_status)
+        for k in range(20):
+            tel.publish_state({"seq": k, "mode": "ACTIVE"})
+        tel.publish_health({"faults": []})
+        assert _wait(lambda: len(got) >= 21)
+        states = [m for key, m in got if key == keys("truckT")["state"]]
+        assert [m["seq"] for m in states] == list(range(20))
+        assert any(key == "truckd/truckT/health" for key, _ in got)
+        replies = list(s.get("truckd/truckT/params", timeout=5.0))
+        assert len(replies) == 1
+        ok = replies[0].ok
+        assert ok is not None
+        assert json.loads(ok.payload.to_bytes())["vehicle"]["R_m"] == 0.0847
+        tel.close()
+        assert _wait(lambda: ("truckd/truckT/alive", False) in alive)
+    finally:
+        tel.close()
+        s.close()
+    assert tel.dropped == 0 and tel.errors == 0
+
+
+class _StuckPublisher:
+    """A publisher whose put blocks until released: a stalled network."""
+
+    def __init__(self) -> None:
+        self.release = threading.Event()
+        self.puts = 0
+
+    def put(self, payload: str) -> None:
+        self.release.wait()
+        self.puts += 1
+
+
+def test_stalled_publisher_never_blocks_the_caller_and_drops_oldest() -> None:
+    tel = Telemetry("truckT", TelemetryConfig(queue_size=8), dict)
+    stuck = _StuckPublisher()
+    tel._pubs = {"state": stuck, "health": stuck}  # type: ignore[dict-item]
+    worker = threading.Thread(target=tel._run, daemon=True)
+    worker.start()
+    tel.publish_state({"seq": -1})  # the worker takes this one and blocks in put()
+    assert _wait(lambda: len(tel._q) == 0)
+    done = threading.Event()
+
+    def producer() -> None:
+        for k in range(1000):
+            tel.publish_state({"seq": k})
+        done.set()
+
+    threading.Thread(target=producer, daemon=True).start()
+    # with a blocking design the producer would hang behind the stuck put forever
+    assert done.wait(10.0)
+    assert tel.dropped == 1000 - 8
+    assert [m["seq"] for _, m in tel._q] == list(range(992, 1000))  # newest kept
+    stuck.release.set()
+    tel._stop = True
+    tel._event.set()
+    worker.join(5.0)
+    assert not worker.is_alive()
+    assert stuck.puts == 1 + 8

@@ -1,0 +1,41 @@
+"""``truckd monitor [--connect ENDPOINT]``: live view of every vehicle reachable over Zenoh."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import Any
+
+from truckd.errors import InputError
+from truckd.runtime.monitor import run_monitor
+
+
+def add_subparser(sub: Any) -> None:
+    p = sub.add_parser("monitor", help="live table of every vehicle reachable over Zenoh")
+    p.add_argument(
+        "--connect",
+        action="append",
+        metavar="ENDPOINT",
+        help="Zenoh endpoint of a vehicle (repeatable; default tcp/127.0.0.1:7447)",
+    )
+    p.add_argument("--zenoh-config", default="", metavar="FILE", help="Zenoh JSON5 file")
+    p.add_argument("--interval", type=float, default=0.5, metavar="S", help="refresh period")
+    p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
+    p.set_defaults(run=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    if not args.interval > 0:
+        raise InputError(f"--interval {args.interval}: expected a positive number of seconds")
+    if args.duration is not None and not args.duration >= 0:
+        raise InputError(f"--duration {args.duration}: expected a non-negative number of seconds")
+    connect = args.connect or ["tcp/127.0.0.1:7447"]
+    run_monitor(
+        connect,
+        args.zenoh_config,
+        sys.stdout,
+        duration=args.duration,
+        interval=args.interval,
+        clear=sys.stdout.isatty(),
+    )
+    return 0

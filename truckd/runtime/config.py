@@ -1,0 +1,64 @@
+"""The ``runtime:`` section of truck.yaml: loop, backend, real-time, telemetry, recorder,
+supervisor.  Every field has a default; the daemon reads nothing else from the file."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from truckd.config.schema import spec
+from truckd.control.supervisor import SupervisorConfig
+
+
+@dataclass(frozen=True)
+class TelemetryConfig:
+    """Zenoh publishing (CONTRACTS.md section 5)."""
+
+    enabled: bool = spec("publish over Zenoh", default=True)
+    zenoh_config: str = spec(
+        "Zenoh 1.x JSON5 configuration file; empty: the shipped config/zenoh.json5", default=""
+    )
+    listen: tuple[str, ...] = spec(
+        "listen endpoints, overriding the Zenoh file when not empty", default=()
+    )
+    connect: tuple[str, ...] = spec(
+        "connect endpoints, overriding the Zenoh file when not empty", default=()
+    )
+    state_every: int = spec("publish state every N control cycles", lo=1, default=1)
+    health_period_s: float = spec("health message period", unit="s", lo=0.05, hi=1.0, default=0.5)
+    queue_size: int = spec(
+        "messages waiting for the publisher thread; the oldest is dropped beyond this",
+        lo=4,
+        default=256,
+    )
+
+
+@dataclass(frozen=True)
+class RecorderConfig:
+    """The daemon's own log, in the contract CSV format (CONTRACTS.md section 3)."""
+
+    enabled: bool = spec("record a log", default=True)
+    dir: str = spec("directory for log files (relative: to the working directory)", default="logs")
+    max_bytes: int = spec(
+        "rotate to a new file beyond this size", unit="B", lo=4096, default=20_000_000
+    )
+    keep: int = spec("rotated files kept (oldest deleted)", lo=1, default=20)
+    flush_period_s: float = spec("flush to disk at least this often", unit="s", lo=0.0, default=1.0)
+
+
+@dataclass(frozen=True)
+class RuntimeConfig:
+    """How ``truckd run`` runs."""
+
+    rate_hz: float = spec("control loop rate", unit="Hz", lo=1.0, hi=1000.0, default=100.0)
+    backend: str = spec("link backend", choices=("sim", "serial", "can"), default="sim")
+    serial_device: str = spec("serial device of the microcontroller", default="/dev/ttyACM0")
+    can_interface: str = spec("python-can interface name", default="socketcan")
+    can_channel: str = spec("python-can channel", default="can0")
+    realtime: bool = spec("try SCHED_FIFO and mlockall (logged when not permitted)", default=True)
+    rt_priority: int = spec("SCHED_FIFO priority", lo=1, hi=99, default=50)
+    stop_ramp_v_per_s: float = spec(
+        "voltage ramp towards 0 V in SAFE_STOP", unit="V/s", lo=0.0, lo_open=True, default=60.0
+    )
+    supervisor: SupervisorConfig = spec("mode thresholds", default_factory=SupervisorConfig)
+    telemetry: TelemetryConfig = spec("Zenoh publishing", default_factory=TelemetryConfig)
+    recorder: RecorderConfig = spec("CSV log recording", default_factory=RecorderConfig)

@@ -1,0 +1,162 @@
+"""Zenoh telemetry (CONTRACTS.md section 5) that never blocks the control loop.
+
+The loop hands plain dicts to :meth:`Telemetry.publish_state` / :meth:`publish_health`,
+which only append to a bounded deque (the oldest message is dropped and counted when it is
+full) and set an event.  A worker thread encodes JSON and puts to Zenoh with congestion
+control ``DROP``, so a slow or absent subscriber costs the loop nothing.
+
+Keys, for ``vehicle_id`` V: ``truckd/V/state``, ``truckd/V/health``, liveliness token
+``truckd/V/alive``, queryable ``truckd/V/params``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+from collections import deque
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import zenoh
+
+from truckd.errors import InputError, TruckdError
+from truckd.runtime.config import TelemetryConfig
+
+log = logging.getLogger("truckd.telemetry")
+
+
+def default_zenoh_config_path() -> Path:
+    """The shipped Zenoh configuration (``config/zenoh.json5`` in the source tree)."""
+    return Path(__file__).resolve().parent.parent / "defaults" / "zenoh.json5"
+
+
+def zenoh_config(
+    path: str | Path = "",
+    listen: Sequence[str] | None = None,
+    connect: Sequence[str] | None = None,
+) -> zenoh.Config:
+    """Load a Zenoh JSON5 file (the shipped one when ``path`` is empty) and override its
+    listen/connect endpoints when given (``None`` keeps the file's; ``[]`` clears)."""
+    p = Path(path) if path else default_zenoh_config_path()
+    try:
+        conf = zenoh.Config.from_file(str(p))
+    except Exception as exc:  # zenoh raises its own ZError for bad files
+        raise InputError(f"{p}: not a valid Zenoh configuration: {exc}") from None
+    if listen is not None:
+        conf.insert_json5("listen/endpoints", json.dumps(list(listen)))
+    if connect is not None:
+        conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
+    return conf
+
+
+def open_session(conf: zenoh.Config, what: str) -> zenoh.Session:
+    """Open a Zenoh session; a failure (e.g. the port is taken) becomes a TruckdError."""
+    try:
+        return zenoh.open(conf)
+    except Exception as exc:
+        raise TruckdError(f"cannot open Zenoh session for {what}: {exc}") from None
+
+
+def keys(vehicle_id: str) -> dict[str, str]:
+    """The Zenoh key expressions of one vehicle."""
+    base = f"truckd/{vehicle_id}"
+    return {k: f"{base}/{k}" for k in ("state", "health", "alive", "params")}
+
+
+class Telemetry:
+    """Publishes state and health, holds the liveliness token, answers params queries."""
+
+    def __init__(
+        self,
+        vehicle_id: str,
+        cfg: TelemetryConfig,
+        params: Callable[[], dict[str, Any]],
+    ) -> None:
+        self.cfg = cfg
+        self.keys = keys(vehicle_id)
+        self._params = params
+        self._q: deque[tuple[str, dict[str, Any]]] = deque(maxlen=cfg.queue_size)
+        self._event = threading.Event()
+        self._stop = False
+        self._thread: threading.Thread | None = None
+        self._session: zenoh.Session | None = None
+        self._pubs: dict[str, zenoh.Publisher] = {}
+        self._token: zenoh.LivelinessToken | None = None
+        self._queryable: zenoh.Queryable[None] | None = None
+        self.dropped = 0  # messages dropped because the queue was full
+        self.sent = 0
+        self.errors = 0  # puts that raised
+        self.queries = 0
+
+    def start(self) -> None:
+        """Open the session and declare everything (blocking; call before the loop)."""
+        c = self.cfg
+        conf = zenoh_config(c.zenoh_config, c.listen or None, c.connect or None)
+        self._session = s = open_session(conf, self.keys["state"])
+        for k in ("state", "health"):
+            self._pubs[k] = s.declare_publisher(
+                self.keys[k],
+                encoding=zenoh.Encoding.APPLICATION_JSON,
+                congestion_control=zenoh.CongestionControl.DROP,
+            )
+        self._queryable = s.declare_queryable(self.keys["params"], self._on_query)
+        self._token = s.liveliness().declare_token(self.keys["alive"])
+        self._thread = threading.Thread(target=self._run, name="truckd-telemetry", daemon=True)
+        self._thread.start()
+        log.info("zenoh telemetry on %s (listen %s)", self.keys["state"], conf.get_json("listen"))
+
+    def _on_query(self, query: zenoh.Query) -> None:
+        self.queries += 1
+        try:
+            query.reply(query.key_expr, json.dumps(self._params()))
+        except Exception as exc:  # a bad query must not kill zenoh's callback thread
+            log.warning("params query failed: %s", exc)
+
+    def _enqueue(self, kind: str, msg: dict[str, Any]) -> None:
+        if len(self._q) == self._q.maxlen:
+            self.dropped += 1
+        self._q.append((kind, msg))
+        self._event.set()
+
+    def publish_state(self, msg: dict[str, Any]) -> None:
+        """Queue one state message (never blocks)."""
+        self._enqueue("state", msg)
+
+    def publish_health(self, msg: dict[str, Any]) -> None:
+        """Queue one health message (never blocks)."""
+        self._enqueue("health", msg)
+
+    def _run(self) -> None:
+        while True:
+            self._event.wait(0.2)
+            self._event.clear()
+            while self._q:
+                try:
+                    kind, msg = self._q.popleft()
+                except IndexError:
+                    break
+                try:
+                    self._pubs[kind].put(json.dumps(msg, allow_nan=True))
+                    self.sent += 1
+                except Exception as exc:
+                    self.errors += 1
+                    if self.errors <= 3:
+                        log.warning("zenoh put failed: %s", exc)
+            if self._stop:
+                return
+
+    def close(self, timeout: float = 1.0) -> None:
+        """Send what is queued (up to ``timeout``), drop the token, close the session."""
+        self._stop = True
+        self._event.set()
+        if self._thread is not None:
+            self._thread.join(timeout)
+            self._thread = None
+        if self._token is not None:
+            self._token.undeclare()  # type: ignore[no-untyped-call]
+            self._token = None
+        if self._session is not None:
+            self._session.close()  # type: ignore[no-untyped-call]
+            self._session = None
