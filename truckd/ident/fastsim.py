@@ -1,0 +1,322 @@
+"""Fast free-run simulator for the fitting loop: a first-order mechanical model.
+
+The electrical time constant ``L_m/R_m`` (< 1 ms) is far below a 10 ms sample, so the
+current is quasi-static, ``i = (V - K_v omega) / R_tot``, and the drivetrain is first
+order in the speed ``w`` (motor rad/s, or m/s for a force-input rig):
+
+    dw/dt = a - b w - s c - d        (sliding, s = sign of w)
+    w = 0 while |a - d| <= sigma     (held by stiction)
+
+``a`` input acceleration, ``b`` damping (1/s), ``c`` Coulomb, ``sigma`` stiction and ``d``
+load, all per unit inertia.  Each segment (constant inputs) is solved exactly: speed
+reaching zero and breakaway are found in closed form, aero drag is linearised at each
+segment's start exactly as :class:`truckd.sim.plant.Plant` does, and the neglected
+electrical pole is kept as a pure lag of ``L_m/R_tot``.  Pure numerics, no I/O.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from truckd.model.effects import Effects
+from truckd.model.params import VehicleParams
+
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class Timeline:
+    """Sub-intervals between sample instants and delayed-command switches.
+
+    ``dt[j]`` duration (s) of sub-interval j, ``cmd[j]`` index of the command active
+    over it (-1 = none yet), ``sample_end[j]`` index of the sample taken at its end
+    (-1 when it does not end on a sample instant).
+    """
+
+    dt: Array
+    cmd: NDArray[np.int64]
+    sample_end: NDArray[np.int64]
+
+
+def timeline(t: Array, delay: float) -> Timeline:
+    """Sub-intervals for commands ``u[k]`` issued at ``t[k]`` acting ``delay`` s later.
+
+    Mirrors the plant: a command whose action time falls exactly on a sample instant
+    acts from that instant on.
+    """
+    n = len(t)
+    if delay <= 0.0:
+        return Timeline(
+            dt=np.diff(t),
+            cmd=np.arange(n - 1, dtype=np.int64),
+            sample_end=np.arange(1, n, dtype=np.int64),
+        )
+    act = t + delay
+    act = act[act < t[-1]]
+    # Merge sample instants and action instants; ties resolved as in the plant.
+    bounds = np.concatenate([t, act])
+    is_sample = np.concatenate([np.ones(n, bool), np.zeros(len(act), bool)])
+    order = np.argsort(bounds, kind="stable")
+    bounds, is_sample = bounds[order], is_sample[order]
+    # Drop action instants that coincide with a sample instant (within 1e-12 s).
+    keep = np.ones(len(bounds), bool)
+    close = np.flatnonzero(np.diff(bounds) <= 1e-12 * max(1.0, abs(float(t[-1]))))
+    for j in close:
+        if is_sample[j] and not is_sample[j + 1]:
+            keep[j + 1] = False
+        elif not is_sample[j] and is_sample[j + 1]:
+            keep[j] = False
+    bounds, is_sample = bounds[keep], is_sample[keep]
+    starts = bounds[:-1]
+    # Command active over [start, next): the last one with action time <= start.
+    cmd = np.searchsorted(t + delay, starts + 1e-12 * max(1.0, abs(float(t[-1]))), "right") - 1
+    sample_idx = np.cumsum(is_sample) - 1
+    sample_end = np.where(is_sample[1:], sample_idx[1:], -1)
+    return Timeline(
+        dt=np.diff(bounds), cmd=cmd.astype(np.int64), sample_end=sample_end.astype(np.int64)
+    )
+
+
+@dataclass(frozen=True)
+class Kinetics:
+    """Per-command coefficients of the first-order model (see module docstring).
+
+    ``a[k]`` input acceleration under command k, ``b[k]`` damping (1/s, without drag),
+    ``a_idle``/``b_idle`` before the first command acts; ``c`` Coulomb, ``sigma``
+    stiction, ``d`` constant load (all per unit inertia, speed units per s);
+    ``drag`` coefficient of ``w |w|`` per unit inertia.
+    """
+
+    a: Array
+    b: Array
+    a_idle: float
+    b_idle: float
+    c: float
+    sigma: float
+    d: float
+    drag: float = 0.0
+    scale: Array | None = None
+    """Per-command factor on ``c``, ``sigma``, ``d`` and ``drag`` (None = 1)."""
+
+
+def _phi(b: float, h: float) -> tuple[float, float, float]:
+    """``(exp(-b h), (1 - exp(-b h))/b, (h - phi1)/b)``, accurate for small ``b h``."""
+    bh = b * h
+    if bh < 1e-5:
+        phi1 = h * (1.0 - 0.5 * bh + bh * bh / 6.0)
+        phi2 = h * h * (0.5 - bh / 6.0 + bh * bh / 24.0)
+        return 1.0 - bh + 0.5 * bh * bh, phi1, phi2
+    em1 = -math.expm1(-bh)
+    phi1 = em1 / b
+    return 1.0 - em1, phi1, (h - phi1) / b
+
+
+def _segment(
+    w: float, a: float, b: float, c: float, sigma: float, d: float, h: float
+) -> tuple[float, float]:
+    """Exact segment of length h (s): returns (end speed, integral of speed)."""
+    dist = 0.0
+    for _ in range(4):
+        if h <= 0.0:
+            break
+        if w == 0.0:
+            net = a - d
+            if abs(net) <= sigma:
+                return 0.0, dist
+            s = 1.0 if net > 0.0 else -1.0
+        else:
+            s = 1.0 if w > 0.0 else -1.0
+        g = a - s * c - d  # acceleration at zero speed in the sliding direction
+        e, phi1, phi2 = _phi(b, h)
+        w1 = w * e + g * phi1
+        if w1 * s > 0.0:
+            return w1, dist + w * phi1 + g * phi2
+        if w == 0.0 or g * s >= 0.0:
+            return 0.0, dist  # breakaway torque but no motion possible
+        # Speed reaches zero inside the segment: w e^{-bt} + g phi1(t) = 0.
+        x = -b * w / g
+        tz = math.log1p(x) / b if b * h > 1e-9 else -w / g
+        tz = min(max(tz, 0.0), h)
+        _, p1, p2 = _phi(b, tz)
+        dist += w * p1 + g * p2
+        h -= tz
+        w = 0.0
+    return w, dist
+
+
+def run(
+    kin: Kinetics, tl: Timeline, n: int, w0: float, sensor_lag: float = 0.0
+) -> tuple[Array, Array, Array]:
+    """Free run from speed w0; returns per-sample (speed, mean speed, position).
+
+    ``speed[k]`` at ``t[k]`` as the sensor reports it (low-pass ``sensor_lag`` s applied
+    to the mean speed over each sample step, as the plant does), ``mean`` the raw
+    instantaneous speed, ``pos`` the integral of speed.
+    """
+    out = np.empty(n)
+    raw = np.empty(n)
+    pos = np.empty(n)
+    out[0] = raw[0] = w0
+    pos[0] = 0.0
+    w = w0
+    v_lag = w0
+    x = 0.0
+    x_step0 = 0.0
+    h_step = 0.0
+    a_list = kin.a.tolist()
+    b_list = kin.b.tolist()
+    c, sigma, d, drag = kin.c, kin.sigma, kin.d, kin.drag
+    sc_list = kin.scale.tolist() if kin.scale is not None else None
+    lag_alpha_cache: dict[float, float] = {}
+    for dt, k, se in zip(tl.dt.tolist(), tl.cmd.tolist(), tl.sample_end.tolist(), strict=True):
+        if k >= 0:
+            a, b = a_list[k], b_list[k]
+            if sc_list is not None:
+                f = sc_list[k]
+                c, sigma, d, drag = kin.c * f, kin.sigma * f, kin.d * f, kin.drag * f
+        else:
+            a, b = kin.a_idle, kin.b_idle
+        if drag != 0.0:
+            aw = abs(w)
+            b_eff = b + 2.0 * drag * aw
+            d_eff = d - drag * w * aw
+        else:
+            b_eff, d_eff = b, d
+        w, dx = _segment(w, a, b_eff, c, sigma, d_eff, dt)
+        x += dx
+        h_step += dt
+        if se >= 0:
+            raw[se] = w
+            pos[se] = x
+            if sensor_lag > 0.0:
+                alpha = lag_alpha_cache.get(h_step)
+                if alpha is None:
+                    alpha = 1.0 - math.exp(-h_step / sensor_lag)
+                    lag_alpha_cache[h_step] = alpha
+                v_lag += alpha * ((x - x_step0) / h_step - v_lag)
+                out[se] = v_lag
+            else:
+                out[se] = w
+            x_step0 = x
+            h_step = 0.0
+    return out, raw, pos
+
+
+def driver_volts(u: Array, eff: Effects, v_batt: float) -> Array:
+    """Vectorised :func:`truckd.model.effects.driver_output` voltage (V)."""
+    out = np.where(np.abs(u) >= eff.dead_zone, u, 0.0)
+    limit = v_batt if eff.voltage_saturation == 0.0 else min(v_batt, eff.voltage_saturation)
+    return np.clip(out, -limit, limit)
+
+
+@dataclass(frozen=True)
+class VoltagePrediction:
+    """Free-run prediction of a voltage-input log (SI)."""
+
+    v: Array
+    """Speed as the sensor reports it (m/s)."""
+    v_true: Array
+    """True speed (m/s)."""
+    i: Array
+    """Quasi-static motor current at each sample (A)."""
+    x: Array
+    """Position (m)."""
+    volts: Array
+    """Open-circuit driver voltage active at each sample (V)."""
+
+
+def electrical_correction(
+    p: VehicleParams, viscous: float = 0.0, resistance: Array | float | None = None
+) -> tuple[Array, Array]:
+    """What the neglected electrical pole does to the first-order model.
+
+    Returns ``(kappa, lag)`` for the armature circuit resistance ``resistance`` (ohm,
+    default ``R_m``; an array gives arrays): the exact slow eigenvalue of the two-state
+    model over the quasi-static one (time runs ``kappa`` times faster, steady states
+    unchanged) and the fast pole's time constant (s), kept as a pure lag of the input.
+    """
+    r = np.asarray(p.R_m if resistance is None else resistance, float)
+    tr = -(r / p.L_m + viscous / p.J_S)
+    det = (r * viscous + p.K_v * p.K_T) / (p.L_m * p.J_S)
+    disc = np.sqrt(np.maximum(tr * tr / 4.0 - det, 0.0))
+    lam_s, lam_f = tr / 2.0 + disc, tr / 2.0 - disc
+    beta = (p.K_T * p.K_v / r + viscous) / p.J_S
+    return -lam_s / beta, -1.0 / lam_f
+
+
+def simulate_voltage(
+    p: VehicleParams, eff: Effects, t: Array, u: Array, v0: float = 0.0
+) -> VoltagePrediction:
+    """Fast free run of the plant model on a log's input (``u[k]`` from ``t[k]``)."""
+    n = len(t)
+    volts = driver_volts(np.asarray(u, float), eff, p.V_batt)
+    duty = volts / p.V_batt
+    r_tot = p.R_m + eff.battery_sag * duty * duty
+    k_arr, _ = electrical_correction(p, eff.viscous_friction, r_tot)
+    k0, l0 = electrical_correction(p, eff.viscous_friction)
+    kappa, lag_e = float(k0), float(l0)
+    kt_j = kappa * p.K_T / p.J_S
+    a = k_arr * p.K_T / p.J_S * volts / r_tot
+    b = k_arr * (p.K_T * p.K_v / r_tot + eff.viscous_friction) / p.J_S
+    load = p.force_to_torque(eff.load_force)
+    kin = Kinetics(
+        a=a,
+        b=b,
+        a_idle=0.0,
+        b_idle=kappa * (p.K_T * p.K_v / p.R_m + eff.viscous_friction) / p.J_S,
+        c=kappa * p.K_coulomb / p.J_S,
+        sigma=kappa * p.K_stiction / p.J_S,
+        d=kappa * load / p.J_S,
+        drag=kappa * eff.aero_drag * p.ratio**3 / p.J_S,
+        scale=k_arr / kappa if eff.battery_sag != 0.0 else None,
+    )
+    tl = timeline(np.asarray(t, float), eff.input_delay + lag_e)
+    w0 = p.omega(v0)
+    meas, raw, pos = run(kin, tl, n, w0, eff.sensor_lag)
+    # Active command at each sample instant (for the quasi-static current).
+    act_t = np.asarray(t, float) + eff.input_delay
+    idx = np.searchsorted(act_t, np.asarray(t, float), "left") - 1
+    v_at = np.where(idx >= 0, volts[np.maximum(idx, 0)], 0.0)
+    r_at = np.where(idx >= 0, r_tot[np.maximum(idx, 0)], p.R_m)
+    cur = (v_at - p.K_v * raw) / r_at
+    return VoltagePrediction(
+        v=meas * p.ratio, v_true=raw * p.ratio, i=cur, x=pos * p.ratio, volts=v_at
+    )
+
+
+@dataclass(frozen=True)
+class ForceModel:
+    """Rigid body with friction under a force input (SI, load side).
+
+    ``M dv/dt = F - F_v v - F_c sign(v) - offset``; held at rest while
+    ``|F - offset| <= F_s`` (``F_s`` defaults to ``F_c``).
+    """
+
+    M: float
+    F_c: float
+    F_v: float = 0.0
+    offset: float = 0.0
+    F_s: float | None = None
+
+
+def simulate_force(m: ForceModel, t: Array, f: Array, v0: float = 0.0) -> tuple[Array, Array]:
+    """Free run of a force-input model: per-sample (speed m/s, position m from 0)."""
+    n = len(t)
+    fs = m.F_c if m.F_s is None else m.F_s
+    b = m.F_v / m.M
+    kin = Kinetics(
+        a=np.asarray(f, float) / m.M,
+        b=np.full(n, b),
+        a_idle=0.0,
+        b_idle=b,
+        c=m.F_c / m.M,
+        sigma=fs / m.M,
+        d=m.offset / m.M,
+    )
+    tl = timeline(np.asarray(t, float), 0.0)
+    _, raw, pos = run(kin, tl, n, v0)
+    return raw, pos
