@@ -259,7 +259,6 @@ def simulate_voltage(
     k_arr, _ = electrical_correction(p, eff.viscous_friction, r_tot)
     k0, l0 = electrical_correction(p, eff.viscous_friction)
     kappa, lag_e = float(k0), float(l0)
-    kt_j = kappa * p.K_T / p.J_S
     a = k_arr * p.K_T / p.J_S * volts / r_tot
     b = k_arr * (p.K_T * p.K_v / r_tot + eff.viscous_friction) / p.J_S
     load = p.force_to_torque(eff.load_force)
