@@ -1,0 +1,146 @@
+"""The daemon's own log: the contract CSV format (CONTRACTS.md section 3) plus extra
+columns, rotated by size, written by a background thread.
+
+The loop calls :meth:`Recorder.record` with one tuple of floats per cycle (an append to a
+bounded deque: no formatting, no I/O in the loop).  The writer thread formats, writes,
+flushes every ``flush_period_s`` and starts a new file (with its own header, so every
+file feeds ``identify``/``diagnose`` on its own) once the current one reaches
+``max_bytes``; beyond ``keep`` files the oldest of this recorder's files are deleted.
+:meth:`stop` writes everything still queued, flushes and closes.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import deque
+from collections.abc import Sequence
+from pathlib import Path
+from typing import TextIO
+
+from truckd.errors import TruckdError
+from truckd.runtime.config import RecorderConfig
+
+log = logging.getLogger("truckd.recorder")
+
+
+class Recorder:
+    """Size-rotated CSV log with a fixed set of columns."""
+
+    def __init__(
+        self,
+        cfg: RecorderConfig,
+        columns: Sequence[str],
+        prefix: str = "truckd",
+        maxlen: int = 100_000,
+    ) -> None:
+        if len(set(columns)) != len(columns) or "t" not in columns:
+            raise ValueError(f"columns must be unique and include 't': {columns!r}")
+        self.cfg = cfg
+        self.columns = tuple(columns)
+        self.dir = Path(cfg.dir)
+        self.prefix = prefix
+        self._q: deque[tuple[float, ...]] = deque(maxlen=maxlen)
+        self._event = threading.Event()
+        self._stop = False
+        self._thread: threading.Thread | None = None
+        self._fh: TextIO | None = None
+        self._bytes = 0
+        self._index = 0
+        self._stamp = ""
+        self.files: list[Path] = []  # every file this recorder opened, oldest first
+        self.rows = 0
+        self.dropped = 0
+        self.errors = 0
+
+    def start(self) -> None:
+        """Create the directory and the first file (raises TruckdError when impossible)."""
+        self._stamp = time.strftime("%Y%m%dT%H%M%S", time.gmtime())
+        try:
+            self.dir.mkdir(parents=True, exist_ok=True)
+            self._open_next()
+        except OSError as exc:
+            raise TruckdError(f"cannot write logs in {self.dir}: {exc.strerror}") from None
+        self._thread = threading.Thread(target=self._run, name="truckd-recorder", daemon=True)
+        self._thread.start()
+
+    @property
+    def path(self) -> Path | None:
+        """The file being written."""
+        return self.files[-1] if self.files else None
+
+    def _open_next(self) -> None:
+        if self._fh is not None:
+            self._fh.close()
+        self._index += 1
+        p = self.dir / f"{self.prefix}-{self._stamp}-{self._index:04d}.csv"
+        self._fh = open(p, "w", encoding="utf-8", newline="")  # noqa: SIM115 - kept open
+        header = ",".join(self.columns) + "\n"
+        self._fh.write(header)
+        self._bytes = len(header)
+        self.files.append(p)
+        while len(self.files) > self.cfg.keep:
+            old = self.files.pop(0)
+            try:
+                old.unlink()
+            except OSError as exc:
+                log.warning("cannot delete old log %s: %s", old, exc.strerror)
+
+    def record(self, values: Sequence[float]) -> None:
+        """Queue one row, values in column order (never blocks)."""
+        if len(self._q) == self._q.maxlen:
+            self.dropped += 1
+        self._q.append(tuple(values))
+        if len(self._q) >= 64:
+            self._event.set()
+
+    def _write_pending(self) -> None:
+        fh = self._fh
+        if fh is None:
+            return
+        n = len(self.columns)
+        while self._q:
+            row = self._q.popleft()
+            if len(row) != n:
+                self.errors += 1
+                continue
+            line = ",".join(format(x, ".10g") for x in row) + "\n"
+            fh.write(line)
+            self._bytes += len(line)
+            self.rows += 1
+            if self._bytes >= self.cfg.max_bytes:
+                self._open_next()
+                fh = self._fh
+                assert fh is not None
+
+    def _run(self) -> None:
+        period = max(self.cfg.flush_period_s, 0.01)
+        while True:
+            self._event.wait(period)
+            self._event.clear()
+            try:
+                self._write_pending()
+                if self._fh is not None:
+                    self._fh.flush()
+            except OSError as exc:
+                self.errors += 1
+                if self.errors <= 3:
+                    log.error("log write failed: %s", exc.strerror)
+            if self._stop:
+                return
+
+    def stop(self) -> None:
+        """Write everything queued, flush and close (idempotent)."""
+        self._stop = True
+        self._event.set()
+        if self._thread is not None:
+            self._thread.join()
+            self._thread = None
+        if self._fh is not None:
+            try:
+                self._write_pending()
+                self._fh.close()
+            except OSError as exc:
+                log.error("log close failed: %s", exc.strerror)
+            self._fh = None
