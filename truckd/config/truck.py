@@ -14,6 +14,7 @@ import yaml
 
 from truckd.config.schema import load_dataclass, spec
 from truckd.errors import InputError
+from truckd.io.config import LinkConfig
 from truckd.model.params import VehicleParams
 from truckd.runtime.config import RuntimeConfig
 from truckd.sim.plant import PlantConfig
@@ -27,6 +28,9 @@ class TruckConfig:
     vehicle_id: str = spec("name used in Zenoh keys", default="truck1")
     plant: PlantConfig = spec(
         "the simulated truck's effects and sensors", default_factory=PlantConfig
+    )
+    link: LinkConfig = spec(
+        "transport to the microcontroller and receive checks", default_factory=LinkConfig
     )
     runtime: RuntimeConfig = spec(
         "the daemon: loop, backend, supervisor, telemetry, recorder", default_factory=RuntimeConfig

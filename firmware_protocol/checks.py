@@ -1,0 +1,144 @@
+"""Receive checks on decoded frames, like opendbc / panda safety: checksum, counter
+continuity and freshness per message, with error statistics.
+
+A frame that fails a check is never handed on as data.  Counter rules (per message):
+the first frame, or the first after a timeout, is accepted as is; a frame whose counter
+equals the previous one (a stuck sender or a replay) is rejected; a jump counts the
+missing frames in ``counter_gaps`` and is accepted (the frame itself is intact) unless
+more than ``max_wrong_counters`` of the recent frames had a jump (a broken counter),
+then frames are rejected until the count decays (-1 per in-sequence frame).
+
+Time is passed in (``now``, s, any monotonic clock or simulated time): no clock here.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import asdict, dataclass, field
+
+from firmware_protocol.codec import Decoded, DecodeError, Frame, decode, specs
+
+
+@dataclass
+class RxStats:
+    """Receive error statistics (counts since start)."""
+
+    frames_ok: int = 0
+    checksum_errors: int = 0
+    length_errors: int = 0
+    unknown_ids: int = 0
+    payload_errors: int = 0
+    counter_errors: int = 0
+    """Frames rejected by the counter rule (repeated counter or broken counter)."""
+    counter_gaps: int = 0
+    """Frames known missing from counter jumps."""
+    timeouts: int = 0
+    """Fresh -> stale transitions of any expected message."""
+    unexpected: int = 0
+    """Valid frames of a message this side does not expect (e.g. its own messages)."""
+
+    def as_dict(self) -> dict[str, int]:
+        """The counters as a JSON-ready dict."""
+        return asdict(self)
+
+
+@dataclass
+class _MsgState:
+    period: float
+    timeout: float
+    last_counter: int | None = None
+    last_rx: float | None = None
+    wrong_counters: int = 0
+    stale: bool = True
+    count: int = 0
+
+
+@dataclass
+class RxChecker:
+    """Stateful receive checks for the messages one side expects.
+
+    ``expect``: DBC names this side receives; ``timeout_periods``: freshness timeout as a
+    multiple of each message's period; ``max_wrong_counters``: see module docstring.
+    """
+
+    expect: Iterable[str]
+    timeout_periods: float = 5.0
+    max_wrong_counters: int = 5
+    stats: RxStats = field(default_factory=RxStats)
+
+    def __post_init__(self) -> None:
+        all_specs = specs()
+        self._state: dict[str, _MsgState] = {}
+        for name in self.expect:
+            if name not in all_specs:
+                raise ValueError(f"unknown message {name!r}; truck.dbc has {sorted(all_specs)}")
+            period = all_specs[name].period
+            self._state[name] = _MsgState(period, self.timeout_periods * period)
+
+    def accept(self, frame: Frame, now: float) -> Decoded | None:
+        """The decoded message if the frame passes every check, else None (counted)."""
+        st = self.stats
+        try:
+            dec = decode(frame)
+        except DecodeError as exc:
+            if exc.reason == "checksum":
+                st.checksum_errors += 1
+            elif exc.reason == "length":
+                st.length_errors += 1
+            elif exc.reason == "unknown_id":
+                st.unknown_ids += 1
+            else:
+                st.payload_errors += 1
+            return None
+        ms = self._state.get(dec.name)
+        if ms is None:
+            st.unexpected += 1
+            return None
+        self._expire(ms, now)
+        if ms.last_counter is not None and not ms.stale:
+            jump = (dec.counter - ms.last_counter) % 16
+            if jump == 0:
+                st.counter_errors += 1
+                return None
+            if jump != 1:
+                st.counter_gaps += jump - 1
+                ms.wrong_counters += 1
+                ms.last_counter = dec.counter
+                if ms.wrong_counters > self.max_wrong_counters:
+                    ms.wrong_counters = self.max_wrong_counters + 1
+                    st.counter_errors += 1
+                    return None
+            elif ms.wrong_counters > 0:
+                ms.wrong_counters -= 1
+        ms.last_counter = dec.counter
+        ms.last_rx = now
+        ms.stale = False
+        ms.count += 1
+        st.frames_ok += 1
+        return dec
+
+    def _expire(self, ms: _MsgState, now: float) -> None:
+        if not ms.stale and ms.last_rx is not None and now - ms.last_rx > ms.timeout:
+            ms.stale = True
+            ms.wrong_counters = 0
+            self.stats.timeouts += 1
+
+    def poll_timeouts(self, now: float) -> None:
+        """Update freshness of every expected message (counts timeouts)."""
+        for ms in self._state.values():
+            self._expire(ms, now)
+
+    def fresh(self, name: str, now: float) -> bool:
+        """True when ``name`` was accepted within its timeout before ``now``."""
+        ms = self._state[name]
+        self._expire(ms, now)
+        return not ms.stale
+
+    def age(self, name: str, now: float) -> float | None:
+        """Seconds since ``name`` was last accepted (None if never)."""
+        ms = self._state[name]
+        return None if ms.last_rx is None else now - ms.last_rx
+
+    def freshness(self, now: float) -> dict[str, bool]:
+        """Freshness of every expected message by name."""
+        return {name: self.fresh(name, now) for name in self._state}

@@ -1,0 +1,301 @@
+"""Encode typed messages to CAN frames and back, through ``cantools`` and truck.dbc.
+
+Physical values are scaled with the DBC's factors here (round to nearest, clamped to the
+signal's raw range; non-finite values are refused) and packed by cantools as raw
+integers, so the bit layout has exactly one definition: ``truck.dbc``.  Every message
+ends with ``CHECKSUM`` (see :mod:`firmware_protocol.crc`) and carries a 4-bit
+``COUNTER`` the caller supplies.
+
+:func:`decode` raises only :class:`DecodeError` (unknown id, wrong length, bad checksum,
+undecodable payload); it does not track counters or freshness (see
+:mod:`firmware_protocol.checks`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from functools import cache
+from pathlib import Path
+from typing import Any
+
+import cantools
+
+from firmware_protocol.crc import message_checksum
+from firmware_protocol.messages import (
+    SAMPLE_TIME_MODULO,
+    TICKS_MODULO,
+    CompanionHeartbeat,
+    CompanionState,
+    FirmwareFault,
+    FirmwareHeartbeat,
+    FirmwareState,
+    Message,
+    MotorCommand,
+    MotorFeedback,
+    RangeReading,
+    RangeStatus,
+    WheelEncoders,
+)
+
+DBC_PATH = Path(__file__).with_name("truck.dbc")
+
+
+class DecodeError(ValueError):
+    """A frame that is not a valid protocol message; ``reason`` is one of
+    ``unknown_id``, ``length``, ``checksum``, ``payload``."""
+
+    def __init__(self, reason: str, detail: str) -> None:
+        super().__init__(f"{reason}: {detail}")
+        self.reason = reason
+
+
+@dataclass(frozen=True, slots=True)
+class Frame:
+    """One CAN frame: 11-bit id and payload bytes."""
+
+    can_id: int
+    data: bytes
+
+
+@dataclass(frozen=True, slots=True)
+class Decoded:
+    """A decoded message with the counter it carried and its DBC name."""
+
+    name: str
+    msg: Message
+    counter: int
+
+
+@dataclass(frozen=True)
+class MessageSpec:
+    """What the codec knows about one DBC message."""
+
+    name: str
+    can_id: int
+    length: int
+    period: float
+    """Nominal period, s (DBC ``GenMsgCycleTime``)."""
+    scale: Mapping[str, float]
+    raw_range: Mapping[str, tuple[int, int]]
+    dbc: Any
+
+
+@cache
+def database() -> Any:
+    """The loaded truck.dbc (cantools Database), cached."""
+    return cantools.database.load_file(str(DBC_PATH), strict=True)
+
+
+def _spec(m: Any) -> MessageSpec:
+    scale: dict[str, float] = {}
+    rng: dict[str, tuple[int, int]] = {}
+    for s in m.signals:
+        scale[s.name] = float(s.scale)
+        lo, hi = (
+            (-(1 << (s.length - 1)), (1 << (s.length - 1)) - 1)
+            if s.is_signed
+            else (
+                0,
+                (1 << s.length) - 1,
+            )
+        )
+        rng[s.name] = (lo, hi)
+    return MessageSpec(
+        name=m.name,
+        can_id=m.frame_id,
+        length=m.length,
+        period=(m.cycle_time or 0) / 1000.0,
+        scale=scale,
+        raw_range=rng,
+        dbc=m,
+    )
+
+
+@cache
+def specs() -> dict[str, MessageSpec]:
+    """Every message of truck.dbc by name."""
+    return {m.name: _spec(m) for m in database().messages}
+
+
+@cache
+def _by_id() -> dict[int, MessageSpec]:
+    return {s.can_id: s for s in specs().values()}
+
+
+def spec_by_id(can_id: int) -> MessageSpec | None:
+    """The message with that id, or None."""
+    return _by_id().get(can_id)
+
+
+def _raw(spec: MessageSpec, signal: str, value: float) -> int:
+    if not math.isfinite(value):
+        raise ValueError(f"{spec.name}.{signal}: value must be finite, got {value!r}")
+    lo, hi = spec.raw_range[signal]
+    r = round(value / spec.scale[signal])
+    return lo if r < lo else hi if r > hi else int(r)
+
+
+def _clamp_int(spec: MessageSpec, signal: str, value: int) -> int:
+    lo, hi = spec.raw_range[signal]
+    return lo if value < lo else hi if value > hi else int(value)
+
+
+def _sample_raw(spec: MessageSpec, t: float) -> int:
+    if not math.isfinite(t):
+        raise ValueError(f"{spec.name}.SAMPLE_TIME must be finite, got {t!r}")
+    return round((t % SAMPLE_TIME_MODULO) / spec.scale["SAMPLE_TIME"]) % TICKS_MODULO
+
+
+def _signals(msg: Message) -> tuple[str, dict[str, int]]:
+    """DBC message name and raw signal values (without COUNTER/CHECKSUM)."""
+    if isinstance(msg, MotorCommand):
+        s = specs()["MOTOR_CMD"]
+        return s.name, {"VOLTAGE": _raw(s, "VOLTAGE", msg.voltage), "ENABLE": int(msg.enable)}
+    if isinstance(msg, CompanionHeartbeat):
+        s = specs()["COMPANION_HEARTBEAT"]
+        return s.name, {
+            "STATE": _clamp_int(s, "STATE", int(msg.state)),
+            "FAULTS": _clamp_int(s, "FAULTS", int(msg.faults)),
+        }
+    if isinstance(msg, WheelEncoders):
+        s = specs()["WHEEL_ENCODERS"]
+        return s.name, {
+            "TICKS_LEFT": int(msg.ticks_left) % TICKS_MODULO,
+            "TICKS_RIGHT": int(msg.ticks_right) % TICKS_MODULO,
+            "SAMPLE_TIME": _sample_raw(s, msg.sample_time),
+            "STATUS": _clamp_int(s, "STATUS", int(msg.status)),
+        }
+    if isinstance(msg, MotorFeedback):
+        s = specs()["MOTOR_FEEDBACK"]
+        return s.name, {
+            "CURRENT": _raw(s, "CURRENT", msg.current),
+            "VBAT": _raw(s, "VBAT", msg.vbat),
+            "U_APPLIED": _raw(s, "U_APPLIED", msg.u_applied),
+            "STATUS": _clamp_int(s, "STATUS", int(msg.status)),
+        }
+    if isinstance(msg, RangeReading):
+        s = specs()["RANGE"]
+        return s.name, {
+            "DISTANCE": _raw(s, "DISTANCE", msg.distance),
+            "SAMPLE_TIME": _sample_raw(s, msg.sample_time),
+            "STATUS": _clamp_int(s, "STATUS", int(msg.status)),
+        }
+    if isinstance(msg, FirmwareHeartbeat):
+        s = specs()["FIRMWARE_HEARTBEAT"]
+        return s.name, {
+            "STATE": _clamp_int(s, "STATE", int(msg.state)),
+            "FAULTS": _clamp_int(s, "FAULTS", int(msg.faults)),
+            "CMD_ERRORS": int(msg.cmd_errors) % 256,
+        }
+    raise TypeError(f"not a protocol message: {type(msg).__name__}")
+
+
+def encode_raw(name: str, raw: Mapping[str, int], counter: int) -> Frame:
+    """Pack raw signal values (COUNTER given, CHECKSUM computed) with cantools."""
+    spec = specs()[name]
+    values = dict(raw)
+    values["COUNTER"] = counter & 0xF
+    values["CHECKSUM"] = 0
+    data = spec.dbc.encode(values, scaling=False, strict=True)
+    values["CHECKSUM"] = message_checksum(spec.can_id, data[:-1])
+    data = spec.dbc.encode(values, scaling=False, strict=True)
+    return Frame(spec.can_id, bytes(data))
+
+
+def encode(msg: Message, counter: int) -> Frame:
+    """The frame of a typed message with COUNTER = ``counter`` mod 16.
+
+    Values are rounded to the signal resolution and clamped to its range; a non-finite
+    value raises ValueError (nothing is sent).
+    """
+    name, raw = _signals(msg)
+    return encode_raw(name, raw, counter)
+
+
+def decode_raw(frame: Frame) -> tuple[MessageSpec, dict[str, int]]:
+    """Check id, length and checksum; return the raw signal values.
+
+    Raises :class:`DecodeError` only.
+    """
+    spec = _by_id().get(frame.can_id)
+    if spec is None:
+        raise DecodeError("unknown_id", f"id 0x{frame.can_id:X}")
+    data = frame.data
+    if len(data) != spec.length:
+        raise DecodeError("length", f"{spec.name}: {len(data)} bytes, expected {spec.length}")
+    if message_checksum(spec.can_id, data[:-1]) != data[-1]:
+        raise DecodeError("checksum", f"{spec.name}: CRC-8 mismatch")
+    try:
+        raw = spec.dbc.decode(data, decode_choices=False, scaling=False)
+    except Exception as exc:  # cantools raises several types; all mean "bad payload"
+        raise DecodeError("payload", f"{spec.name}: {exc}") from None
+    return spec, {k: int(v) for k, v in raw.items()}
+
+
+def _enum(cls: Callable[[int], Any], value: int, name: str) -> Any:
+    try:
+        return cls(value)
+    except ValueError:
+        raise DecodeError("payload", f"{name}: value {value} not defined") from None
+
+
+def _build(spec: MessageSpec, r: Mapping[str, int]) -> Message:
+    sc = spec.scale
+    n = spec.name
+    if n == "MOTOR_CMD":
+        return MotorCommand(voltage=r["VOLTAGE"] * sc["VOLTAGE"], enable=bool(r["ENABLE"]))
+    if n == "COMPANION_HEARTBEAT":
+        return CompanionHeartbeat(
+            state=_enum(CompanionState, r["STATE"], "COMPANION_HEARTBEAT.STATE"),
+            faults=r["FAULTS"],
+        )
+    if n == "WHEEL_ENCODERS":
+        return WheelEncoders(
+            ticks_left=r["TICKS_LEFT"],
+            ticks_right=r["TICKS_RIGHT"],
+            sample_time=r["SAMPLE_TIME"] * sc["SAMPLE_TIME"],
+            status=r["STATUS"],
+        )
+    if n == "MOTOR_FEEDBACK":
+        return MotorFeedback(
+            current=r["CURRENT"] * sc["CURRENT"],
+            vbat=r["VBAT"] * sc["VBAT"],
+            u_applied=r["U_APPLIED"] * sc["U_APPLIED"],
+            status=r["STATUS"],
+        )
+    if n == "RANGE":
+        return RangeReading(
+            distance=r["DISTANCE"] * sc["DISTANCE"],
+            status=_enum(RangeStatus, r["STATUS"], "RANGE.STATUS"),
+            sample_time=r["SAMPLE_TIME"] * sc["SAMPLE_TIME"],
+        )
+    if n == "FIRMWARE_HEARTBEAT":
+        return FirmwareHeartbeat(
+            state=_enum(FirmwareState, r["STATE"], "FIRMWARE_HEARTBEAT.STATE"),
+            faults=FirmwareFault(r["FAULTS"]),
+            cmd_errors=r["CMD_ERRORS"],
+        )
+    raise DecodeError("unknown_id", f"no typed message for {n}")  # pragma: no cover
+
+
+def decode(frame: Frame) -> Decoded:
+    """The typed message in a frame.  Raises :class:`DecodeError` only."""
+    spec, raw = decode_raw(frame)
+    return Decoded(spec.name, _build(spec, raw), raw["COUNTER"])
+
+
+def message_name(msg: Message) -> str:
+    """The DBC name of a typed message."""
+    return _NAMES[type(msg)]
+
+
+_NAMES: dict[type, str] = {
+    MotorCommand: "MOTOR_CMD",
+    CompanionHeartbeat: "COMPANION_HEARTBEAT",
+    WheelEncoders: "WHEEL_ENCODERS",
+    MotorFeedback: "MOTOR_FEEDBACK",
+    RangeReading: "RANGE",
+    FirmwareHeartbeat: "FIRMWARE_HEARTBEAT",
+}

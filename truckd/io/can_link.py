@@ -1,0 +1,104 @@
+"""CAN backend (python-can): any interface python-can supports.
+
+``virtual`` in tests (in-process), ``socketcan`` on the car.  Error frames count as
+``bus_errors``; a bus-off error frame (socketcan error class 0x40) also counts as
+``bus_off``.  An operation error on receive, or a network-down error on send, means
+the bus is gone: the link closes it and reopens it every ``reconnect_interval`` s.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import time
+from collections.abc import Callable
+from typing import Any
+
+import can
+
+from firmware_protocol.codec import Frame
+from truckd.io.link import Link, LinkDownError
+
+_CAN_ERR_BUSOFF = 0x40
+_GONE = {errno.ENETDOWN, errno.ENODEV, errno.ENXIO, errno.EBADF}
+
+
+class CanLink(Link):
+    """A python-can bus carrying truck.dbc frames (11-bit ids)."""
+
+    def __init__(
+        self,
+        interface: str,
+        channel: str,
+        bitrate: int = 500_000,
+        reconnect_interval: float = 0.5,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        super().__init__(reconnect_interval, clock)
+        self.interface = interface
+        self.channel = channel
+        self.bitrate = bitrate
+        self._bus: Any = None
+        self.open()
+
+    def _open(self) -> None:
+        kwargs: dict[str, Any] = {"interface": self.interface, "channel": self.channel}
+        if self.interface != "virtual":
+            kwargs["bitrate"] = self.bitrate
+        try:
+            self._bus = can.Bus(**kwargs)
+        except (can.CanError, OSError, ValueError) as exc:
+            self._bus = None
+            raise LinkDownError(f"CAN {self.interface}:{self.channel}: {exc}") from None
+
+    def _close(self) -> None:
+        bus, self._bus = self._bus, None
+        if bus is not None:
+            with contextlib.suppress(can.CanError, OSError):
+                bus.shutdown()
+
+    def _write(self, frame: Frame) -> None:
+        msg = can.Message(arbitration_id=frame.can_id, data=frame.data, is_extended_id=False)
+        try:
+            self._bus.send(msg, timeout=0.01)
+        except can.CanOperationError as exc:
+            code = getattr(exc, "error_code", None)
+            if code in _GONE:
+                raise LinkDownError(f"CAN {self.channel}: {exc}") from None
+            self.stats.bus_errors += 1  # e.g. TX buffer full: this frame is lost
+            self.stats.tx_dropped += 1
+            raise _DroppedError from None
+
+    def send(self, frame: Frame) -> bool:
+        """Send one frame; False when dropped (link down or bus refused it)."""
+        try:
+            return super().send(frame)
+        except _DroppedError:
+            return False
+
+    def _read(self, timeout: float) -> list[Frame]:
+        out: list[Frame] = []
+        wait: float = timeout
+        while True:
+            try:
+                msg = self._bus.recv(wait)
+            except (can.CanOperationError, OSError) as exc:
+                raise LinkDownError(f"CAN {self.channel}: {exc}") from None
+            if msg is None:
+                return out
+            wait = 0.0
+            if msg.is_error_frame:
+                self.stats.bus_errors += 1
+                if msg.arbitration_id & _CAN_ERR_BUSOFF:
+                    self.stats.bus_off += 1
+                continue
+            if msg.is_extended_id or msg.is_remote_frame:
+                self.stats.bus_errors += 1
+                continue
+            out.append(Frame(msg.arbitration_id, bytes(msg.data)))
+            if len(out) >= 64:
+                return out
+
+
+class _DroppedError(Exception):
+    """Internal: the bus refused one frame (not a disconnect)."""
