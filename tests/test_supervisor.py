@@ -44,8 +44,8 @@ def run(
     return out
 
 
-def active_supervisor(**cfg: object) -> tuple[Supervisor, float]:
-    sup = Supervisor(SupervisorConfig(**cfg))  # type: ignore[arg-type]
+def active_supervisor(lead_lost_action: str = "stop", **cfg: object) -> tuple[Supervisor, float]:
+    sup = Supervisor(SupervisorConfig(**cfg), lead_lost_action)  # type: ignore[arg-type]
     ds = run(sup, 0.0, 0.1, healthy)
     assert ds[-1].mode == Mode.ACTIVE
     return sup, 0.1

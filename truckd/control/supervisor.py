@@ -8,7 +8,7 @@ Modes (the daemon maps them to commands):
 - ``ACTIVE``: everything fresh and healthy; the controller drives.
 - ``DEGRADED``: still driving, with something wrong that the controller can cover: the
   solver failed recently (the controller's fallback law is in use), the loop overran, or the
-  lead is lost and ``lead_lost_action`` is ``cruise``.
+  lead is lost and the lead-lost action is ``cruise``.
 - ``SAFE_STOP``: a controlled stop (voltage ramped to zero): encoder or link stale, range
   sensor stale or frozen, the solver failing ``solver_fail_limit`` cycles in a row, the loop
   overrunning ``overrun_limit`` cycles in a row, or the lead lost with action ``stop``.
@@ -63,9 +63,6 @@ class SupervisorConfig:
     )
     frozen_min_speed: float = spec(
         "frozen-range check only while faster than this", unit="m/s", lo=0.0, default=0.05
-    )
-    lead_lost_action: str = spec(
-        "what to do when the lead is lost", choices=("stop", "cruise"), default="stop"
     )
     solver_fail_limit: int = spec(
         "consecutive solver failures before a controlled stop", lo=1, default=10
@@ -144,6 +141,7 @@ class Supervisor:
     """Mode state machine (see module docstring)."""
 
     config: SupervisorConfig = field(default_factory=SupervisorConfig)
+    lead_lost_action: str = "stop"  # "stop" or "cruise" (the controller's on_lead_lost)
     mode: Mode = Mode.INIT
     transitions: list[Transition] = field(default_factory=list)
     _c: _Counters = field(default_factory=_Counters)
@@ -178,7 +176,7 @@ class Supervisor:
         if self._frozen(x):
             out["range_frozen"] = Mode.SAFE_STOP
         if not x.lead_valid and "range_stale" not in out and "range_frozen" not in out:
-            out["lead_lost"] = Mode.SAFE_STOP if cfg.lead_lost_action == "stop" else Mode.DEGRADED
+            out["lead_lost"] = Mode.SAFE_STOP if self.lead_lost_action == "stop" else Mode.DEGRADED
         if c.solver_fails >= cfg.solver_fail_limit:
             out["solver_failed"] = Mode.SAFE_STOP
         elif c.solver_fails > 0:

@@ -47,13 +47,14 @@ class RecorderConfig:
 
 @dataclass(frozen=True)
 class RuntimeConfig:
-    """How ``truckd run`` runs."""
+    """How ``truckd run`` runs.  The loop rate is ``control.rate_hz`` (one source of
+    truth: the MPC step is its period); the lead-lost action is ``control.on_lead_lost``."""
 
-    rate_hz: float = spec("control loop rate", unit="Hz", lo=1.0, hi=1000.0, default=100.0)
-    backend: str = spec("link backend", choices=("sim", "serial", "can"), default="sim")
-    serial_device: str = spec("serial device of the microcontroller", default="/dev/ttyACM0")
-    can_interface: str = spec("python-can interface name", default="socketcan")
-    can_channel: str = spec("python-can channel", default="can0")
+    backend: str = spec(
+        "link backend (device settings in the link: section)",
+        choices=("sim", "serial", "can"),
+        default="sim",
+    )
     realtime: bool = spec("try SCHED_FIFO and mlockall (logged when not permitted)", default=True)
     rt_priority: int = spec("SCHED_FIFO priority", lo=1, hi=99, default=50)
     stop_ramp_v_per_s: float = spec(
