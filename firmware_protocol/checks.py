@@ -4,9 +4,10 @@ continuity and freshness per message, with error statistics.
 A frame that fails a check is never handed on as data.  Counter rules (per message):
 the first frame, or the first after a timeout, is accepted as is; a frame whose counter
 equals the previous one (a stuck sender or a replay) is rejected; a jump counts the
-missing frames in ``counter_gaps`` and is accepted (the frame itself is intact) unless
-more than ``max_wrong_counters`` of the recent frames had a jump (a broken counter),
-then frames are rejected until the count decays (-1 per in-sequence frame).
+missing frames in ``counter_gaps`` and adds 1 to a per-message score (capped at twice
+``max_wrong_counters``), an in-sequence frame subtracts 1; frames are accepted only
+while the score is at most ``max_wrong_counters`` (a broken counter is rejected until
+enough in-sequence frames have arrived).
 
 Time is passed in (``now``, s, any monotonic clock or simulated time): no clock here.
 """
@@ -100,16 +101,15 @@ class RxChecker:
             if jump == 0:
                 st.counter_errors += 1
                 return None
+            ms.last_counter = dec.counter
             if jump != 1:
                 st.counter_gaps += jump - 1
-                ms.wrong_counters += 1
-                ms.last_counter = dec.counter
-                if ms.wrong_counters > self.max_wrong_counters:
-                    ms.wrong_counters = self.max_wrong_counters + 1
-                    st.counter_errors += 1
-                    return None
+                ms.wrong_counters = min(ms.wrong_counters + 1, 2 * self.max_wrong_counters)
             elif ms.wrong_counters > 0:
                 ms.wrong_counters -= 1
+            if ms.wrong_counters > self.max_wrong_counters:
+                st.counter_errors += 1
+                return None
         ms.last_counter = dec.counter
         ms.last_rx = now
         ms.stale = False

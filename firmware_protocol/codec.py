@@ -93,14 +93,15 @@ def _spec(m: Any) -> MessageSpec:
     rng: dict[str, tuple[int, int]] = {}
     for s in m.signals:
         scale[s.name] = float(s.scale)
-        lo, hi = (
-            (-(1 << (s.length - 1)), (1 << (s.length - 1)) - 1)
-            if s.is_signed
-            else (
-                0,
-                (1 << s.length) - 1,
-            )
-        )
+        if s.is_signed:
+            lo, hi = -(1 << (s.length - 1)), (1 << (s.length - 1)) - 1
+        else:
+            lo, hi = 0, (1 << s.length) - 1
+        # the DBC's physical limits, as raw values, narrow the bit range
+        if s.minimum is not None:
+            lo = max(lo, round((s.minimum - s.offset) / s.scale))
+        if s.maximum is not None:
+            hi = min(hi, round((s.maximum - s.offset) / s.scale))
         rng[s.name] = (lo, hi)
     return MessageSpec(
         name=m.name,
@@ -133,8 +134,8 @@ def _raw(spec: MessageSpec, signal: str, value: float) -> int:
     if not math.isfinite(value):
         raise ValueError(f"{spec.name}.{signal}: value must be finite, got {value!r}")
     lo, hi = spec.raw_range[signal]
-    r = round(value / spec.scale[signal])
-    return lo if r < lo else hi if r > hi else int(r)
+    r = value / spec.scale[signal]
+    return lo if r <= lo else hi if r >= hi else int(round(r))
 
 
 def _clamp_int(spec: MessageSpec, signal: str, value: int) -> int:
@@ -231,7 +232,12 @@ def decode_raw(frame: Frame) -> tuple[MessageSpec, dict[str, int]]:
         raw = spec.dbc.decode(data, decode_choices=False, scaling=False)
     except Exception as exc:  # cantools raises several types; all mean "bad payload"
         raise DecodeError("payload", f"{spec.name}: {exc}") from None
-    return spec, {k: int(v) for k, v in raw.items()}
+    values = {k: int(v) for k, v in raw.items()}
+    for k, v in values.items():
+        lo, hi = spec.raw_range[k]
+        if not lo <= v <= hi:
+            raise DecodeError("payload", f"{spec.name}.{k}: raw {v} outside [{lo}, {hi}]")
+    return spec, values
 
 
 def _enum(cls: Callable[[int], Any], value: int, name: str) -> Any:
