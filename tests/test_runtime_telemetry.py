@@ -55,11 +55,12 @@ def test_state_health_params_and_liveliness_over_zenoh() -> None:
         assert _wait(lambda: tel._pubs["state"].matching_status)
         for k in range(20):
             tel.publish_state({"seq": k, "mode": "ACTIVE"})
-        tel.publish_health({"faults": []})
+        tel.publish_health({"faults": []}, lambda: {"loop": {"misses": 0}})
         assert _wait(lambda: len(got) >= 21)
         states = [m for key, m in got if key == keys("truckT")["state"]]
         assert [m["seq"] for m in states] == list(range(20))
-        assert any(key == "truckd/truckT/health" for key, _ in got)
+        health = [m for key, m in got if key == "truckd/truckT/health"]
+        assert health == [{"faults": [], "loop": {"misses": 0}}]
         replies = list(s.get("truckd/truckT/params", timeout=5.0))
         assert len(replies) == 1
         ok = replies[0].ok
@@ -104,7 +105,7 @@ def test_stalled_publisher_never_blocks_the_caller_and_drops_oldest() -> None:
     # with a blocking design the producer would hang behind the stuck put forever
     assert done.wait(10.0)
     assert tel.dropped == 1000 - 8
-    assert [m["seq"] for _, m in tel._q] == list(range(992, 1000))  # newest kept
+    assert [m["seq"] for _, m, _ in tel._q] == list(range(992, 1000))  # newest kept
     stuck.release.set()
     tel._stop = True
     tel._event.set()

@@ -18,6 +18,7 @@ SUBCOMMANDS: dict[str, str] = {
     "params": "truckd.cli.params",
     "simulate": "truckd.cli.simulate",
     "monitor": "truckd.cli.monitor",
+    "run": "truckd.cli.run",
 }
 
 

@@ -60,6 +60,9 @@ class RuntimeConfig:
     stop_ramp_v_per_s: float = spec(
         "voltage ramp towards 0 V in SAFE_STOP", unit="V/s", lo=0.0, lo_open=True, default=60.0
     )
+    fault_injection: bool = spec(
+        "accept injected faults on truckd/<vehicle_id>/inject (HIL tests only)", default=False
+    )
     supervisor: SupervisorConfig = spec("mode thresholds", default_factory=SupervisorConfig)
     telemetry: TelemetryConfig = spec("Zenoh publishing", default_factory=TelemetryConfig)
     recorder: RecorderConfig = spec("CSV log recording", default_factory=RecorderConfig)

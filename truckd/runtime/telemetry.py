@@ -26,6 +26,9 @@ from truckd.runtime.config import TelemetryConfig
 
 log = logging.getLogger("truckd.telemetry")
 
+Extra = Callable[[], dict[str, Any]] | None
+"""Computed on the publisher thread and merged into the message (costly statistics)."""
+
 
 def default_zenoh_config_path() -> Path:
     """The shipped Zenoh configuration (``config/zenoh.json5`` in the source tree)."""
@@ -77,7 +80,7 @@ class Telemetry:
         self.cfg = cfg
         self.keys = keys(vehicle_id)
         self._params = params
-        self._q: deque[tuple[str, dict[str, Any]]] = deque(maxlen=cfg.queue_size)
+        self._q: deque[tuple[str, dict[str, Any], Extra]] = deque(maxlen=cfg.queue_size)
         self._event = threading.Event()
         self._stop = False
         self._thread: threading.Thread | None = None
@@ -85,6 +88,7 @@ class Telemetry:
         self._pubs: dict[str, zenoh.Publisher] = {}
         self._token: zenoh.LivelinessToken | None = None
         self._queryable: zenoh.Queryable[None] | None = None
+        self._subs: list[zenoh.Subscriber[None]] = []
         self.dropped = 0  # messages dropped because the queue was full
         self.sent = 0
         self.errors = 0  # puts that raised
@@ -107,6 +111,21 @@ class Telemetry:
         self._thread.start()
         log.info("zenoh telemetry on %s (listen %s)", self.keys["state"], conf.get_json("listen"))
 
+    def subscribe(self, suffix: str, callback: Callable[[bytes], None]) -> None:
+        """Call ``callback(payload)`` for each sample on ``truckd/<vehicle_id>/<suffix>``
+        (on Zenoh's thread).  Only after :meth:`start`."""
+        if self._session is None:
+            raise RuntimeError("Telemetry.subscribe before start")
+        key = self.keys["state"].rsplit("/", 1)[0] + "/" + suffix
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            try:
+                callback(sample.payload.to_bytes())
+            except Exception as exc:  # never kill zenoh's callback thread
+                log.warning("%s handler failed: %s", key, exc)
+
+        self._subs.append(self._session.declare_subscriber(key, on_sample))
+
     def _on_query(self, query: zenoh.Query) -> None:
         self.queries += 1
         try:
@@ -114,19 +133,20 @@ class Telemetry:
         except Exception as exc:  # a bad query must not kill zenoh's callback thread
             log.warning("params query failed: %s", exc)
 
-    def _enqueue(self, kind: str, msg: dict[str, Any]) -> None:
+    def _enqueue(self, kind: str, msg: dict[str, Any], extra: Extra = None) -> None:
         if len(self._q) == self._q.maxlen:
             self.dropped += 1
-        self._q.append((kind, msg))
+        self._q.append((kind, msg, extra))
         self._event.set()
 
     def publish_state(self, msg: dict[str, Any]) -> None:
         """Queue one state message (never blocks)."""
         self._enqueue("state", msg)
 
-    def publish_health(self, msg: dict[str, Any]) -> None:
-        """Queue one health message (never blocks)."""
-        self._enqueue("health", msg)
+    def publish_health(self, msg: dict[str, Any], extra: Extra = None) -> None:
+        """Queue one health message (never blocks); ``extra()`` is merged into it on the
+        publisher thread."""
+        self._enqueue("health", msg, extra)
 
     def _run(self) -> None:
         while True:
@@ -134,10 +154,12 @@ class Telemetry:
             self._event.clear()
             while self._q:
                 try:
-                    kind, msg = self._q.popleft()
+                    kind, msg, extra = self._q.popleft()
                 except IndexError:
                     break
                 try:
+                    if extra is not None:
+                        msg.update(extra())
                     self._pubs[kind].put(json.dumps(msg, allow_nan=True))
                     self.sent += 1
                 except Exception as exc:
@@ -154,6 +176,9 @@ class Telemetry:
         if self._thread is not None:
             self._thread.join(timeout)
             self._thread = None
+        for sub in self._subs:
+            sub.undeclare()  # type: ignore[no-untyped-call]
+        self._subs.clear()
         if self._token is not None:
             self._token.undeclare()  # type: ignore[no-untyped-call]
             self._token = None

@@ -1,0 +1,33 @@
+"""``truckd run --config FILE [--backend sim|serial|can] [--duration S]``: the daemon."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from typing import Any
+
+from truckd.config.truck import load_config
+from truckd.errors import InputError
+from truckd.runtime.daemon import Daemon
+
+
+def add_subparser(sub: Any) -> None:
+    p = sub.add_parser("run", help="the daemon (as systemd starts it on the car)")
+    p.add_argument("--config", required=True, help="configuration file (truck.yaml)")
+    p.add_argument("--backend", choices=("sim", "serial", "can"), help="override runtime.backend")
+    p.add_argument("--duration", type=float, metavar="S", help="stop cleanly after S seconds")
+    p.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
+    p.set_defaults(run=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.duration is not None and not args.duration > 0:
+        raise InputError(f"--duration {args.duration}: expected a positive number of seconds")
+    logging.basicConfig(
+        level=args.log_level,
+        stream=sys.stderr,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
+    cfg = load_config(args.config)
+    return Daemon(cfg, args.backend, duration=args.duration).run()

@@ -1,0 +1,106 @@
+"""What the daemon has heard from the microcontroller: the latest checked messages, when
+they arrived, and the raw values the supervisor and the log need.  Pure bookkeeping: the
+caller passes the received messages and its clock's time."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+
+from firmware_protocol.messages import (
+    FirmwareFault,
+    FirmwareHeartbeat,
+    FirmwareState,
+    MotorFeedback,
+    RangeReading,
+    WheelEncoders,
+    ticks_delta,
+)
+from truckd.control.estimator import EncoderSample, RangeSample
+from truckd.io.port import Received
+
+NEVER = -math.inf
+
+
+def _finite(x: float, default: float) -> float:
+    return x if math.isfinite(x) else default
+
+
+@dataclass
+class SensorState:
+    """Latest sensor data and arrival times (s, caller's clock)."""
+
+    tick_len: float  # m per encoder tick
+    t_any: float = NEVER
+    t_encoder: float = NEVER
+    t_range: float = NEVER
+    encoders: list[EncoderSample] = field(default_factory=list)  # this cycle's, oldest first
+    ranges: list[RangeSample] = field(default_factory=list)  # this cycle's, oldest first
+    range_raw: float | None = None  # the last range value received (frozen check)
+    range_valid: bool = False
+    current: float = 0.0  # A
+    vbat: float = 0.0  # V
+    u_fw: float = 0.0  # V the driver applies (firmware's report)
+    fw_state: FirmwareState = FirmwareState.BOOT
+    fw_faults: FirmwareFault = FirmwareFault.NONE
+    x: float = 0.0  # m travelled (encoders)
+    invalid: int = 0  # messages with non-finite fields, ignored
+    _last_ticks: tuple[int, int] | None = None
+
+    def update(self, now: float, received: Iterable[Received]) -> None:
+        """Take this cycle's checked messages."""
+        self.encoders = []
+        self.ranges = []
+        for r in received:
+            m = r.msg
+            if isinstance(m, WheelEncoders):
+                self._encoders(r.t, m)
+            elif isinstance(m, RangeReading):
+                if not math.isfinite(m.distance) or not math.isfinite(m.sample_time):
+                    self.invalid += 1
+                    continue
+                self.ranges.append(RangeSample(m.gap, m.sample_time))
+                self.range_raw = m.distance if m.valid else None
+                self.range_valid = m.valid
+                self.t_range = r.t
+            elif isinstance(m, MotorFeedback):
+                self.current = _finite(m.current, self.current)
+                self.vbat = _finite(m.vbat, self.vbat)
+                self.u_fw = _finite(m.u_applied, self.u_fw)
+            elif isinstance(m, FirmwareHeartbeat):
+                self.fw_state, self.fw_faults = m.state, m.faults
+            self.t_any = max(self.t_any, r.t)
+
+    def _encoders(self, t: float, m: WheelEncoders) -> None:
+        if not math.isfinite(m.sample_time):
+            self.invalid += 1
+            return
+        left_ok, right_ok = not (m.status & 1), not (m.status & 2)
+        self.encoders.append(
+            EncoderSample(m.ticks_left, m.ticks_right, m.sample_time, left_ok, right_ok)
+        )
+        if self._last_ticks is not None:
+            d = [
+                ticks_delta(new, old)
+                for new, old, ok in zip(
+                    (m.ticks_left, m.ticks_right),
+                    self._last_ticks,
+                    (left_ok, right_ok),
+                    strict=True,
+                )
+                if ok
+            ]
+            if d:
+                self.x += self.tick_len * sum(d) / len(d)
+        self._last_ticks = (m.ticks_left, m.ticks_right)
+        if left_ok or right_ok:
+            self.t_encoder = t
+
+    def ages(self, now: float) -> dict[str, float]:
+        """Seconds since the last valid message of each kind (inf: never)."""
+        return {
+            "link": now - self.t_any,
+            "encoder": now - self.t_encoder,
+            "range": now - self.t_range,
+        }
