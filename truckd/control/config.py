@@ -1,0 +1,219 @@
+"""The ``control:`` section of the configuration: MPC, limits, feedforward, estimator.
+
+All SI.  The MPC's prediction step is the control period ``1 / rate_hz``; the daemon's
+loop must run at the same rate (the :class:`~truckd.control.controller.Controller`
+checks the time stamps it is given, not a clock).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from truckd.config.schema import spec
+
+
+@dataclass(frozen=True)
+class EstimatorConfig:
+    """Own speed from encoder ticks; gap and lead speed from the range sensor."""
+
+    ticks_modulo: int = spec(
+        "encoder counters wrap at this value (2^16 in the firmware protocol)",
+        lo=2,
+        hi=2**32,
+        default=65536,
+    )
+    sample_time_modulo: float = spec(
+        "the firmware's sample clock wraps at this value",
+        unit="s",
+        lo=0.0,
+        lo_open=True,
+        hi=1e9,
+        default=6.5536,
+    )
+    speed_accel_std: float = spec(
+        "own-speed filter: acceleration process noise (std)",
+        unit="m/s^2",
+        lo=0.0,
+        lo_open=True,
+        hi=1e3,
+        default=3.0,
+    )
+    encoder_timeout_s: float = spec(
+        "own speed is stale after this long without a new encoder sample",
+        unit="s",
+        lo=0.0,
+        lo_open=True,
+        hi=10.0,
+        default=0.05,
+    )
+    range_max: float = spec(
+        "range sensor maximum range: beyond it there is no lead",
+        unit="m",
+        lo=0.0,
+        lo_open=True,
+        hi=100.0,
+        default=4.0,
+    )
+    range_min: float = spec(
+        "range sensor minimum valid reading", unit="m", lo=0.0, hi=10.0, default=0.02
+    )
+    range_noise_std: float = spec(
+        "range measurement noise (std)", unit="m", lo=0.0, lo_open=True, hi=1.0, default=0.01
+    )
+    lead_accel_std: float = spec(
+        "lead filter: lead acceleration process noise (std)",
+        unit="m/s^2",
+        lo=0.0,
+        lo_open=True,
+        hi=1e3,
+        default=4.0,
+    )
+    gate_sigma: float = spec(
+        "innovation gate: readings further than this many std away are outliers",
+        lo=1.0,
+        hi=100.0,
+        default=4.0,
+    )
+    reinit_count: int = spec(
+        "consecutive mutually consistent outliers that mean a new target (cut-in)",
+        lo=1,
+        hi=100,
+        default=3,
+    )
+    lead_timeout_s: float = spec(
+        "the lead is lost after this long without an accepted reading",
+        unit="s",
+        lo=0.0,
+        lo_open=True,
+        hi=10.0,
+        default=0.3,
+    )
+
+
+@dataclass(frozen=True)
+class ControlConfig:
+    """Adaptive cruise control: MPC on the identified model plus friction feedforward."""
+
+    rate_hz: float = spec(
+        "control rate; the MPC step is its period", unit="Hz", lo=1.0, hi=2000.0, default=100.0
+    )
+    horizon: int = spec("MPC horizon (steps)", lo=2, hi=500, default=40)
+    d_0: float = spec(
+        "standstill gap of the spacing policy", unit="m", lo=0.0, hi=10.0, default=0.4
+    )
+    time_headway: float = spec(
+        "time headway h of the spacing policy d_ref = d_0 + h v",
+        unit="s",
+        lo=0.0,
+        hi=10.0,
+        default=0.6,
+    )
+    d_min: float = spec(
+        "hard minimum gap (soft constraint in the QP, heavy penalty)",
+        unit="m",
+        lo=0.0,
+        hi=10.0,
+        default=0.15,
+    )
+    v_set: float = spec("set speed (cruise)", unit="m/s", lo=0.0, hi=50.0, default=1.8)
+    v_max: float = spec("speed limit", unit="m/s", lo=0.0, lo_open=True, hi=50.0, default=2.4)
+    u_max: float = spec(
+        "armature voltage limit |u| (at most the battery voltage)",
+        unit="V",
+        lo=0.0,
+        lo_open=True,
+        hi=100.0,
+        default=7.2,
+    )
+    du_max: float = spec(
+        "armature voltage rate limit", unit="V/s", lo=0.0, lo_open=True, hi=1e6, default=400.0
+    )
+    q_gap: float = spec("weight on gap error^2", unit="1/m^2", lo=0.0, hi=1e9, default=30.0)
+    q_rel_speed: float = spec(
+        "weight on (v - v_lead)^2 when following", unit="s^2/m^2", lo=0.0, hi=1e9, default=5.0
+    )
+    q_cruise: float = spec(
+        "weight on (v - v_set)^2 when cruising",
+        unit="s^2/m^2",
+        lo=0.0,
+        lo_open=True,
+        hi=1e9,
+        default=20.0,
+    )
+    r_du: float = spec(
+        "weight on (u[k] - u[k-1])^2", unit="1/V^2", lo=0.0, lo_open=True, hi=1e9, default=0.02
+    )
+    slack_linear: float = spec(
+        "linear penalty on constraint slack (exact penalty)", lo=0.0, hi=1e12, default=1e4
+    )
+    slack_quadratic: float = spec(
+        "quadratic penalty on constraint slack", lo=0.0, lo_open=True, hi=1e12, default=1e5
+    )
+    follow_window: float = spec(
+        "follow the lead when gap - d_ref is below this (else cruise, min gap still kept)",
+        unit="m",
+        lo=0.0,
+        hi=100.0,
+        default=1.0,
+    )
+    on_lead_lost: str = spec(
+        "what to do when the lead is lost", choices=("cruise", "stop"), default="cruise"
+    )
+    time_budget_s: float = spec(
+        "solver time budget per cycle (OSQP time_limit)",
+        unit="s",
+        lo=0.0,
+        lo_open=True,
+        hi=1.0,
+        default=0.004,
+    )
+    max_iter: int = spec("OSQP iteration limit per solve", lo=1, hi=100_000, default=400)
+    eps: float = spec(
+        "OSQP absolute and relative tolerance", lo=0.0, lo_open=True, hi=1.0, default=1e-4
+    )
+    plan_hold_steps: int = spec(
+        "fallback: follow the shifted previous plan for at most this many cycles",
+        lo=0,
+        hi=1000,
+        default=10,
+    )
+    brake_gain: float = spec(
+        "fallback braking law: voltage per speed, u = -gain v",
+        unit="V s/m",
+        lo=0.0,
+        hi=1e3,
+        default=3.0,
+    )
+    feedforward: bool = spec("friction feedforward on", default=True)
+    stiction_margin: float = spec(
+        "breakaway feedforward as a multiple of the stiction voltage", lo=1.0, hi=3.0, default=1.1
+    )
+    moving_speed: float = spec(
+        "speed above which the truck counts as moving",
+        unit="m/s",
+        lo=0.0,
+        lo_open=True,
+        hi=1.0,
+        default=0.02,
+    )
+    start_voltage: float = spec(
+        "at rest, an MPC command above this starts the truck (breakaway feedforward)",
+        unit="V",
+        lo=0.0,
+        hi=10.0,
+        default=0.05,
+    )
+    estimator: EstimatorConfig = spec("state estimation", default_factory=EstimatorConfig)
+
+    @property
+    def period(self) -> float:
+        """Control period and MPC step (s)."""
+        return 1.0 / self.rate_hz
+
+    def validate(self) -> str | None:
+        """Cross-field checks."""
+        if self.d_min >= self.d_0:
+            return f"d_min ({self.d_min}) must be below the standstill gap d_0 ({self.d_0})"
+        if self.v_set > self.v_max:
+            return f"v_set ({self.v_set}) must not exceed v_max ({self.v_max})"
+        return None

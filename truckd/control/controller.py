@@ -1,0 +1,223 @@
+"""The controller the daemon calls once per cycle: plain inputs in, command out.
+
+Each cycle: estimate (encoders, range) -> choose the MPC mode -> friction feedforward
+-> warm-started MPC solve -> on failure the shifted previous plan, then a braking law ->
+limits (finite, ``|u| <= u_max``, rate limit, no reversing from rest).  Everything the
+supervisor and telemetry need comes back in :class:`ControlOutput`.  No clock: the
+caller passes its time ``t`` (s); the MPC step is the configured period.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from truckd.control.config import ControlConfig
+from truckd.control.estimator import EncoderSample, Estimate, Estimator, RangeSample
+from truckd.control.fallback import braking_law, held_plan_move, limit_command
+from truckd.control.feedforward import breakaway_feedforward, moving_feedforward
+from truckd.control.mpc import MpcSolver
+from truckd.control.qp import ControlModel, QpInputs, Vec
+
+
+@dataclass(frozen=True)
+class ControlOutput:
+    """One cycle's command and diagnostics.
+
+    ``u`` the voltage command (V, always finite and within limits); ``u_ff`` its
+    feedforward part, ``u_mpc`` the MPC's (or fallback's) part (V); ``mode`` one of
+    ``follow``, ``cruise``, ``stop``, ``fallback``; ``fallback_reason`` None when the MPC
+    solved; ``solver_status``, ``solve_iterations``, ``solve_time_s`` (OSQP's own time);
+    ``gap_ref`` (m, NaN without lead); the estimate; cumulative counters.
+    """
+
+    u: float
+    u_ff: float
+    u_mpc: float
+    mode: str
+    fallback_reason: str | None
+    solver_status: str
+    solve_iterations: int
+    solve_time_s: float
+    gap_ref: float
+    estimate: Estimate
+    solver_failures: int
+    fallback_cycles: int
+    overruns: int
+    braking_cycles: int
+
+
+class Controller:
+    """Adaptive cruise control for one truck (see module docstring)."""
+
+    def __init__(self, model: ControlModel, cfg: ControlConfig, ticks_per_rev: int = 512) -> None:
+        """``ticks_per_rev``: encoder ticks per wheel revolution (the ``link:`` section)."""
+        self.model = model
+        self.cfg = cfg
+        self.mpc = MpcSolver(model, cfg)
+        self.estimator = Estimator(cfg.estimator, model.params.r_w, ticks_per_rev)
+        self.u_max = min(cfg.u_max, model.params.V_batt)
+        self._du = cfg.du_max * cfg.period
+        self.u_prev = 0.0
+        self._plan: list[float] | None = None
+        self._plan_age = 0
+        self.solver_failures = 0
+        self.fallback_cycles = 0
+        self.overruns = 0
+        self.braking_cycles = 0
+
+    def step(
+        self,
+        t: float,
+        encoders: Sequence[EncoderSample] = (),
+        ranges: Sequence[RangeSample] = (),
+        v_lead_forecast: Sequence[float] | None = None,
+    ) -> ControlOutput:
+        """One cycle at caller time t (s) with the samples received since the last one
+        (oldest first).
+
+        ``v_lead_forecast`` (m/s per MPC step, optional) replaces the constant-speed
+        prediction of the lead, e.g. a plan received from the truck ahead.
+        """
+        for e in encoders:
+            self.estimator.update_encoders(t, e)
+        for r in ranges:
+            v_now, _ = self.estimator.speed(t)
+            self.estimator.update_range(t, r, v_now)
+        return self.control(self.estimator.estimate(t), v_lead_forecast)
+
+    def _lead_horizon(self, est: Estimate, forecast: Sequence[float] | None) -> Vec:
+        """Lead speed over the horizon: the forecast when given and finite, else constant."""
+        n = self.mpc.horizon
+        if forecast is not None and len(forecast) > 0:
+            f: Vec = np.asarray(forecast, dtype=float)[:n]
+            if f.size < n:
+                f = np.concatenate([f, np.full(n - f.size, f[-1])])
+            if np.all(np.isfinite(f)):
+                out: Vec = np.maximum(f, 0.0)
+                return out
+        return np.full(n, max(est.v_lead, 0.0))
+
+    def control(self, est: Estimate, forecast: Sequence[float] | None = None) -> ControlOutput:
+        """The control law on a given estimate (the estimator bypassed, for tests)."""
+        cfg, p = self.cfg, self.model.params
+        v = est.v if math.isfinite(est.v) else 0.0
+        if not est.speed_valid:
+            return self._fallback(est, v, "speed_stale", "fallback", math.nan, "not-run", 0, 0.0)
+        lead = est.lead_valid and math.isfinite(est.gap) and math.isfinite(est.v_lead)
+        gap_ref = cfg.d_0 + cfg.time_headway * v if lead else math.nan
+        if lead and est.gap - gap_ref < cfg.follow_window:
+            mode, v_ref = "follow", cfg.v_set
+        elif lead or cfg.on_lead_lost == "cruise":
+            mode, v_ref = "cruise", cfg.v_set
+        else:
+            mode, v_ref = "stop", 0.0
+        ff = (
+            moving_feedforward(p, self.model.effects, v, cfg.moving_speed)
+            if cfg.feedforward
+            else 0.0
+        )
+        u_prev_mpc = self.u_prev - ff
+        e0 = u_prev_mpc - p.K_v * p.omega(v)  # R_m i after the fast electrical transient
+        inp = QpInputs(
+            x0=np.array([e0, v, est.gap if lead else 0.0]),
+            u_prev=u_prev_mpc,
+            v_lead=self._lead_horizon(est, forecast) if lead else np.zeros(self.mpc.horizon),
+            lead=lead,
+            v_ref=v_ref,
+            v_cap=min(cfg.v_set, cfg.v_max) if mode == "follow" else cfg.v_max,
+            u_lo=-self.u_max - ff,
+            u_hi=self.u_max - ff,
+        )
+        res = self.mpc.solve("follow" if mode == "follow" else "cruise", inp)
+        if not res.ok:
+            self.solver_failures += 1
+            self.overruns += res.status == "overrun"
+            return self._fallback(
+                est,
+                v,
+                f"solver_{res.status}",
+                mode,
+                gap_ref,
+                res.status,
+                res.iterations,
+                res.run_time_s,
+                ff,
+            )
+        assert res.z is not None
+        self._plan = [float(x) for x in self.mpc.qp.plan(res.z)[0]]
+        self._plan_age = 0
+        return self._finish(
+            est, v, res.u0, ff, mode, None, res.status, res.iterations, res.run_time_s, gap_ref
+        )
+
+    def _fallback(
+        self,
+        est: Estimate,
+        v: float,
+        reason: str,
+        mode: str,
+        gap_ref: float,
+        status: str,
+        iters: int,
+        run_time: float,
+        ff: float = 0.0,
+    ) -> ControlOutput:
+        self.fallback_cycles += 1
+        self._plan_age += 1
+        held = (
+            None
+            if reason == "speed_stale"
+            else held_plan_move(self._plan, self._plan_age, self.cfg.plan_hold_steps)
+        )
+        if held is not None:
+            return self._finish(
+                est, v, held, ff, mode, reason + ":plan", status, iters, run_time, gap_ref
+            )
+        self.braking_cycles += 1
+        u = braking_law(v, self.cfg.brake_gain, self.u_max)
+        return self._finish(
+            est, v, u, 0.0, "fallback", reason + ":brake", status, iters, run_time, gap_ref
+        )
+
+    def _finish(
+        self,
+        est: Estimate,
+        v: float,
+        u_mpc: float,
+        ff: float,
+        mode: str,
+        reason: str | None,
+        status: str,
+        iters: int,
+        run_time: float,
+        gap_ref: float,
+    ) -> ControlOutput:
+        cfg = self.cfg
+        at_rest = abs(v) <= cfg.moving_speed
+        if cfg.feedforward and at_rest and u_mpc > cfg.start_voltage and mode != "fallback":
+            ff = breakaway_feedforward(self.model.params, self.model.effects, cfg.stiction_margin)
+        u = u_mpc + ff
+        if at_rest and u < 0.0:
+            u = 0.0  # never drive backwards from rest
+        u = limit_command(u, self.u_prev, self.u_max, self._du)
+        self.u_prev = u
+        return ControlOutput(
+            u=u,
+            u_ff=ff,
+            u_mpc=u - ff,
+            mode=mode,
+            fallback_reason=reason,
+            solver_status=status,
+            solve_iterations=iters,
+            solve_time_s=run_time,
+            gap_ref=gap_ref,
+            estimate=est,
+            solver_failures=self.solver_failures,
+            fallback_cycles=self.fallback_cycles,
+            overruns=self.overruns,
+            braking_cycles=self.braking_cycles,
+        )

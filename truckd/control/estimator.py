@@ -1,0 +1,269 @@
+"""State estimation: own speed from wheel encoders, gap and lead speed from the range sensor.
+
+Own speed: both wheels' 16-bit tick counters are unwrapped (modular difference), the
+travelled distance is the mean of the healthy wheels, and a position/velocity Kalman
+filter (white-acceleration model, measurement noise = one tick's quantisation,
+``tick^2 / 12``) turns the quantised distance into a speed.  Time steps come from the
+firmware's sample clock (which wraps), staleness from the caller's clock.
+
+Lead: a Kalman filter on ``[gap, v_lead]`` with ``gap' = v_lead - v_own`` and the lead's
+acceleration as white noise.  Readings outside the sensor's range or flagged invalid are
+"no target".  A reading whose innovation exceeds ``gate_sigma`` standard deviations is an
+outlier and rejected, unless ``reinit_count`` consecutive outliers agree with each other
+(a new target, e.g. a cut-in): then the filter restarts on them.  The lead is lost when no
+reading has been accepted for ``lead_timeout_s``.  Pure numerics: times are passed in.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+from truckd.control.config import EstimatorConfig
+
+
+@dataclass(frozen=True)
+class EncoderSample:
+    """One encoder message: raw wrapping counters, the firmware's sample time (s, wraps),
+    and whether each wheel's encoder is healthy."""
+
+    ticks_left: int
+    ticks_right: int
+    sample_time: float
+    left_ok: bool = True
+    right_ok: bool = True
+
+
+@dataclass(frozen=True)
+class RangeSample:
+    """One range message: distance (m) or None when the sensor reports no valid target;
+    the firmware's sample time (s, wraps)."""
+
+    distance: float | None
+    sample_time: float
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """Estimated state at the latest sample.
+
+    ``v`` own speed (m/s), ``speed_valid``; ``gap`` (m) and ``v_lead`` (m/s) predicted to
+    the latest encoder sample, ``lead_valid``, ``lead_status`` (``tracking``,
+    ``no_target``, ``timeout``, ``none``); ``gap_std`` (m); counters.
+    """
+
+    v: float
+    speed_valid: bool
+    gap: float
+    v_lead: float
+    lead_valid: bool
+    lead_status: str
+    gap_std: float
+    outliers: int
+    reinits: int
+    encoder_samples: int
+    range_samples: int
+
+
+def wrap_delta(new: int, old: int, modulo: int) -> int:
+    """Signed difference of two wrapping counters (result in ``[-modulo/2, modulo/2)``)."""
+    half = modulo // 2
+    return (new - old + half) % modulo - half
+
+
+def wrap_dt(new: float, old: float, modulo: float) -> float:
+    """Elapsed time between two stamps of a clock that wraps at ``modulo`` (s)."""
+    return (new - old) % modulo
+
+
+@dataclass
+class _Kf2:
+    """A 2-state Kalman filter ``[position-like, rate]`` (plain floats, no numpy)."""
+
+    x0: float = 0.0
+    x1: float = 0.0
+    p00: float = 1.0
+    p01: float = 0.0
+    p11: float = 1.0
+
+    def predict(self, dt: float, accel_std: float, u0: float = 0.0) -> None:
+        """``x0 += dt (x1 + u0)``; white acceleration noise of std accel_std."""
+        self.x0 += dt * (self.x1 + u0)
+        q = accel_std * accel_std
+        p00 = self.p00 + dt * (2.0 * self.p01 + dt * self.p11) + q * dt**4 / 4.0
+        p01 = self.p01 + dt * self.p11 + q * dt**3 / 2.0
+        self.p00, self.p01, self.p11 = p00, p01, self.p11 + q * dt * dt
+
+    def innovation(self, z: float, r: float) -> tuple[float, float]:
+        """Innovation and its variance for a measurement of x0 with variance r."""
+        return z - self.x0, self.p00 + r
+
+    def update(self, z: float, r: float) -> None:
+        """Measurement of x0 with variance r."""
+        y, s = self.innovation(z, r)
+        k0, k1 = self.p00 / s, self.p01 / s
+        self.x0 += k0 * y
+        self.x1 += k1 * y
+        p00 = (1.0 - k0) * self.p00
+        p01 = (1.0 - k0) * self.p01
+        p11 = self.p11 - k1 * self.p01
+        self.p00, self.p01, self.p11 = p00, p01, p11
+
+
+@dataclass
+class _SpeedState:
+    kf: _Kf2 = field(default_factory=_Kf2)
+    last: EncoderSample | None = None
+    t_last: float = -math.inf
+    distance: float = 0.0
+    samples: int = 0
+
+
+@dataclass
+class _LeadState:
+    kf: _Kf2 = field(default_factory=_Kf2)
+    active: bool = False
+    t_mcu: float = 0.0
+    t_accept: float = -math.inf
+    status: str = "none"
+    candidates: list[tuple[float, float]] = field(default_factory=list)
+    outliers: int = 0
+    reinits: int = 0
+    samples: int = 0
+
+
+class Estimator:
+    """Own speed and lead state from raw encoder and range samples (see module docstring)."""
+
+    def __init__(self, cfg: EstimatorConfig, wheel_radius: float, ticks_per_rev: int) -> None:
+        """``wheel_radius`` (m); ``ticks_per_rev`` the firmware's (``link:`` section)."""
+        if ticks_per_rev < 1:
+            raise ValueError(f"ticks_per_rev must be >= 1, got {ticks_per_rev}")
+        self.cfg = cfg
+        self.tick_len = 2.0 * math.pi * wheel_radius / ticks_per_rev
+        self._r_tick = self.tick_len * self.tick_len / 12.0
+        self._s = _SpeedState()
+        self._l = _LeadState()
+
+    # -- own speed ------------------------------------------------------------------
+    def update_encoders(self, t: float, s: EncoderSample) -> None:
+        """A new encoder sample received at caller time t (s)."""
+        st = self._s
+        st.samples += 1
+        if st.last is None:
+            st.last, st.t_last = s, t
+            st.kf = _Kf2(0.0, 0.0, self._r_tick, 0.0, 1.0)
+            return
+        dt = wrap_dt(s.sample_time, st.last.sample_time, self.cfg.sample_time_modulo)
+        if dt <= 0.0 or dt > 0.5 * self.cfg.sample_time_modulo:
+            return  # a repeated or out-of-order sample
+        m = self.cfg.ticks_modulo
+        deltas = []
+        if s.left_ok and st.last.left_ok:
+            deltas.append(wrap_delta(s.ticks_left, st.last.ticks_left, m))
+        if s.right_ok and st.last.right_ok:
+            deltas.append(wrap_delta(s.ticks_right, st.last.ticks_right, m))
+        st.last = s
+        if not deltas:
+            return  # no healthy wheel: the speed goes stale
+        st.distance += self.tick_len * sum(deltas) / len(deltas)
+        st.kf.predict(dt, self.cfg.speed_accel_std)
+        st.kf.update(st.distance, self._r_tick / len(deltas))
+        st.t_last = t
+
+    def speed(self, t: float) -> tuple[float, bool]:
+        """Own speed (m/s) and whether it is fresh at caller time t (s)."""
+        st = self._s
+        fresh = st.samples >= 2 and (t - st.t_last) <= self.cfg.encoder_timeout_s
+        return st.kf.x1, fresh
+
+    # -- lead -------------------------------------------------------------------------
+    def update_range(self, t: float, r: RangeSample, v_own: float) -> None:
+        """A new range sample received at caller time t (s); v_own the own speed (m/s)."""
+        cfg, ld = self.cfg, self._l
+        ld.samples += 1
+        d = r.distance
+        if d is None or not math.isfinite(d) or not (cfg.range_min <= d <= cfg.range_max):
+            if ld.active:
+                self._predict_lead(r.sample_time, v_own)
+            ld.status = "no_target"
+            ld.candidates.clear()
+            return
+        var_r = cfg.range_noise_std**2
+        if not ld.active:
+            self._start(t, r.sample_time, d, v_own)
+            return
+        self._predict_lead(r.sample_time, v_own)
+        y, s = ld.kf.innovation(d, var_r)
+        if y * y <= cfg.gate_sigma**2 * s:
+            ld.kf.update(d, var_r)
+            ld.t_accept, ld.status = t, "tracking"
+            ld.candidates.clear()
+            return
+        ld.outliers += 1
+        self._consider_new_target(t, r.sample_time, d, v_own)
+
+    def _start(self, t: float, t_mcu: float, d: float, v_own: float) -> None:
+        ld = self._l
+        ld.kf = _Kf2(d, v_own, self.cfg.range_noise_std**2, 0.0, 1.0)
+        ld.active, ld.t_mcu, ld.t_accept, ld.status = True, t_mcu, t, "tracking"
+        ld.candidates.clear()
+
+    def _consider_new_target(self, t: float, t_mcu: float, d: float, v_own: float) -> None:
+        """Outliers that agree with each other for ``reinit_count`` samples: a new target."""
+        ld, cfg = self._l, self.cfg
+        tol = 3.0 * cfg.range_noise_std + 0.05
+        if ld.candidates:
+            t_prev, d_prev = ld.candidates[-1]
+            dt = wrap_dt(t_mcu, t_prev, cfg.sample_time_modulo)
+            # Consistent if it moved as a target at most 3 m/s faster or slower would.
+            if abs(d - d_prev) > tol + 3.0 * dt:
+                ld.candidates.clear()
+        ld.candidates.append((t_mcu, d))
+        if len(ld.candidates) >= cfg.reinit_count:
+            (t0, d0), (t1, d1) = ld.candidates[0], ld.candidates[-1]
+            span = wrap_dt(t1, t0, cfg.sample_time_modulo)
+            closing = (d1 - d0) / span if span > 0.0 else 0.0
+            self._start(t, t_mcu, d1, v_own + closing)
+            ld.kf.p11 = 0.5**2
+            ld.reinits += 1
+
+    def _predict_lead(self, t_mcu: float, v_own: float) -> None:
+        ld = self._l
+        dt = wrap_dt(t_mcu, ld.t_mcu, self.cfg.sample_time_modulo)
+        if 0.0 < dt < 0.5 * self.cfg.sample_time_modulo:
+            ld.kf.predict(dt, self.cfg.lead_accel_std, -v_own)
+            ld.kf.x1 = max(ld.kf.x1, 0.0)  # the lead does not reverse
+            ld.t_mcu = t_mcu
+
+    def estimate(self, t: float) -> Estimate:
+        """The state at caller time t (s): gap predicted to the latest encoder sample."""
+        v, speed_ok = self.speed(t)
+        ld = self._l
+        lost = (t - ld.t_accept) > self.cfg.lead_timeout_s
+        valid = ld.active and not lost
+        if ld.active and lost:
+            ld.active = False
+        status = ld.status if valid else ("timeout" if ld.status == "tracking" else ld.status)
+        gap, v_lead, std = math.nan, math.nan, math.nan
+        if valid:
+            gap, v_lead = ld.kf.x0, ld.kf.x1
+            last = self._s.last
+            if last is not None:
+                dt = wrap_dt(last.sample_time, ld.t_mcu, self.cfg.sample_time_modulo)
+                if dt < 0.5:
+                    gap += dt * (v_lead - v)
+            std = math.sqrt(max(ld.kf.p00, 0.0))
+        return Estimate(
+            v=v,
+            speed_valid=speed_ok,
+            gap=gap,
+            v_lead=v_lead,
+            lead_valid=valid,
+            lead_status=status if status != "tracking" or valid else "timeout",
+            gap_std=std,
+            outliers=ld.outliers,
+            reinits=ld.reinits,
+            encoder_samples=self._s.samples,
+            range_samples=ld.samples,
+        )

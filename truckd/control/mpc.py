@@ -1,0 +1,127 @@
+"""Warm-started OSQP MPC: set up once per mode, vectors updated every cycle.
+
+One OSQP instance per cost mode (``follow``, ``cruise``) is set up at construction;
+each cycle only ``q``, ``l``, ``u`` are updated and the solver is warm started from the
+previous solution shifted one step.  The status is checked every cycle: anything but
+``solved`` (or ``solved inaccurate``, counted) within the time budget (OSQP's
+``time_limit``; the solver's own run time is checked as well) is a failure the caller
+must handle (see
+:class:`truckd.control.controller.Controller`).  No clock here: times come from OSQP.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import osqp
+import scipy.sparse as sp
+
+from truckd.control.config import ControlConfig
+from truckd.control.qp import MODES, ControlModel, QpBuilder, QpInputs, Vec
+
+
+@dataclass(frozen=True)
+class MpcResult:
+    """Outcome of one solve.
+
+    ``ok`` solved within budget with a finite solution; ``u0`` first move (V, NaN when
+    not ok); ``status`` OSQP's status text (or ``"overrun"``/``"non-finite"``);
+    ``iterations``; ``run_time_s`` OSQP's own measured update+solve time (s).
+    """
+
+    ok: bool
+    u0: float
+    status: str
+    iterations: int
+    run_time_s: float
+    z: Vec | None
+
+
+_USABLE = (osqp.SolverStatus.OSQP_SOLVED, osqp.SolverStatus.OSQP_SOLVED_INACCURATE)
+"""Statuses whose solution is used.  ``solved inaccurate`` met OSQP's relaxed (10x)
+tolerances at the iteration limit: good to about 1e-3 V, counted in ``inaccurate``."""
+
+
+class MpcSolver:
+    """The MPC QP with a persistent, warm-started OSQP solver per mode."""
+
+    def __init__(self, model: ControlModel, cfg: ControlConfig) -> None:
+        self.cfg = cfg
+        self.qp = QpBuilder(model, cfg)
+        self._solvers: dict[str, osqp.OSQP] = {}
+        lay = self.qp.lay
+        zero_inp = QpInputs(
+            x0=np.zeros(3),
+            u_prev=0.0,
+            v_lead=np.zeros(lay.N),
+            lead=False,
+            v_ref=0.0,
+            v_cap=cfg.v_max,
+            u_lo=-cfg.u_max,
+            u_hi=cfg.u_max,
+        )
+        for mode in MODES:
+            q, lo, hi = self.qp.vectors(mode, zero_inp)
+            s = osqp.OSQP()
+            s.setup(
+                sp.triu(self.qp.P[mode], format="csc"),
+                q,
+                self.qp.A,
+                lo,
+                hi,
+                verbose=False,
+                eps_abs=cfg.eps,
+                eps_rel=cfg.eps,
+                max_iter=cfg.max_iter,
+                time_limit=cfg.time_budget_s,
+                warm_starting=True,
+                polishing=False,
+                check_termination=5,
+                adaptive_rho_interval=25,
+            )
+            self._solvers[mode] = s
+        self._last_z: Vec | None = None
+        self.inaccurate = 0
+        """Solutions used although OSQP reported ``solved inaccurate``."""
+
+    @property
+    def horizon(self) -> int:
+        """Steps in the horizon."""
+        return self.qp.lay.N
+
+    def reset(self) -> None:
+        """Forget the previous solution (no warm start next time)."""
+        self._last_z = None
+
+    def solve(self, mode: str, inp: QpInputs, warm: bool = True) -> MpcResult:
+        """Update the vectors, warm start, solve, check.  Never raises on solver trouble."""
+        s = self._solvers[mode]
+        q, lo, hi = self.qp.vectors(mode, inp)
+        if not (np.all(np.isfinite(q)) and np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
+            return MpcResult(False, math.nan, "non-finite-input", 0, 0.0, None)
+        s.update(q=q, l=lo, u=hi)
+        if warm and self._last_z is not None:
+            s.warm_start(x=self.qp.shift(self._last_z))
+        elif not warm:
+            s.warm_start(x=np.zeros(self.qp.lay.nz), y=np.zeros(self.qp.lay.m))
+        try:
+            res = s.solve(raise_error=False)
+        except (ValueError, osqp.OSQPException) as exc:  # defensive: bindings may raise
+            return MpcResult(False, math.nan, f"error: {exc}", 0, 0.0, None)
+        info = res.info
+        run_time = float(getattr(info, "run_time", 0.0))
+        iters = int(info.iter)
+        status = str(info.status)
+        if info.status_val not in _USABLE:
+            return MpcResult(False, math.nan, status, iters, run_time, None)
+        z = np.array(res.x, dtype=float)
+        if not np.all(np.isfinite(z)):
+            return MpcResult(False, math.nan, "non-finite", iters, run_time, None)
+        if run_time > self.cfg.time_budget_s:
+            return MpcResult(False, math.nan, "overrun", iters, run_time, z)
+        self._last_z = z
+        if info.status_val != osqp.SolverStatus.OSQP_SOLVED:
+            self.inaccurate += 1
+        return MpcResult(True, self.qp.first_move(z), status, iters, run_time, z)

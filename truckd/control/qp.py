@@ -1,0 +1,323 @@
+"""The MPC's quadratic program: prediction model, cost, constraints (pure numerics).
+
+Prediction model (friction-free; the feedforward cancels friction): states
+``x = [e, v, d]`` (``e = R_m i`` the armature current as its resistive drop, V; speed
+m/s; gap m), inputs the armature voltage u
+(V) and the lead speed ``v_lead`` (m/s), continuous time
+
+    L_m di/dt = u - R_m i - K_v v / rho
+    dv/dt     = rho (K_T i - b v / rho) / J_S          (rho = r_w / (n_g n_fd))
+    dd/dt     = v_lead - v
+
+discretised exactly (zero-order hold over the control period, :func:`truckd.model.linear.zoh`).
+The electrical pole (``L_m/R_m`` about 0.5 ms) is kept: the exact ZOH handles the
+stiffness, and the current state costs three variables per step, so no reduction is needed.
+
+Decision vector ``z = [x_0 .. x_N, u_0 .. u_{N-1}, sg_1 .. sg_N, sv_1 .. sv_N]`` with
+slacks ``sg`` (minimum gap) and ``sv`` (speed limits).  Cost (OSQP form
+``1/2 z'Pz + q'z``), per mode:
+
+* ``follow``: ``sum_k q_gap (d_k - h v_k - d_0)^2 + q_rel (v_k - v_lead_k)^2``;
+* ``cruise``: ``sum_k q_cruise (v_k - v_ref)^2``;
+* both: ``r_du (u_k - u_{k-1})^2`` (``u_{-1}`` the previous command), a terminal cost
+  from the discrete algebraic Riccati equation of the unconstrained problem (so the
+  finite horizon matches the infinite one when no constraint is active), and
+  ``slack_linear s + slack_quadratic s^2`` on every slack.
+
+Constraints: dynamics; ``x_0`` = the estimate; ``u_lo <= u_k <= u_hi``; ``|u_k - u_{k-1}|
+<= du_max dt``; ``d_k + sg_k >= d_min`` (only with a lead); ``v_k - sv_k <= v_cap``,
+``v_k + sv_k >= 0`` (no reversing); slacks >= 0.  Every constraint on states is soft, the
+hard ones (input bounds, rate) are satisfied by holding the previous command, so the QP is
+never infeasible.  Only ``q``, ``l`` and ``u`` change from cycle to cycle.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.linalg
+import scipy.sparse as sp
+from numpy.typing import NDArray
+
+from truckd.control.config import ControlConfig
+from truckd.model.effects import Effects
+from truckd.model.linear import zoh
+from truckd.model.params import VehicleParams
+
+Vec = NDArray[np.float64]
+INF = 1e30
+"""Unbounded constraint side (OSQP clips at its own infinity)."""
+
+MODES: tuple[str, ...] = ("follow", "cruise")
+NX = 3
+I_CUR, I_V, I_D = 0, 1, 2
+
+
+@dataclass(frozen=True)
+class ControlModel:
+    """What the controller believes about the truck: seed parameters plus known effects."""
+
+    params: VehicleParams
+    effects: Effects = field(default_factory=Effects)
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """Discrete prediction model ``x+ = Ad x + bu u + bl v_lead`` over ``dt`` (s)."""
+
+    Ad: Vec
+    bu: Vec
+    bl: Vec
+    dt: float
+
+
+def prediction_model(model: ControlModel, dt: float) -> Prediction:
+    """Exact ZOH of the friction-free model (with the known viscous friction)."""
+    p = model.params
+    rho = p.ratio
+    b = model.effects.viscous_friction
+    # States [e = R_m i (V), v, d]: the current as its resistive voltage drop, so that
+    # every state and the input are O(1) in their units (OSQP converges 3x faster).
+    a = np.array(
+        [
+            [-p.R_m / p.L_m, -p.R_m * p.K_v / (p.L_m * rho), 0.0],
+            [rho * p.K_T / (p.J_S * p.R_m), -b / p.J_S, 0.0],
+            [0.0, -1.0, 0.0],
+        ]
+    )
+    bmat = np.array([[p.R_m / p.L_m, 0.0], [0.0, 0.0], [0.0, 1.0]])
+    ad, bd = zoh(a, bmat, dt)
+    return Prediction(Ad=ad, bu=bd[:, 0].copy(), bl=bd[:, 1].copy(), dt=dt)
+
+
+def steady_state(model: ControlModel, v: float) -> tuple[float, float]:
+    """Friction-free steady state at speed v (m/s): ``(R_m i (V), voltage (V))``."""
+    p = model.params
+    omega = p.omega(v)
+    e = p.R_m * model.effects.viscous_friction * omega / p.K_T
+    return e, e + p.K_v * omega
+
+
+def stage_weight(cfg: ControlConfig, mode: str) -> Vec:
+    """State weight matrix Q (3x3) of one mode, in error coordinates."""
+    q = np.zeros((NX, NX))
+    if mode == "follow":
+        c = np.array([0.0, -cfg.time_headway, 1.0])
+        q += cfg.q_gap * np.outer(c, c)
+        q[I_V, I_V] += cfg.q_rel_speed
+    elif mode == "cruise":
+        q[I_V, I_V] = cfg.q_cruise
+    else:
+        raise ValueError(f"unknown MPC mode {mode!r}")
+    return q
+
+
+def terminal_weight(pred: Prediction, q: Vec, r_du: float) -> Vec:
+    """DARE solution (4x4) for ``xi = [x; u_prev]`` with input ``du``.
+
+    States no weight reaches (the gap while cruising) are left out of the Riccati
+    equation and get zero terminal weight.
+    """
+    a = np.zeros((NX + 1, NX + 1))
+    a[:NX, :NX] = pred.Ad
+    a[:NX, NX] = pred.bu
+    a[NX, NX] = 1.0
+    b = np.zeros((NX + 1, 1))
+    b[:NX, 0] = pred.bu
+    b[NX, 0] = 1.0
+    qa = np.zeros((NX + 1, NX + 1))
+    qa[:NX, :NX] = q
+    keep = [I_CUR, I_V, NX] if q[I_D, I_D] == 0.0 else [I_CUR, I_V, I_D, NX]
+    ix = np.ix_(keep, keep)
+    sub = scipy.linalg.solve_discrete_are(a[ix], b[keep], qa[ix], np.array([[r_du]]))
+    out = np.zeros((NX + 1, NX + 1))
+    out[ix] = 0.5 * (sub + sub.T)
+    return out
+
+
+class Layout:
+    """Index bookkeeping of the decision vector and the constraint rows."""
+
+    def __init__(self, n: int) -> None:
+        self.N = n
+        self.nz = NX * (n + 1) + 3 * n
+        self.u0 = NX * (n + 1)
+        self.sg0 = self.u0 + n
+        self.sv0 = self.sg0 + n
+        # Constraint row blocks.
+        self.r_init = 0
+        self.r_dyn = NX
+        self.r_u = self.r_dyn + NX * n
+        self.r_du = self.r_u + n
+        self.r_gap = self.r_du + (n - 1)
+        self.r_vhi = self.r_gap + n
+        self.r_vlo = self.r_vhi + n
+        self.r_slack = self.r_vlo + n
+        self.m = self.r_slack + 2 * n
+
+    def x(self, k: int) -> int:
+        """Index of ``x_k[0]``."""
+        return NX * k
+
+
+def constraint_matrix(pred: Prediction, lay: Layout) -> sp.csc_matrix:
+    """The constant constraint matrix A (rows as in :class:`Layout`)."""
+    n = lay.N
+    a = sp.lil_matrix((lay.m, lay.nz))
+    for j in range(NX):
+        a[lay.r_init + j, j] = 1.0
+    for k in range(n):
+        r = lay.r_dyn + NX * k
+        for i in range(NX):
+            for j in range(NX):
+                if pred.Ad[i, j] != 0.0:
+                    a[r + i, lay.x(k) + j] = pred.Ad[i, j]
+            a[r + i, lay.x(k + 1) + i] = -1.0
+            if pred.bu[i] != 0.0:
+                a[r + i, lay.u0 + k] = pred.bu[i]
+        a[lay.r_u + k, lay.u0 + k] = 1.0
+        if k >= 1:
+            a[lay.r_du + k - 1, lay.u0 + k] = 1.0
+            a[lay.r_du + k - 1, lay.u0 + k - 1] = -1.0
+        a[lay.r_gap + k, lay.x(k + 1) + I_D] = 1.0
+        a[lay.r_gap + k, lay.sg0 + k] = 1.0
+        a[lay.r_vhi + k, lay.x(k + 1) + I_V] = 1.0
+        a[lay.r_vhi + k, lay.sv0 + k] = -1.0
+        a[lay.r_vlo + k, lay.x(k + 1) + I_V] = 1.0
+        a[lay.r_vlo + k, lay.sv0 + k] = 1.0
+        a[lay.r_slack + k, lay.sg0 + k] = 1.0
+        a[lay.r_slack + n + k, lay.sv0 + k] = 1.0
+    return sp.csc_matrix(a)
+
+
+def cost_matrix(cfg: ControlConfig, lay: Layout, q: Vec, pf: Vec) -> sp.csc_matrix:
+    """The constant, symmetric cost matrix P of one mode (full, not triangular)."""
+    n = lay.N
+    p = sp.lil_matrix((lay.nz, lay.nz))
+    for k in range(1, n):
+        s = lay.x(k)
+        for i in range(NX):
+            for j in range(NX):
+                if q[i, j] != 0.0:
+                    p[s + i, s + j] += 2.0 * q[i, j]
+    # Rate penalty on u_0 - u_prev and u_k - u_{k-1}.
+    r = cfg.r_du
+    for k in range(n):
+        p[lay.u0 + k, lay.u0 + k] += 2.0 * r
+        if k >= 1:
+            p[lay.u0 + k - 1, lay.u0 + k - 1] += 2.0 * r
+            p[lay.u0 + k, lay.u0 + k - 1] += -2.0 * r
+            p[lay.u0 + k - 1, lay.u0 + k] += -2.0 * r
+    # Terminal cost on [x_N, u_{N-1}].
+    idx = [lay.x(n) + j for j in range(NX)] + [lay.u0 + n - 1]
+    for a_, ia in enumerate(idx):
+        for b_, ib in enumerate(idx):
+            if pf[a_, b_] != 0.0:
+                p[ia, ib] += 2.0 * pf[a_, b_]
+    for k in range(2 * n):
+        p[lay.sg0 + k, lay.sg0 + k] += 2.0 * cfg.slack_quadratic
+    return sp.csc_matrix(p)
+
+
+@dataclass(frozen=True)
+class QpInputs:
+    """What changes from cycle to cycle.
+
+    ``x0`` = [R_m i (V), v (m/s), d (m)]; ``u_prev`` the previous command's MPC part (V);
+    ``v_lead`` lead speed over the horizon (N values, m/s); ``lead`` whether a lead is
+    tracked (enables the minimum gap); ``v_ref`` cruise speed (m/s); ``v_cap`` speed limit
+    (m/s); ``u_lo``/``u_hi`` bounds on the MPC part of the voltage (V).
+    """
+
+    x0: Vec
+    u_prev: float
+    v_lead: Vec
+    lead: bool
+    v_ref: float
+    v_cap: float
+    u_lo: float
+    u_hi: float
+
+
+class QpBuilder:
+    """Builds P and A once per mode, and q, l, u every cycle."""
+
+    def __init__(self, model: ControlModel, cfg: ControlConfig) -> None:
+        self.model = model
+        self.cfg = cfg
+        self.pred = prediction_model(model, cfg.period)
+        self.lay = Layout(cfg.horizon)
+        self.A = constraint_matrix(self.pred, self.lay)
+        self.Q = {m: stage_weight(cfg, m) for m in MODES}
+        self.Pf = {m: terminal_weight(self.pred, self.Q[m], cfg.r_du) for m in MODES}
+        self.P = {m: cost_matrix(cfg, self.lay, self.Q[m], self.Pf[m]) for m in MODES}
+
+    def vectors(self, mode: str, inp: QpInputs) -> tuple[Vec, Vec, Vec]:
+        """``(q, l, u)`` for this cycle."""
+        cfg, lay, n = self.cfg, self.lay, self.lay.N
+        q = np.zeros(lay.nz)
+        vl = np.asarray(inp.v_lead, dtype=float)
+        ks = np.arange(1, n)
+        if mode == "follow":
+            # q_gap (c'x - d_0)^2 + q_rel (v - vl)^2, c = [0, -h, 1].
+            g = -2.0 * cfg.q_gap * cfg.d_0
+            q[NX * ks + I_V] += g * (-cfg.time_headway)
+            q[NX * ks + I_D] += g
+            q[NX * ks + I_V] += -2.0 * cfg.q_rel_speed * vl[ks]
+            v_end = float(vl[n - 1])
+            d_end = cfg.d_0 + cfg.time_headway * v_end
+        else:
+            q[NX * ks + I_V] += -2.0 * cfg.q_cruise * inp.v_ref
+            v_end, d_end = inp.v_ref, 0.0
+        q[lay.u0] += -2.0 * cfg.r_du * inp.u_prev
+        i_ss, u_ss = steady_state(self.model, v_end)
+        xi_ss = np.array([i_ss, v_end, d_end, u_ss])
+        term = -2.0 * self.Pf[mode] @ xi_ss
+        q[lay.x(n) : lay.x(n) + NX] += term[:NX]
+        q[lay.u0 + n - 1] += term[NX]
+        q[lay.sg0 :] += cfg.slack_linear
+
+        lo = np.empty(lay.m)
+        hi = np.empty(lay.m)
+        lo[:NX] = hi[:NX] = inp.x0
+        dyn = -np.outer(vl, self.pred.bl).ravel()
+        lo[lay.r_dyn : lay.r_u] = hi[lay.r_dyn : lay.r_u] = dyn
+        lo[lay.r_u : lay.r_du] = inp.u_lo
+        hi[lay.r_u : lay.r_du] = inp.u_hi
+        du = cfg.du_max * cfg.period
+        lo0 = max(inp.u_prev - du, inp.u_lo)
+        hi0 = min(inp.u_prev + du, inp.u_hi)
+        if lo0 > hi0:  # the previous command lies outside the new bounds: nearest bound
+            lo0 = hi0 = min(max(inp.u_prev, inp.u_lo), inp.u_hi)
+        lo[lay.r_u], hi[lay.r_u] = lo0, hi0
+        lo[lay.r_du : lay.r_gap] = -du
+        hi[lay.r_du : lay.r_gap] = du
+        lo[lay.r_gap : lay.r_vhi] = cfg.d_min if inp.lead else -INF
+        hi[lay.r_gap : lay.r_vhi] = INF
+        lo[lay.r_vhi : lay.r_vlo] = -INF
+        hi[lay.r_vhi : lay.r_vlo] = inp.v_cap
+        lo[lay.r_vlo : lay.r_slack] = 0.0
+        hi[lay.r_vlo : lay.r_slack] = INF
+        lo[lay.r_slack :] = 0.0
+        hi[lay.r_slack :] = INF
+        return q, lo, hi
+
+    def first_move(self, z: Vec) -> float:
+        """``u_0`` (V) from a solution vector."""
+        return float(z[self.lay.u0])
+
+    def shift(self, z: Vec) -> Vec:
+        """A solution shifted one step ahead (the last step repeated): the warm start."""
+        lay, n = self.lay, self.lay.N
+        out = z.copy()
+        out[: NX * n] = z[NX : NX * (n + 1)]
+        for start in (lay.u0, lay.sg0, lay.sv0):
+            out[start : start + n - 1] = z[start + 1 : start + n]
+        return out
+
+    def plan(self, z: Vec) -> tuple[Vec, Vec, Vec]:
+        """``(u (N,), v (N+1,), d (N+1,))`` of a solution."""
+        lay, n = self.lay, self.lay.N
+        xs = z[: NX * (n + 1)].reshape(n + 1, NX)
+        return z[lay.u0 : lay.u0 + n].copy(), xs[:, I_V].copy(), xs[:, I_D].copy()

@@ -1,0 +1,181 @@
+"""Closed-loop runner: the controller drives the simulated truck through the simulated
+firmware and the real protocol on an in-process link.
+
+Each cycle (period ``1 / control.rate_hz``): poll the checked messages, run the
+:class:`~truckd.control.controller.Controller`, send ``MOTOR_CMD`` (and the heartbeat
+every 100 ms), then let the simulated firmware advance the plant by one period.  In
+simulated time by default (as fast as the machine goes); ``realtime=True`` paces each
+cycle on absolute wall-clock deadlines.  The runner owns the clocks: the step time
+(poll + estimate + solve + command) is measured with ``time.perf_counter``; the solve
+time is OSQP's own.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from firmware_protocol.messages import (
+    CompanionHeartbeat,
+    CompanionState,
+    MotorCommand,
+    RangeReading,
+    WheelEncoders,
+)
+from truckd.control.config import ControlConfig
+from truckd.control.controller import Controller
+from truckd.control.estimator import EncoderSample, RangeSample
+from truckd.control.qp import ControlModel
+from truckd.io.port import companion_port
+from truckd.model.params import VehicleParams
+from truckd.sim.firmware import FirmwareSimConfig, encoder_ticks_per_rev, simulated_truck
+from truckd.sim.plant import Plant, PlantConfig
+from truckd.sim.scenarios import Scenario, World
+
+STEADY_AFTER_S = 5.0
+"""``gap_error_rms_m`` is taken after this time (CONTRACTS.md section 1)."""
+
+
+@dataclass
+class Trace:
+    """Time series of a run (SI): true gap and speeds, reference gap, command, mode."""
+
+    t: list[float] = field(default_factory=list)
+    gap: list[float] = field(default_factory=list)
+    gap_ref: list[float] = field(default_factory=list)
+    v: list[float] = field(default_factory=list)
+    v_lead: list[float] = field(default_factory=list)
+    u: list[float] = field(default_factory=list)
+    u_ff: list[float] = field(default_factory=list)
+    mode: list[str] = field(default_factory=list)
+    gap_est: list[float] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class SimSetup:
+    """Everything a run needs: the plant's truth and the controller's belief."""
+
+    plant_params: VehicleParams
+    plant_config: PlantConfig
+    control: ControlConfig
+    model: ControlModel
+    ticks_per_rev: int = 512
+    firmware: FirmwareSimConfig | None = None
+
+
+def _percentile(xs: list[float], q: float) -> float:
+    return float(np.percentile(xs, q)) if xs else math.nan
+
+
+def run_scenario(
+    sc: Scenario, setup: SimSetup, duration: float | None = None, realtime: bool = False
+) -> tuple[dict[str, Any], Trace]:
+    """Run one scenario; returns the contract metrics (CONTRACTS.md section 1) and a trace."""
+    cfg = setup.control
+    dt = cfg.period
+    dur = sc.duration if duration is None else duration
+    world = World(sc)
+    ticks = encoder_ticks_per_rev(setup.plant_config.encoder_ticks_per_rev, setup.ticks_per_rev)
+    fw_cfg = setup.firmware or FirmwareSimConfig(
+        ticks_per_rev=ticks, range_max=cfg.estimator.range_max
+    )
+    plant = Plant(setup.plant_params, setup.plant_config)
+    plant.reset(v=sc.v0)
+    link, fw, _wire = simulated_truck(plant, world.range_fn, mode="frames", config=fw_cfg)
+    port = companion_port(link, clock=lambda: plant.t)
+    ctrl = Controller(setup.model, cfg, ticks_per_rev=fw_cfg.ticks_per_rev)
+    tr = Trace()
+    solve_us: list[float] = []
+    step_us: list[float] = []
+    deadline_misses = 0
+    n_cycles = max(1, round(dur / dt))
+    hb_every = max(1, round(0.1 / dt))
+    wall0 = time.monotonic()
+    for k in range(n_cycles):
+        t = plant.t
+        t0 = time.perf_counter()
+        encs: list[EncoderSample] = []
+        rngs: list[RangeSample] = []
+        for r in port.poll():
+            m = r.msg
+            if isinstance(m, WheelEncoders):
+                encs.append(
+                    EncoderSample(
+                        m.ticks_left,
+                        m.ticks_right,
+                        m.sample_time,
+                        left_ok=not m.status & 1,
+                        right_ok=not m.status & 2,
+                    )
+                )
+            elif isinstance(m, RangeReading):
+                rngs.append(RangeSample(m.gap, m.sample_time))
+        out = ctrl.step(t, encs, rngs)
+        port.send(MotorCommand(voltage=out.u, enable=True))
+        if k % hb_every == 0:
+            port.send(CompanionHeartbeat(CompanionState.ACTIVE, faults=0))
+        elapsed = time.perf_counter() - t0
+        step_us.append(elapsed * 1e6)
+        if out.solve_iterations > 0:
+            solve_us.append(out.solve_time_s * 1e6)
+        deadline_misses += elapsed > dt
+        gap = world.gap(t, plant.x)
+        tr.t.append(t)
+        tr.gap.append(math.nan if gap is None else gap)
+        tr.gap_ref.append(cfg.d_0 + cfg.time_headway * plant.v)
+        tr.v.append(plant.v)
+        vl = world.v_lead(t)
+        tr.v_lead.append(math.nan if vl is None else vl)
+        tr.u.append(out.u)
+        tr.u_ff.append(out.u_ff)
+        tr.mode.append(out.mode)
+        tr.gap_est.append(out.estimate.gap)
+        fw.step(dt)
+        if realtime:
+            delay = wall0 + (k + 1) * dt - time.monotonic()
+            if delay > 0.0:
+                time.sleep(delay)
+    return _metrics(sc, cfg, tr, solve_us, step_us, deadline_misses, ctrl), tr
+
+
+def _metrics(
+    sc: Scenario,
+    cfg: ControlConfig,
+    tr: Trace,
+    solve_us: list[float],
+    step_us: list[float],
+    deadline_misses: int,
+    ctrl: Controller,
+) -> dict[str, Any]:
+    gaps = np.array(tr.gap)
+    has_gap = np.isfinite(gaps)
+    t = np.array(tr.t)
+    err = gaps - np.array(tr.gap_ref)
+    in_range = has_gap & (gaps <= cfg.estimator.range_max) & (t >= STEADY_AFTER_S)
+    last = has_gap & (t >= t[-1] - 2.0) if len(t) else has_gap
+    min_gap = float(np.min(gaps[has_gap])) if has_gap.any() else None
+    return {
+        "scenario": sc.name,
+        "duration_s": round(float(t[-1] + cfg.period) if len(t) else 0.0, 6),
+        "cycles": len(tr.t),
+        "collision": bool(min_gap is not None and min_gap <= 0.0),
+        "min_gap_m": min_gap,
+        "gap_error_rms_m": float(np.sqrt(np.mean(err[in_range] ** 2))) if in_range.any() else None,
+        "max_abs_voltage_v": float(np.max(np.abs(tr.u))) if tr.u else 0.0,
+        "solve_us_p50": _percentile(solve_us, 50),
+        "solve_us_p99": _percentile(solve_us, 99),
+        "step_us_p99": _percentile(step_us, 99),
+        "solver_failures": ctrl.solver_failures,
+        "deadline_misses": deadline_misses,
+        # Extensions (not in the contract's minimum):
+        "fallback_cycles": ctrl.fallback_cycles,
+        "braking_cycles": ctrl.braking_cycles,
+        "final_gap_error_m": float(np.mean(err[last])) if last.any() else None,
+        "final_speed_m_s": float(np.mean(np.array(tr.v)[-50:])) if tr.v else 0.0,
+        "all_finite": bool(np.all(np.isfinite(tr.u))),
+        "feedforward": cfg.feedforward,
+    }
