@@ -41,7 +41,7 @@ def test_exact_wire_bytes() -> None:
     frame = encode(MotorCommand(1.5, True), 1)
     # raw = 00 01 | dc 05 11 8e | CRC-16 LE; COBS turns the leading 0x00 into code 0x01
     wire = frame_to_bytes(frame)
-    assert wire == bytes.fromhex("00" "01" "08" "01dc05118e" "84e8" "00")
+    assert wire == bytes.fromhex("00010801dc05118e84e800")
 
 
 @given(st.integers(0, 0x7FF), st.binary(max_size=8))
@@ -87,7 +87,6 @@ def test_no_intact_frame_lost_after_garbage(
     # a garbage run can (rarely) pass COBS + CRC-16 as a frame; it is extra, never a loss
     it = iter(got)
     assert all(any(g == f for g in it) for f in frames)
-    assert len(got) - len(frames) <= d.stats.frames_ok - len(frames) + 0  # consistent count
     assert d.stats.frames_ok == len(got)
 
 
