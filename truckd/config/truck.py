@@ -13,6 +13,7 @@ from pathlib import Path
 import yaml
 
 from truckd.config.schema import load_dataclass, spec
+from truckd.control.config import ControlConfig
 from truckd.errors import InputError
 from truckd.io.config import LinkConfig
 from truckd.model.params import VehicleParams
@@ -31,6 +32,10 @@ class TruckConfig:
     )
     link: LinkConfig = spec(
         "transport to the microcontroller and receive checks", default_factory=LinkConfig
+    )
+    control: ControlConfig = spec(
+        "the adaptive cruise controller: MPC, limits, feedforward, estimator",
+        default_factory=ControlConfig,
     )
     runtime: RuntimeConfig = spec(
         "the daemon: loop, backend, supervisor, telemetry, recorder", default_factory=RuntimeConfig
