@@ -1,0 +1,88 @@
+"""Candidate causes (CONTRACTS.md section 4) as parameterised extensions of the seed.
+
+Each candidate frees one parameter of :class:`truckd.model.effects.Effects`, with a
+physical scale, bounds and a grid of starting values derived from the configured
+vehicle and the log's range of input and speed.  ``smooth`` says whether the fit can
+refine it by gradient; a dead zone only matters through which commands it swallows, so
+it is located on a grid between the log's distinct command levels.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from truckd.ident.data import Series
+from truckd.ident.voltage import Param
+from truckd.model.params import VehicleParams
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """One effect to try: its free parameter, starting grid and smoothness."""
+
+    name: str
+    param: Param
+    grid: tuple[float, ...]
+    smooth: bool = True
+    needs_current: bool = False
+
+
+def voltage_candidates(p0: VehicleParams, data: Series) -> list[Candidate]:
+    """The eight contract effects for a voltage-input log (those the data can show)."""
+    u_abs = np.abs(data.inp)
+    u_max = float(np.max(u_abs))
+    v_max = max(float(np.max(np.abs(data.v))), 0.1)
+    f_c = p0.K_coulomb / p0.ratio  # Coulomb friction as a force at the wheels, N
+    f_c = max(f_c, 0.1)
+    b_emf = p0.K_T * p0.K_v / p0.R_m  # back-EMF damping, N m s/rad
+    c_drag = f_c / v_max**2
+    h = float(np.median(np.diff(data.t)))
+    levels = np.unique(np.round(u_abs[u_abs > 0], 6))
+    levels = levels[levels < 0.8 * u_max]
+    mids = tuple(float(x) for x in 0.5 * (levels[1:] + levels[:-1]))
+    if len(mids) > 60:
+        mids = tuple(float(x) for x in np.quantile(np.asarray(mids), np.linspace(0, 1, 60)))
+    sat_hi = min(u_max, p0.V_batt)
+    out = [
+        Candidate(
+            "viscous_friction",
+            Param("viscous_friction", b_emf, 0.0, min(20.0 * b_emf, 1.0)),
+            (0.1 * b_emf, 0.5 * b_emf),
+            needs_current=True,
+        ),
+        Candidate(
+            "aero_drag",
+            Param("aero_drag", c_drag, 0.0, min(50.0 * c_drag, 100.0)),
+            (0.1 * c_drag, 0.5 * c_drag, 1.0 * c_drag),
+        ),
+        Candidate(
+            "load_force",
+            Param("load_force", f_c, -5.0 * f_c, 5.0 * f_c),
+            (-0.5 * f_c, -0.2 * f_c, 0.2 * f_c, 0.5 * f_c),
+        ),
+        Candidate(
+            "input_delay",
+            Param("input_delay", h, 0.0, 0.5),
+            tuple(float(x) for x in h * np.array([0.3, 1.0, 2.0, 4.0, 8.0, 15.0])),
+        ),
+        Candidate("dead_zone", Param("dead_zone", 1.0, 0.0, 0.8 * u_max), mids, smooth=False),
+        Candidate(
+            "voltage_saturation",
+            Param("voltage_saturation", 1.0, 0.2 * sat_hi, sat_hi),
+            tuple(float(x) for x in np.linspace(0.3, 0.95, 8) * sat_hi),
+        ),
+        Candidate(
+            "battery_sag",
+            Param("battery_sag", p0.R_m, 0.0, min(30.0 * p0.R_m, 10.0)),
+            (0.3 * p0.R_m, 1.0 * p0.R_m, 3.0 * p0.R_m),
+        ),
+        Candidate(
+            "sensor_lag",
+            Param("sensor_lag", h, 0.0, 2.0),
+            tuple(float(x) for x in h * np.array([0.5, 2.0, 5.0, 10.0, 20.0])),
+        ),
+    ]
+    with_current = data.i is not None
+    return [c for c in out if with_current or not c.needs_current]

@@ -1,0 +1,298 @@
+"""Diagnosis of a voltage-input log: seed fit, candidates, selection, joint refit.
+
+1. Fit the seed (motor, inertia, Coulomb, stiction) by simulation error on the
+   estimation data (the log, or its first 70 % when no validation log is given).
+2. Try each candidate effect alone on top of the seed (grid start, joint refit).
+3. A candidate earns its place when it lowers the information criterion on the
+   estimation data (``delta BIC < -BIC_MIN``) *and* the validation cost by at least
+   ``REL_MIN``.  Accept them greedily, strongest first, each refitted jointly with
+   those already accepted; a candidate that passed alone but adds nothing once a rival
+   is in, while having explained about as much alone, is reported as ``ambiguous``.
+4. The residual of the extended model on the report data decides ``unexplained``:
+   it is not white (autocorrelation beyond the 99 % band at many lags) and its RMS
+   clearly exceeds the measurement noise.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from truckd.ident.candidates import Candidate, voltage_candidates
+from truckd.ident.data import Series, chunks, noise_std, split
+from truckd.ident.fastsim import simulate_voltage
+from truckd.ident.residuals import whiteness
+from truckd.ident.result import CandidateRow, Diagnosis, Finding, ModelSummary, Traces
+from truckd.ident.voltage import (
+    FitResult,
+    Param,
+    Weights,
+    fit_percent,
+    fit_with_stiction,
+    residuals,
+    rmse,
+    scan,
+    seed_params,
+    stiction_grid,
+    weights_for,
+)
+from truckd.model.effects import Effects
+from truckd.model.params import VehicleParams
+
+Progress = Callable[[str], None]
+
+FIT_BUDGET = 4000
+"""Samples of the estimation data used in the fitting loop (spread over chunks)."""
+VAL_BUDGET = 12000
+"""Samples of the validation data used to select candidates."""
+BIC_MIN = 10.0
+"""Decrease of the information criterion a candidate must bring (strong evidence)."""
+REL_MIN = 0.05
+"""Relative decrease of the validation cost a candidate must bring."""
+AMBIGUOUS = 0.05
+"""Two candidates whose validation costs alone differ by less than this fraction (the
+cost is in units of the noise variance, so this compares what each leaves unexplained
+plus the noise), and that do not combine, are ambiguous."""
+ACF_MAX = 0.2
+"""Residual is called structured when more than this fraction of lags is outside the band."""
+STRUCT_MIN = 0.5
+"""... and its RMS beyond the noise exceeds this multiple of the noise level."""
+
+SEED_NAMES = ("R_m", "L_m", "K_v", "K_T", "J_S", "K_coulomb", "K_stiction")
+
+
+@dataclass(frozen=True)
+class _Model:
+    fit: FitResult
+    names: tuple[str, ...]
+    val_cost: float
+
+
+def _quiet(_: str) -> None:
+    return None
+
+
+def identify_voltage(p0: VehicleParams, data: Series, progress: Progress = _quiet) -> FitResult:
+    """Seed model fitted to a whole voltage-input log (no effects)."""
+    fit_data = chunks(data, FIT_BUDGET)
+    w = weights_for(fit_data)
+    free = seed_params(p0, data.i is not None)
+    return _fit_seed(p0, free, fit_data, w, stiction_grid(p0, data), progress)
+
+
+def _fit_seed(
+    p0: VehicleParams,
+    free: list[Param],
+    fit_data: list[Series],
+    w: Weights,
+    grid: Sequence[float],
+    progress: Progress,
+) -> FitResult:
+    progress("fitting the seed model (motor, inertia, Coulomb, stiction)")
+    first = fit_with_stiction(p0, Effects(), free, fit_data, w, grid, progress, max_nfev=80)
+    # A second start from elsewhere guards against a local minimum.
+    alt = p0.replace(J_S=p0.J_S * 2.0, K_coulomb=p0.K_coulomb * 0.5, K_stiction=p0.K_coulomb * 0.5)
+    second = fit_with_stiction(alt, Effects(), free, fit_data, w, grid, progress, max_nfev=80)
+    return first if first.sse <= second.sse else second
+
+
+def _val_cost(m: FitResult, val: Sequence[Series], w: Weights) -> float:
+    r = residuals(m.params, m.effects, val, w)
+    return float(r @ r)
+
+
+def _delta_bic(new: FitResult, old: FitResult, extra: int) -> float:
+    n = old.n
+    return n * float(np.log(max(new.sse, 1e-300) / max(old.sse, 1e-300))) + extra * float(np.log(n))
+
+
+def _fit_candidate(
+    base: FitResult,
+    seed_free: list[Param],
+    extra_free: list[Param],
+    cand: Candidate,
+    fit_data: list[Series],
+    w: Weights,
+    grid: Sequence[float],
+    progress: Progress,
+) -> FitResult:
+    """Fit ``base`` + one more candidate (grid start, then joint refit)."""
+    name = cand.param.name
+    value, _ = scan(base.params, base.effects, name, cand.grid, fit_data, w)
+    e0 = dataclasses.replace(base.effects, **{name: value})
+    free = [*seed_free, *extra_free]
+    if cand.smooth:
+        out = fit_with_stiction(base.params, e0, [*free, cand.param], fit_data, w, grid, progress)
+    else:
+        first = fit_with_stiction(base.params, e0, free, fit_data, w, grid, progress)
+        value, _ = scan(first.params, first.effects, name, cand.grid, fit_data, w)
+        e1 = dataclasses.replace(first.effects, **{name: value})
+        out = fit_with_stiction(first.params, e1, free, fit_data, w, grid, progress)
+    # Never worse than without the candidate (a local minimum): then it is simply off.
+    return out if out.sse <= base.sse else base
+
+
+def _passes(new: _Model, old: _Model, extra: int) -> tuple[bool, float]:
+    dbic = _delta_bic(new.fit, old.fit, extra)
+    ok = dbic < -BIC_MIN and new.val_cost < (1.0 - REL_MIN) * old.val_cost
+    return ok, dbic
+
+
+def _summary(p: VehicleParams, e: Effects, report: Series) -> tuple[ModelSummary, np.ndarray]:
+    pred = simulate_voltage(p, e, report.t, report.inp, v0=float(report.v[0]))
+    params = {n: float(getattr(p, n)) for n in SEED_NAMES}
+    for n in e.active():
+        params[n] = float(getattr(e, n))
+    return ModelSummary(fit_percent(report.v, pred.v), rmse(report.v, pred.v), params), pred.v
+
+
+def diagnose_voltage(
+    p0: VehicleParams,
+    data: Series,
+    validate: Series | None = None,
+    progress: Progress = _quiet,
+) -> Diagnosis:
+    """Diagnose a voltage-input log (see module docstring)."""
+    est, val = (data, validate) if validate is not None else split(data)
+    report = validate if validate is not None else data
+    fit_data = chunks(est, FIT_BUDGET)
+    val_data = chunks(val, VAL_BUDGET)
+    w = weights_for(fit_data)
+    seed_free = seed_params(p0, data.i is not None)
+    grid = stiction_grid(p0, data)
+    base_fit = _fit_seed(p0, seed_free, fit_data, w, grid, progress)
+    base = _Model(base_fit, (), _val_cost(base_fit, val_data, w))
+
+    cands = voltage_candidates(p0, data)
+    tried: dict[str, _Model] = {}
+    rows: dict[str, CandidateRow] = {}
+    base_fit_pct = _summary(base_fit.params, base_fit.effects, val)[0].fit_percent
+    for k, cand in enumerate(cands):
+        progress(f"candidate {k + 1}/{len(cands)}: {cand.name}")
+        f = _fit_candidate(base_fit, seed_free, [], cand, fit_data, w, grid, progress)
+        m = _Model(f, (cand.name,), _val_cost(f, val_data, w))
+        ok, dbic = _passes(m, base, 1)
+        tried[cand.name] = m
+        fp = _summary(f.params, f.effects, val)[0].fit_percent
+        rows[cand.name] = CandidateRow(
+            name=cand.name,
+            params={cand.param.name: float(getattr(f.effects, cand.param.name))},
+            fit_percent=fp,
+            gain_percent=fp - base_fit_pct,
+            cost_ratio=m.val_cost / base.val_cost if base.val_cost > 0 else 1.0,
+            delta_bic=dbic,
+            accepted=False,
+            note="passes alone" if ok else "",
+        )
+    passing = sorted(
+        (n for n, r in rows.items() if r.note == "passes alone"), key=lambda n: tried[n].val_cost
+    )
+    by_name = {c.name: c for c in cands}
+    current = base
+    accepted: list[str] = []
+    steps: list[_Model] = [base]
+    ambiguous: list[tuple[str, str]] = []
+    for name in passing:
+        cand = by_name[name]
+        if not accepted:
+            new = tried[name]
+        else:
+            progress(f"joint refit: {', '.join(accepted)} + {name}")
+            extra = [by_name[a].param for a in accepted if by_name[a].smooth]
+            f = _fit_candidate(current.fit, seed_free, extra, cand, fit_data, w, grid, progress)
+            new = _Model(f, (*current.names, name), _val_cost(f, val_data, w))
+        ok, _ = _passes(new, current, 1)
+        if ok:
+            accepted.append(name)
+            current = new
+            steps.append(new)
+            rows[name] = dataclasses.replace(rows[name], accepted=True, note="accepted")
+            continue
+        cost = tried[name].val_cost
+        for a in accepted:
+            cost_a = tried[a].val_cost
+            if abs(cost - cost_a) < max(2.0 * BIC_MIN, AMBIGUOUS * min(cost, cost_a)):
+                ambiguous.append((a, name))
+                rows[name] = dataclasses.replace(rows[name], note=f"ambiguous with {a}")
+                break
+        else:
+            rows[name] = dataclasses.replace(rows[name], note="adds nothing once others are in")
+
+    base_sum, y_base = _summary(base_fit.params, base_fit.effects, report)
+    findings: list[Finding] = []
+    prev = base_sum.fit_percent
+    y_ext = y_base
+    ext_sum = base_sum
+    for name, step in zip(accepted, steps[1:], strict=True):
+        ext_sum, y_ext = _summary(step.fit.params, step.fit.effects, report)
+        param = by_name[name].param.name
+        findings.append(
+            Finding(
+                name=name,
+                params={param: float(getattr(step.fit.effects, param))},
+                fit_percent=ext_sum.fit_percent,
+                fit_gain_percent=ext_sum.fit_percent - prev,
+            )
+        )
+        prev = ext_sum.fit_percent
+    final = current.fit
+    r = report.v - y_ext
+    noise = noise_std(report.v)
+    h = float(np.median(np.diff(report.t)))
+    wt = whiteness(r, report.inp, noise, max_lag=max(10, round(1.0 / h)))
+    floor = max(STRUCT_MIN * noise, 2e-3 * float(np.std(report.v)))
+    unexplained = wt.acf_outside > ACF_MAX and wt.structure > floor
+    notes = _notes(data)
+    return Diagnosis(
+        input="voltage",
+        samples=len(data),
+        baseline=base_sum,
+        effects=findings,
+        extended=ext_sum,
+        unexplained=unexplained,
+        ambiguous=ambiguous,
+        candidates=[rows[c.name] for c in cands],
+        notes=notes,
+        traces=Traces(
+            t=report.t,
+            inp=report.inp,
+            y=report.v,
+            y_base=y_base,
+            y_ext=y_ext,
+            i=report.i,
+            x=report.x,
+        ),
+        vehicle=final.params,
+        model_effects=final.effects,
+        residual_stats={
+            "rms": wt.rms,
+            "noise": wt.noise,
+            "structure": wt.structure,
+            "acf_outside_fraction": wt.acf_outside,
+            "ccf_outside_fraction": wt.ccf_outside,
+        },
+    )
+
+
+def _notes(data: Series) -> list[str]:
+    """What this log can and cannot determine."""
+    notes = [
+        "L_m is not identifiable from speed sampled far slower than L_m/R_m (< 1 ms): "
+        "kept at the configured value",
+        "K_T is not identifiable without a known torque: held at the configured K_T/K_v "
+        "ratio (J_S, K_coulomb, K_stiction are determined relative to it)",
+    ]
+    if data.i is None:
+        notes.append(
+            "no current column: R_m held at the configured value (only J_S R_m/K_T, "
+            "K_coulomb R_m/K_T, K_stiction R_m/K_T and K_v are determined); viscous_friction "
+            "is not a candidate (indistinguishable from K_v without current)"
+        )
+    else:
+        notes.append("current column used: R_m and K_v determined from the electrical balance")
+    if not np.any(data.inp < 0) or not np.any(data.v < 0):
+        notes.append("motion in one direction only: friction asymmetry cannot be checked")
+    return notes

@@ -1,0 +1,123 @@
+"""What a diagnosis returns: the JSON of CONTRACTS.md section 4 plus report material."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from truckd.model.effects import Effects
+from truckd.model.params import VehicleParams
+
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class ModelSummary:
+    """Fit of one model on the report data (validation log when given)."""
+
+    fit_percent: float
+    rmse: float
+    params: dict[str, float]
+    force_relerr_percent: float | None = None
+
+    def to_json(self) -> dict[str, Any]:
+        out: dict[str, Any] = {
+            "fit_percent": _num(self.fit_percent),
+            "rmse": _num(self.rmse),
+            "params": {k: _num(v) for k, v in self.params.items()},
+        }
+        if self.force_relerr_percent is not None:
+            out["force_relerr_percent"] = _num(self.force_relerr_percent)
+        return out
+
+
+@dataclass(frozen=True)
+class Finding:
+    """An accepted effect: its parameters, the fit with it, and the fit it adds."""
+
+    name: str
+    params: dict[str, float]
+    fit_percent: float
+    fit_gain_percent: float
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "name": self.name,
+            "params": {k: _num(v) for k, v in self.params.items()},
+            "fit_percent": _num(self.fit_percent),
+            "fit_gain_percent": _num(self.fit_gain_percent),
+        }
+
+
+@dataclass(frozen=True)
+class CandidateRow:
+    """One candidate as tried alone on top of the seed (for the report's table)."""
+
+    name: str
+    params: dict[str, float]
+    fit_percent: float
+    """Validation fit of seed + this candidate (%)."""
+    gain_percent: float
+    """Its validation fit minus the seed's (percentage points)."""
+    cost_ratio: float
+    """Validation weighted SSE relative to the seed's (< 1 is better)."""
+    delta_bic: float
+    """Change of the Bayesian information criterion on the fit data (< 0 is better)."""
+    accepted: bool
+    note: str = ""
+
+
+@dataclass
+class Traces:
+    """Signals of the report data for the plots (SI)."""
+
+    t: Array
+    inp: Array
+    y: Array
+    y_base: Array
+    y_ext: Array
+    i: Array | None = None
+    x: Array | None = None
+    input_name: str = "u"
+
+
+@dataclass
+class Diagnosis:
+    """Everything ``diagnose`` found (see :meth:`to_json` for the contract's subset)."""
+
+    input: str
+    samples: int
+    baseline: ModelSummary
+    effects: list[Finding]
+    extended: ModelSummary
+    unexplained: bool
+    ambiguous: list[tuple[str, str]]
+    candidates: list[CandidateRow] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+    traces: Traces | None = None
+    vehicle: VehicleParams | None = None
+    """The extended model (voltage-input logs), for MODEL.yaml."""
+    model_effects: Effects | None = None
+    residual_stats: dict[str, float] = field(default_factory=dict)
+
+    def to_json(self) -> dict[str, Any]:
+        """The CONTRACTS.md section 4 object (plus ``notes`` and ``residual``)."""
+        return {
+            "input": self.input,
+            "samples": int(self.samples),
+            "baseline": self.baseline.to_json(),
+            "effects": [f.to_json() for f in self.effects],
+            "extended": self.extended.to_json(),
+            "unexplained": bool(self.unexplained),
+            "ambiguous": [[a, b] for a, b in self.ambiguous],
+            "notes": list(self.notes),
+            "residual": {k: _num(v) for k, v in self.residual_stats.items()},
+        }
+
+
+def _num(x: float) -> float | None:
+    """A JSON-safe float (None for non-finite)."""
+    return float(x) if np.isfinite(x) else None

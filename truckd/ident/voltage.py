@@ -1,0 +1,265 @@
+"""Simulation-error fitting of the voltage-input model (seed + effects).
+
+Free parameters are scaled (``theta = value / scale``) and bounded; starting points and
+bounds come from the configuration's vehicle.  What the data can determine:
+
+* ``t, u, v`` only: the first-order model's coefficients fix ``K_v``, ``J_S R_m/K_T``,
+  ``K_coulomb R_m/K_T`` and ``K_stiction R_m/K_T``.  ``R_m`` stays at the configured
+  value and ``K_T/K_v`` at the configured ratio; ``L_m`` is never identifiable from
+  speed sampled far slower than ``L_m/R_m`` (< 1 ms) and keeps its configured value.
+  Viscous friction cannot be told from ``K_v`` (both only scale the speed per volt), so
+  it is not a candidate without current.
+* with ``i``: the quasi-static current ``(V - K_v omega)/R`` adds ``R_m`` and separates
+  ``K_v`` from viscous friction; ``K_T`` still only appears as ``J_S/K_T`` etc.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.optimize import least_squares
+
+from truckd.ident.data import Series, noise_std
+from truckd.ident.fastsim import simulate_voltage
+from truckd.model.effects import Effects
+from truckd.model.params import VehicleParams
+
+Array = NDArray[np.float64]
+
+VEHICLE_FREE = ("K_v", "J_S", "K_coulomb", "stiction_excess", "R_m")
+"""Names of the seed parameters the fit may free (``stiction_excess`` = Ks - Kc)."""
+
+
+@dataclass(frozen=True)
+class Param:
+    """A free parameter: value = ``theta * scale``, bounded to ``[lo, hi]`` (SI)."""
+
+    name: str
+    scale: float
+    lo: float
+    hi: float
+
+
+@dataclass(frozen=True)
+class Weights:
+    """Residual weights: 1/noise level of speed (s/m) and current (1/A, 0 = unused)."""
+
+    v: float
+    i: float = 0.0
+
+
+def seed_params(p0: VehicleParams, with_current: bool) -> list[Param]:
+    """The seed's smooth free parameters with bounds around the configured values.
+
+    Stiction is not among them: it only decides *which* commands break the truck
+    away, so the cost is flat between command levels; :func:`fit_seed_model` locates
+    it on a grid (:func:`stiction_grid`).
+    """
+    kc = max(p0.K_coulomb, 1e-4)
+    out = [
+        Param("K_v", p0.K_v, 0.2 * p0.K_v, 5.0 * p0.K_v),
+        Param("J_S", p0.J_S, 0.05 * p0.J_S, 20.0 * p0.J_S),
+        Param("K_coulomb", kc, 0.0, 10.0 * kc),
+    ]
+    if with_current:
+        out.append(Param("R_m", p0.R_m, 0.1 * p0.R_m, 10.0 * p0.R_m))
+    return out
+
+
+def apply(
+    p0: VehicleParams, e0: Effects, free: Sequence[Param], theta: Sequence[float] | Array
+) -> tuple[VehicleParams, Effects]:
+    """The model with the free parameters set from ``theta``."""
+    vals = {f.name: float(th) * f.scale for f, th in zip(free, theta, strict=True)}
+    veh: dict[str, float] = {}
+    if "K_v" in vals:
+        veh["K_v"] = vals["K_v"]
+        veh["K_T"] = p0.K_T * vals["K_v"] / p0.K_v
+    for n in ("J_S", "R_m", "K_coulomb"):
+        if n in vals:
+            veh[n] = vals[n]
+    kc = veh.get("K_coulomb", p0.K_coulomb)
+    excess = vals.get("stiction_excess", p0.K_stiction - p0.K_coulomb)
+    veh["K_stiction"] = kc + max(excess, 0.0)
+    p = p0.replace(**veh)
+    eff_vals = {n: v for n, v in vals.items() if n not in VEHICLE_FREE}
+    eff = dataclasses.replace(e0, **eff_vals) if eff_vals else e0
+    return p, eff
+
+
+def theta_of(p: VehicleParams, e: Effects, free: Sequence[Param]) -> Array:
+    """Scaled values of the free parameters of a model (inverse of :func:`apply`)."""
+    out = []
+    for f in free:
+        if f.name == "stiction_excess":
+            val = p.K_stiction - p.K_coulomb
+        elif f.name in VEHICLE_FREE:
+            val = float(getattr(p, f.name))
+        else:
+            val = float(getattr(e, f.name))
+        out.append(min(max(val, f.lo), f.hi) / f.scale)
+    return np.array(out)
+
+
+def weights_for(data: Sequence[Series]) -> Weights:
+    """Weights from the measured noise levels (with floors for noise-free logs)."""
+    v = np.concatenate([s.v for s in data])
+    sv = max(float(np.mean([noise_std(s.v) for s in data])), 2e-3 * float(np.std(v)), 1e-6)
+    if all(s.i is not None for s in data):
+        i = np.concatenate([s.i for s in data if s.i is not None])
+        si = max(
+            float(np.mean([noise_std(s.i) for s in data if s.i is not None])),
+            1e-2 * float(np.std(i)),
+            1e-6,
+        )
+        return Weights(v=1.0 / sv, i=1.0 / si)
+    return Weights(v=1.0 / sv)
+
+
+def residuals(p: VehicleParams, e: Effects, data: Sequence[Series], w: Weights) -> Array:
+    """Weighted free-run residuals (speed, then current when weighted) of all chunks."""
+    parts = []
+    for s in data:
+        pred = simulate_voltage(p, e, s.t, s.inp, v0=float(s.v[0]))
+        parts.append((s.v - pred.v) * w.v)
+        if w.i and s.i is not None:
+            parts.append((s.i[1:] - pred.i[1:]) * w.i)
+    r = np.concatenate(parts)
+    return np.where(np.isfinite(r), r, 1e6)
+
+
+def speed_fit(p: VehicleParams, e: Effects, s: Series) -> tuple[float, float, Array]:
+    """``(fit_percent, rmse (m/s), simulated speed)`` of a free run over ``s``."""
+    pred = simulate_voltage(p, e, s.t, s.inp, v0=float(s.v[0]))
+    return fit_percent(s.v, pred.v), rmse(s.v, pred.v), pred.v
+
+
+def fit_percent(y: Array, y_sim: Array) -> float:
+    """``100 (1 - ||y - y_sim|| / ||y - mean(y)||)`` (CONTRACTS.md section 4)."""
+    den = float(np.linalg.norm(y - np.mean(y)))
+    if den == 0.0:
+        return 0.0
+    return 100.0 * (1.0 - float(np.linalg.norm(y - y_sim)) / den)
+
+
+def rmse(y: Array, y_sim: Array) -> float:
+    """Root mean square of ``y - y_sim``."""
+    return float(np.sqrt(np.mean((y - y_sim) ** 2)))
+
+
+@dataclass(frozen=True)
+class FitResult:
+    """A fitted model and its weighted sum of squared residuals on the fit data."""
+
+    params: VehicleParams
+    effects: Effects
+    sse: float
+    n: int
+    nfev: int
+
+
+def fit(
+    p0: VehicleParams,
+    e0: Effects,
+    free: Sequence[Param],
+    data: Sequence[Series],
+    w: Weights,
+    max_nfev: int = 60,
+    progress: Callable[[str], None] | None = None,
+) -> FitResult:
+    """Least-squares simulation-error fit of the free parameters from ``(p0, e0)``."""
+    lo = np.array([f.lo / f.scale for f in free])
+    hi = np.array([f.hi / f.scale for f in free])
+    x0 = np.clip(theta_of(p0, e0, free), lo + 1e-9 * (hi - lo), hi - 1e-9 * (hi - lo))
+
+    def fun(th: Array) -> Array:
+        p, e = apply(p0, e0, free, th)
+        return residuals(p, e, data, w)
+
+    if free:
+        sol = least_squares(
+            fun,
+            x0,
+            bounds=(lo, hi),
+            diff_step=1e-3,
+            x_scale=1.0,
+            ftol=1e-6,
+            xtol=1e-6,
+            max_nfev=max_nfev,
+            method="trf",
+        )
+        th, nfev = sol.x, int(sol.nfev)
+    else:
+        th, nfev = x0, 0
+    p, e = apply(p0, e0, free, th)
+    r = residuals(p, e, data, w)
+    if progress is not None:
+        progress(f"  fit {[f.name for f in free]}: {nfev} evaluations, sse {float(r @ r):.4g}")
+    return FitResult(p, e, float(r @ r), len(r), nfev)
+
+
+def scan(
+    p: VehicleParams,
+    e: Effects,
+    name: str,
+    values: Sequence[float],
+    data: Sequence[Series],
+    w: Weights,
+) -> tuple[float, float]:
+    """Best value of one effect parameter over a grid, the rest held: (value, sse)."""
+    best = (float(getattr(e, name)), float("inf"))
+    for val in values:
+        r = residuals(p, dataclasses.replace(e, **{name: float(val)}), data, w)
+        sse = float(r @ r)
+        if sse < best[1]:
+            best = (float(val), sse)
+    return best
+
+
+def stiction_grid(p0: VehicleParams, data: Series, size: int = 40) -> tuple[float, ...]:
+    """Breakaway torques (N m) between the log's command levels, up to half V_batt.
+
+    0 stands for "no stiction beyond Coulomb" (``K_stiction = K_coulomb``).
+    """
+    u = np.abs(data.inp)
+    levels = np.unique(np.round(u[(u > 0) & (u < 0.5 * p0.V_batt)], 6))
+    mids = 0.5 * (levels[1:] + levels[:-1]) if len(levels) > 1 else levels
+    if len(mids) > size:
+        mids = np.quantile(mids, np.linspace(0.0, 1.0, size))
+    return (0.0, *(float(m) * p0.K_T / p0.R_m for m in mids))
+
+
+def scan_stiction(
+    p: VehicleParams, e: Effects, grid: Sequence[float], data: Sequence[Series], w: Weights
+) -> tuple[VehicleParams, float]:
+    """Best K_stiction (>= K_coulomb) over a grid, the rest held: (model, sse)."""
+    best_p, best = p, float("inf")
+    for ks in [p.K_stiction, *grid]:
+        cand = p.replace(K_stiction=max(float(ks), p.K_coulomb))
+        r = residuals(cand, e, data, w)
+        sse = float(r @ r)
+        if sse < best:
+            best_p, best = cand, sse
+    return best_p, best
+
+
+def fit_with_stiction(
+    p0: VehicleParams,
+    e0: Effects,
+    free: Sequence[Param],
+    data: Sequence[Series],
+    w: Weights,
+    grid: Sequence[float],
+    progress: Callable[[str], None] | None = None,
+    max_nfev: int = 60,
+) -> FitResult:
+    """Smooth parameters by least squares, stiction on its grid, then a joint polish."""
+    first = fit(p0, e0, free, data, w, max_nfev=max_nfev, progress=progress)
+    p1, sse1 = scan_stiction(first.params, first.effects, grid, data, w)
+    if p1.K_stiction == first.params.K_stiction or sse1 >= first.sse:
+        return first
+    return fit(p1, first.effects, free, data, w, max_nfev=max_nfev, progress=progress)
