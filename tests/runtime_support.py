@@ -3,6 +3,13 @@
 from __future__ import annotations
 
 import socket
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from truckd.config.truck import default_config_path
 
 
 def free_port() -> int:
@@ -17,3 +24,19 @@ def free_port() -> int:
 
 def endpoint(port: int) -> str:
     return f"tcp/127.0.0.1:{port}"
+
+
+def deep_merge(base: dict[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for k, v in over.items():
+        out[k] = (
+            deep_merge(out[k], v) if isinstance(v, Mapping) and isinstance(out.get(k), dict) else v
+        )
+    return out
+
+
+def write_config(path: Path, overrides: Mapping[str, Any]) -> Path:
+    """The shipped truck.yaml with ``overrides`` merged in, written to ``path``."""
+    base = yaml.safe_load(default_config_path().read_text())
+    path.write_text(yaml.safe_dump(deep_merge(base, overrides)))
+    return path

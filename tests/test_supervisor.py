@@ -127,7 +127,7 @@ def test_overruns_degrade_then_stop() -> None:
     assert sup.update(healthy(t + 0.04)).mode == Mode.SAFE_STOP
 
 
-def test_frozen_range_detected_only_while_moving() -> None:
+def test_frozen_range_counts_driving_time_only_and_latches() -> None:
     sup, t = active_supervisor(range_frozen_s=0.3)
     ds = run(sup, t, t + 1.0, lambda tk: healthy(tk, range_value=1.234, speed=0.0))
     assert all(d.mode == Mode.ACTIVE for d in ds)
@@ -135,6 +135,13 @@ def test_frozen_range_detected_only_while_moving() -> None:
     first = next(k for k, d in enumerate(ds) if d.mode != Mode.ACTIVE)
     assert ds[first].mode == Mode.SAFE_STOP and "range_frozen" in ds[first].causes
     assert first * P == pytest.approx(0.3, abs=P + 1e-9)
+    # stopped, same value: still frozen (no oscillation between stop and drive)
+    ds = run(sup, t + 2.0, t + 3.0, lambda tk: healthy(tk, range_value=1.234, speed=0.0))
+    assert all("range_frozen" in d.causes for d in ds)
+    # the value moves again: cleared, and ACTIVE after the recovery time
+    ds = run(sup, t + 3.0, t + 4.0, lambda tk: healthy(tk, speed=0.0))
+    assert "range_frozen" not in ds[0].causes
+    assert ds[-1].mode == Mode.ACTIVE
 
 
 def test_transitions_are_logged_in_order() -> None:

@@ -55,11 +55,12 @@ class SupervisorConfig:
         "no valid message for this long: link stale", unit="s", lo=0.0, lo_open=True, default=0.05
     )
     range_frozen_s: float = spec(
-        "range value bit-identical this long while moving: frozen sensor",
+        "range value bit-identical for this much driving time: frozen sensor (a backup "
+        "check: a repeated sample time already makes the range stale)",
         unit="s",
         lo=0.0,
         lo_open=True,
-        default=0.5,
+        default=2.0,
     )
     frozen_min_speed: float = spec(
         "frozen-range check only while faster than this", unit="m/s", lo=0.0, default=0.05
@@ -126,7 +127,8 @@ class Decision:
 class _Counters:
     solver_fails: int = 0
     overruns: int = 0
-    frozen_since: float | None = None
+    frozen_time: float = 0.0
+    frozen_last_t: float | None = None
     frozen_value: float | None = None
     clear_since: float | None = None
     ever_ready: bool = False
@@ -147,15 +149,18 @@ class Supervisor:
     _c: _Counters = field(default_factory=_Counters)
 
     def _frozen(self, x: SupervisorInputs) -> bool:
+        """Range value bit-identical for ``range_frozen_s`` of driving time; latched until
+        the value changes (stopping does not clear it)."""
         c, cfg = self._c, self.config
         v = x.range_value
-        moving = math.isfinite(x.speed) and abs(x.speed) > cfg.frozen_min_speed
-        if v is None or not moving or v != c.frozen_value:
-            c.frozen_value = v
-            c.frozen_since = x.t
+        if v is None or v != c.frozen_value:
+            c.frozen_value, c.frozen_time, c.frozen_last_t = v, 0.0, x.t
             return False
-        assert c.frozen_since is not None
-        return x.t - c.frozen_since >= cfg.range_frozen_s
+        moving = math.isfinite(x.speed) and abs(x.speed) > cfg.frozen_min_speed
+        if moving and c.frozen_last_t is not None:
+            c.frozen_time += max(0.0, x.t - c.frozen_last_t)
+        c.frozen_last_t = x.t
+        return c.frozen_time >= cfg.range_frozen_s
 
     def causes(self, x: SupervisorInputs) -> dict[str, Mode]:
         """Every active cause with the mode it calls for (updates the counters)."""

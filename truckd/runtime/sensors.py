@@ -1,6 +1,11 @@
 """What the daemon has heard from the microcontroller: the latest checked messages, when
 they arrived, and the raw values the supervisor and the log need.  Pure bookkeeping: the
-caller passes the received messages and its clock's time."""
+caller passes the received messages and its clock's time.
+
+A sensor message counts as fresh data only when its MCU sample time moved on: a message
+repeating the previous sample time (a frozen sensor or a stuck firmware buffer) is counted
+in ``repeated`` and ignored, so the sensor goes stale.  Non-finite fields are ignored and
+counted in ``invalid``."""
 
 from __future__ import annotations
 
@@ -46,7 +51,10 @@ class SensorState:
     fw_faults: FirmwareFault = FirmwareFault.NONE
     x: float = 0.0  # m travelled (encoders)
     invalid: int = 0  # messages with non-finite fields, ignored
+    repeated: int = 0  # sensor messages repeating the previous sample time (frozen), ignored
     _last_ticks: tuple[int, int] | None = None
+    _range_sample_time: float | None = None
+    _encoder_sample_time: float | None = None
 
     def update(self, now: float, received: Iterable[Received]) -> None:
         """Take this cycle's checked messages."""
@@ -60,6 +68,10 @@ class SensorState:
                 if not math.isfinite(m.distance) or not math.isfinite(m.sample_time):
                     self.invalid += 1
                     continue
+                if m.sample_time == self._range_sample_time:
+                    self.repeated += 1  # a frozen sensor: same sample again, not fresh
+                    continue
+                self._range_sample_time = m.sample_time
                 self.ranges.append(RangeSample(m.gap, m.sample_time))
                 self.range_raw = m.distance if m.valid else None
                 self.range_valid = m.valid
@@ -76,6 +88,10 @@ class SensorState:
         if not math.isfinite(m.sample_time):
             self.invalid += 1
             return
+        if m.sample_time == self._encoder_sample_time:
+            self.repeated += 1
+            return
+        self._encoder_sample_time = m.sample_time
         left_ok, right_ok = not (m.status & 1), not (m.status & 2)
         self.encoders.append(
             EncoderSample(m.ticks_left, m.ticks_right, m.sample_time, left_ok, right_ok)

@@ -1,0 +1,140 @@
+"""The daemon's pieces (sensor bookkeeping, motor command) and whole in-process and
+subprocess runs on the sim backend: clean stop, recorded log, SIGTERM."""
+
+from __future__ import annotations
+
+import math
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+from runtime_support import write_config
+
+from firmware_protocol.messages import RangeReading, RangeStatus, WheelEncoders
+from truckd.config.truck import load_config
+from truckd.control.supervisor import Mode
+from truckd.io.port import Received
+from truckd.logfile import read_log
+from truckd.runtime.command import motor_command
+from truckd.runtime.daemon import MODE_CODE, Daemon
+from truckd.runtime.realtime import unfreeze_gc
+from truckd.runtime.sensors import SensorState
+
+
+def rx(t: float, msg: object) -> Received:
+    return Received(t, type(msg).__name__, msg)  # type: ignore[arg-type]
+
+
+def test_sensors_ignore_nan_and_repeated_samples() -> None:
+    s = SensorState(tick_len=0.001)
+    s.update(0.0, [rx(0.0, RangeReading(1.5, RangeStatus.VALID, 0.10))])
+    assert s.t_range == 0.0 and s.range_raw == 1.5 and len(s.ranges) == 1
+    s.update(0.02, [rx(0.02, RangeReading(math.nan, RangeStatus.VALID, 0.12))])
+    assert s.invalid == 1 and s.t_range == 0.0 and s.ranges == []
+    s.update(0.04, [rx(0.04, RangeReading(1.5, RangeStatus.VALID, 0.10))])  # frozen
+    assert s.repeated == 1 and s.t_range == 0.0
+    s.update(0.06, [rx(0.06, RangeReading(0.0, RangeStatus.NO_TARGET, 0.16))])
+    assert s.t_range == 0.06 and s.range_raw is None and s.ranges[0].distance is None
+
+
+def test_sensors_integrate_distance_across_wrap() -> None:
+    s = SensorState(tick_len=0.002)
+    s.update(0.0, [rx(0.0, WheelEncoders(65530, 65530, 0.01))])
+    s.update(0.01, [rx(0.01, WheelEncoders(10, 10, 0.02))])  # +16 ticks through the wrap
+    assert s.x == pytest.approx(16 * 0.002)
+    s.update(0.02, [rx(0.02, WheelEncoders(20, 10, 0.03, status=2))])  # right wheel faulty
+    assert s.x == pytest.approx(26 * 0.002)
+    assert s.ages(0.05)["encoder"] == pytest.approx(0.03)
+
+
+floats = st.floats(allow_nan=True, allow_infinity=True)
+
+
+@given(st.sampled_from(list(Mode)), st.one_of(st.none(), floats), floats, floats)
+def test_motor_command_always_finite_and_within_limits(
+    mode: Mode, u_ctrl: float | None, u_prev: float, ramp: float
+) -> None:
+    u, enable = motor_command(mode, u_ctrl, u_prev, ramp, 7.2)
+    assert math.isfinite(u) and abs(u) <= 7.2
+    if mode in (Mode.INIT, Mode.FAULT):
+        assert (u, enable) == (0.0, False)
+    if mode == Mode.SAFE_STOP and math.isfinite(u_prev):
+        assert abs(u) <= abs(u_prev) and u * u_prev >= 0  # towards 0, never through it
+
+
+def test_safe_stop_ramps_to_zero() -> None:
+    u, seq = 6.0, []
+    for _ in range(20):
+        u, _en = motor_command(Mode.SAFE_STOP, 5.0, u, 0.6, 7.2)
+        seq.append(u)
+    assert seq[:3] == pytest.approx([5.4, 4.8, 4.2])
+    assert seq[-1] == 0.0
+
+
+def test_in_process_run_records_a_contract_log(tmp_path: Path) -> None:
+    cfg_path = write_config(
+        tmp_path / "truck.yaml",
+        {"runtime": {"realtime": False, "telemetry": {"enabled": False},
+                     "recorder": {"dir": str(tmp_path / "logs")}}},
+    )  # fmt: skip
+    d = Daemon(load_config(cfg_path), "sim", duration=2.0, env={})
+    try:
+        assert d.run() == 0
+    finally:
+        unfreeze_gc()
+    assert d.recorder is not None and d.recorder.path is not None
+    log = read_log(d.recorder.path, require=("t", "u", "v"))
+    n = d.rk.cycles
+    assert len(log) == n and n >= 150  # nothing lost; most of 200 cycles on a busy machine
+    assert np.all(np.diff(log["t"]) > 0)
+    assert np.all(np.abs(log["u"]) <= d.u_max)
+    assert MODE_CODE[Mode.ACTIVE] in set(log["mode"].astype(int))
+    assert log["v"].max() > 0.3  # it drove
+    assert d.decision.mode in (Mode.ACTIVE, Mode.DEGRADED)  # DEGRADED: a late solve
+
+
+def test_sigterm_stops_cleanly_with_exit_0(tmp_path: Path) -> None:
+    cfg_path = write_config(
+        tmp_path / "truck.yaml",
+        {"runtime": {"realtime": False, "telemetry": {"enabled": False},
+                     "recorder": {"dir": str(tmp_path / "logs")}}},
+    )  # fmt: skip
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "truckd.cli.main", "run", "--config", str(cfg_path),
+         "--backend", "sim"],
+        stderr=subprocess.PIPE,
+        text=True,
+    )  # fmt: skip
+    assert proc.stderr is not None
+    t_end = time.monotonic() + 60
+    for line in proc.stderr:  # wait until it drives
+        if "-> ACTIVE" in line or time.monotonic() > t_end:
+            break
+    time.sleep(1.0)
+    proc.send_signal(signal.SIGTERM)
+    rest = proc.stderr.read()
+    proc.stderr.close()
+    assert proc.wait(timeout=20) == 0, rest
+    assert "log flushed" in rest
+    files = sorted((tmp_path / "logs").glob("*.csv"))
+    assert len(files) == 1
+    log = read_log(files[0])
+    assert len(log) >= 50
+    # the last recorded command before the stop is finite and the log ends cleanly
+    assert math.isfinite(log["u"][-1])
+
+
+def test_bad_config_is_exit_2(tmp_path: Path) -> None:
+    cfg_path = write_config(tmp_path / "truck.yaml", {"runtime": {"backend": "carrier-pigeon"}})
+    r = subprocess.run(
+        [sys.executable, "-m", "truckd.cli.main", "run", "--config", str(cfg_path)],
+        capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert r.returncode == 2
+    assert "runtime.backend" in r.stderr and "carrier-pigeon" in r.stderr
