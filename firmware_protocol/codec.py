@@ -135,7 +135,7 @@ def _raw(spec: MessageSpec, signal: str, value: float) -> int:
         raise ValueError(f"{spec.name}.{signal}: value must be finite, got {value!r}")
     lo, hi = spec.raw_range[signal]
     r = value / spec.scale[signal]
-    return lo if r <= lo else hi if r >= hi else int(round(r))
+    return lo if r <= lo else hi if r >= hi else round(r)
 
 
 def _clamp_int(spec: MessageSpec, signal: str, value: int) -> int:
