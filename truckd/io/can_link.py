@@ -63,7 +63,7 @@ class CanLink(Link):
             self._bus.send(msg, timeout=0.01)
         except can.CanOperationError as exc:
             code = getattr(exc, "error_code", None)
-            if code in _GONE:
+            if code in _GONE or getattr(self._bus, "_is_shutdown", False):
                 raise LinkDownError(f"CAN {self.channel}: {exc}") from None
             self.stats.bus_errors += 1  # e.g. TX buffer full: this frame is lost
             self.stats.tx_dropped += 1
