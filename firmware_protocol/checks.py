@@ -2,8 +2,9 @@
 continuity and freshness per message, with error statistics.
 
 A frame that fails a check is never handed on as data.  Counter rules (per message):
-the first frame, or the first after a timeout, is accepted as is; a frame whose counter
-equals the previous one (a stuck sender or a replay) is rejected; a jump counts the
+a frame whose counter equals the last accepted one (a stuck sender or a replay) is
+always rejected; otherwise the first frame, or the first after a timeout, is accepted
+as is; a jump counts the
 missing frames in ``counter_gaps`` and adds 1 to a per-message score (capped at twice
 ``max_wrong_counters``), an in-sequence frame subtracts 1; frames are accepted only
 while the score is at most ``max_wrong_counters`` (a broken counter is rejected until
@@ -96,11 +97,11 @@ class RxChecker:
             st.unexpected += 1
             return None
         self._expire(ms, now)
+        if ms.last_counter is not None and dec.counter == ms.last_counter:
+            st.counter_errors += 1  # stuck sender or replay, even after a timeout
+            return None
         if ms.last_counter is not None and not ms.stale:
             jump = (dec.counter - ms.last_counter) % 16
-            if jump == 0:
-                st.counter_errors += 1
-                return None
             ms.last_counter = dec.counter
             if jump != 1:
                 st.counter_gaps += jump - 1

@@ -162,8 +162,9 @@ def test_wheel_encoders_round_trip(tl: int, tr: int, t: float, status: int, c: i
     assert min(err, 6.5536 - err) <= 0.00005 + 1e-9
 
 
-@given(st.floats(-327.68, 327.67), st.floats(0, 65.535), st.floats(-32.768, 32.767),
-       st.integers(0, 15))
+@given(
+    st.floats(-327.68, 327.67), st.floats(0, 65.535), st.floats(-32.768, 32.767), st.integers(0, 15)
+)
 def test_motor_feedback_round_trip(i: float, vb: float, u: float, s: int) -> None:
     m = decode(encode(MotorFeedback(i, vb, u, s), 4)).msg
     assert isinstance(m, MotorFeedback)
