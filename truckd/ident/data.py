@@ -17,6 +17,9 @@ from truckd.logfile import Log, require_io
 
 Array = NDArray[np.float64]
 
+HISTORY_S = 0.6
+"""Seconds of inputs kept before a chunk: covers the largest input delay fitted."""
+
 MIN_SAMPLES = 200
 """Fewer samples than this cannot determine the seed model's parameters."""
 
@@ -34,18 +37,26 @@ class Series:
     v: Array
     i: Array | None = None
     x: Array | None = None
+    hist_t: Array | None = None
+    """Times (s) of the inputs before ``t[0]`` (a chunk's history; they may still act)."""
+    hist_inp: Array | None = None
 
     def __len__(self) -> int:
         return len(self.t)
 
     def slice(self, lo: int, hi: int) -> Series:
-        """Samples ``lo:hi``."""
+        """Samples ``lo:hi``, with up to :data:`HISTORY_S` of earlier inputs as history."""
+        h0 = lo
+        if lo > 0:
+            h0 = int(np.searchsorted(self.t, self.t[lo] - HISTORY_S, "left"))
         return Series(
             t=self.t[lo:hi],
             inp=self.inp[lo:hi],
             v=self.v[lo:hi],
             i=None if self.i is None else self.i[lo:hi],
             x=None if self.x is None else self.x[lo:hi],
+            hist_t=self.t[h0:lo] if lo > 0 else None,
+            hist_inp=self.inp[h0:lo] if lo > 0 else None,
         )
 
 

@@ -135,6 +135,42 @@ def _fit_candidate(
     return out if out.sse <= base.sse else base
 
 
+def _close(a: float, b: float) -> bool:
+    """Two validation costs the data cannot tell apart (see :data:`AMBIGUOUS`)."""
+    return abs(a - b) < max(2.0 * BIC_MIN, AMBIGUOUS * min(a, b))
+
+
+def _rival(
+    current: _Model,
+    accepted: list[str],
+    name: str,
+    tried: dict[str, _Model],
+    by_name: dict[str, Candidate],
+    seed_free: list[Param],
+    fit_data: list[Series],
+    val_data: list[Series],
+    w: Weights,
+    grid: Sequence[float],
+    progress: Progress,
+) -> str | None:
+    """The accepted effect that ``name`` can replace equally well, if any.
+
+    Tried only for rivals that explained about as much alone: swap one for the other
+    in the current model, refit, and compare the validation costs.
+    """
+    for a in accepted:
+        if not _close(tried[name].val_cost, tried[a].val_cost):
+            continue
+        progress(f"swap test: {name} instead of {a}")
+        off = dataclasses.replace(current.fit.effects, **{by_name[a].param.name: 0.0})
+        base = FitResult(current.fit.params, off, float("inf"), current.fit.n, 0)
+        extra = [by_name[x].param for x in accepted if x != a and by_name[x].smooth]
+        f = _fit_candidate(base, seed_free, extra, by_name[name], fit_data, w, grid, progress)
+        if _close(_val_cost(f, val_data, w), current.val_cost):
+            return a
+    return None
+
+
 def _passes(new: _Model, old: _Model, extra: int) -> tuple[bool, float]:
     dbic = _delta_bic(new.fit, old.fit, extra)
     ok = dbic < -BIC_MIN and new.val_cost < (1.0 - REL_MIN) * old.val_cost
@@ -142,7 +178,9 @@ def _passes(new: _Model, old: _Model, extra: int) -> tuple[bool, float]:
 
 
 def _summary(p: VehicleParams, e: Effects, report: Series) -> tuple[ModelSummary, np.ndarray]:
-    pred = simulate_voltage(p, e, report.t, report.inp, v0=float(report.v[0]))
+    pred = simulate_voltage(
+        p, e, report.t, report.inp, float(report.v[0]), report.hist_t, report.hist_inp
+    )
     params = {n: float(getattr(p, n)) for n in SEED_NAMES}
     for n in e.active():
         params[n] = float(getattr(e, n))
@@ -211,13 +249,22 @@ def diagnose_voltage(
             steps.append(new)
             rows[name] = dataclasses.replace(rows[name], accepted=True, note="accepted")
             continue
-        cost = tried[name].val_cost
-        for a in accepted:
-            cost_a = tried[a].val_cost
-            if abs(cost - cost_a) < max(2.0 * BIC_MIN, AMBIGUOUS * min(cost, cost_a)):
-                ambiguous.append((a, name))
-                rows[name] = dataclasses.replace(rows[name], note=f"ambiguous with {a}")
-                break
+        rival = _rival(
+            current,
+            accepted,
+            name,
+            tried,
+            by_name,
+            seed_free,
+            fit_data,
+            val_data,
+            w,
+            grid,
+            progress,
+        )
+        if rival is not None:
+            ambiguous.append((rival, name))
+            rows[name] = dataclasses.replace(rows[name], note=f"ambiguous with {rival}")
         else:
             rows[name] = dataclasses.replace(rows[name], note="adds nothing once others are in")
 
@@ -232,7 +279,7 @@ def diagnose_voltage(
         findings.append(
             Finding(
                 name=name,
-                params={param: float(getattr(step.fit.effects, param))},
+                params={param: float(getattr(current.fit.effects, param))},
                 fit_percent=ext_sum.fit_percent,
                 fit_gain_percent=ext_sum.fit_percent - prev,
             )

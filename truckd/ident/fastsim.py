@@ -42,29 +42,33 @@ class Timeline:
     sample_end: NDArray[np.int64]
 
 
-def timeline(t: Array, delay: float) -> Timeline:
-    """Sub-intervals for commands ``u[k]`` issued at ``t[k]`` acting ``delay`` s later.
+def timeline(t: Array, delay: float, hist: int = 0, t_cmd: Array | None = None) -> Timeline:
+    """Sub-intervals for commands issued at ``t_cmd`` acting ``delay`` s later.
 
-    Mirrors the plant: a command whose action time falls exactly on a sample instant
-    acts from that instant on.
+    ``t`` are the sample instants; ``t_cmd`` (default ``t``) the command instants, which
+    are ``hist`` earlier commands followed by ``t`` itself (a log's history before a
+    chunk).  Mirrors the plant: a command whose action time falls exactly on a sample
+    instant acts from that instant on.
     """
     n = len(t)
+    tc = t if t_cmd is None else t_cmd
     if delay <= 0.0:
         return Timeline(
             dt=np.diff(t),
-            cmd=np.arange(n - 1, dtype=np.int64),
+            cmd=np.arange(hist, hist + n - 1, dtype=np.int64),
             sample_end=np.arange(1, n, dtype=np.int64),
         )
-    act = t + delay
-    act = act[act < t[-1]]
+    eps = 1e-12 * max(1.0, abs(float(t[-1])))
+    act = tc + delay
+    act = act[(act > t[0]) & (act < t[-1])]
     # Merge sample instants and action instants; ties resolved as in the plant.
     bounds = np.concatenate([t, act])
     is_sample = np.concatenate([np.ones(n, bool), np.zeros(len(act), bool)])
     order = np.argsort(bounds, kind="stable")
     bounds, is_sample = bounds[order], is_sample[order]
-    # Drop action instants that coincide with a sample instant (within 1e-12 s).
+    # Drop action instants that coincide with a sample instant.
     keep = np.ones(len(bounds), bool)
-    close = np.flatnonzero(np.diff(bounds) <= 1e-12 * max(1.0, abs(float(t[-1]))))
+    close = np.flatnonzero(np.diff(bounds) <= eps)
     for j in close:
         if is_sample[j] and not is_sample[j + 1]:
             keep[j + 1] = False
@@ -73,7 +77,7 @@ def timeline(t: Array, delay: float) -> Timeline:
     bounds, is_sample = bounds[keep], is_sample[keep]
     starts = bounds[:-1]
     # Command active over [start, next): the last one with action time <= start.
-    cmd = np.searchsorted(t + delay, starts + 1e-12 * max(1.0, abs(float(t[-1]))), "right") - 1
+    cmd = np.searchsorted(tc + delay, starts + eps, "right") - 1
     sample_idx = np.cumsum(is_sample) - 1
     sample_end = np.where(is_sample[1:], sample_idx[1:], -1)
     return Timeline(
@@ -287,11 +291,25 @@ def electrical_correction(
 
 
 def simulate_voltage(
-    p: VehicleParams, eff: Effects, t: Array, u: Array, v0: float = 0.0
+    p: VehicleParams,
+    eff: Effects,
+    t: Array,
+    u: Array,
+    v0: float = 0.0,
+    t_hist: Array | None = None,
+    u_hist: Array | None = None,
 ) -> VoltagePrediction:
-    """Fast free run of the plant model on a log's input (``u[k]`` from ``t[k]``)."""
+    """Fast free run of the plant model on a log's input (``u[k]`` from ``t[k]``).
+
+    ``t_hist``/``u_hist``: commands issued before ``t[0]`` (a chunk's history), which
+    still act after ``t[0]`` when there is an input delay.
+    """
     n = len(t)
-    volts = driver_volts(np.asarray(u, float), eff, p.V_batt)
+    hist = 0 if t_hist is None or u_hist is None else len(t_hist)
+    t = np.asarray(t, float)
+    u_all = np.asarray(u, float) if not hist else np.concatenate([u_hist, u])  # type: ignore[list-item]
+    t_cmd = t if not hist else np.concatenate([t_hist, t])  # type: ignore[list-item]
+    volts = driver_volts(u_all, eff, p.V_batt)
     duty = volts / p.V_batt
     r_tot = p.R_m + eff.battery_sag * duty * duty
     k_arr, _ = electrical_correction(p, eff.viscous_friction, r_tot)
@@ -311,12 +329,11 @@ def simulate_voltage(
         drag=kappa * eff.aero_drag * p.ratio**3 / p.J_S,
         scale=k_arr / kappa if eff.battery_sag != 0.0 else None,
     )
-    tl = _merge_equal(timeline(np.asarray(t, float), eff.input_delay + lag_e), a, b)
+    tl = _merge_equal(timeline(t, eff.input_delay + lag_e, hist, t_cmd), a, b)
     w0 = p.omega(v0)
     meas, raw, pos = run(kin, tl, n, w0, eff.sensor_lag)
     # Active command at each sample instant (for the quasi-static current).
-    act_t = np.asarray(t, float) + eff.input_delay
-    idx = np.searchsorted(act_t, np.asarray(t, float), "left") - 1
+    idx = np.searchsorted(t_cmd + eff.input_delay, t, "left") - 1
     v_at = np.where(idx >= 0, volts[np.maximum(idx, 0)], 0.0)
     r_at = np.where(idx >= 0, r_tot[np.maximum(idx, 0)], p.R_m)
     cur = (v_at - p.K_v * raw) / r_at

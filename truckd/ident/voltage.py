@@ -124,7 +124,7 @@ def residuals(p: VehicleParams, e: Effects, data: Sequence[Series], w: Weights) 
     """Weighted free-run residuals (speed, then current when weighted) of all chunks."""
     parts = []
     for s in data:
-        pred = simulate_voltage(p, e, s.t, s.inp, v0=float(s.v[0]))
+        pred = simulate_voltage(p, e, s.t, s.inp, float(s.v[0]), s.hist_t, s.hist_inp)
         parts.append((s.v - pred.v) * w.v)
         if w.i and s.i is not None:
             parts.append((s.i[1:] - pred.i[1:]) * w.i)
@@ -134,7 +134,7 @@ def residuals(p: VehicleParams, e: Effects, data: Sequence[Series], w: Weights) 
 
 def speed_fit(p: VehicleParams, e: Effects, s: Series) -> tuple[float, float, Array]:
     """``(fit_percent, rmse (m/s), simulated speed)`` of a free run over ``s``."""
-    pred = simulate_voltage(p, e, s.t, s.inp, v0=float(s.v[0]))
+    pred = simulate_voltage(p, e, s.t, s.inp, float(s.v[0]), s.hist_t, s.hist_inp)
     return fit_percent(s.v, pred.v), rmse(s.v, pred.v), pred.v
 
 
