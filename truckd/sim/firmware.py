@@ -369,6 +369,11 @@ class SimulatedFirmware:
                 raise ValueError(f"disconnect: 'duration' must be 0..3600 s, got {d!r}")
             self.disconnect(float(d))
             return
+        if kind not in ("drop", "freeze", "checksum", "counter"):
+            raise ValueError(
+                f"unknown fault {kind!r}; expected drop, freeze, checksum, counter, garbage, "
+                "silent, disconnect or clear"
+            )
         name = cmd.get("message")
         if name not in PUBLISHED:
             raise ValueError(f"{kind}: 'message' must be one of {PUBLISHED}, got {name!r}")
@@ -379,11 +384,6 @@ class SimulatedFirmware:
             f.drop[name] = count
             return
         sets = {"freeze": f.freeze, "checksum": f.bad_checksum, "counter": f.stuck_counter}
-        if kind not in sets:
-            raise ValueError(
-                f"unknown fault {kind!r}; expected drop, freeze, checksum, counter, garbage, "
-                "silent, disconnect or clear"
-            )
         if cmd.get("on", True):
             sets[kind].add(name)
         else:
