@@ -307,8 +307,8 @@ def simulate_voltage(
     n = len(t)
     hist = 0 if t_hist is None or u_hist is None else len(t_hist)
     t = np.asarray(t, float)
-    u_all = np.asarray(u, float) if not hist else np.concatenate([u_hist, u])  # type: ignore[list-item]
-    t_cmd = t if not hist else np.concatenate([t_hist, t])  # type: ignore[list-item]
+    u_all = np.asarray(u, float) if not hist else np.concatenate([u_hist, u])
+    t_cmd = t if not hist else np.concatenate([t_hist, t])
     volts = driver_volts(u_all, eff, p.V_batt)
     duty = volts / p.V_batt
     r_tot = p.R_m + eff.battery_sag * duty * duty
@@ -346,7 +346,7 @@ def simulate_voltage(
 class ForceModel:
     """Rigid body with friction under a force input (SI, load side).
 
-    ``M dv/dt = F - F_v v - F_c sign(v) - offset``; held at rest while
+    ``M dv/dt = F - F_v v - F_c sign(v) - offset - c_drag v|v|``; held at rest while
     ``|F - offset| <= F_s`` (``F_s`` defaults to ``F_c``).
     """
 
@@ -355,6 +355,7 @@ class ForceModel:
     F_v: float = 0.0
     offset: float = 0.0
     F_s: float | None = None
+    c_drag: float = 0.0
 
 
 def simulate_force(m: ForceModel, t: Array, f: Array, v0: float = 0.0) -> tuple[Array, Array]:
@@ -370,6 +371,7 @@ def simulate_force(m: ForceModel, t: Array, f: Array, v0: float = 0.0) -> tuple[
         c=m.F_c / m.M,
         sigma=fs / m.M,
         d=m.offset / m.M,
+        drag=m.c_drag / m.M,
     )
     tl = timeline(np.asarray(t, float), 0.0)
     _, raw, pos = run(kin, tl, n, v0)
