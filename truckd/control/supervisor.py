@@ -7,8 +7,10 @@ Modes (the daemon maps them to commands):
 - ``INIT``: start-up, until the link is up and encoder and range data are fresh; motor off.
 - ``ACTIVE``: everything fresh and healthy; the controller drives.
 - ``DEGRADED``: still driving, with something wrong that the controller can cover: the
-  solver failed recently (the controller's fallback law is in use), the loop overran, or the
-  lead is lost and the lead-lost action is ``cruise``.
+  solver failed ``solver_degrade_after`` cycles in a row (the controller's fallback is in
+  use), the loop missed ``overrun_degrade_after`` deadlines in a row, or the lead is lost
+  and the lead-lost action is ``cruise``.  Single failures and misses are only counted
+  (the controller's held plan covers one failed solve).
 - ``SAFE_STOP``: a controlled stop (voltage ramped to zero): encoder or link stale, range
   sensor stale or frozen, the solver failing ``solver_fail_limit`` cycles in a row, the loop
   overrunning ``overrun_limit`` cycles in a row, or the lead lost with action ``stop``.
@@ -65,8 +67,18 @@ class SupervisorConfig:
     frozen_min_speed: float = spec(
         "frozen-range check only while faster than this", unit="m/s", lo=0.0, default=0.05
     )
+    solver_degrade_after: int = spec(
+        "consecutive solver failures before DEGRADED (one is covered by the held plan)",
+        lo=1,
+        default=2,
+    )
     solver_fail_limit: int = spec(
         "consecutive solver failures before a controlled stop", lo=1, default=10
+    )
+    overrun_degrade_after: int = spec(
+        "consecutive deadline misses before DEGRADED (single misses are only counted)",
+        lo=1,
+        default=2,
     )
     overrun_limit: int = spec(
         "consecutive deadline misses before a controlled stop", lo=1, default=5
@@ -184,11 +196,11 @@ class Supervisor:
             out["lead_lost"] = Mode.SAFE_STOP if self.lead_lost_action == "stop" else Mode.DEGRADED
         if c.solver_fails >= cfg.solver_fail_limit:
             out["solver_failed"] = Mode.SAFE_STOP
-        elif c.solver_fails > 0:
+        elif c.solver_fails >= cfg.solver_degrade_after:
             out["solver_failing"] = Mode.DEGRADED
         if c.overruns >= cfg.overrun_limit:
             out["loop_overrun"] = Mode.SAFE_STOP
-        elif c.overruns > 0:
+        elif c.overruns >= cfg.overrun_degrade_after:
             out["loop_late"] = Mode.DEGRADED
         return out
 

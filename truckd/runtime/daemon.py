@@ -22,7 +22,6 @@ from typing import Any
 from firmware_protocol.messages import CompanionHeartbeat, CompanionState, MotorCommand
 from truckd.config.schema import to_plain
 from truckd.config.truck import TruckConfig
-from truckd.control.config import ControlConfig
 from truckd.control.controller import Controller, ControlOutput
 from truckd.control.qp import ControlModel
 from truckd.control.supervisor import Decision, Mode, Supervisor, SupervisorInputs
@@ -52,12 +51,6 @@ LOG_COLUMNS = (
 gap and lead speed are extras because they are NaN while no lead is tracked."""
 
 
-def control_config(cfg: TruckConfig) -> ControlConfig:
-    """The controller's section (its defaults while the file has none)."""
-    c = getattr(cfg, "control", None)
-    return c if isinstance(c, ControlConfig) else ControlConfig()
-
-
 def _j(x: float) -> float | None:
     """JSON-safe number (None for NaN/inf)."""
     return x if math.isfinite(x) else None
@@ -77,7 +70,7 @@ class Daemon:
     ) -> None:
         self.cfg = cfg
         self.rt = cfg.runtime
-        self.control_cfg = control_config(cfg)
+        self.control_cfg = cfg.control
         self.backend_name = backend or self.rt.backend
         self.duration = duration
         self.clock = clock
@@ -118,6 +111,7 @@ class Daemon:
         self._states_sent = 0
         self._rate_mark = (0.0, 0)
         self._transitions: list[dict[str, object]] = []
+        self._ages: dict[str, float] = {}
 
     # -- start-up and shutdown -----------------------------------------------------
     def params(self) -> dict[str, Any]:
@@ -247,7 +241,7 @@ class Daemon:
 
     def supervise(self, now: float, t: float, out: ControlOutput | None) -> Decision:
         s = self.sensors
-        ages = s.ages(now)
+        ages = self._ages = s.ages(now)
         reason = out.fallback_reason if out is not None else "exception"
         solver_ok = out is not None and not (reason or "").startswith("solver_")
         est = out.estimate if out is not None else None
@@ -324,6 +318,7 @@ class Daemon:
                     "lead_valid": bool(est.lead_valid) if est is not None else False,
                     "lateness_us": self.rk.last_lateness * 1e6,
                     "faults": list(self.decision.causes),
+                    "ages_ms": {k: _j(a * 1e3) for k, a in self._ages.items()},
                 }
             )
             self._states_sent += 1
@@ -353,6 +348,7 @@ class Daemon:
                 "state": self.sensors.fw_state.name,
                 "faults": int(self.sensors.fw_faults),
                 "invalid_messages": self.sensors.invalid,
+                "repeated_samples": self.sensors.repeated,
             },
             "controller": {
                 "solver_failures": out.solver_failures if out is not None else None,

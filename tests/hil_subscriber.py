@@ -1,0 +1,50 @@
+"""An independent Zenoh subscriber process for the HIL tests.
+
+python tests/hil_subscriber.py --connect ENDPOINT --vehicle ID --out FILE --duration S
+
+Writes one JSON line per state sample: {"rx": local monotonic time, "msg": state}.
+Prints "ready" once subscribed.  Exits after S seconds.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import threading
+import time
+
+import zenoh
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--connect", required=True)
+    ap.add_argument("--vehicle", required=True)
+    ap.add_argument("--out", required=True)
+    ap.add_argument("--duration", type=float, required=True)
+    args = ap.parse_args()
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"peer"')
+    conf.insert_json5("listen/endpoints", "[]")
+    conf.insert_json5("connect/endpoints", json.dumps([args.connect]))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("scouting/gossip/enabled", "false")
+    lock = threading.Lock()
+    with open(args.out, "w", encoding="utf-8") as fh, zenoh.open(conf) as session:
+
+        def on_state(sample: zenoh.Sample) -> None:
+            line = json.dumps(
+                {"rx": time.monotonic(), "msg": json.loads(sample.payload.to_bytes())}
+            )
+            with lock:
+                fh.write(line + "\n")
+
+        sub = session.declare_subscriber(f"truckd/{args.vehicle}/state", on_state)
+        print("ready", flush=True)
+        time.sleep(args.duration)
+        sub.undeclare()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,182 @@
+"""Processes of the HIL tests: the simulated firmware on a pty, `truckd run` on the
+serial backend, and a Zenoh watcher.  Every process started here is ended by its pid."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import zenoh
+from runtime_support import endpoint, free_port, write_config
+
+from truckd.runtime.telemetry import zenoh_config
+
+PY = sys.executable
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def hil_config(tmp: Path, pty: str, port: int, **runtime: Any) -> Path:
+    """truck.yaml for a HIL daemon: serial on the pty, Zenoh on ``port``, log in tmp."""
+    rt: dict[str, Any] = {
+        "backend": "serial",
+        "fault_injection": True,
+        "telemetry": {"listen": [endpoint(port)]},
+        "recorder": {"dir": str(tmp / "logs")},
+    }
+    rt.update(runtime)
+    return write_config(
+        tmp / "truck.yaml",
+        {"link": {"serial_device": pty, "reconnect_interval": 0.1},
+         "control": {"on_lead_lost": "stop"}, "runtime": rt},
+    )  # fmt: skip
+
+
+class Firmware:
+    """``python -m truckd.sim.firmware_main`` on a pty, with its UDP fault control."""
+
+    def __init__(self, pty: str, config: Path, *args: str) -> None:
+        self.pty = pty
+        self.proc = subprocess.Popen(
+            [PY, "-m", "truckd.sim.firmware_main", "--pty", pty, "--config", str(config), *args],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            cwd=ROOT,
+            env={**os.environ, "PYTHONPATH": f"{ROOT}{os.pathsep}{ROOT / 'tests'}"},
+        )
+        assert self.proc.stdout is not None
+        line = self.proc.stdout.readline()
+        if not line:
+            raise RuntimeError(f"firmware did not start: {self.proc.stderr.read()}")  # type: ignore[union-attr]
+        ready = json.loads(line)
+        self.port = int(ready["control_port"])
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.settimeout(2.0)
+
+    def cmd(self, c: dict[str, Any]) -> dict[str, Any]:
+        self.sock.sendto(json.dumps(c).encode(), ("127.0.0.1", self.port))
+        reply: dict[str, Any] = json.loads(self.sock.recv(65536))
+        assert reply.get("ok"), reply
+        return reply
+
+    def status(self) -> dict[str, Any]:
+        return self.cmd({"cmd": "status"})
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            os.kill(self.proc.pid, signal.SIGTERM)
+            try:
+                self.proc.wait(10)
+            except subprocess.TimeoutExpired:
+                os.kill(self.proc.pid, signal.SIGKILL)
+                self.proc.wait(10)
+        for f in (self.proc.stdout, self.proc.stderr):
+            if f is not None:
+                f.close()
+        self.sock.close()
+
+
+class Daemon:
+    """``truckd run`` as systemd would start it (stderr to a file)."""
+
+    def __init__(self, config: Path, log: Path, *args: str) -> None:
+        self.log = log
+        self._fh = open(log, "w")  # noqa: SIM115 - closed in stop()
+        self.proc = subprocess.Popen(
+            [PY, "-m", "truckd.cli.main", "run", "--config", str(config), *args],
+            stdout=subprocess.DEVNULL,
+            stderr=self._fh,
+            cwd=ROOT,
+        )
+
+    def alive(self) -> bool:
+        return self.proc.poll() is None
+
+    def stop(self, sig: int = signal.SIGTERM) -> int:
+        if self.proc.poll() is None:
+            os.kill(self.proc.pid, sig)
+            try:
+                self.proc.wait(20)
+            except subprocess.TimeoutExpired:
+                os.kill(self.proc.pid, signal.SIGKILL)
+                self.proc.wait(10)
+        self._fh.close()
+        return int(self.proc.returncode)
+
+    def stderr(self) -> str:
+        return self.log.read_text()
+
+
+@dataclass
+class Sample:
+    rx: float  # local monotonic receive time
+    msg: dict[str, Any]
+
+
+@dataclass
+class Watch:
+    """An in-process Zenoh subscriber on one vehicle's state and health."""
+
+    port: int
+    vehicle: str = "truck1"
+    states: list[Sample] = field(default_factory=list)
+    health: list[Sample] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        self._lock = threading.Lock()
+        self.session = zenoh.open(zenoh_config(listen=[], connect=[endpoint(self.port)]))
+        self.session.declare_subscriber(f"truckd/{self.vehicle}/state", self._on(self.states))
+        self.session.declare_subscriber(f"truckd/{self.vehicle}/health", self._on(self.health))
+
+    def _on(self, into: list[Sample]) -> Callable[[zenoh.Sample], None]:
+        def cb(s: zenoh.Sample) -> None:
+            smp = Sample(time.monotonic(), json.loads(s.payload.to_bytes()))
+            with self._lock:
+                into.append(smp)
+
+        return cb
+
+    def since(self, t: float) -> list[Sample]:
+        with self._lock:
+            return [s for s in self.states if s.rx >= t]
+
+    def wait_state(
+        self, pred: Callable[[dict[str, Any]], bool], timeout: float, after: float = 0.0
+    ) -> Sample | None:
+        """The first state sample received after ``after`` satisfying ``pred``."""
+        t_end = time.monotonic() + timeout
+        seen = 0
+        while True:
+            with self._lock:
+                new = self.states[seen:]
+                seen = len(self.states)
+            for s in new:
+                if s.rx >= after and pred(s.msg):
+                    return s
+            if time.monotonic() > t_end:
+                return None
+            time.sleep(0.02)
+
+    def last_health(self) -> dict[str, Any]:
+        with self._lock:
+            return self.health[-1].msg if self.health else {}
+
+    def inject(self, cmd: dict[str, Any]) -> None:
+        self.session.put(f"truckd/{self.vehicle}/inject", json.dumps(cmd))
+
+    def close(self) -> None:
+        self.session.close()  # type: ignore[no-untyped-call]
+
+
+def new_port() -> int:
+    return free_port()
