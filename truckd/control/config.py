@@ -141,7 +141,7 @@ class ControlConfig:
         default=20.0,
     )
     r_du: float = spec(
-        "weight on (u[k] - u[k-1])^2", unit="1/V^2", lo=0.0, lo_open=True, hi=1e9, default=0.02
+        "weight on (u[k] - u[k-1])^2", unit="1/V^2", lo=0.0, lo_open=True, hi=1e9, default=0.3
     )
     slack_linear: float = spec(
         "linear penalty on constraint slack (exact penalty)", lo=0.0, hi=1e12, default=1e4
@@ -169,7 +169,7 @@ class ControlConfig:
     )
     max_iter: int = spec("OSQP iteration limit per solve", lo=1, hi=100_000, default=400)
     eps: float = spec(
-        "OSQP absolute and relative tolerance", lo=0.0, lo_open=True, hi=1.0, default=1e-4
+        "OSQP absolute and relative tolerance", lo=0.0, lo_open=True, hi=1.0, default=1e-5
     )
     plan_hold_steps: int = spec(
         "fallback: follow the shifted previous plan for at most this many cycles",

@@ -109,7 +109,10 @@ class Controller:
             return self._fallback(est, v, "speed_stale", "fallback", math.nan, "not-run", 0, 0.0)
         lead = est.lead_valid and math.isfinite(est.gap) and math.isfinite(est.v_lead)
         gap_ref = cfg.d_0 + cfg.time_headway * v if lead else math.nan
-        if lead and est.gap - gap_ref < cfg.follow_window:
+        # Follow a lead that is near and either slower than the set speed or too close;
+        # otherwise cruise at the set speed (the minimum gap is still a constraint).
+        near = lead and est.gap - gap_ref < cfg.follow_window
+        if near and (est.v_lead <= cfg.v_set or est.gap < gap_ref):
             mode, v_ref = "follow", cfg.v_set
         elif lead or cfg.on_lead_lost == "cruise":
             mode, v_ref = "cruise", cfg.v_set
@@ -128,7 +131,7 @@ class Controller:
             v_lead=self._lead_horizon(est, forecast) if lead else np.zeros(self.mpc.horizon),
             lead=lead,
             v_ref=v_ref,
-            v_cap=min(cfg.v_set, cfg.v_max) if mode == "follow" else cfg.v_max,
+            v_cap=cfg.v_max,
             u_lo=-self.u_max - ff,
             u_hi=self.u_max - ff,
         )

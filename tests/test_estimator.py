@@ -1,0 +1,169 @@
+"""The estimator: wrapping counters, speed from quantised ticks of both wheels, the lead
+filter's outlier rejection, cut-in re-initialisation and lead-lost detection."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from truckd.control.config import EstimatorConfig
+from truckd.control.estimator import (
+    EncoderSample,
+    Estimator,
+    RangeSample,
+    wrap_delta,
+    wrap_dt,
+)
+
+R_W = 0.0425
+TICKS = 512
+TICK_LEN = 2 * math.pi * R_W / TICKS
+MOD = 65536
+DT = 0.01
+
+
+@given(start=st.integers(0, MOD - 1), delta=st.integers(-MOD // 2, MOD // 2 - 1))
+def test_wrap_delta_inverts_modular_addition(start: int, delta: int) -> None:
+    assert wrap_delta((start + delta) % MOD, start, MOD) == delta
+
+
+def test_wrap_dt_across_the_clock_wrap() -> None:
+    assert wrap_dt(0.0049, 6.5486, 6.5536) == pytest.approx(0.0099)
+
+
+def drive(
+    est: Estimator,
+    v: float,
+    n: int,
+    x0: float = 0.0,
+    t0: float = 0.0,
+    tick0: int = 0,
+    right_ok: bool = True,
+    right_garbage: bool = False,
+) -> tuple[float, float]:
+    """Feed n encoder samples of a truck at constant speed v; returns (x, t) at the end."""
+    x, t = x0, t0
+    for _ in range(n):
+        t += DT
+        x += v * DT
+        ticks = (tick0 + math.floor(x / TICK_LEN)) % MOD
+        right = 12345 if right_garbage else ticks
+        est.update_encoders(
+            t, EncoderSample(ticks, right, t % 6.5536, left_ok=True, right_ok=right_ok)
+        )
+    return x, t
+
+
+@pytest.mark.parametrize("v", [0.3, 1.0, 2.4])
+def test_speed_from_ticks_across_the_counter_wrap(v: float) -> None:
+    est = Estimator(EstimatorConfig(), R_W, TICKS)
+    # Start just below the wrap so the counters wrap during the run.
+    x, t = drive(est, v, 200, tick0=MOD - 200)
+    errors = []
+    for _ in range(100):
+        x, t = drive(est, v, 1, x0=x, t0=t, tick0=MOD - 200)
+        speed, fresh = est.speed(t)
+        assert fresh
+        errors.append(speed - v)
+    # One tick per 10 ms sample is 0.052 m/s of quantisation: unbiased, and every
+    # estimate within that.
+    assert abs(sum(errors) / len(errors)) < 0.005
+    assert max(abs(e) for e in errors) < 0.052
+
+
+def test_speed_uses_the_healthy_wheel_when_one_encoder_fails() -> None:
+    est = Estimator(EstimatorConfig(), R_W, TICKS)
+    _, t = drive(est, 1.0, 200, right_ok=False, right_garbage=True)
+    speed, _ = est.speed(t)
+    assert speed == pytest.approx(1.0, abs=0.01)
+
+
+def test_speed_goes_stale_without_encoder_samples() -> None:
+    cfg = EstimatorConfig()
+    est = Estimator(cfg, R_W, TICKS)
+    _, t = drive(est, 1.0, 50)
+    assert est.speed(t)[1]
+    assert not est.speed(t + cfg.encoder_timeout_s + 0.001)[1]
+
+
+def follow_range(
+    est: Estimator, gap0: float, v_lead: float, v_own: float, n: int, t0: float = 0.0
+) -> float:
+    """Range readings every 20 ms of a lead at v_lead, own truck at v_own; returns t."""
+    t = t0
+    for k in range(n):
+        t = t0 + (k + 1) * 0.02
+        gap = gap0 + (v_lead - v_own) * (t - t0)
+        est.update_range(t, RangeSample(gap, t), v_own)
+    return t
+
+
+def test_lead_speed_converges_and_a_spike_is_rejected() -> None:
+    est = Estimator(EstimatorConfig(), R_W, TICKS)
+    t = follow_range(est, 1.5, v_lead=1.0, v_own=1.2, n=100)
+    e = est.estimate(t)
+    assert e.lead_valid
+    assert e.v_lead == pytest.approx(1.0, abs=0.02)
+    gap_true = 1.5 - 0.2 * (t - 0.0)
+    assert e.gap == pytest.approx(gap_true, abs=0.01)
+    # One wild reading (a reflection) is rejected; the estimate barely moves.
+    t += 0.02
+    est.update_range(t, RangeSample(0.3, t), 1.2)
+    e2 = est.estimate(t)
+    assert e2.outliers == 1
+    assert e2.gap == pytest.approx(gap_true - 0.2 * 0.02, abs=0.01)
+
+
+def test_cut_in_restarts_the_filter_after_consistent_outliers() -> None:
+    cfg = EstimatorConfig()
+    est = Estimator(cfg, R_W, TICKS)
+    t = follow_range(est, 1.2, v_lead=1.0, v_own=1.0, n=100)
+    for k in range(cfg.reinit_count):
+        t += 0.02
+        est.update_range(t, RangeSample(0.6, t), 1.0)
+        e = est.estimate(t)
+        if k < cfg.reinit_count - 1:
+            assert e.gap == pytest.approx(1.2, abs=0.02)  # still the old target
+    assert e.reinits == 1
+    assert e.gap == pytest.approx(0.6, abs=0.02)
+
+
+def test_lead_lost_after_timeout_and_no_target_status() -> None:
+    cfg = EstimatorConfig()
+    est = Estimator(cfg, R_W, TICKS)
+    t = follow_range(est, 1.0, 1.0, 1.0, 20)
+    assert est.estimate(t).lead_valid
+    # Out of range: no target, lead held for the timeout, then lost.
+    t += 0.02
+    est.update_range(t, RangeSample(cfg.range_max + 1.0, t), 1.0)
+    assert est.estimate(t).lead_valid
+    lost = est.estimate(t + cfg.lead_timeout_s + 0.001)
+    assert not lost.lead_valid and lost.lead_status == "no_target"
+
+
+def test_silence_is_a_timeout_and_a_new_reading_restarts() -> None:
+    cfg = EstimatorConfig()
+    est = Estimator(cfg, R_W, TICKS)
+    t = follow_range(est, 1.0, 1.0, 1.0, 20)
+    t_late = t + cfg.lead_timeout_s + 0.05
+    e = est.estimate(t_late)
+    assert not e.lead_valid and e.lead_status == "timeout"
+    est.update_range(t_late, RangeSample(2.0, t_late), 1.0)
+    e = est.estimate(t_late)
+    assert e.lead_valid and e.gap == pytest.approx(2.0)
+
+
+@pytest.mark.parametrize("bad", [math.nan, math.inf, -1.0, None])
+def test_invalid_readings_are_no_target(bad: float | None) -> None:
+    est = Estimator(EstimatorConfig(), R_W, TICKS)
+    est.update_range(0.0, RangeSample(bad, 0.0), 0.0)
+    e = est.estimate(0.0)
+    assert not e.lead_valid and e.lead_status == "no_target"
+
+
+def test_rejects_a_bad_tick_resolution() -> None:
+    with pytest.raises(ValueError, match="ticks_per_rev"):
+        Estimator(EstimatorConfig(), R_W, 0)

@@ -1,0 +1,235 @@
+"""The MPC: prediction model against the plant, first move against an independent solver
+(cvxpy + CLARABEL), terminal cost, feasibility, status handling and fallbacks."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import cvxpy as cp
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from truckd.control.config import ControlConfig
+from truckd.control.controller import Controller
+from truckd.control.estimator import Estimate
+from truckd.control.mpc import MpcSolver
+from truckd.control.qp import ControlModel, QpBuilder, QpInputs, prediction_model
+from truckd.model.params import VehicleParams
+from truckd.sim.plant import Plant
+
+FIRST_MOVE_TOL_V = 2e-3
+"""OSQP at eps 1e-6 against CLARABEL: first moves agree to 2 mV (of a 14.4 V range)."""
+
+
+def tight(cfg: ControlConfig | None = None, **kw: float | int) -> ControlConfig:
+    """A configuration that solves to high accuracy with a generous budget (no timing)."""
+    base = cfg or ControlConfig()
+    return dataclasses.replace(base, eps=1e-6, max_iter=50_000, time_budget_s=1.0, **kw)
+
+
+def clarabel_first_move(b: QpBuilder, mode: str, inp: QpInputs) -> float:
+    """The same QP (P, q, A, l, u) solved by cvxpy with CLARABEL (an interior-point method)."""
+    q, lo, hi = b.vectors(mode, inp)
+    p = b.P[mode].toarray()
+    a = b.A.toarray()
+    z = cp.Variable(b.lay.nz)
+    has_lo, has_hi = lo > -1e20, hi < 1e20
+    cons = [a[has_lo] @ z >= lo[has_lo], a[has_hi] @ z <= hi[has_hi]]
+    prob = cp.Problem(cp.Minimize(0.5 * cp.quad_form(z, cp.psd_wrap(p)) + q @ z), cons)
+    prob.solve(solver=cp.CLARABEL)
+    assert prob.status == cp.OPTIMAL
+    assert z.value is not None
+    return float(z.value[b.lay.u0])
+
+
+def random_inputs(rng: np.random.Generator, cfg: ControlConfig, n: int) -> QpInputs:
+    v = rng.uniform(0.0, 2.3)
+    u_prev = rng.uniform(-3.0, 6.0)
+    ff = rng.choice([0.0, 0.45])
+    return QpInputs(
+        x0=np.array([rng.uniform(-2.0, 2.0), v, rng.uniform(0.1, 3.0)]),
+        u_prev=u_prev - ff,
+        v_lead=np.full(n, rng.uniform(0.0, 2.0)),
+        lead=bool(rng.random() < 0.8),
+        v_ref=cfg.v_set,
+        v_cap=cfg.v_max,
+        u_lo=-cfg.u_max - ff,
+        u_hi=cfg.u_max - ff,
+    )
+
+
+def test_prediction_model_matches_the_plant_without_friction(params: VehicleParams) -> None:
+    """One exact-ZOH step of the MPC's model equals the plant's exact stepping."""
+    p = params.replace(K_coulomb=0.0, K_stiction=0.0)
+    model = ControlModel(p)
+    dt = 0.01
+    pred = prediction_model(model, dt)
+    plant = Plant(p)
+    plant.reset(v=1.0, i=3.0)
+    u, v_lead, gap0 = 4.0, 0.7, 1.0
+    plant.command(u)
+    plant.advance(dt)
+    x0 = np.array([p.R_m * 3.0, 1.0, gap0])
+    x1 = pred.Ad @ x0 + pred.bu * u + pred.bl * v_lead
+    assert x1[1] == pytest.approx(plant.v, rel=1e-9, abs=1e-12)
+    assert x1[0] / p.R_m == pytest.approx(plant.motor.i, rel=1e-9, abs=1e-9)
+    assert x1[2] == pytest.approx(gap0 + v_lead * dt - plant.x, rel=1e-9, abs=1e-12)
+
+
+@pytest.mark.parametrize("mode", ["follow", "cruise"])
+def test_first_move_equals_clarabel_on_random_instances(params: VehicleParams, mode: str) -> None:
+    cfg = tight()
+    solver = MpcSolver(ControlModel(params), cfg)
+    rng = np.random.default_rng(7 if mode == "follow" else 8)
+    worst = 0.0
+    for _ in range(12):
+        inp = random_inputs(rng, cfg, cfg.horizon)
+        res = solver.solve(mode, inp)
+        assert res.ok, res.status
+        ref = clarabel_first_move(solver.qp, mode, inp)
+        worst = max(worst, abs(res.u0 - ref))
+    assert worst <= FIRST_MOVE_TOL_V
+
+
+def test_default_tolerance_first_move_is_close_to_clarabel(params: VehicleParams) -> None:
+    """At the shipped eps (1e-5), cold started, the first move is within 10 mV of the
+    optimum."""
+    cfg = dataclasses.replace(ControlConfig(), time_budget_s=1.0, max_iter=10_000)
+    solver = MpcSolver(ControlModel(params), cfg)
+    rng = np.random.default_rng(3)
+    for _ in range(8):
+        inp = random_inputs(rng, cfg, cfg.horizon)
+        solver.reset()
+        res = solver.solve("follow", inp)
+        assert res.ok
+        assert abs(res.u0 - clarabel_first_move(solver.qp, "follow", inp)) <= 0.01
+
+
+def test_riccati_terminal_cost_makes_the_horizon_irrelevant_when_unconstrained(
+    params: VehicleParams,
+) -> None:
+    """Near the equilibrium no constraint is active: N=15 and N=60 give the same first
+    move (the DARE terminal cost is the exact infinite-horizon cost-to-go)."""
+    model = ControlModel(params)
+    moves = []
+    for n in (15, 60):
+        cfg = tight(horizon=n)
+        s = MpcSolver(model, cfg)
+        v = 1.0
+        u_ss = params.K_v * params.omega(v)
+        inp = QpInputs(
+            x0=np.array([0.0, v, cfg.d_0 + cfg.time_headway * v + 0.02]),
+            u_prev=u_ss,
+            v_lead=np.full(n, v),
+            lead=True,
+            v_ref=cfg.v_set,
+            v_cap=cfg.v_max,
+            u_lo=-cfg.u_max,
+            u_hi=cfg.u_max,
+        )
+        res = s.solve("follow", inp)
+        assert res.ok
+        moves.append(res.u0 - u_ss)
+    assert moves[0] != 0.0
+    assert moves[0] == pytest.approx(moves[1], rel=1e-3, abs=1e-5)
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    gap=st.floats(-1.0, 5.0),
+    v=st.floats(-0.5, 4.0),
+    u_prev=st.floats(-7.2, 7.2),
+    v_lead=st.floats(0.0, 3.0),
+)
+def test_qp_is_never_infeasible(gap: float, v: float, u_prev: float, v_lead: float) -> None:
+    """Gap below the minimum, speed over the limit, command at a bound: still solvable
+    (state constraints are soft; input bounds and rate are met by holding u_prev)."""
+    s = _SOLVER
+    cfg = s.cfg
+    inp = QpInputs(
+        x0=np.array([0.0, v, gap]),
+        u_prev=u_prev,
+        v_lead=np.full(cfg.horizon, v_lead),
+        lead=True,
+        v_ref=cfg.v_set,
+        v_cap=cfg.v_max,
+        u_lo=-cfg.u_max,
+        u_hi=cfg.u_max,
+    )
+    res = s.solve("follow", inp)
+    assert res.ok, res.status
+    assert -cfg.u_max - 1e-3 <= res.u0 <= cfg.u_max + 1e-3
+    assert abs(res.u0 - u_prev) <= cfg.du_max * cfg.period + 1e-3
+
+
+def _default_params() -> VehicleParams:
+    from truckd.config.truck import load_config
+
+    return load_config().vehicle
+
+
+_SOLVER = MpcSolver(ControlModel(_default_params()), tight())
+
+
+def _estimate(v: float, gap: float, v_lead: float, lead: bool = True) -> Estimate:
+    return Estimate(
+        v=v,
+        speed_valid=True,
+        gap=gap,
+        v_lead=v_lead,
+        lead_valid=lead,
+        lead_status="tracking" if lead else "none",
+        gap_std=0.01,
+        outliers=0,
+        reinits=0,
+        encoder_samples=10,
+        range_samples=10,
+    )
+
+
+def test_solver_failure_holds_the_plan_then_brakes(params: VehicleParams) -> None:
+    cfg = dataclasses.replace(ControlConfig(), time_budget_s=1.0, plan_hold_steps=3)
+    ctrl = Controller(ControlModel(params), cfg)
+    est = _estimate(1.2, 1.12, 1.2)
+    for _ in range(5):
+        good = ctrl.control(est)
+    assert good.fallback_reason is None
+    plan = list(ctrl._plan or [])
+    # From now on the solver reports failure (as OSQP would at its iteration limit).
+    for s in ctrl.mpc._solvers.values():
+        s.update_settings(max_iter=1)
+    outs = [ctrl.control(est) for _ in range(6)]
+    assert [o.fallback_reason is not None for o in outs] == [True] * 6
+    assert all(o.fallback_reason.endswith(":plan") for o in outs[:3] if o.fallback_reason)
+    assert all(o.fallback_reason.endswith(":brake") for o in outs[3:] if o.fallback_reason)
+    # The held moves are the previous plan's, shifted (plus the same feedforward).
+    assert outs[0].u_mpc == pytest.approx(plan[1], abs=1e-9)
+    assert outs[1].u_mpc == pytest.approx(plan[2], abs=1e-9)
+    assert outs[-1].mode == "fallback" and outs[-1].u < outs[2].u
+    assert outs[-1].solver_failures == 6 and outs[-1].braking_cycles == 3
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    v=st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.floats(-5, 5)),
+    gap=st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.floats(-1, 10)),
+    v_lead=st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.floats(-1, 5)),
+    lead=st.booleans(),
+    valid=st.booleans(),
+)
+def test_command_is_always_finite_and_within_limits(
+    v: float, gap: float, v_lead: float, lead: bool, valid: bool
+) -> None:
+    ctrl = _CTRL
+    before = ctrl.u_prev
+    est = dataclasses.replace(_estimate(v, gap, v_lead, lead), speed_valid=valid)
+    out = ctrl.control(est)
+    assert math.isfinite(out.u)
+    assert abs(out.u) <= ctrl.u_max + 1e-12
+    assert abs(out.u - before) <= ctrl.cfg.du_max * ctrl.cfg.period + 1e-9
+
+
+_CTRL = Controller(ControlModel(_default_params()), dataclasses.replace(ControlConfig()))

@@ -1,0 +1,156 @@
+"""Closed-loop scenarios through the simulated firmware and the real protocol: the pass
+criteria of issue 4 on every scenario, and ``truckd sim`` end to end."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from truckd.cli.main import main
+from truckd.config.truck import load_config
+from truckd.control.qp import ControlModel
+from truckd.sim.closed_loop import SimSetup, Trace, run_scenario
+from truckd.sim.scenarios import SCENARIO_NAMES, SpeedProfile, World, make_scenario
+
+CONTRACT_KEYS = {
+    "scenario",
+    "duration_s",
+    "cycles",
+    "collision",
+    "min_gap_m",
+    "gap_error_rms_m",
+    "max_abs_voltage_v",
+    "solve_us_p50",
+    "solve_us_p99",
+    "step_us_p99",
+    "solver_failures",
+    "deadline_misses",
+}
+
+
+@pytest.fixture(scope="module")
+def runs() -> dict[str, tuple[dict[str, Any], Trace]]:
+    tc = load_config()
+    setup = SimSetup(
+        tc.vehicle, tc.plant, tc.control, ControlModel(tc.vehicle), tc.link.encoder_ticks_per_rev
+    )
+    return {
+        n: run_scenario(make_scenario(n, tc.vehicle, tc.control), setup) for n in SCENARIO_NAMES
+    }
+
+
+@pytest.mark.parametrize("name", SCENARIO_NAMES)
+def test_no_collision_gap_above_minimum_voltage_within_limits(
+    runs: dict[str, tuple[dict[str, Any], Trace]], name: str
+) -> None:
+    cfg = load_config().control
+    m, tr = runs[name]
+    assert set(m) >= CONTRACT_KEYS
+    assert not m["collision"]
+    gaps = np.array(tr.gap)
+    if name != "cruise":
+        assert np.nanmin(gaps) >= cfg.d_min
+    u = np.array(tr.u)
+    assert np.all(np.isfinite(u))
+    assert np.max(np.abs(u)) <= cfg.u_max + 1e-9
+    # The rate limit holds on every step.
+    assert np.max(np.abs(np.diff(u))) <= cfg.du_max * cfg.period + 1e-9
+
+
+def test_follow_settles_within_2cm_of_the_reference_gap(
+    runs: dict[str, tuple[dict[str, Any], Trace]],
+) -> None:
+    cfg = load_config().control
+    _, tr = runs["follow"]
+    t = np.array(tr.t)
+    last = t >= t[-1] - 3.0
+    err = np.array(tr.gap)[last] - (cfg.d_0 + cfg.time_headway * np.array(tr.v)[last])
+    assert np.max(np.abs(err)) <= 0.02
+    # And the truck really follows at the lead's speed.
+    assert np.mean(np.array(tr.v)[last]) == pytest.approx(np.array(tr.v_lead)[-1], abs=0.01)
+
+
+def test_cruise_holds_the_set_speed(runs: dict[str, tuple[dict[str, Any], Trace]]) -> None:
+    m, _ = runs["cruise"]
+    assert m["final_speed_m_s"] == pytest.approx(load_config().control.v_set, abs=0.02)
+    assert m["min_gap_m"] is None and m["gap_error_rms_m"] is None
+
+
+def test_lead_brake_stops_behind_the_lead(runs: dict[str, tuple[dict[str, Any], Trace]]) -> None:
+    m, tr = runs["lead-brake"]
+    assert tr.v[-1] == pytest.approx(0.0, abs=0.02)
+    assert m["min_gap_m"] > load_config().control.d_min
+
+
+def test_lead_lost_then_cruise(runs: dict[str, tuple[dict[str, Any], Trace]]) -> None:
+    _, tr = runs["lead-lost"]
+    assert tr.mode[-1] == "cruise"
+    assert np.mean(tr.v[-100:]) == pytest.approx(load_config().control.v_set, abs=0.03)
+    # During the short sensor dropout (6.0-6.2 s) the truck kept following.
+    t = np.array(tr.t)
+    during = (t >= 6.0) & (t < 6.2)
+    assert all(m == "follow" for m, d in zip(tr.mode, during, strict=True) if d)
+
+
+def test_cut_in_opens_the_gap_again(runs: dict[str, tuple[dict[str, Any], Trace]]) -> None:
+    cfg = load_config().control
+    _, tr = runs["cut-in"]
+    t = np.array(tr.t)
+    gap = np.array(tr.gap)
+    k = int(np.argmax(t >= 8.0))
+    assert gap[k + 1] < 0.6 * gap[k - 1]  # the gap halved
+    err_end = gap[-1] - (cfg.d_0 + cfg.time_headway * tr.v[-1])
+    assert abs(err_end) < 0.02
+
+
+def test_speed_profile_distance_is_the_integral_of_speed() -> None:
+    prof = SpeedProfile((0.0, 1.0, 3.0, 4.0), (1.0, 1.0, 0.0, 2.0))
+    ts = np.linspace(0.0, 6.0, 60001)
+    vs = np.array([prof.speed(t) for t in ts])
+    numeric = np.concatenate([[0.0], np.cumsum(0.5 * (vs[1:] + vs[:-1]) * np.diff(ts))])
+    for k in (0, 5000, 15000, 25000, 35000, 60000):
+        assert prof.distance(float(ts[k])) == pytest.approx(numeric[k], abs=1e-6)
+
+
+def test_world_cut_in_halves_the_gap_once() -> None:
+    cfg = load_config()
+    sc = make_scenario("cut-in", cfg.vehicle, cfg.control)
+    w = World(sc)
+    assert sc.cut_in_time is not None
+    before = w.gap(sc.cut_in_time - 0.01, 0.0)
+    after = w.gap(sc.cut_in_time, 0.0)
+    later = w.gap(sc.cut_in_time + 1.0, 0.0)
+    assert before is not None and after is not None and later is not None
+    v = sc.lead.speed(0.0) if sc.lead else math.nan
+    assert after == pytest.approx(0.5 * (before + 0.01 * v), rel=1e-9)
+    assert later == pytest.approx(after + v, rel=1e-9)
+
+
+def test_unknown_scenario_is_rejected() -> None:
+    cfg = load_config()
+    with pytest.raises(ValueError, match="unknown scenario"):
+        make_scenario("nope", cfg.vehicle, cfg.control)
+
+
+def test_cli_sim_writes_contract_json_and_plot(tmp_path: Path) -> None:
+    out, png = tmp_path / "sim.json", tmp_path / "sim.png"
+    code = main(
+        ["sim", "--scenario", "follow", "--duration", "3", "--json", str(out), "--plot", str(png)]
+    )
+    assert code == 0
+    doc = json.loads(out.read_text())
+    assert set(doc) >= CONTRACT_KEYS
+    assert doc["scenario"] == "follow" and doc["cycles"] == 300
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_cli_sim_bad_duration_and_model_exit_2(tmp_path: Path) -> None:
+    assert main(["sim", "--scenario", "follow", "--duration", "-1"]) == 2
+    bad = tmp_path / "m.yaml"
+    bad.write_text("vehicle: {R_m: 1}\n")
+    assert main(["sim", "--scenario", "follow", "--model", str(bad)]) == 2

@@ -1,0 +1,73 @@
+"""``truckd sim``: the controller drives the simulated truck through the simulated
+firmware and the real protocol (CONTRACTS.md section 1)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from typing import Any
+
+from truckd.config.truck import load_config
+from truckd.control.qp import ControlModel
+from truckd.errors import InputError, TruckdError
+from truckd.modelfile import read_model
+from truckd.sim.closed_loop import SimSetup, run_scenario
+from truckd.sim.report import json_safe, plot, table
+from truckd.sim.scenarios import SCENARIO_NAMES, make_scenario
+
+
+def add_subparser(sub: Any) -> None:
+    p = sub.add_parser("sim", help="closed-loop simulation: controller + simulated firmware")
+    p.add_argument(
+        "--scenario", default="all", choices=(*SCENARIO_NAMES, "all"), help="default: all"
+    )
+    p.add_argument("--duration", type=float, help="seconds (default: the scenario's)")
+    p.add_argument("--realtime", action="store_true", help="pace the loop in wall-clock time")
+    p.add_argument("--config", help="configuration file (default: the shipped one)")
+    p.add_argument("--model", help="MODEL.yaml: the controller's model (the plant stays)")
+    p.add_argument("--json", help="write the metrics as JSON to this file")
+    p.add_argument("--plot", help="write a PNG of gap, speeds and voltage to this file")
+    p.set_defaults(run=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
+        raise InputError(f"--duration: expected a positive number of seconds, got {args.duration}")
+    cfg = load_config(args.config)
+    if args.model:
+        mf = read_model(args.model)
+        model, source = ControlModel(mf.vehicle, mf.effects), f"model file {args.model}"
+    else:
+        model, source = ControlModel(cfg.vehicle), "configured vehicle"
+    setup = SimSetup(
+        cfg.vehicle, cfg.plant, cfg.control, model, ticks_per_rev=cfg.link.encoder_ticks_per_rev
+    )
+    names = SCENARIO_NAMES if args.scenario == "all" else (args.scenario,)
+    results, traces = [], []
+    for name in names:
+        metrics, trace = run_scenario(
+            make_scenario(name, cfg.vehicle, cfg.control), setup, args.duration, args.realtime
+        )
+        results.append(json_safe(metrics))
+        traces.append((name, trace))
+    effects = ", ".join(model.effects.active()) or "none"
+    print(
+        f"controller model: {source} (effects: {effects}); plant effects: "
+        f"{', '.join(cfg.plant.effects.active()) or 'none'}"
+    )
+    print(table(results))
+    if args.json:
+        doc: object = results if args.scenario == "all" else results[0]
+        try:
+            with open(args.json, "w", encoding="utf-8") as f:
+                json.dump(doc, f, indent=2, allow_nan=False)
+                f.write("\n")
+        except OSError as exc:
+            raise TruckdError(f"{args.json}: cannot write: {exc.strerror}") from None
+    if args.plot:
+        plot(args.plot, traces)
+    crashed = [r["scenario"] for r in results if r["collision"]]
+    if crashed:
+        raise TruckdError(f"collision in: {', '.join(crashed)}")
+    return 0
