@@ -17,7 +17,6 @@ from truckd.errors import InputError, TruckdError
 SUBCOMMANDS: dict[str, str] = {
     "params": "truckd.cli.params",
     "simulate": "truckd.cli.simulate",
-    "sim": "truckd.cli.sim",
     "monitor": "truckd.cli.monitor",
     "run": "truckd.cli.run",
     "identify": "truckd.cli.identify",

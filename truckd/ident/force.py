@@ -135,7 +135,9 @@ def fit_idm(d: Idm, names: Sequence[str]) -> IdmFit:
     x = d.regressors(names)
     theta, *_ = np.linalg.lstsq(x, d.F, rcond=None)
     r = d.F - x @ theta
-    return IdmFit(tuple(names), np.asarray(theta, float), float(r @ r), len(r), float(np.linalg.cond(x)))
+    return IdmFit(
+        tuple(names), np.asarray(theta, float), float(r @ r), len(r), float(np.linalg.cond(x))
+    )
 
 
 def relerr(d: Idm, f: IdmFit) -> float:

@@ -1,0 +1,65 @@
+"""``truckd diagnose LOG.csv [--validate LOG2.csv] [--config FILE] [--json FILE]
+[--report DIR] [--out MODEL.yaml]``: what the simulation gets wrong, and why."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+from truckd.config.truck import load_config
+from truckd.ident.api import diagnose_log, model_of
+from truckd.logfile import read_log
+from truckd.modelfile import write_model
+
+
+def add_subparser(sub: Any) -> None:
+    p = sub.add_parser("diagnose", help="name what the model is missing, extend it")
+    p.add_argument("log", metavar="LOG.csv", help="log (t, u, v [, i]) or force log (t, F, x|v)")
+    p.add_argument("--validate", metavar="LOG2.csv", help="validation log (same kind)")
+    p.add_argument("--config", help="configuration file (starting values and bounds)")
+    p.add_argument("--json", metavar="FILE", help="write the result (CONTRACTS.md section 4)")
+    p.add_argument("--report", metavar="DIR", help="write index.html with plots here")
+    p.add_argument("--out", metavar="MODEL.yaml", help="write the extended model")
+    p.set_defaults(run=run)
+
+
+def _progress(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+def run(args: argparse.Namespace) -> int:
+    cfg = load_config(args.config)
+    log = read_log(args.log)
+    val = read_log(args.validate) if args.validate else None
+    diag = diagnose_log(log, cfg.vehicle, val, _progress)
+    if args.out:
+        write_model(args.out, model_of(diag, args.log))
+    if args.json:
+        Path(args.json).write_text(json.dumps(diag.to_json(), indent=2) + "\n", encoding="utf-8")
+    if args.report:
+        from truckd.ident.report import write_report
+
+        index = write_report(diag, args.report, args.log)
+        print(f"report: {index}")
+    b, x = diag.baseline, diag.extended
+    print(f"{diag.samples} samples ({diag.input} input)")
+    print(f"seed model:     fit {b.fit_percent:7.2f} %  rmse {b.rmse:.4g}")
+    for f in diag.effects:
+        ps = ", ".join(f"{k}={v:.4g}" for k, v in f.params.items())
+        print(f"  + {f.name:20s} {ps:28s} fit {f.fit_percent:7.2f} % ({f.fit_gain_percent:+.2f})")
+    if not diag.effects:
+        print("  no cause named: the seed model explains the data")
+    print(f"extended model: fit {x.fit_percent:7.2f} %  rmse {x.rmse:.4g}")
+    if b.force_relerr_percent is not None and x.force_relerr_percent is not None:
+        print(
+            f"force relative error: seed {b.force_relerr_percent:.3f} %, "
+            f"extended {x.force_relerr_percent:.3f} %"
+        )
+    for a, c in diag.ambiguous:
+        print(f"ambiguous: {a} / {c} (the data cannot tell them apart)")
+    if diag.unexplained:
+        print("unexplained: structure remains in the residual that no candidate explains")
+    return 0
