@@ -17,6 +17,7 @@ from truckd.errors import InputError, TruckdError
 SUBCOMMANDS: dict[str, str] = {
     "params": "truckd.cli.params",
     "simulate": "truckd.cli.simulate",
+    "sim": "truckd.cli.sim",
     "monitor": "truckd.cli.monitor",
     "run": "truckd.cli.run",
     "identify": "truckd.cli.identify",
