@@ -267,10 +267,11 @@ class Daemon:
                 ", ".join(tr.causes) or "all clear",
             )  # fmt: skip
             self._transitions = [*self._transitions[-9:], tr.as_dict()]
+            if not self.ready_sent and tr.old == Mode.INIT:
+                self.notifier.ready("link and sensors up")
+                self.ready_sent = True
             self.notifier.status(f"{tr.new.value}: {', '.join(tr.causes) or 'ok'}")
             self._next_health = 0.0  # publish health now
-            if not self.ready_sent and tr.old == Mode.INIT:
-                self.ready_sent = self.notifier.ready("link and sensors up") or True
         return dec
 
     def send_command(self, mode: Mode) -> None:
@@ -285,7 +286,7 @@ class Daemon:
     def feed_watchdog(self, now: float) -> None:
         """WATCHDOG=1 only while the loop meets its deadlines and the link is fresh."""
         wd = self.notifier.watchdog_usec * 1e-6
-        if wd <= 0 or now - self._last_watchdog < wd / 4:
+        if wd <= 0 or not self.ready_sent or now - self._last_watchdog < wd / 4:
             return
         link_fresh = self.sensors.ages(now)["link"] <= self.rt.supervisor.link_timeout_s
         if link_fresh and not self.rk.last_missed:

@@ -1,0 +1,79 @@
+"""`truckd run` under a fake systemd: READY=1 once link and sensors are up, WATCHDOG=1
+only while the loop meets its deadlines, STOPPING=1 on SIGTERM (real unix datagram socket)."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import zenoh
+from runtime_support import endpoint, free_port, write_config
+
+from truckd.runtime.telemetry import zenoh_config
+
+
+def _drain(sock: socket.socket, seconds: float) -> list[tuple[float, str]]:
+    out = []
+    t_end = time.monotonic() + seconds
+    while (left := t_end - time.monotonic()) > 0:
+        sock.settimeout(left)
+        try:
+            out.append((time.monotonic(), sock.recv(4096).decode()))
+        except TimeoutError:
+            break
+    return out
+
+
+def test_ready_watchdog_gated_by_deadlines_and_stopping(tmp_path: Path) -> None:
+    port = free_port()
+    cfg = write_config(
+        tmp_path / "truck.yaml",
+        {"runtime": {"realtime": False, "fault_injection": True,
+                     "telemetry": {"listen": [endpoint(port)]},
+                     "recorder": {"dir": str(tmp_path / "logs")}}},
+    )  # fmt: skip
+    sock_path = str(tmp_path / "notify.sock")
+    srv = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    srv.bind(sock_path)
+    env = {**os.environ, "NOTIFY_SOCKET": sock_path, "WATCHDOG_USEC": "400000"}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "truckd.cli.main", "run", "--config", str(cfg), "--backend", "sim"],
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    session = None
+    try:
+        srv.settimeout(60.0)
+        first = srv.recv(4096).decode()  # nothing before READY: not even a watchdog feed
+        assert first.startswith("READY=1"), first
+        feeds = [m for _, m in _drain(srv, 1.0) if m == "WATCHDOG=1"]
+        assert len(feeds) >= 5  # fed every ~0.1 s (WATCHDOG_USEC / 4) while healthy
+        # the loop overruns every cycle: the watchdog must starve
+        session = zenoh.open(zenoh_config(listen=[], connect=[endpoint(port)]))
+        time.sleep(0.5)
+        session.put("truckd/truck1/inject", json.dumps({"fault": "overrun", "extra_s": 0.02}))
+        time.sleep(0.5)  # the command arrives; the last healthy feeds drain
+        _drain(srv, 0.2)
+        starving = _drain(srv, 1.5)
+        assert not [m for _, m in starving if m == "WATCHDOG=1"], starving
+        session.put("truckd/truck1/inject", json.dumps({"fault": "clear"}))
+        resumed = _drain(srv, 1.5)
+        assert [m for _, m in resumed if m == "WATCHDOG=1"]
+        os.kill(proc.pid, signal.SIGTERM)
+        assert proc.wait(timeout=20) == 0
+        final = [m for _, m in _drain(srv, 0.5)]
+        assert any(m.startswith("STOPPING=1") for m in final), final
+    finally:
+        if session is not None:
+            session.close()  # type: ignore[no-untyped-call]
+        if proc.poll() is None:
+            os.kill(proc.pid, signal.SIGKILL)
+            proc.wait()
+        srv.close()
