@@ -154,3 +154,28 @@ def test_cli_sim_bad_duration_and_model_exit_2(tmp_path: Path) -> None:
     bad = tmp_path / "m.yaml"
     bad.write_text("vehicle: {R_m: 1}\n")
     assert main(["sim", "--scenario", "follow", "--model", str(bad)]) == 2
+
+
+def test_model_file_with_the_plants_effect_beats_the_seed_model(tmp_path: Path) -> None:
+    """Issue 6's comparison through the CLI: the plant has a 50 ms input delay; the
+    controller with the seed model oscillates, with the extended MODEL.yaml it does not."""
+    import yaml
+
+    from truckd.config.truck import default_config_path
+    from truckd.model.effects import Effects
+    from truckd.modelfile import ModelFile, write_model
+
+    doc = yaml.safe_load(default_config_path().read_text())
+    doc["plant"]["effects"]["input_delay"] = 0.05
+    cfg_file = tmp_path / "truck.yaml"
+    cfg_file.write_text(yaml.safe_dump(doc))
+    model_file = tmp_path / "MODEL.yaml"
+    write_model(model_file, ModelFile(load_config().vehicle, Effects(input_delay=0.05), "test"))
+    rms = {}
+    for name, extra in (("seed", []), ("extended", ["--model", str(model_file)])):
+        out = tmp_path / f"{name}.json"
+        args = ["sim", "--scenario", "follow", "--duration", "10", "--config", str(cfg_file)]
+        assert main([*args, "--json", str(out), *extra]) == 0
+        rms[name] = json.loads(out.read_text())["gap_error_rms_m"]
+    assert rms["extended"] < 0.01
+    assert rms["seed"] > 5 * rms["extended"]

@@ -10,6 +10,7 @@ caller passes its time ``t`` (s); the MPC step is the configured period.
 from __future__ import annotations
 
 import math
+from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -59,7 +60,10 @@ class Controller:
         self.cfg = cfg
         self.mpc = MpcSolver(model, cfg)
         self.estimator = Estimator(cfg.estimator, model.params.r_w, ticks_per_rev)
-        self.u_max = min(cfg.u_max, model.params.V_batt)
+        sat = model.effects.voltage_saturation
+        self.u_max = min(cfg.u_max, model.params.V_batt, sat if sat > 0.0 else math.inf)
+        self._delay_steps = round(model.effects.input_delay / cfg.period)
+        self._sent: deque[float] = deque(maxlen=self._delay_steps + 1)
         self._du = cfg.du_max * cfg.period
         self.u_prev = 0.0
         self._plan: list[float] | None = None
@@ -124,11 +128,11 @@ class Controller:
             else 0.0
         )
         u_prev_mpc = self.u_prev - ff
-        e0 = u_prev_mpc - p.K_v * p.omega(v)  # R_m i after the fast electrical transient
+        v_lead_h = self._lead_horizon(est, forecast) if lead else np.zeros(self.mpc.horizon)
         inp = QpInputs(
-            x0=np.array([e0, v, est.gap if lead else 0.0]),
+            x0=self._initial_state(v, est.gap if lead else 0.0, ff, float(v_lead_h[0])),
             u_prev=u_prev_mpc,
-            v_lead=self._lead_horizon(est, forecast) if lead else np.zeros(self.mpc.horizon),
+            v_lead=v_lead_h,
             lead=lead,
             v_ref=v_ref,
             v_cap=cfg.v_max,
@@ -156,6 +160,22 @@ class Controller:
         return self._finish(
             est, v, res.u0, ff, mode, None, res.status, res.iterations, res.run_time_s, gap_ref
         )
+
+    def _initial_state(self, v: float, gap: float, ff: float, v_lead: float) -> Vec:
+        """The QP's ``x_0``: the current ``R_m i`` after the electrical transient (about
+        0.5 ms, so settled within a cycle) from the voltage acting now; with a known input
+        delay, the state predicted over the commands sent but not yet acting."""
+        p = self.model.params
+        sent = self._sent
+        acting = sent[0] if len(sent) == sent.maxlen else 0.0
+        if self._delay_steps == 0:
+            acting = self.u_prev
+        x: Vec = np.array([acting - ff - p.K_v * p.omega(v), v, gap])
+        if self._delay_steps > 0:
+            pred = self.mpc.qp.pred
+            for u in list(sent)[1:]:
+                x = pred.Ad @ x + pred.bu * (u - ff) + pred.bl * v_lead
+        return x
 
     def _fallback(
         self,
@@ -208,6 +228,7 @@ class Controller:
             u = 0.0  # never drive backwards from rest
         u = limit_command(u, self.u_prev, self.u_max, self._du)
         self.u_prev = u
+        self._sent.append(u)
         return ControlOutput(
             u=u,
             u_ff=ff,

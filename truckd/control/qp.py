@@ -252,34 +252,55 @@ class QpBuilder:
         self.Q = {m: stage_weight(cfg, m) for m in MODES}
         self.Pf = {m: terminal_weight(self.pred, self.Q[m], cfg.r_du) for m in MODES}
         self.P = {m: cost_matrix(cfg, self.lay, self.Q[m], self.Pf[m]) for m in MODES}
+        self._templates()
+
+    def _templates(self) -> None:
+        """Constant parts of q, l, u (the per-cycle parts are written over copies)."""
+        cfg, lay, n = self.cfg, self.lay, self.lay.N
+        self._ks_v = NX * np.arange(1, n) + I_V
+        self._q0: dict[str, Vec] = {}
+        for mode in MODES:
+            q = np.zeros(lay.nz)
+            if mode == "follow":
+                # q_gap (c'x - d_0)^2 with c = [0, -h, 1]: the d_0 cross term.
+                g = -2.0 * cfg.q_gap * cfg.d_0
+                q[self._ks_v] += g * (-cfg.time_headway)
+                q[self._ks_v + (I_D - I_V)] += g
+            q[lay.sg0 :] += cfg.slack_linear
+            self._q0[mode] = q
+        lo = np.empty(lay.m)
+        hi = np.empty(lay.m)
+        du = cfg.du_max * cfg.period
+        lo[lay.r_du : lay.r_gap] = -du
+        hi[lay.r_du : lay.r_gap] = du
+        hi[lay.r_gap : lay.r_vhi] = INF
+        lo[lay.r_vhi : lay.r_vlo] = -INF
+        lo[lay.r_vlo : lay.r_slack] = 0.0
+        hi[lay.r_vlo : lay.r_slack] = INF
+        lo[lay.r_slack :] = 0.0
+        hi[lay.r_slack :] = INF
+        self._lo0, self._hi0 = lo, hi
 
     def vectors(self, mode: str, inp: QpInputs) -> tuple[Vec, Vec, Vec]:
         """``(q, l, u)`` for this cycle."""
         cfg, lay, n = self.cfg, self.lay, self.lay.N
-        q = np.zeros(lay.nz)
+        q = self._q0[mode].copy()
         vl = np.asarray(inp.v_lead, dtype=float)
-        ks = np.arange(1, n)
         if mode == "follow":
-            # q_gap (c'x - d_0)^2 + q_rel (v - vl)^2, c = [0, -h, 1].
-            g = -2.0 * cfg.q_gap * cfg.d_0
-            q[NX * ks + I_V] += g * (-cfg.time_headway)
-            q[NX * ks + I_D] += g
-            q[NX * ks + I_V] += -2.0 * cfg.q_rel_speed * vl[ks]
+            q[self._ks_v] += -2.0 * cfg.q_rel_speed * vl[1:n]
             v_end = float(vl[n - 1])
             d_end = cfg.d_0 + cfg.time_headway * v_end
         else:
-            q[NX * ks + I_V] += -2.0 * cfg.q_cruise * inp.v_ref
+            q[self._ks_v] += -2.0 * cfg.q_cruise * inp.v_ref
             v_end, d_end = inp.v_ref, 0.0
         q[lay.u0] += -2.0 * cfg.r_du * inp.u_prev
-        i_ss, u_ss = steady_state(self.model, v_end)
-        xi_ss = np.array([i_ss, v_end, d_end, u_ss])
-        term = -2.0 * self.Pf[mode] @ xi_ss
+        e_ss, u_ss = steady_state(self.model, v_end)
+        term = -2.0 * self.Pf[mode] @ np.array([e_ss, v_end, d_end, u_ss])
         q[lay.x(n) : lay.x(n) + NX] += term[:NX]
         q[lay.u0 + n - 1] += term[NX]
-        q[lay.sg0 :] += cfg.slack_linear
 
-        lo = np.empty(lay.m)
-        hi = np.empty(lay.m)
+        lo = self._lo0.copy()
+        hi = self._hi0.copy()
         lo[:NX] = hi[:NX] = inp.x0
         dyn = -np.outer(vl, self.pred.bl).ravel()
         lo[lay.r_dyn : lay.r_u] = hi[lay.r_dyn : lay.r_u] = dyn
@@ -291,16 +312,8 @@ class QpBuilder:
         if lo0 > hi0:  # the previous command lies outside the new bounds: nearest bound
             lo0 = hi0 = min(max(inp.u_prev, inp.u_lo), inp.u_hi)
         lo[lay.r_u], hi[lay.r_u] = lo0, hi0
-        lo[lay.r_du : lay.r_gap] = -du
-        hi[lay.r_du : lay.r_gap] = du
         lo[lay.r_gap : lay.r_vhi] = cfg.d_min if inp.lead else -INF
-        hi[lay.r_gap : lay.r_vhi] = INF
-        lo[lay.r_vhi : lay.r_vlo] = -INF
         hi[lay.r_vhi : lay.r_vlo] = inp.v_cap
-        lo[lay.r_vlo : lay.r_slack] = 0.0
-        hi[lay.r_vlo : lay.r_slack] = INF
-        lo[lay.r_slack :] = 0.0
-        hi[lay.r_slack :] = INF
         return q, lo, hi
 
     def first_move(self, z: Vec) -> float:

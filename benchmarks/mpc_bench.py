@@ -1,0 +1,207 @@
+"""MPC solve time: warm-started OSQP (the controller) vs a cold OSQP setup per cycle vs
+cvxpy (CLARABEL) per cycle, on the same sequence of QPs, for horizons 20, 40, 80.
+
+The QP sequence is recorded from a closed-loop stop-and-go run (ideal estimates, the
+plant with Coulomb friction and stiction), so the warm start sees what it sees on the
+car.  Each solver then replays the same sequence.  ``max_abs_diff_u`` is the largest
+first-move difference (V) between the warm-started controller and cvxpy.
+
+    .venv/bin/python benchmarks/mpc_bench.py [--json FILE] [--cycles N] [--cvxpy-cycles M]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import platform
+import sys
+import time
+from typing import Any
+
+import cvxpy as cp
+import numpy as np
+import osqp
+import scipy.sparse as sp
+
+from truckd.config.truck import load_config
+from truckd.control.config import ControlConfig
+from truckd.control.controller import Controller
+from truckd.control.estimator import Estimate
+from truckd.control.mpc import MpcSolver
+from truckd.control.qp import ControlModel, QpInputs
+from truckd.sim.plant import Plant
+from truckd.sim.scenarios import World, make_scenario
+
+
+def record_sequence(
+    model: ControlModel, cfg: ControlConfig, cycles: int
+) -> list[tuple[str, QpInputs]]:
+    """QPs the controller solves in a closed-loop stop-and-go run (ideal estimates)."""
+    ctrl = Controller(model, dataclasses.replace(cfg, time_budget_s=1.0))
+    seq: list[tuple[str, QpInputs]] = []
+    inner = ctrl.mpc.solve
+
+    def recording(mode: str, inp: QpInputs, warm: bool = True) -> Any:
+        seq.append((mode, inp))
+        return inner(mode, inp, warm)
+
+    ctrl.mpc.solve = recording  # type: ignore[method-assign]
+    sc = make_scenario("stop-and-go", model.params, cfg)
+    world = World(sc)
+    plant = Plant(model.params)
+    plant.reset(v=sc.v0)
+    for _ in range(cycles):
+        t = plant.t
+        gap = world.gap(t, plant.x)
+        v_lead = world.v_lead(t)
+        assert gap is not None and v_lead is not None
+        est = Estimate(plant.v, True, gap, v_lead, True, "tracking", 0.01, 0, 0, 0, 0)
+        out = ctrl.control(est)
+        plant.command(out.u)
+        plant.advance(cfg.period)
+    return seq
+
+
+def time_warm(
+    model: ControlModel, cfg: ControlConfig, seq: list[tuple[str, QpInputs]]
+) -> tuple[list[float], list[float], list[int], int]:
+    s = MpcSolver(model, cfg)
+    times, u0, iters, fails = [], [], [], 0
+    for mode, inp in seq:
+        t0 = time.perf_counter()
+        r = s.solve(mode, inp)
+        times.append(time.perf_counter() - t0)
+        u0.append(r.u0 if r.ok else float("nan"))
+        iters.append(r.iterations)
+        fails += not r.ok
+    return times, u0, iters, fails
+
+
+def time_cold(
+    model: ControlModel, cfg: ControlConfig, seq: list[tuple[str, QpInputs]]
+) -> list[float]:
+    s = MpcSolver(model, cfg)  # only for P, A and the vectors
+    qp = s.qp
+    p_triu = {m: sp.triu(qp.P[m], format="csc") for m in qp.P}
+    times = []
+    for mode, inp in seq:
+        q, lo, hi = qp.vectors(mode, inp)
+        t0 = time.perf_counter()
+        solver = osqp.OSQP()
+        solver.setup(
+            p_triu[mode],
+            q,
+            qp.A,
+            lo,
+            hi,
+            verbose=False,
+            eps_abs=cfg.eps,
+            eps_rel=cfg.eps,
+            max_iter=cfg.max_iter,
+            polishing=False,
+            check_termination=5,
+            adaptive_rho_interval=25,
+        )
+        solver.solve(raise_error=False)
+        times.append(time.perf_counter() - t0)
+    return times
+
+
+def time_cvxpy(
+    model: ControlModel, cfg: ControlConfig, seq: list[tuple[str, QpInputs]]
+) -> tuple[list[float], list[float]]:
+    qp = MpcSolver(model, cfg).qp
+    _, lo0, hi0 = qp.vectors(seq[0][0], seq[0][1])
+    has_lo, has_hi = lo0 > -1e20, hi0 < 1e20
+    a = qp.A.tocsr()
+    z = cp.Variable(qp.lay.nz)
+    q_par = cp.Parameter(qp.lay.nz)
+    lo_par = cp.Parameter(int(has_lo.sum()))
+    hi_par = cp.Parameter(int(has_hi.sum()))
+    problems = {}
+    for mode in qp.P:
+        p = cp.psd_wrap(qp.P[mode])
+        problems[mode] = cp.Problem(
+            cp.Minimize(0.5 * cp.quad_form(z, p) + q_par @ z),
+            [a[has_lo] @ z >= lo_par, a[has_hi] @ z <= hi_par],
+        )
+    times, u0 = [], []
+    for mode, inp in seq:
+        q, lo, hi = qp.vectors(mode, inp)
+        if not (np.array_equal(lo > -1e20, has_lo) and np.array_equal(hi < 1e20, has_hi)):
+            raise SystemExit("benchmark sequence changes its constraint pattern")
+        t0 = time.perf_counter()
+        q_par.value, lo_par.value, hi_par.value = q, lo[has_lo], hi[has_hi]
+        problems[mode].solve(solver=cp.CLARABEL)
+        times.append(time.perf_counter() - t0)
+        u0.append(float(z.value[qp.lay.u0]) if z.value is not None else float("nan"))
+    return times, u0
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--json", help="write the results as JSON to this file")
+    ap.add_argument("--cycles", type=int, default=1200, help="QPs per horizon (12 s at 100 Hz)")
+    ap.add_argument("--cvxpy-cycles", type=int, default=150, help="QPs solved by cvxpy")
+    args = ap.parse_args(argv)
+    tc = load_config()
+    model = ControlModel(tc.vehicle)
+    rows = []
+    for n in (20, 40, 80):
+        cfg = dataclasses.replace(tc.control, horizon=n)
+        seq = record_sequence(model, cfg, args.cycles)
+        warm, u_warm, iters, fails = time_warm(model, cfg, seq)
+        cold = time_cold(model, cfg, seq[: args.cvxpy_cycles * 2])
+        # cvxpy on a stride through the sequence (it is slow); compare first moves there.
+        stride = max(1, len(seq) // args.cvxpy_cycles)
+        idx = list(range(0, len(seq), stride))[: args.cvxpy_cycles]
+        cvx, u_cvx = time_cvxpy(model, cfg, [seq[k] for k in idx])
+        diffs = [abs(u_warm[k] - u) for k, u in zip(idx, u_cvx, strict=True)]
+        diffs = [d for d in diffs if np.isfinite(d)]
+        us = lambda xs, q: float(np.percentile(np.array(xs) * 1e6, q))  # noqa: E731
+        rows.append(
+            {
+                "horizon": n,
+                "warm_us_p50": us(warm, 50),
+                "warm_us_p99": us(warm, 99),
+                "cold_us_p50": us(cold, 50),
+                "cvxpy_us_p50": us(cvx, 50),
+                "max_abs_diff_u": max(diffs) if diffs else None,
+                "warm_iters_p50": float(np.median(iters)),
+                "warm_failures": fails,
+                "qps": len(seq),
+                "cvxpy_qps": len(idx),
+            }
+        )
+    print(
+        f"{'N':>4} {'warm p50 us':>12} {'warm p99 us':>12} {'cold p50 us':>12} "
+        f"{'cvxpy p50 us':>13} {'speedup':>8} {'max|du0| V':>11} {'iters':>6} {'fails':>6}"
+    )
+    for r in rows:
+        print(
+            f"{r['horizon']:>4} {r['warm_us_p50']:>12.0f} {r['warm_us_p99']:>12.0f} "
+            f"{r['cold_us_p50']:>12.0f} {r['cvxpy_us_p50']:>13.0f} "
+            f"{r['cvxpy_us_p50'] / r['warm_us_p50']:>7.0f}x {r['max_abs_diff_u']:>11.2e} "
+            f"{r['warm_iters_p50']:>6.0f} {r['warm_failures']:>6}"
+        )
+    if args.json:
+        doc = {
+            "machine": {
+                "platform": platform.platform(),
+                "python": sys.version.split()[0],
+                "cpus": os.cpu_count(),
+                "osqp": osqp.__version__,
+                "cvxpy": cp.__version__,
+            },
+            "results": rows,
+        }
+        with open(args.json, "w", encoding="utf-8") as f:
+            json.dump(doc, f, indent=2)
+            f.write("\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
