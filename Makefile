@@ -16,7 +16,8 @@ setup-dev: $(BIN)/python
 	$(BIN)/pip install -q -e '.[dev]'
 
 sim: setup
-	$(BIN)/truckd simulate examples/step_input.csv --out out/step_sim.csv
+	mkdir -p out
+	$(BIN)/truckd sim --scenario all --json out/sim.json --plot out/sim.png
 
 lint: setup-dev
 	$(BIN)/ruff check .
