@@ -44,6 +44,26 @@ def _rate(fn: Callable[[], int], min_time: float = 0.5) -> float:
     return best
 
 
+def _sim_cycle_us(mode: str, cycles: int = 2000) -> float:
+    """Wall time (us) of one 10 ms control cycle of the simulated truck: command, firmware
+    step (plant + messages), companion receive with checks."""
+    from truckd.config.truck import load_config
+    from truckd.io.port import companion_port
+    from truckd.sim.firmware import constant_speed_lead, simulated_truck
+    from truckd.sim.plant import Plant
+
+    cfg = load_config()
+    plant = Plant(cfg.vehicle, cfg.plant)
+    link, fw, _ = simulated_truck(plant, constant_speed_lead(2.0, 1.0), mode)  # type: ignore[arg-type]
+    port = companion_port(link, clock=lambda: fw.t)
+    t0 = time.perf_counter()
+    for _ in range(cycles):
+        port.send(MotorCommand(3.0, True))
+        fw.step(0.01)
+        port.poll()
+    return (time.perf_counter() - t0) / cycles * 1e6
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--fuzz", type=int, default=1_000_000, help="mutations per decoder")
@@ -83,6 +103,7 @@ def main() -> int:
     def dfr() -> int:
         return len(deframer.feed(wire))
 
+    sim_us = {mode: _sim_cycle_us(mode) for mode in ("frames", "bytes")}
     bus_max = 500_000 / can_frame_bits(8)  # 8-byte frames/s, worst-case stuffing
     bus_max_nostuff = 500_000 / can_frame_bits(8, worst_case_stuffing=False)
     rates = {
@@ -100,6 +121,11 @@ def main() -> int:
         f"{bus_max_nostuff:.0f} without stuffing"
     )
 
+    for mode, us in sim_us.items():
+        print(
+            f"simulated firmware + companion port ({mode}): {us:.0f} us per 10 ms cycle "
+            f"({1e4 / us:.0f}x real time)"
+        )
     print(
         f"\n{'message':22s} {'bytes':>5s} {'period ms':>9s} {'CAN bit/s':>10s} {'serial B/s':>10s}"
     )
@@ -145,6 +171,7 @@ def main() -> int:
             "machine": platform.processor() or platform.machine(),
             "python": platform.python_version(),
             "frames_per_s": rates,
+            "sim_firmware_us_per_10ms_cycle": sim_us,
             "bus_max_frames_per_s": bus_max,
             "bus_max_frames_per_s_no_stuffing": bus_max_nostuff,
             "can_bus_load_500k": load,
