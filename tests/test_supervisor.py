@@ -200,3 +200,9 @@ def test_never_active_with_a_stale_or_missing_input(
             assert d.mode in (Mode.INIT, Mode.SAFE_STOP, Mode.FAULT)
         if d.mode == Mode.ACTIVE:
             assert fresh and lead  # isolated solver failures and misses are only counted
+
+
+def test_frozen_value_check_off_by_default() -> None:
+    sup, t = active_supervisor()
+    ds = run(sup, t, t + 5.0, lambda tk: healthy(tk, range_value=1.234, speed=1.0))
+    assert all(d.mode == Mode.ACTIVE for d in ds)

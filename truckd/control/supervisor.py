@@ -57,12 +57,12 @@ class SupervisorConfig:
         "no valid message for this long: link stale", unit="s", lo=0.0, lo_open=True, default=0.05
     )
     range_frozen_s: float = spec(
-        "range value bit-identical for this much driving time: frozen sensor (a backup "
-        "check: a repeated sample time already makes the range stale)",
+        "range value bit-identical for this much driving time: frozen sensor; 0 = off "
+        "(a repeated sample time already makes the range stale; a noise-free sensor, as "
+        "in simulation, holds one value while following steadily)",
         unit="s",
         lo=0.0,
-        lo_open=True,
-        default=2.0,
+        default=0.0,
     )
     frozen_min_speed: float = spec(
         "frozen-range check only while faster than this", unit="m/s", lo=0.0, default=0.05
@@ -165,7 +165,7 @@ class Supervisor:
         the value changes (stopping does not clear it)."""
         c, cfg = self._c, self.config
         v = x.range_value
-        if v is None or v != c.frozen_value:
+        if cfg.range_frozen_s <= 0.0 or v is None or v != c.frozen_value:
             c.frozen_value, c.frozen_time, c.frozen_last_t = v, 0.0, x.t
             return False
         moving = math.isfinite(x.speed) and abs(x.speed) > cfg.frozen_min_speed

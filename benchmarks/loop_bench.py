@@ -1,0 +1,181 @@
+"""Loop timing of `truckd run` at the configured rate (100 Hz) with Zenoh publishing and
+recording on: wake lateness p50/p99/max, compute p50/p99/max, deadline misses.
+
+    .venv/bin/python benchmarks/loop_bench.py [--duration 60] [--backend serial|sim] [--json FILE]
+
+``serial`` (default) runs the daemon against the simulated firmware in its own process on
+a pty, as in the HIL tests (the loop's work is what it is on the car); ``sim`` steps the
+simulated truck inside the loop (more work per cycle).  A Zenoh subscriber in this process
+receives every state message, so publishing really goes over TCP.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+import zenoh
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from truckd.config.truck import default_config_path, load_config  # noqa: E402
+from truckd.logfile import read_log  # noqa: E402
+from truckd.runtime.daemon import Daemon  # noqa: E402
+from truckd.runtime.realtime import unfreeze_gc  # noqa: E402
+from truckd.runtime.telemetry import zenoh_config  # noqa: E402
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _config(tmp: Path, backend: str, pty: str, port: int) -> Path:
+    data = yaml.safe_load(default_config_path().read_text())
+    data["link"]["serial_device"] = pty
+    rt = data["runtime"]
+    rt["backend"] = backend
+    rt["telemetry"]["listen"] = [f"tcp/127.0.0.1:{port}"]
+    rt["recorder"]["dir"] = str(tmp / "logs")
+    p = tmp / "truck.yaml"
+    p.write_text(yaml.safe_dump(data))
+    return p
+
+
+def _pct(a: np.ndarray, q: float) -> float:
+    return float(np.percentile(a, q)) if a.size else float("nan")
+
+
+def run(duration: float, backend: str) -> dict[str, Any]:
+    tmp = Path(tempfile.mkdtemp(prefix="loop_bench_"))
+    pty = str(tmp / "ttyTRUCK")
+    port = _free_port()
+    cfg_path = _config(tmp, backend, pty, port)
+    fw = None
+    if backend == "serial":
+        fw = subprocess.Popen(
+            [sys.executable, "-m", "truckd.sim.firmware_main", "--pty", pty, "--config",
+             str(cfg_path), "--lead-gap", "1.2", "--lead-speed", "0.8"],
+            stdout=subprocess.PIPE, text=True, cwd=ROOT,
+        )  # fmt: skip
+        assert fw.stdout is not None
+        json.loads(fw.stdout.readline())
+    received = 0
+    lock = threading.Lock()
+
+    def on_state(_s: zenoh.Sample) -> None:
+        nonlocal received
+        with lock:
+            received += 1
+
+    session = None
+    try:
+        daemon = Daemon(load_config(cfg_path), backend, duration=duration)
+
+        def subscribe() -> None:
+            nonlocal session
+            time.sleep(1.0)  # the daemon's session is listening by then
+            session = zenoh.open(zenoh_config(listen=[], connect=[f"tcp/127.0.0.1:{port}"]))
+            session.declare_subscriber("truckd/truck1/state", on_state)
+
+        threading.Thread(target=subscribe, daemon=True).start()
+        daemon.run()
+        unfreeze_gc()
+    finally:
+        if session is not None:
+            session.close()
+        if fw is not None:
+            os.kill(fw.pid, signal.SIGTERM)
+            fw.wait(10)
+            if fw.stdout is not None:
+                fw.stdout.close()
+    assert daemon.recorder is not None
+    logs = sorted((tmp / "logs").glob("*.csv"))
+    cols: dict[str, list[np.ndarray]] = {"lateness_us": [], "compute_us": [], "solve_us": []}
+    for f in logs:
+        log = read_log(f)
+        for k in cols:
+            cols[k].append(log[k])
+    late = np.concatenate(cols["lateness_us"])
+    comp = np.concatenate(cols["compute_us"])[1:]  # the first row has no previous cycle
+    solve = np.concatenate(cols["solve_us"])
+    solve = solve[np.isfinite(solve)]
+    rk = daemon.rk
+    tel = daemon.telemetry
+    return {
+        "backend": backend,
+        "rate_hz": daemon.control_cfg.rate_hz,
+        "duration_s": duration,
+        "cycles": rk.cycles,
+        "deadline_misses": rk.misses,
+        "skipped_periods": rk.skipped_periods,
+        "lateness_us_p50": _pct(late, 50),
+        "lateness_us_p99": _pct(late, 99),
+        "lateness_us_max": float(late.max()),
+        "compute_us_p50": _pct(comp, 50),
+        "compute_us_p99": _pct(comp, 99),
+        "compute_us_max": float(comp.max()),
+        "solve_us_p50": _pct(solve, 50),
+        "solve_us_p99": _pct(solve, 99),
+        "states_published": tel.sent if tel is not None else 0,
+        "states_dropped": tel.dropped if tel is not None else 0,
+        "states_received": received,
+        "rows_recorded": daemon.recorder.rows,
+        "realtime": daemon.realtime.as_dict(),
+        "machine": {
+            "cpus": os.cpu_count(),
+            "kernel": platform.release(),
+            "python": platform.python_version(),
+            "processor": platform.processor() or platform.machine(),
+        },
+    }
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--duration", type=float, default=60.0)
+    ap.add_argument("--backend", choices=("serial", "sim"), default="serial")
+    ap.add_argument("--json", metavar="FILE")
+    args = ap.parse_args()
+    r = run(args.duration, args.backend)
+    rows = [
+        ("cycles", f"{r['cycles']}"),
+        ("deadline misses", f"{r['deadline_misses']} ({r['skipped_periods']} periods skipped)"),
+        ("wake lateness p50 / p99 / max", "{:.0f} / {:.0f} / {:.0f} us".format(
+            r["lateness_us_p50"], r["lateness_us_p99"], r["lateness_us_max"])),
+        ("compute p50 / p99 / max",
+         f"{r['compute_us_p50']:.0f} / {r['compute_us_p99']:.0f} / {r['compute_us_max']:.0f} us"),
+        ("MPC solve p50 / p99", f"{r['solve_us_p50']:.0f} / {r['solve_us_p99']:.0f} us"),
+        ("states published / received / dropped",
+         f"{r['states_published']} / {r['states_received']} / {r['states_dropped']}"),
+        ("rows recorded", f"{r['rows_recorded']}"),
+        ("SCHED_FIFO / mlockall", f"{r['realtime']['sched_fifo']} / {r['realtime']['mlock']}"),
+    ]  # fmt: skip
+    print(f"loop_bench: {r['rate_hz']:.0f} Hz for {r['duration_s']:.0f} s, backend {r['backend']},"
+          f" {r['machine']['cpus']} CPUs, kernel {r['machine']['kernel']}")  # fmt: skip
+    w = max(len(k) for k, _ in rows)
+    for k, v in rows:
+        print(f"  {k.ljust(w)}  {v}")
+    if args.json:
+        Path(args.json).write_text(json.dumps(r, indent=2) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
