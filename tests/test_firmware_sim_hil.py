@@ -86,3 +86,28 @@ def test_hil_process_bad_arguments(tmp_path: Path) -> None:
     p = FirmwareProcess(tmp_path / "tty", ["--lead", "no_such_module:f"])
     with pytest.raises(RuntimeError, match="failed to start"):
         p.start()
+
+
+def test_hil_process_runs_a_scenario_lead(tmp_path: Path) -> None:
+    from truckd.config.truck import load_config
+    from truckd.sim.scenarios import make_scenario
+
+    cfg = load_config()
+    sc = make_scenario("lead-brake", cfg.vehicle, cfg.control)
+    assert sc.gap0 is not None
+    dev = tmp_path / "tty"
+    with FirmwareProcess(dev, ["--scenario", "lead-brake"]) as fw:
+        link = SerialLink(str(dev), reconnect_interval=0.05)
+        try:
+            port = companion_port(link)
+            got = pump(port, 0.3, voltage=None)
+            rng = [r.msg for r in got if isinstance(r.msg, RangeReading)]
+            assert rng and rng[0].valid
+            # the scenario's initial gap (it grows or shrinks a little while we watch)
+            assert abs(rng[0].distance - sc.gap0) < 0.5
+            # started at the scenario's speed, then braked to rest (no commands: 0 V):
+            # it rolled a distance a truck starting from rest would not
+            st = fw.control({"cmd": "status"})
+            assert sc.v0 > 0.5 and st["x"] > 0.05 and st["v"] < sc.v0
+        finally:
+            link.close()

@@ -2,15 +2,17 @@
 
 Usage::
 
-    python -m truckd.sim.firmware_main --pty PATH [--config FILE] [--lead-gap M]
-        [--lead-speed M/S] [--lead MODULE:FACTORY [--lead-arg STR]] [--no-lead]
-        [--control-port N] [--duration S] [--tick S]
+    python -m truckd.sim.firmware_main --pty PATH [--config FILE] [--scenario NAME]
+        [--lead-gap M] [--lead-speed M/S] [--lead MODULE:FACTORY [--lead-arg STR]]
+        [--no-lead] [--control-port N] [--duration S] [--tick S]
 
 It creates a pty whose slave is reachable at PATH (a symlink; the daemon opens it as its
 serial device), prints one JSON line ``{"ready": true, "device": PATH, "control_port": N,
 "pid": P}`` on stdout, then runs the plant and firmware in real time.  The lead is the
 built-in constant-speed lead (``--lead-gap``, ``--lead-speed``) or
-``FACTORY(arg: str) -> range_fn`` imported from MODULE (the scenario hook).
+a scenario of :mod:`truckd.sim.scenarios` (``--scenario NAME``: its lead, sensor view and
+initial ego speed, with t = 0 at process start), or ``FACTORY(arg: str) -> range_fn``
+imported from MODULE (any other hook).
 
 Faults are switched at run time with JSON datagrams to ``127.0.0.1:control_port`` (UDP):
 any :meth:`SimulatedFirmware.apply_fault` command, ``{"cmd": "lead", "gap": M,
@@ -33,7 +35,7 @@ import time
 from collections.abc import Sequence
 from typing import Any
 
-from truckd.config.truck import load_config
+from truckd.config.truck import TruckConfig, load_config
 from truckd.errors import InputError
 from truckd.sim.firmware import (
     FirmwareSimConfig,
@@ -62,6 +64,17 @@ def _load_lead(spec: str, arg: str) -> RangeFn:
     if not callable(fn):
         raise InputError(f"--lead {spec!r}: factory did not return a callable")
     return fn  # type: ignore[no-any-return]
+
+
+def _scenario_lead(name: str, cfg: TruckConfig) -> tuple[RangeFn, float]:
+    """The scenario's range_fn and the ego's initial speed (m/s)."""
+    from truckd.sim.scenarios import World, make_scenario
+
+    try:
+        sc = make_scenario(name, cfg.vehicle, cfg.control)
+    except ValueError as exc:
+        raise InputError(f"--scenario: {exc}") from None
+    return World(sc).range_fn, sc.v0
 
 
 class _Shifted:
@@ -115,6 +128,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     ap.add_argument("--pty", required=True, help="path of the symlink to the pty slave")
     ap.add_argument("--config", default=None, help="truck.yaml (default: the shipped one)")
+    ap.add_argument("--scenario", default=None, help="lead of a truckd sim scenario")
     ap.add_argument("--lead-gap", type=float, default=2.0, help="built-in lead: start gap, m")
     ap.add_argument("--lead-speed", type=float, default=1.0, help="built-in lead speed, m/s")
     ap.add_argument("--lead", default=None, help="MODULE:FACTORY; FACTORY(arg) -> range_fn")
@@ -124,10 +138,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--duration", type=float, default=0.0, help="stop after S s (0: run on)")
     ap.add_argument("--tick", type=float, default=0.001, help="simulation step, s")
     args = ap.parse_args(argv)
+    v0 = 0.0
     try:
         cfg = load_config(args.config)
         if args.no_lead:
             range_fn: RangeFn = _no_lead
+        elif args.scenario:
+            range_fn, v0 = _scenario_lead(args.scenario, cfg)
         elif args.lead:
             range_fn = _load_lead(args.lead, args.lead_arg)
         else:
@@ -139,6 +156,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print("firmware_main: --tick must be in [0.0001, 0.05] s", file=sys.stderr)
         return 2
     plant = Plant(cfg.vehicle, cfg.plant)
+    plant.reset(v=v0)
     fw_cfg = FirmwareSimConfig(
         ticks_per_rev=encoder_ticks_per_rev(
             cfg.plant.encoder_ticks_per_rev, cfg.link.encoder_ticks_per_rev
