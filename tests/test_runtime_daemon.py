@@ -138,3 +138,32 @@ def test_bad_config_is_exit_2(tmp_path: Path) -> None:
     )  # fmt: skip
     assert r.returncode == 2
     assert "runtime.backend" in r.stderr and "carrier-pigeon" in r.stderr
+
+
+@pytest.mark.parametrize(
+    ("backend", "link"),
+    [
+        ("can", {"can_interface": "virtual", "can_channel": "truckd-test-nopeer"}),
+        ("serial", {"serial_device": "/nonexistent/ttyACM9"}),
+    ],
+)
+def test_without_a_microcontroller_stays_init_motor_off(
+    tmp_path: Path, backend: str, link: dict[str, str]
+) -> None:
+    cfg_path = write_config(
+        tmp_path / "truck.yaml",
+        {"link": link, "runtime": {"realtime": False, "telemetry": {"enabled": False},
+                                   "recorder": {"dir": str(tmp_path / "logs")}}},
+    )  # fmt: skip
+    d = Daemon(load_config(cfg_path), backend, duration=1.0, env={})
+    try:
+        assert d.run() == 0
+    finally:
+        unfreeze_gc()
+    assert d.decision.mode in (Mode.INIT, Mode.FAULT)
+    assert d.supervisor.transitions == [] or all(
+        tr.new in (Mode.INIT, Mode.FAULT) for tr in d.supervisor.transitions
+    )
+    assert d.recorder is not None and d.recorder.path is not None
+    log = read_log(d.recorder.path)
+    assert np.all(log["u"] == 0.0) and np.all(log["enable"] == 0.0)
