@@ -133,6 +133,11 @@ class Deframer:
         self._buf = bytearray()
         self._overflow = False
 
+    def reset(self) -> None:
+        """Forget a partial body (after a reconnect); the statistics are kept."""
+        self._buf.clear()
+        self._overflow = False
+
     def feed(self, data: bytes) -> list[Frame]:
         """All frames completed by ``data``, in order."""
         out: list[Frame] = []

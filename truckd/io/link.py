@@ -85,6 +85,9 @@ class Link:
         """Frames received within ``timeout`` s (possibly none); LinkDownError when gone."""
         raise NotImplementedError
 
+    def _opened(self) -> None:
+        """Called after every successful open (reset per-connection state)."""
+
     def _idle(self, timeout: float) -> None:
         """Wait while disconnected (real-time backends sleep; in-process ones do not)."""
         if timeout > 0:
@@ -109,6 +112,7 @@ class Link:
             self.last_error = str(exc)
             return False
         self._connected = True
+        self._opened()
         if self._ever_connected:
             self.stats.reconnects += 1
         self._ever_connected = True
@@ -196,6 +200,9 @@ class FramedStreamLink(Link):
 
     def _read_bytes(self, timeout: float) -> bytes:
         raise NotImplementedError
+
+    def _opened(self) -> None:
+        self._deframer.reset()  # a partial frame from before the outage is gone
 
     def _write(self, frame: Frame) -> None:
         from firmware_protocol.framing import frame_to_bytes
