@@ -35,6 +35,7 @@ from truckd.ident.voltage import (
     residuals,
     rmse,
     scan,
+    scan_stiction,
     seed_params,
     stiction_grid,
     weights_for,
@@ -46,6 +47,8 @@ Progress = Callable[[str], None]
 
 FIT_BUDGET = 4000
 """Samples of the estimation data used in the fitting loop (spread over chunks)."""
+FINAL_BUDGET = 8000
+"""Samples used by the final joint refit of the extended model."""
 VAL_BUDGET = 12000
 """Samples of the validation data used to select candidates."""
 BIC_MIN = 10.0
@@ -97,6 +100,12 @@ def _fit_seed(
     alt = p0.replace(J_S=p0.J_S * 2.0, K_coulomb=p0.K_coulomb * 0.5, K_stiction=p0.K_coulomb * 0.5)
     second = fit_with_stiction(alt, Effects(), free, fit_data, w, grid, progress, max_nfev=80)
     return first if first.sse <= second.sse else second
+
+
+def _restick(m: FitResult, grid: Sequence[float], data: list[Series], w: Weights) -> FitResult:
+    """``m`` with K_stiction re-scanned on ``data`` (the other parameters held)."""
+    p, sse = scan_stiction(m.params, m.effects, grid, data, w)
+    return dataclasses.replace(m, params=p, sse=sse)
 
 
 def _val_cost(m: FitResult, val: Sequence[Series], w: Weights) -> float:
@@ -268,24 +277,44 @@ def diagnose_voltage(
         else:
             rows[name] = dataclasses.replace(rows[name], note="adds nothing once others are in")
 
-    base_sum, y_base = _summary(base_fit.params, base_fit.effects, report)
+    # Final joint refit of the extended model on more of the data; stiction shows only
+    # at the breakaways, which chunks may miss: a last look at it on all the data.
+    polish_data = chunks(est, FINAL_BUDGET, pieces=8)
+    full = [est]
+    base_pol = _restick(base_fit, grid, full, w)
+    final = base_pol
+    if accepted:
+        progress("final joint refit on more data")
+        extra = [by_name[a].param for a in accepted if by_name[a].smooth]
+        final = fit_with_stiction(
+            current.fit.params,
+            current.fit.effects,
+            [*seed_free, *extra],
+            polish_data,
+            weights_for(polish_data),
+            grid,
+            progress,
+            max_nfev=30,
+        )
+        final = _restick(final, grid, full, w)
+    models = [base_pol, *(st.fit for st in steps[1:-1]), final] if accepted else [base_pol]
+    base_sum, y_base = _summary(base_pol.params, base_pol.effects, report)
     findings: list[Finding] = []
     prev = base_sum.fit_percent
     y_ext = y_base
     ext_sum = base_sum
-    for name, step in zip(accepted, steps[1:], strict=True):
-        ext_sum, y_ext = _summary(step.fit.params, step.fit.effects, report)
+    for name, model in zip(accepted, models[1:], strict=True):
+        ext_sum, y_ext = _summary(model.params, model.effects, report)
         param = by_name[name].param.name
         findings.append(
             Finding(
                 name=name,
-                params={param: float(getattr(current.fit.effects, param))},
+                params={param: float(getattr(final.effects, param))},
                 fit_percent=ext_sum.fit_percent,
                 fit_gain_percent=ext_sum.fit_percent - prev,
             )
         )
         prev = ext_sum.fit_percent
-    final = current.fit
     r = report.v - y_ext
     noise = noise_std(report.v)
     h = float(np.median(np.diff(report.t)))

@@ -220,31 +220,51 @@ def scan(
     return best
 
 
-def stiction_grid(p0: VehicleParams, data: Series, size: int = 40) -> tuple[float, ...]:
+def stiction_grid(p0: VehicleParams, data: Series) -> tuple[float, ...]:
     """Breakaway torques (N m) between the log's command levels, up to half V_batt.
 
-    0 stands for "no stiction beyond Coulomb" (``K_stiction = K_coulomb``).
+    Sorted; 0 stands for "no stiction beyond Coulomb" (``K_stiction = K_coulomb``).
     """
     u = np.abs(data.inp)
     levels = np.unique(np.round(u[(u > 0) & (u < 0.5 * p0.V_batt)], 6))
     mids = 0.5 * (levels[1:] + levels[:-1]) if len(levels) > 1 else levels
-    if len(mids) > size:
-        mids = np.quantile(mids, np.linspace(0.0, 1.0, size))
     return (0.0, *(float(m) * p0.K_T / p0.R_m for m in mids))
 
 
 def scan_stiction(
-    p: VehicleParams, e: Effects, grid: Sequence[float], data: Sequence[Series], w: Weights
+    p: VehicleParams,
+    e: Effects,
+    grid: Sequence[float],
+    data: Sequence[Series],
+    w: Weights,
+    coarse: int = 30,
+    fine: int = 12,
 ) -> tuple[VehicleParams, float]:
-    """Best K_stiction (>= K_coulomb) over a grid, the rest held: (model, sse)."""
-    best_p, best = p, float("inf")
-    for ks in [p.K_stiction, *grid]:
-        cand = p.replace(K_stiction=max(float(ks), p.K_coulomb))
-        r = residuals(cand, e, data, w)
-        sse = float(r @ r)
-        if sse < best:
-            best_p, best = cand, sse
-    return best_p, best
+    """Best K_stiction (>= K_coulomb) on a sorted grid, the rest held: (model, sse).
+
+    A coarse pass over at most ``coarse`` grid points, then up to ``fine`` grid points
+    between the best one's coarse neighbours.
+    """
+    cache: dict[float, float] = {}
+
+    def cost(ks: float) -> float:
+        ks = max(float(ks), p.K_coulomb)
+        if ks not in cache:
+            r = residuals(p.replace(K_stiction=ks), e, data, w)
+            cache[ks] = float(r @ r)
+        return cache[ks]
+
+    g = np.asarray(grid, float)
+    idx = np.unique(np.linspace(0, len(g) - 1, min(coarse, len(g))).round().astype(int))
+    costs = [cost(g[k]) for k in idx]
+    j = int(np.argmin(costs))
+    lo = int(idx[max(j - 1, 0)])
+    hi = int(idx[min(j + 1, len(idx) - 1)])
+    for k in np.unique(np.linspace(lo, hi, min(fine, hi - lo + 1)).round().astype(int)):
+        cost(g[k])
+    cost(p.K_stiction)
+    best = min(cache, key=lambda ks: cache[ks])
+    return p.replace(K_stiction=best), cache[best]
 
 
 def fit_with_stiction(
