@@ -102,7 +102,7 @@ def time_cold(
             max_iter=cfg.max_iter,
             polishing=False,
             check_termination=5,
-            adaptive_rho_interval=25,
+            adaptive_rho_interval=50,
         )
         solver.solve(raise_error=False)
         times.append(time.perf_counter() - t0)

@@ -79,10 +79,11 @@ class MpcSolver:
                 warm_starting=True,
                 polishing=False,
                 check_termination=5,
-                adaptive_rho_interval=25,
+                adaptive_rho_interval=50,
             )
             self._solvers[mode] = s
         self._last_z: Vec | None = None
+        self._last_y: Vec | None = None
         self.inaccurate = 0
         """Solutions used although OSQP reported ``solved inaccurate``."""
 
@@ -94,6 +95,7 @@ class MpcSolver:
     def reset(self) -> None:
         """Forget the previous solution (no warm start next time)."""
         self._last_z = None
+        self._last_y = None
 
     def solve(self, mode: str, inp: QpInputs, warm: bool = True) -> MpcResult:
         """Update the vectors, warm start, solve, check.  Never raises on solver trouble."""
@@ -102,9 +104,9 @@ class MpcSolver:
         if not (np.all(np.isfinite(q)) and np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
             return MpcResult(False, math.nan, "non-finite-input", 0, 0.0, None)
         s.update(q=q, l=lo, u=hi)
-        if warm and self._last_z is not None:
-            s.warm_start(x=self.qp.shift(self._last_z))
-        elif not warm:
+        if warm and self._last_z is not None and self._last_y is not None:
+            s.warm_start(x=self.qp.shift(self._last_z), y=self.qp.shift_dual(self._last_y))
+        else:  # cold: from zero, not from whatever this mode's solver saw last
             s.warm_start(x=np.zeros(self.qp.lay.nz), y=np.zeros(self.qp.lay.m))
         try:
             res = s.solve(raise_error=False)
@@ -122,6 +124,7 @@ class MpcSolver:
         if run_time > self.cfg.time_budget_s:
             return MpcResult(False, math.nan, "overrun", iters, run_time, z)
         self._last_z = z
+        self._last_y = np.array(res.y, dtype=float)
         if info.status_val != osqp.SolverStatus.OSQP_SOLVED:
             self.inaccurate += 1
         return MpcResult(True, self.qp.first_move(z), status, iters, run_time, z)

@@ -321,12 +321,39 @@ class QpBuilder:
         return float(z[self.lay.u0])
 
     def shift(self, z: Vec) -> Vec:
-        """A solution shifted one step ahead (the last step repeated): the warm start."""
+        """A solution shifted one step ahead: the primal warm start.
+
+        The inputs and slacks repeat their last step; the new last state is extrapolated
+        with the model (``x_N + Ad (x_N - x_{N-1})`` keeps the lead-speed term of the last
+        step), so the guess satisfies the dynamics rows.
+        """
         lay, n = self.lay, self.lay.N
         out = z.copy()
         out[: NX * n] = z[NX : NX * (n + 1)]
+        x_n = z[NX * n : NX * (n + 1)]
+        x_n1 = z[NX * (n - 1) : NX * n]
+        out[NX * n : NX * (n + 1)] = x_n + self.pred.Ad @ (x_n - x_n1)
         for start in (lay.u0, lay.sg0, lay.sv0):
             out[start : start + n - 1] = z[start + 1 : start + n]
+        return out
+
+    def shift_dual(self, y: Vec) -> Vec:
+        """Constraint multipliers shifted one step ahead, block by block (the dual warm
+        start); the last step of each block repeats."""
+        lay, n = self.lay, self.lay.N
+        out = y.copy()
+        blocks = (
+            (lay.r_dyn, NX, n),
+            (lay.r_u, 1, n),
+            (lay.r_du, 1, n - 1),
+            (lay.r_gap, 1, n),
+            (lay.r_vhi, 1, n),
+            (lay.r_vlo, 1, n),
+            (lay.r_slack, 1, n),
+            (lay.r_slack + n, 1, n),
+        )
+        for start, width, count in blocks:
+            out[start : start + width * (count - 1)] = y[start + width : start + width * count]
         return out
 
     def plan(self, z: Vec) -> tuple[Vec, Vec, Vec]:
