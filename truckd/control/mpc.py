@@ -100,9 +100,14 @@ class MpcSolver:
     def solve(self, mode: str, inp: QpInputs, warm: bool = True) -> MpcResult:
         """Update the vectors, warm start, solve, check.  Never raises on solver trouble."""
         s = self._solvers[mode]
-        q, lo, hi = self.qp.vectors(mode, inp)
-        if not (np.all(np.isfinite(q)) and np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
+        scalars = (inp.u_prev, inp.v_ref, inp.v_cap, inp.u_lo, inp.u_hi)
+        if not (
+            all(math.isfinite(x) for x in scalars)
+            and np.isfinite(inp.x0).all()
+            and np.isfinite(inp.v_lead).all()
+        ):
             return MpcResult(False, math.nan, "non-finite-input", 0, 0.0, None)
+        q, lo, hi = self.qp.vectors(mode, inp)
         s.update(q=q, l=lo, u=hi)
         if warm and self._last_z is not None and self._last_y is not None:
             s.warm_start(x=self.qp.shift(self._last_z), y=self.qp.shift_dual(self._last_y))
