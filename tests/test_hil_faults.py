@@ -266,14 +266,16 @@ def test_firmware_stops_motor_when_daemon_is_killed(rig: Rig) -> None:
     assert st["state"] == "ACTIVE" and st["voltage"] > 0.1
     t_kill = st["t"]
     rig.daemon.stop(signal.SIGKILL)
-    while True:
-        st = rig.fw.status()
-        if st["state"] == "FAILSAFE":
-            break
-        assert st["t"] - t_kill < 0.5, st
+    trace = []
+    while not trace or trace[-1]["t"] - t_kill < 0.4:
+        trace.append(rig.fw.status())
         time.sleep(0.005)
-    assert st["voltage"] == 0.0
-    # firmware time from the last status before the kill to the first FAILSAFE seen:
-    # the 100 ms command timeout plus at most one status poll
-    assert st["t"] - t_kill <= 0.1 + 0.03
-    assert st["firmware"]["cmd_timeouts"] >= 1
+    # every firmware state observed later than 100 ms (+30 ms: the last command may
+    # arrive just after this status, and the status round trip) after the kill: motor off
+    late = [x for x in trace if x["t"] - t_kill > 0.1 + 0.03]
+    assert late, trace
+    assert all(x["state"] == "FAILSAFE" and x["voltage"] == 0.0 for x in late), [
+        (round(x["t"] - t_kill, 3), x["state"], x["voltage"]) for x in trace
+    ]
+    assert late[-1]["v"] < trace[0]["v"]  # the truck slows down
+    assert late[-1]["firmware"]["cmd_timeouts"] >= 1
