@@ -167,3 +167,13 @@ def test_without_a_microcontroller_stays_init_motor_off(
     assert d.recorder is not None and d.recorder.path is not None
     log = read_log(d.recorder.path)
     assert np.all(log["u"] == 0.0) and np.all(log["enable"] == 0.0)
+
+
+def test_missing_model_file_is_exit_2(tmp_path: Path) -> None:
+    r = subprocess.run(
+        [sys.executable, "-m", "truckd.cli.main", "run", "--config", "config/truck.yaml",
+         "--model", str(tmp_path / "missing.yaml"), "--duration", "1"],
+        capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert r.returncode == 2
+    assert "missing.yaml" in r.stderr

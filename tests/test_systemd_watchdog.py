@@ -4,6 +4,7 @@ only while the loop meets its deadlines, STOPPING=1 on SIGTERM (real unix datagr
 from __future__ import annotations
 
 import json
+import math
 import os
 import signal
 import socket
@@ -76,4 +77,40 @@ def test_ready_watchdog_gated_by_deadlines_and_stopping(tmp_path: Path) -> None:
         if proc.poll() is None:
             os.kill(proc.pid, signal.SIGKILL)
             proc.wait()
+        srv.close()
+
+
+def test_watchdog_needs_ready_fresh_link_and_met_deadline(tmp_path: Path) -> None:
+    from truckd.config.truck import load_config
+    from truckd.runtime.daemon import Daemon
+
+    sock_path = str(tmp_path / "notify.sock")
+    srv = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    srv.bind(sock_path)
+    env = {"NOTIFY_SOCKET": sock_path, "WATCHDOG_USEC": "1000000"}
+    d = Daemon(load_config(), "sim", env=env)
+    try:
+        now = 100.0
+        timeout = d.rt.supervisor.link_timeout_s
+
+        def fed(ready: bool, link_age: float, missed: bool) -> bool:
+            d.ready_sent, d.rk.last_missed = ready, missed
+            d.sensors.t_any = now - link_age
+            d._last_watchdog = -math.inf
+            before = d.notifier.sent
+            d.feed_watchdog(now)
+            return d.notifier.sent > before
+
+        assert fed(True, 0.0, False)
+        assert not fed(False, 0.0, False)  # not before READY
+        assert not fed(True, timeout * 2, False)  # link stale
+        assert not fed(True, 0.0, True)  # last cycle missed its deadline
+        # rate: at most every WatchdogSec/4
+        d.ready_sent, d.rk.last_missed, d.sensors.t_any = True, False, now
+        d._last_watchdog = now - 0.1
+        d.feed_watchdog(now)
+        assert d.notifier.sent == 1
+        assert [m for _, m in _drain(srv, 0.2)] == ["WATCHDOG=1"]
+    finally:
+        d.notifier.close()
         srv.close()

@@ -8,7 +8,9 @@ import sys
 from typing import Any
 
 from truckd.config.truck import load_config
+from truckd.control.qp import ControlModel
 from truckd.errors import InputError
+from truckd.modelfile import read_model
 from truckd.runtime.daemon import Daemon
 
 
@@ -17,6 +19,9 @@ def add_subparser(sub: Any) -> None:
     p.add_argument("--config", required=True, help="configuration file (truck.yaml)")
     p.add_argument("--backend", choices=("sim", "serial", "can"), help="override runtime.backend")
     p.add_argument("--duration", type=float, metavar="S", help="stop cleanly after S seconds")
+    p.add_argument(
+        "--model", metavar="MODEL.yaml", help="the controller's model (identify/diagnose output)"
+    )
     p.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
     p.set_defaults(run=run)
 
@@ -30,4 +35,8 @@ def run(args: argparse.Namespace) -> int:
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
     cfg = load_config(args.config)
-    return Daemon(cfg, args.backend, duration=args.duration).run()
+    model = None
+    if args.model:
+        mf = read_model(args.model)
+        model = ControlModel(mf.vehicle, mf.effects)
+    return Daemon(cfg, args.backend, duration=args.duration, model=model).run()

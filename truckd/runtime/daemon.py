@@ -65,6 +65,7 @@ class Daemon:
         backend: str | None = None,
         *,
         duration: float | None = None,
+        model: ControlModel | None = None,
         env: Mapping[str, str] | None = None,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
@@ -77,9 +78,8 @@ class Daemon:
         self.ticks_per_rev = encoder_ticks_per_rev(
             cfg.plant.encoder_ticks_per_rev, cfg.link.encoder_ticks_per_rev
         )
-        self.controller = Controller(
-            ControlModel(cfg.vehicle), self.control_cfg, self.ticks_per_rev
-        )
+        self.model = model if model is not None else ControlModel(cfg.vehicle)
+        self.controller = Controller(self.model, self.control_cfg, self.ticks_per_rev)
         self.faults = RuntimeFaults()
         if self.rt.fault_injection:
             self.controller.mpc.solve = wrap_solver(  # type: ignore[method-assign]
@@ -119,6 +119,10 @@ class Daemon:
         return {
             "vehicle_id": self.cfg.vehicle_id,
             "vehicle": to_plain(self.cfg.vehicle),
+            "model": {
+                "vehicle": to_plain(self.model.params),
+                "effects": to_plain(self.model.effects),
+            },
             "control": to_plain(self.control_cfg),
             "link": to_plain(self.cfg.link),
             "runtime": to_plain(self.rt),
