@@ -93,7 +93,7 @@ def test_follow_15s_rate_safety_and_steady_state(tmp_path: Path) -> None:
     tail = slice(-30, None)
     err = np.array(true_gaps[tail]) - (c.d_0 + c.time_headway * np.array(speeds[tail]))
     assert np.max(np.abs(err)) < 0.05, err
-    assert np.mean(speeds[tail]) == pytest.approx(LEAD_SPEED, abs=0.05)
+    assert np.median(speeds[tail]) == pytest.approx(LEAD_SPEED, abs=0.05)
     # the log on disk is complete and in the contract format
     logs = sorted((tmp_path / "logs").glob("*.csv"))
     log = read_log(logs[-1], require=("t", "u", "v"))
