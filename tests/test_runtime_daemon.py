@@ -17,7 +17,7 @@ from hypothesis import strategies as st
 from runtime_support import write_config
 
 from firmware_protocol.messages import RangeReading, RangeStatus, WheelEncoders
-from truckd.config.truck import load_config
+from truckd.config.truck import default_config_path, load_config
 from truckd.control.supervisor import Mode
 from truckd.io.port import Received
 from truckd.logfile import read_log
@@ -171,7 +171,7 @@ def test_without_a_microcontroller_stays_init_motor_off(
 
 def test_missing_model_file_is_exit_2(tmp_path: Path) -> None:
     r = subprocess.run(
-        [sys.executable, "-m", "truckd.cli.main", "run", "--config", "config/truck.yaml",
+        [sys.executable, "-m", "truckd.cli.main", "run", "--config", str(default_config_path()),
          "--model", str(tmp_path / "missing.yaml"), "--duration", "1"],
         capture_output=True, text=True, timeout=60,
     )  # fmt: skip
