@@ -233,3 +233,34 @@ def test_command_is_always_finite_and_within_limits(
 
 
 _CTRL = Controller(ControlModel(_default_params()), dataclasses.replace(ControlConfig()))
+
+
+def test_lead_lost_stop_policy_brakes_and_cruise_policy_holds(params: VehicleParams) -> None:
+    v = 1.5
+    u_hold = params.K_v * params.omega(v)
+    for policy in ("stop", "cruise"):
+        cfg = dataclasses.replace(ControlConfig(), time_budget_s=1.0, on_lead_lost=policy)
+        ctrl = Controller(ControlModel(params), cfg)
+        ctrl.u_prev = u_hold
+        out = ctrl.control(_estimate(v, math.nan, math.nan, lead=False))
+        assert out.fallback_reason is None
+        if policy == "stop":
+            assert out.mode == "stop" and out.u < u_hold - 1.0
+        else:
+            assert out.mode == "cruise" and out.u > u_hold  # towards v_set = 1.8 m/s
+
+
+def test_lead_forecast_hook_changes_the_plan(params: VehicleParams) -> None:
+    """A lead forecast to stop makes the plan stop; the constant-speed default holds speed."""
+    cfg = dataclasses.replace(ControlConfig(), time_budget_s=1.0)
+    est = _estimate(1.2, 1.12, 1.2)
+    end_speeds = []
+    for forecast in (None, list(np.linspace(1.2, 0.0, cfg.horizon))):
+        ctrl = Controller(ControlModel(params), cfg)
+        ctrl.u_prev = params.K_v * params.omega(1.2)
+        assert ctrl.control(est, forecast).fallback_reason is None
+        z = ctrl.mpc.last_solution
+        assert z is not None
+        end_speeds.append(ctrl.mpc.qp.plan(z)[1][-1])
+    assert end_speeds[0] == pytest.approx(1.2, abs=0.05)
+    assert end_speeds[1] < end_speeds[0] - 0.3

@@ -92,6 +92,11 @@ class MpcSolver:
         """Steps in the horizon."""
         return self.qp.lay.N
 
+    @property
+    def last_solution(self) -> Vec | None:
+        """The last accepted solution vector (see :class:`~truckd.control.qp.Layout`)."""
+        return self._last_z
+
     def reset(self) -> None:
         """Forget the previous solution (no warm start next time)."""
         self._last_z = None
