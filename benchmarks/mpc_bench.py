@@ -145,6 +145,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", help="write the results as JSON to this file")
     ap.add_argument("--cycles", type=int, default=1200, help="QPs per horizon (12 s at 100 Hz)")
     ap.add_argument("--cvxpy-cycles", type=int, default=150, help="QPs solved by cvxpy")
+    ap.add_argument("--repeats", type=int, default=3, help="replays of the warm solver")
     args = ap.parse_args(argv)
     tc = load_config()
     model = ControlModel(tc.vehicle)
@@ -153,6 +154,10 @@ def main(argv: list[str] | None = None) -> int:
         cfg = dataclasses.replace(tc.control, horizon=n)
         seq = record_sequence(model, cfg, args.cycles)
         warm, u_warm, iters, fails = time_warm(model, cfg, seq)
+        # Replays with fresh solvers: the pooled percentiles are reported, and the best
+        # replay's p99 beside them (other jobs on a shared machine preempt at random).
+        runs = [warm] + [time_warm(model, cfg, seq)[0] for _ in range(args.repeats - 1)]
+        pooled = [x for r in runs for x in r]
         cold = time_cold(model, cfg, seq[: args.cvxpy_cycles * 2])
         # cvxpy on a stride through the sequence (it is slow); compare first moves there.
         stride = max(1, len(seq) // args.cvxpy_cycles)
@@ -164,8 +169,10 @@ def main(argv: list[str] | None = None) -> int:
         rows.append(
             {
                 "horizon": n,
-                "warm_us_p50": us(warm, 50),
-                "warm_us_p99": us(warm, 99),
+                "warm_us_p50": us(pooled, 50),
+                "warm_us_p99": us(pooled, 99),
+                "warm_us_p99_best_replay": min(us(r, 99) for r in runs),
+                "replays": args.repeats,
                 "cold_us_p50": us(cold, 50),
                 "cvxpy_us_p50": us(cvx, 50),
                 "max_abs_diff_u": max(diffs) if diffs else None,
@@ -176,12 +183,13 @@ def main(argv: list[str] | None = None) -> int:
             }
         )
     print(
-        f"{'N':>4} {'warm p50 us':>12} {'warm p99 us':>12} {'cold p50 us':>12} "
+        f"{'N':>4} {'warm p50 us':>12} {'warm p99 us':>12} {'best p99':>9} {'cold p50 us':>12} "
         f"{'cvxpy p50 us':>13} {'speedup':>8} {'max|du0| V':>11} {'iters':>6} {'fails':>6}"
     )
     for r in rows:
         print(
             f"{r['horizon']:>4} {r['warm_us_p50']:>12.0f} {r['warm_us_p99']:>12.0f} "
+            f"{r['warm_us_p99_best_replay']:>9.0f} "
             f"{r['cold_us_p50']:>12.0f} {r['cvxpy_us_p50']:>13.0f} "
             f"{r['cvxpy_us_p50'] / r['warm_us_p50']:>7.0f}x {r['max_abs_diff_u']:>11.2e} "
             f"{r['warm_iters_p50']:>6.0f} {r['warm_failures']:>6}"
