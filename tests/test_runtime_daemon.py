@@ -4,6 +4,7 @@ subprocess runs on the sim backend: clean stop, recorded log, SIGTERM."""
 from __future__ import annotations
 
 import math
+import os
 import signal
 import subprocess
 import sys
@@ -16,7 +17,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 from runtime_support import write_config
 
-from firmware_protocol.messages import RangeReading, RangeStatus, WheelEncoders
+from firmware_protocol.messages import FirmwareState, RangeReading, RangeStatus, WheelEncoders
 from truckd.config.truck import default_config_path, load_config
 from truckd.control.supervisor import Mode
 from truckd.io.port import Received
@@ -128,6 +129,41 @@ def test_sigterm_stops_cleanly_with_exit_0(tmp_path: Path) -> None:
     assert len(log) >= 50
     # the last recorded command before the stop is finite and the log ends cleanly
     assert math.isfinite(log["u"][-1])
+
+
+def test_sigterm_while_driving_commands_the_motor_off(tmp_path: Path) -> None:
+    """The real SIGTERM handler, raised while the truck drives: the loop ends after that
+    cycle, run() returns 0 and the simulated firmware received 0 V with the driver
+    disabled (IDLE by command, not FAILSAFE by its 100 ms timeout)."""
+    cfg_path = write_config(
+        tmp_path / "truck.yaml",
+        {"runtime": {"realtime": False, "telemetry": {"enabled": False},
+                     "recorder": {"dir": str(tmp_path / "logs")}}},
+    )  # fmt: skip
+    d = Daemon(load_config(cfg_path), "sim", duration=30.0, env={})
+    signalled: list[tuple[float, int]] = []
+    one_cycle = d.cycle
+
+    def cycle_then_sigterm() -> None:
+        one_cycle()
+        assert d.backend is not None and d.backend.firmware is not None
+        fw = d.backend.firmware
+        if not signalled and d.decision.mode == Mode.ACTIVE and fw.enabled and fw.voltage > 0.5:
+            signalled.append((fw.voltage, d.rk.cycles))
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    d.cycle = cycle_then_sigterm  # type: ignore[method-assign]
+    try:
+        assert d.run() == 0
+    finally:
+        unfreeze_gc()
+    assert signalled, "never drove"
+    assert d.rk.cycles == signalled[0][1] + 1  # the signalled cycle was the last one
+    assert d.backend is not None and d.backend.firmware is not None
+    fw = d.backend.firmware
+    assert (fw.voltage, fw.enabled, fw.state) == (0.0, False, FirmwareState.IDLE)
+    assert fw.stats.cmd_timeouts == 0
+    assert signal.getsignal(signal.SIGTERM) != d.request_stop  # handler restored
 
 
 def test_bad_config_is_exit_2(tmp_path: Path) -> None:
