@@ -14,8 +14,9 @@ Modes (the daemon maps them to commands):
 - ``SAFE_STOP``: a controlled stop (voltage ramped to zero): encoder or link stale, range
   sensor stale or frozen, the solver failing ``solver_fail_limit`` cycles in a row, the loop
   overrunning ``overrun_limit`` cycles in a row, or the lead lost with action ``stop``.
-- ``FAULT``: the link is down (device gone, bus off) or the firmware reports a fault: motor
-  off, nothing to command through.
+- ``FAULT``: the link is down (device gone, bus off): motor off, nothing to command
+  through.  (The firmware's own fault bits are published in health, not acted on here:
+  the firmware already switches the motor off on its command timeout.)
 
 The mode is decided on every call, so a stop starts on the cycle the staleness is detected.
 Leaving a degraded mode for ``ACTIVE`` needs every cause clear for ``recovery_s``.
@@ -105,7 +106,6 @@ class SupervisorInputs:
     lead_valid: bool = True
     solver_ok: bool = True
     loop_missed: bool = False
-    firmware_fault: bool = False
 
 
 @dataclass(frozen=True)
@@ -182,8 +182,6 @@ class Supervisor:
         out: dict[str, Mode] = {}
         if not x.link_up:
             out["link_down"] = Mode.FAULT
-        if x.firmware_fault:
-            out["firmware_fault"] = Mode.FAULT
         if _stale(x.link_age, cfg.link_timeout_s):
             out["link_stale"] = Mode.SAFE_STOP
         if _stale(x.encoder_age, cfg.encoder_timeout_s):
