@@ -131,6 +131,13 @@ def noise_std(y: Array) -> float:
     return mad / 0.6745 / float(np.sqrt(6.0))
 
 
+def initial_speed(v: Array) -> float:
+    """Speed to start a free run from: the first sample, or 0 (at rest) when that is
+    within the measurement noise (a noisy 0 would start the model sliding)."""
+    m = float(v[0])
+    return 0.0 if abs(m) < 3.0 * noise_std(v[:300]) else m
+
+
 def split(s: Series, fraction: float = 0.7) -> tuple[Series, Series]:
     """Estimation (first ``fraction``) and validation (rest) parts of one log."""
     k = int(len(s) * fraction)

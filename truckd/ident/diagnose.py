@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from truckd.ident.candidates import Candidate, voltage_candidates
-from truckd.ident.data import Series, chunks, noise_std, split
+from truckd.ident.data import Series, chunks, initial_speed, noise_std, split
 from truckd.ident.fastsim import simulate_voltage
 from truckd.ident.residuals import whiteness
 from truckd.ident.result import CandidateRow, Diagnosis, Finding, ModelSummary, Traces
@@ -83,7 +83,8 @@ def identify_voltage(p0: VehicleParams, data: Series, progress: Progress = _quie
     fit_data = chunks(data, FIT_BUDGET)
     w = weights_for(fit_data)
     free = seed_params(p0, data.i is not None)
-    return _fit_seed(p0, free, fit_data, w, stiction_grid(p0, data), progress)
+    grid = stiction_grid(p0, data)
+    return _restick(_fit_seed(p0, free, fit_data, w, grid, progress), grid, [data], w)
 
 
 def _fit_seed(
@@ -188,7 +189,7 @@ def _passes(new: _Model, old: _Model, extra: int) -> tuple[bool, float]:
 
 def _summary(p: VehicleParams, e: Effects, report: Series) -> tuple[ModelSummary, np.ndarray]:
     pred = simulate_voltage(
-        p, e, report.t, report.inp, float(report.v[0]), report.hist_t, report.hist_inp
+        p, e, report.t, report.inp, initial_speed(report.v), report.hist_t, report.hist_inp
     )
     params = {n: float(getattr(p, n)) for n in SEED_NAMES}
     for n in e.active():

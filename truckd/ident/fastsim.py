@@ -105,6 +105,8 @@ class Kinetics:
     drag: float = 0.0
     scale: Array | None = None
     """Per-command factor on ``c``, ``sigma``, ``d`` and ``drag`` (None = 1)."""
+    lag: float = 0.0
+    """Electrical lag (s) for the breakaway test when the speed reaches zero."""
 
 
 def _phi(b: float, h: float) -> tuple[float, float, float]:
@@ -120,15 +122,28 @@ def _phi(b: float, h: float) -> tuple[float, float, float]:
 
 
 def _segment(
-    w: float, a: float, b: float, c: float, sigma: float, d: float, h: float
+    w: float,
+    a: float,
+    b: float,
+    c: float,
+    sigma: float,
+    d: float,
+    h: float,
+    lag: float = 0.0,
 ) -> tuple[float, float]:
-    """Exact segment of length h (s): returns (end speed, integral of speed)."""
+    """Exact segment of length h (s): returns (end speed, integral of speed).
+
+    ``lag`` (s): the electrical lag; when the speed reaches zero the current still
+    carries the back-EMF of ``lag`` earlier, which the breakaway test includes.
+    """
     dist = 0.0
+    extra = 0.0
     for _ in range(4):
         if h <= 0.0:
             break
         if w == 0.0:
-            net = a - d
+            net = a - d + extra
+            extra = 0.0
             if abs(net) <= sigma:
                 return 0.0, dist
             s = 1.0 if net > 0.0 else -1.0
@@ -149,6 +164,7 @@ def _segment(
         dist += w * p1 + g * p2
         h -= tz
         w = 0.0
+        extra = b * g * lag
     return w, dist
 
 
@@ -174,6 +190,7 @@ def run(
     a_list = kin.a.tolist()
     b_list = kin.b.tolist()
     c, sigma, d, drag = kin.c, kin.sigma, kin.d, kin.drag
+    lag = kin.lag
     sc_list = kin.scale.tolist() if kin.scale is not None else None
     lag_alpha_cache: dict[float, float] = {}
     for dt, k, se in zip(tl.dt.tolist(), tl.cmd.tolist(), tl.sample_end.tolist(), strict=True):
@@ -202,10 +219,10 @@ def run(
                 x += w * phi1 + g * (dt - phi1) / b_eff
                 w = w1
             else:
-                w, dx = _segment(w, a, b_eff, c, sigma, d_eff, dt)
+                w, dx = _segment(w, a, b_eff, c, sigma, d_eff, dt, lag)
                 x += dx
         else:
-            w, dx = _segment(w, a, b_eff, c, sigma, d_eff, dt)
+            w, dx = _segment(w, a, b_eff, c, sigma, d_eff, dt, lag)
             x += dx
         h_step += dt
         if se >= 0:
@@ -328,15 +345,24 @@ def simulate_voltage(
         d=kappa * load / p.J_S,
         drag=kappa * eff.aero_drag * p.ratio**3 / p.J_S,
         scale=k_arr / kappa if eff.battery_sag != 0.0 else None,
+        lag=lag_e,
     )
     tl = _merge_equal(timeline(t, eff.input_delay + lag_e, hist, t_cmd), a, b)
     w0 = p.omega(v0)
     meas, raw, pos = run(kin, tl, n, w0, eff.sensor_lag)
     # Active command at each sample instant (for the quasi-static current).
-    idx = np.searchsorted(t_cmd + eff.input_delay, t, "left") - 1
+    act = t_cmd + eff.input_delay
+    idx = np.searchsorted(act, t, "left") - 1
     v_at = np.where(idx >= 0, volts[np.maximum(idx, 0)], 0.0)
     r_at = np.where(idx >= 0, r_tot[np.maximum(idx, 0)], p.R_m)
     cur = (v_at - p.K_v * raw) / r_at
+    # A command that acted just before the sample: the current is still settling.
+    prev = idx - 1
+    since = np.where(idx >= 0, t - act[np.maximum(idx, 0)], np.inf)
+    v_old = np.where(prev >= 0, volts[np.maximum(prev, 0)], 0.0)
+    r_old = np.where(prev >= 0, r_tot[np.maximum(prev, 0)], p.R_m)
+    cur_old = (v_old - p.K_v * raw) / r_old
+    cur = cur + (cur_old - cur) * np.exp(-since * r_at / p.L_m)
     return VoltagePrediction(
         v=meas * p.ratio, v_true=raw * p.ratio, i=cur, x=pos * p.ratio, volts=v_at
     )

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from truckd.ident.data import Series, noise_std, split
+from truckd.ident.data import Series, initial_speed, noise_std, split
 from truckd.ident.fastsim import ForceModel, simulate_force
 from truckd.ident.residuals import whiteness
 from truckd.ident.result import CandidateRow, Diagnosis, Finding, ModelSummary, Traces
@@ -284,7 +284,7 @@ def _note(row: CandidateRow, note: str, accepted: bool = False) -> CandidateRow:
 
 def _summary(f: IdmFit, d: Idm, report: Series) -> tuple[ModelSummary, Array]:
     """Free-run speed fit on the report data and force error of the IDM."""
-    v_sim, _ = simulate_force(f.model(), report.t, report.inp, float(report.v[0]))
+    v_sim, _ = simulate_force(f.model(), report.t, report.inp, initial_speed(report.v))
     v_sim = np.where(np.isfinite(v_sim), v_sim, 0.0)
     return (
         ModelSummary(

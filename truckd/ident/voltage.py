@@ -23,7 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
-from truckd.ident.data import Series, noise_std
+from truckd.ident.data import Series, initial_speed, noise_std
 from truckd.ident.fastsim import simulate_voltage
 from truckd.model.effects import Effects
 from truckd.model.params import VehicleParams
@@ -124,7 +124,7 @@ def residuals(p: VehicleParams, e: Effects, data: Sequence[Series], w: Weights) 
     """Weighted free-run residuals (speed, then current when weighted) of all chunks."""
     parts = []
     for s in data:
-        pred = simulate_voltage(p, e, s.t, s.inp, float(s.v[0]), s.hist_t, s.hist_inp)
+        pred = simulate_voltage(p, e, s.t, s.inp, initial_speed(s.v), s.hist_t, s.hist_inp)
         parts.append((s.v - pred.v) * w.v)
         if w.i and s.i is not None:
             parts.append((s.i[1:] - pred.i[1:]) * w.i)
@@ -134,7 +134,7 @@ def residuals(p: VehicleParams, e: Effects, data: Sequence[Series], w: Weights) 
 
 def speed_fit(p: VehicleParams, e: Effects, s: Series) -> tuple[float, float, Array]:
     """``(fit_percent, rmse (m/s), simulated speed)`` of a free run over ``s``."""
-    pred = simulate_voltage(p, e, s.t, s.inp, float(s.v[0]), s.hist_t, s.hist_inp)
+    pred = simulate_voltage(p, e, s.t, s.inp, initial_speed(s.v), s.hist_t, s.hist_inp)
     return fit_percent(s.v, pred.v), rmse(s.v, pred.v), pred.v
 
 
@@ -221,14 +221,15 @@ def scan(
 
 
 def stiction_grid(p0: VehicleParams, data: Series) -> tuple[float, ...]:
-    """Breakaway torques (N m) between the log's command levels, up to half V_batt.
+    """Breakaway voltages (V) between the log's command levels, up to half V_batt.
 
     Sorted; 0 stands for "no stiction beyond Coulomb" (``K_stiction = K_coulomb``).
+    :func:`scan_stiction` turns them into torques with the model's own ``K_T/R_m``.
     """
     u = np.abs(data.inp)
     levels = np.unique(np.round(u[(u > 0) & (u < 0.5 * p0.V_batt)], 6))
     mids = 0.5 * (levels[1:] + levels[:-1]) if len(levels) > 1 else levels
-    return (0.0, *(float(m) * p0.K_T / p0.R_m for m in mids))
+    return (0.0, *(float(m) for m in mids))
 
 
 def scan_stiction(
@@ -240,7 +241,8 @@ def scan_stiction(
     coarse: int = 30,
     fine: int = 12,
 ) -> tuple[VehicleParams, float]:
-    """Best K_stiction (>= K_coulomb) on a sorted grid, the rest held: (model, sse).
+    """Best K_stiction (>= K_coulomb) on a sorted grid of breakaway voltages (V), the
+    rest held: (model, sse).
 
     A coarse pass over at most ``coarse`` grid points, then up to ``fine`` grid points
     between the best one's coarse neighbours.
@@ -254,7 +256,7 @@ def scan_stiction(
             cache[ks] = float(r @ r)
         return cache[ks]
 
-    g = np.asarray(grid, float)
+    g = np.asarray(grid, float) * (p.K_T / p.R_m)
     idx = np.unique(np.linspace(0, len(g) - 1, min(coarse, len(g))).round().astype(int))
     costs = [cost(g[k]) for k in idx]
     j = int(np.argmin(costs))
