@@ -3,7 +3,8 @@
 python tests/hil_subscriber.py --connect ENDPOINT --vehicle ID --out FILE --duration S
 
 Writes one JSON line per state sample: {"rx": local monotonic time, "msg": state}.
-Prints "ready" once subscribed.  Exits after S seconds.
+Prints "ready" once subscribed and "receiving" when the first sample arrives (so the
+caller knows the subscription reached the publisher).  Exits after S seconds.
 """
 
 from __future__ import annotations
@@ -30,14 +31,19 @@ def main() -> int:
     conf.insert_json5("scouting/multicast/enabled", "false")
     conf.insert_json5("scouting/gossip/enabled", "false")
     lock = threading.Lock()
+    first = True
     with open(args.out, "w", encoding="utf-8") as fh, zenoh.open(conf) as session:
 
         def on_state(sample: zenoh.Sample) -> None:
+            nonlocal first
             line = json.dumps(
                 {"rx": time.monotonic(), "msg": json.loads(sample.payload.to_bytes())}
             )
             with lock:
                 fh.write(line + "\n")
+                if first:
+                    first = False
+                    print("receiving", flush=True)
 
         sub = session.declare_subscriber(f"truckd/{args.vehicle}/state", on_state)
         print("ready", flush=True)

@@ -48,7 +48,8 @@ def test_follow_15s_rate_safety_and_steady_state(tmp_path: Path) -> None:
             stdout=subprocess.PIPE, text=True,
         )  # fmt: skip
         assert sub.stdout is not None and sub.stdout.readline().strip() == "ready"
-        time.sleep(0.5)  # the subscription reaches the daemon's session
+        # the subscription reached the daemon's session (EOF after its duration if never)
+        assert sub.stdout.readline().strip() == "receiving"
         fw.cmd({"cmd": "lead", "gap": LEAD_GAP, "speed": LEAD_SPEED})
         st0 = fw.status()
         t_lead = time.monotonic()
@@ -64,6 +65,16 @@ def test_follow_15s_rate_safety_and_steady_state(tmp_path: Path) -> None:
         assert sub.wait(timeout=30) == 0
         code = daemon.stop()
         assert code == 0, daemon.stderr()
+        # SIGTERM commanded the motor off over the serial link: the last command the
+        # firmware received (0.3 s of its time later: nothing is still in flight) is
+        # 0 V with the driver disabled
+        t_stop = fw.status()["t"]
+        off = fw.status()
+        while off["t"] - t_stop < 0.3:
+            time.sleep(0.01)
+            off = fw.status()
+        assert off["last_command"] == {"voltage": 0.0, "enable": False}, off
+        assert off["voltage"] == 0.0, off
     finally:
         if sub is not None and sub.poll() is None:
             sub.kill()

@@ -157,6 +157,8 @@ class SimulatedFirmware:
         self.voltage = 0.0
         """Voltage (V) the firmware commands the driver now."""
         self.enabled = False
+        self.last_command: MotorCommand | None = None
+        """The last valid command received (as sent: before clamping)."""
         self._last_cmd: float | None = None
         self._timed_out = False
         self._sticky = FirmwareFault.NONE
@@ -212,6 +214,7 @@ class SimulatedFirmware:
                     self._sticky |= FirmwareFault.CMD_INVALID
                     v = math.copysign(limit, v)
                 self._set_motor(v if r.msg.enable else 0.0, r.msg.enable)
+                self.last_command = r.msg
                 self._last_cmd = r.t
                 self._timed_out = False
                 self.stats.commands_applied += 1

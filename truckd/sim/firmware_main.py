@@ -17,7 +17,8 @@ imported from MODULE (any other hook).
 Faults are switched at run time with JSON datagrams to ``127.0.0.1:control_port`` (UDP):
 any :meth:`SimulatedFirmware.apply_fault` command, ``{"cmd": "lead", "gap": M,
 "speed": M/S}`` (a new constant-speed lead, gap measured from now), ``{"cmd":
-"status"}`` (replies with a JSON status datagram) and ``{"cmd": "stop"}``.  Every
+"status"}`` (replies with a JSON status datagram: time, state, speed, position, voltage
+applied, the last valid command, counters) and ``{"cmd": "stop"}``.  Every
 datagram gets a JSON reply: ``{"ok": true, ...}`` or ``{"ok": false, "error": ...}``.
 SIGTERM/SIGINT stop it cleanly (the symlink is removed).
 """
@@ -96,6 +97,7 @@ def _handle(fw: SimulatedFirmware, cmd: Any) -> tuple[dict[str, Any], bool]:
         return {"ok": True}, True
     if what == "status":
         st = fw.port.stats()
+        last = fw.last_command
         return {
             "ok": True,
             "t": fw.t,
@@ -103,6 +105,9 @@ def _handle(fw: SimulatedFirmware, cmd: Any) -> tuple[dict[str, Any], bool]:
             "v": fw.plant.v,
             "x": fw.plant.x,
             "voltage": fw.voltage,
+            "last_command": None
+            if last is None
+            else {"voltage": last.voltage, "enable": last.enable},
             "firmware": vars(fw.stats),
             "rx": st,
         }, False
