@@ -280,8 +280,9 @@ def diagnose_voltage(
 
     # Final joint refit of the extended model on more of the data; stiction shows only
     # at the breakaways, which chunks may miss: a last look at it on all the data.
-    polish_data = chunks(est, FINAL_BUDGET, pieces=8)
-    full = [est]
+    whole = est if validate is not None else data  # selection done: use all the data
+    polish_data = chunks(whole, FINAL_BUDGET, pieces=8)
+    full = [whole]
     base_pol = _restick(base_fit, grid, full, w)
     final = base_pol
     if accepted:

@@ -265,7 +265,11 @@ def scan_stiction(
     for k in np.unique(np.linspace(lo, hi, min(fine, hi - lo + 1)).round().astype(int)):
         cost(g[k])
     cost(p.K_stiction)
-    best = min(cache, key=lambda ks: cache[ks])
+    low = min(cache.values())
+    # Where the data cannot tell (no command level in between), keep the value closest
+    # to the starting one (from the configuration) rather than an end of the interval.
+    ties = [ks for ks, c in cache.items() if c <= low * (1.0 + 1e-9) + 1e-12]
+    best = min(ties, key=lambda ks: abs(ks - p.K_stiction))
     return p.replace(K_stiction=best), cache[best]
 
 

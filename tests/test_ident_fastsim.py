@@ -1,0 +1,118 @@
+"""The fitting loop's fast simulator against the reference plant (truckd.sim.plant).
+
+If the two disagreed, a diagnosis of plant logs would name the disagreement as an
+effect; the tolerances below are a small fraction of the 0.01 m/s sensor noise the
+diagnosis tests use.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import zlib
+
+import numpy as np
+import pytest
+
+from truckd.ident.data import Series
+from truckd.ident.fastsim import ForceModel, simulate_force, simulate_voltage, timeline
+from truckd.ident.synth import EFFECT_RANGES, excitation
+from truckd.model.effects import EFFECT_NAMES, Effects
+from truckd.model.params import VehicleParams
+from truckd.sim.plant import PlantConfig, simulate_open_loop
+
+TOL_RMS = {"battery_sag": 1.5e-3}
+"""RMS speed difference allowed (m/s); battery sag changes the electrical time constant
+per command, which the first-order model keeps only approximately."""
+
+
+def _compare(p: VehicleParams, eff: Effects, seed: int, n: int = 3000) -> tuple[float, float]:
+    rng = np.random.default_rng(seed)
+    t, u = excitation(rng, n)
+    ref = simulate_open_loop(p, t, u, PlantConfig(effects=eff))
+    fast = simulate_voltage(p, eff, t, u)
+    return float(np.sqrt(np.mean((ref.v - fast.v) ** 2))), float(abs(ref.x[-1] - fast.x[-1]))
+
+
+@pytest.mark.parametrize("name", EFFECT_NAMES)
+def test_fast_simulator_agrees_with_plant(params: VehicleParams, name: str) -> None:
+    rng = np.random.default_rng(zlib.crc32(name.encode()))
+    lo, hi = EFFECT_RANGES[name]
+    eff = dataclasses.replace(Effects(), **{name: float(rng.uniform(lo, hi))})
+    err, dx = _compare(params, eff, seed=int(rng.integers(1 << 30)))
+    assert err < TOL_RMS.get(name, 3e-4), f"{name}: rms {err:.2e} m/s"
+    assert dx < 0.02, f"{name}: position differs by {dx:.3g} m after 30 s"
+
+
+def test_fast_simulator_agrees_without_effects(params: VehicleParams) -> None:
+    err, _ = _compare(params, Effects(), seed=7)
+    assert err < 3e-4
+
+
+def test_current_prediction_matches_plant(params: VehicleParams) -> None:
+    rng = np.random.default_rng(3)
+    t, u = excitation(rng, 2000)
+    ref = simulate_open_loop(params, t, u)
+    fast = simulate_voltage(params, Effects(), t, u)
+    err = np.sqrt(np.mean((ref.i[1:] - fast.i[1:]) ** 2))
+    assert err < 0.02 * np.std(ref.i)
+
+
+def test_delay_between_samples_is_split_exactly(params: VehicleParams) -> None:
+    """A delay of 1.37 samples: the fast simulator splits steps where the plant does."""
+    t = np.arange(400) * 0.01
+    u = np.where((t > 0.5) & (t < 2.0), 5.0, -3.0)
+    eff = Effects(input_delay=0.0137)
+    ref = simulate_open_loop(params, t, u, PlantConfig(effects=eff))
+    fast = simulate_voltage(params, eff, t, u)
+    rounded = simulate_voltage(params, Effects(input_delay=0.01), t, u)
+    err = np.max(np.abs(ref.v - fast.v))
+    assert err < 2e-3
+    assert np.max(np.abs(ref.v - rounded.v)) > 5 * err  # the fraction of a step matters
+
+
+def test_history_makes_a_chunk_equal_to_the_whole(params: VehicleParams) -> None:
+    """Commands issued before a chunk still act inside it when there is a delay."""
+    rng = np.random.default_rng(5)
+    t, u = excitation(rng, 1500)
+    eff = Effects(input_delay=0.043)
+    whole = simulate_voltage(params, eff, t, u)
+    k = 700
+    part = Series(t=t, inp=u, v=whole.v).slice(k, 1500)
+    assert part.hist_t is not None and part.hist_inp is not None
+    chunk = simulate_voltage(
+        params, eff, part.t, part.inp, float(whole.v[k]), part.hist_t, part.hist_inp
+    )
+    no_hist = simulate_voltage(params, eff, part.t, part.inp, float(whole.v[k]))
+    assert np.max(np.abs(chunk.v - whole.v[k:])) < 1e-3
+    assert np.max(np.abs(no_hist.v - whole.v[k:])) > 1e-2
+
+
+def test_timeline_covers_the_log_once() -> None:
+    t = np.cumsum(np.full(50, 0.01)) - 0.01
+    for delay in (0.0, 0.004, 0.01, 0.0237):
+        tl = timeline(t, delay)
+        assert np.isclose(tl.dt.sum(), t[-1] - t[0])
+        assert list(tl.sample_end[tl.sample_end >= 0]) == list(range(1, 50))
+        assert np.all(tl.dt > 0)
+
+
+def test_force_model_matches_closed_form() -> None:
+    """M dv/dt = F - F_v v - F_c (sliding forward) has v(t) = v_inf (1 - exp(-t F_v/M))."""
+    m = ForceModel(M=2.0, F_c=1.0, F_v=4.0, offset=0.5)
+    t = np.linspace(0.0, 2.0, 201)
+    f = np.full_like(t, 10.0)
+    v, x = simulate_force(m, t, f)
+    v_inf = (10.0 - 1.0 - 0.5) / 4.0
+    expect = v_inf * (1.0 - np.exp(-t * 4.0 / 2.0))
+    assert np.max(np.abs(v - expect)) < 1e-9
+    x_expect = v_inf * (t - (1.0 - np.exp(-2.0 * t)) / 2.0)
+    assert np.max(np.abs(x - x_expect)) < 1e-9
+
+
+def test_force_model_sticks_below_breakaway() -> None:
+    m = ForceModel(M=1.0, F_c=2.0, F_v=1.0)
+    t = np.linspace(0.0, 1.0, 101)
+    v, _ = simulate_force(m, t, np.full_like(t, 1.9))
+    assert np.all(v == 0.0)
+    v, _ = simulate_force(m, t, np.full_like(t, 2.1))
+    assert v[-1] > 0.0
