@@ -6,12 +6,15 @@ from __future__ import annotations
 import json
 import math
 import os
+import queue
 import signal
 import socket
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import zenoh
 from runtime_support import endpoint, free_port, write_config
@@ -29,6 +32,21 @@ def _drain(sock: socket.socket, seconds: float) -> list[tuple[float, str]]:
         except TimeoutError:
             break
     return out
+
+
+def _health_until(
+    q: queue.Queue[dict[str, Any]], pred: Callable[[dict[str, Any]], bool], timeout: float = 30.0
+) -> dict[str, Any]:
+    """The first health message satisfying ``pred`` (the daemon sends one every 0.5 s)."""
+    t_end = time.monotonic() + timeout
+    while (left := t_end - time.monotonic()) > 0:
+        try:
+            h = q.get(timeout=left)
+        except queue.Empty:
+            break
+        if pred(h):
+            return h
+    raise AssertionError(f"no such health message within {timeout} s")
 
 
 def test_ready_watchdog_gated_by_deadlines_and_stopping(tmp_path: Path) -> None:
@@ -58,13 +76,18 @@ def test_ready_watchdog_gated_by_deadlines_and_stopping(tmp_path: Path) -> None:
         assert len(feeds) >= 5  # fed every ~0.1 s (WATCHDOG_USEC / 4) while healthy
         # the loop overruns every cycle: the watchdog must starve
         session = zenoh.open(zenoh_config(listen=[], connect=[endpoint(port)]))
-        time.sleep(0.5)
+        health: queue.Queue[dict[str, Any]] = queue.Queue()
+        session.declare_subscriber(
+            "truckd/truck1/health", lambda s: health.put(json.loads(s.payload.to_bytes()))
+        )
+        _health_until(health, lambda h: True)  # connected to the daemon's session
         session.put("truckd/truck1/inject", json.dumps({"fault": "overrun", "extra_s": 0.02}))
-        time.sleep(0.5)  # the command arrives; the last healthy feeds drain
-        _drain(srv, 0.2)
+        _health_until(health, lambda h: h["injected"]["overrun_s"] > 0)  # it arrived
+        _drain(srv, 0.2)  # a feed sent before it took effect
         starving = _drain(srv, 1.5)
         assert not [m for _, m in starving if m == "WATCHDOG=1"], starving
         session.put("truckd/truck1/inject", json.dumps({"fault": "clear"}))
+        _health_until(health, lambda h: h["injected"]["overrun_s"] == 0)
         resumed = _drain(srv, 1.5)
         assert [m for _, m in resumed if m == "WATCHDOG=1"]
         os.kill(proc.pid, signal.SIGTERM)
