@@ -5,7 +5,9 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import threading
 import time
+from collections.abc import Callable
 
 from runtime_support import endpoint, free_port
 
@@ -32,29 +34,58 @@ def test_fleet_view_rows() -> None:
     assert "vehicle" in v.render()
 
 
+def _wait_output(lines: list[str], pred: Callable[[str], bool], timeout: float) -> bool:
+    t_end = time.monotonic() + timeout
+    while time.monotonic() < t_end:
+        if any(pred(line) for line in list(lines)):
+            return True
+        time.sleep(0.02)
+    return False
+
+
 def test_monitor_cli_sees_vehicle_then_offline() -> None:
     port = free_port()
     tel = Telemetry("mon1", TelemetryConfig(listen=(endpoint(port),)), dict)
     tel.start()
+    lines: list[str] = []
     try:
+        # --duration counts from the monitor's session being open (not its start-up)
         proc = subprocess.Popen(
             [sys.executable, "-m", "truckd.cli.main", "monitor", "--connect", endpoint(port),
-             "--duration", "4", "--interval", "0.25"],
+             "--duration", "5", "--interval", "0.25"],
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
             text=True,
         )  # fmt: skip
-        t_end = time.monotonic() + 2.0
+        assert proc.stdout is not None
+        stdout = proc.stdout
+
+        def read() -> None:
+            for line in stdout:
+                lines.append(line)
+
+        reader = threading.Thread(target=read, daemon=True)
+        reader.start()
+        assert _wait_output(lines, lambda ln: "vehicle" in ln, 60.0), "no table"
         seq = 0
-        while time.monotonic() < t_end:
+        t_end = time.monotonic() + 4.0
+        while not any("mon1" in ln and "online" in ln and "0.75" in ln for ln in list(lines)):
+            assert time.monotonic() < t_end, "".join(lines)
             tel.publish_state({"seq": seq, "mode": "ACTIVE", "v": 0.75, "gap": 1.0, "gap_ref": 1.0})
             seq += 1
             time.sleep(0.02)
         tel.close()
-        out, err = proc.communicate(timeout=20)
+        assert proc.wait(timeout=20) == 0, proc.stderr.read()  # type: ignore[union-attr]
+        reader.join(timeout=5)
     finally:
         tel.close()
-    assert proc.returncode == 0, err
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        for f in (proc.stdout, proc.stderr):
+            if f is not None:
+                f.close()
+    out = "".join(lines)
     tables = [t for t in out.split("\n\n") if t.strip()]
     online = [t for t in tables if "mon1" in t and "online" in t and "0.75" in t]
     assert online, out
