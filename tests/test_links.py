@@ -4,6 +4,7 @@ backends by name, and the typed port on top."""
 from __future__ import annotations
 
 import os
+import select
 import time
 import uuid
 from pathlib import Path
@@ -95,8 +96,10 @@ def test_serial_over_pty_pair_with_garbage() -> None:
         fs = link.stats.framing
         assert fs is not None and fs.resyncs == 2
         link.send(F2)
-        time.sleep(0.05)
-        assert os.read(master, 100) == frame_to_bytes(F2)
+        want, got = frame_to_bytes(F2), b""
+        while len(got) < len(want) and select.select([master], [], [], 5.0)[0]:
+            got += os.read(master, 100)
+        assert got == want
     finally:
         link.close()
         os.close(master)
