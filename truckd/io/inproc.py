@@ -38,69 +38,72 @@ def _never() -> float:
     return 0.0
 
 
-class InprocFrameLink(Link):
+class _End:
+    """What both kinds of end share: the wire, its queues, and failing while unplugged."""
+
+    wire: Wire
+    _tx: deque[object]
+    _rx: deque[object]
+
+    def _attach(self, wire: Wire, side: int) -> None:
+        self.wire = wire
+        self._tx = wire.queues[side]
+        self._rx = wire.queues[1 - side]
+
+    def _check(self) -> None:
+        if not self.wire.up:
+            raise LinkDownError("in-process wire is unplugged")
+
+    def _open(self) -> None:
+        self._check()
+
+    def _idle(self, timeout: float) -> None:
+        return None  # simulated time: never sleep
+
+    def _take(self) -> list[object]:
+        self._check()
+        out = list(self._rx)
+        self._rx.clear()
+        return out
+
+
+class InprocFrameLink(_End, Link):
     """One end of a frame-mode pair."""
 
     def __init__(self, wire: Wire, side: int) -> None:
         super().__init__(reconnect_interval=0.0, clock=_never)
-        self.wire = wire
-        self._tx = wire.queues[side]
-        self._rx = wire.queues[1 - side]
+        self._attach(wire, side)
         self.open()
 
-    def _open(self) -> None:
-        if not self.wire.up:
-            raise LinkDownError("in-process wire is unplugged")
-
-    def _idle(self, timeout: float) -> None:
-        return None
-
     def _write(self, frame: Frame) -> None:
-        if not self.wire.up:
-            raise LinkDownError("in-process wire is unplugged")
+        self._check()
         self._tx.append(frame)
 
     def _read(self, timeout: float) -> list[Frame]:
-        if not self.wire.up:
-            raise LinkDownError("in-process wire is unplugged")
         out: list[Frame] = []
-        while self._rx:
-            item = self._rx.popleft()
-            assert isinstance(item, Frame)
-            out.append(item)
+        for f in self._take():
+            assert isinstance(f, Frame)
+            out.append(f)
         return out
 
 
-class InprocStreamLink(FramedStreamLink):
+class InprocStreamLink(_End, FramedStreamLink):
     """One end of a bytes-mode pair (serial framing in memory)."""
 
     def __init__(self, wire: Wire, side: int) -> None:
         super().__init__(reconnect_interval=0.0, clock=_never)
-        self.wire = wire
-        self._tx = wire.queues[side]
-        self._rx = wire.queues[1 - side]
+        self._attach(wire, side)
         self.open()
 
-    def _open(self) -> None:
-        if not self.wire.up:
-            raise LinkDownError("in-process wire is unplugged")
-
-    def _idle(self, timeout: float) -> None:
-        return None
-
     def _write_bytes(self, data: bytes) -> None:
-        if not self.wire.up:
-            raise LinkDownError("in-process wire is unplugged")
+        self._check()
         self._tx.append(bytes(data))
 
     def _read_bytes(self, timeout: float) -> bytes:
-        if not self.wire.up:
-            raise LinkDownError("in-process wire is unplugged")
         chunks: list[bytes] = []
-        while self._rx:
-            item = self._rx.popleft()
-            assert isinstance(item, bytes)
-            chunks.append(item)
+        for c in self._take():
+            assert isinstance(c, bytes)
+            chunks.append(c)
         return b"".join(chunks)
 
 
