@@ -42,8 +42,6 @@ def voltage_candidates(p0: VehicleParams, data: Series) -> list[Candidate]:
     levels = np.unique(np.round(u_abs[u_abs > 0], 6))
     levels = levels[levels < 0.8 * u_max]
     mids = tuple(float(x) for x in 0.5 * (levels[1:] + levels[:-1]))
-    if len(mids) > 60:
-        mids = tuple(float(x) for x in np.quantile(np.asarray(mids), np.linspace(0, 1, 60)))
     sat_hi = min(u_max, p0.V_batt)
     out = [
         Candidate(

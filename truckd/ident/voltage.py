@@ -209,15 +209,34 @@ def scan(
     values: Sequence[float],
     data: Sequence[Series],
     w: Weights,
+    coarse: int = 30,
+    fine: int = 16,
 ) -> tuple[float, float]:
-    """Best value of one effect parameter over a grid, the rest held: (value, sse)."""
-    best = (float(getattr(e, name)), float("inf"))
-    for val in values:
-        r = residuals(p, dataclasses.replace(e, **{name: float(val)}), data, w)
-        sse = float(r @ r)
-        if sse < best[1]:
-            best = (float(val), sse)
-    return best
+    """Best value of one effect parameter on a sorted grid, the rest held: (value, sse).
+
+    Long grids: a coarse pass over ``coarse`` points, then up to ``fine`` points between
+    the best one's coarse neighbours.
+    """
+    cache: dict[float, float] = {}
+
+    def cost(val: float) -> float:
+        if val not in cache:
+            r = residuals(p, dataclasses.replace(e, **{name: float(val)}), data, w)
+            cache[val] = float(r @ r)
+        return cache[val]
+
+    g = [float(v) for v in values]
+    if not g:
+        return float(getattr(e, name)), float("inf")
+    idx = np.unique(np.linspace(0, len(g) - 1, min(coarse, len(g))).round().astype(int))
+    costs = [cost(g[k]) for k in idx]
+    j = int(np.argmin(costs))
+    lo = int(idx[max(j - 1, 0)])
+    hi = int(idx[min(j + 1, len(idx) - 1)])
+    for k in np.unique(np.linspace(lo, hi, min(fine, hi - lo + 1)).round().astype(int)):
+        cost(g[k])
+    best = min(cache, key=lambda v: cache[v])
+    return best, cache[best]
 
 
 def stiction_grid(p0: VehicleParams, data: Series) -> tuple[float, ...]:
