@@ -50,11 +50,13 @@ def test_hil_process_faults_and_reconnect(tmp_path: Path) -> None:
             st = fw.control({"cmd": "status"})
             assert st["ok"] and st["v"] > 0.0 and st["voltage"] == pytest.approx(2.0)
 
-            # garbage on the line: resync, nothing intact lost
+            # garbage on the line (between frames): resync, nothing intact lost (no counter gap)
+            before = port.stats()
             assert fw.control({"fault": "garbage", "bytes": 300})["ok"]
             pump(port, 0.3)
             s = port.stats()
             assert s["framing_resyncs"] >= 1 and s["framing_bytes_discarded"] >= 200
+            assert s["rx_counter_gaps"] == before["rx_counter_gaps"]
 
             # stop commanding: the firmware's own 100 ms timeout switches the motor off
             got = pump(port, 0.4, voltage=None)
