@@ -106,22 +106,33 @@ def test_sigterm_stops_cleanly_with_exit_0(tmp_path: Path) -> None:
         {"runtime": {"realtime": False, "telemetry": {"enabled": False},
                      "recorder": {"dir": str(tmp_path / "logs")}}},
     )  # fmt: skip
+    # --duration: a daemon that never drives ends on its own and the test fails, not hangs
     proc = subprocess.Popen(
         [sys.executable, "-m", "truckd.cli.main", "run", "--config", str(cfg_path),
-         "--backend", "sim"],
+         "--backend", "sim", "--duration", "60"],
         stderr=subprocess.PIPE,
         text=True,
     )  # fmt: skip
     assert proc.stderr is not None
-    t_end = time.monotonic() + 60
-    for line in proc.stderr:  # wait until it drives
-        if "-> ACTIVE" in line or time.monotonic() > t_end:
-            break
-    time.sleep(1.0)
-    proc.send_signal(signal.SIGTERM)
-    rest = proc.stderr.read()
-    proc.stderr.close()
-    assert proc.wait(timeout=20) == 0, rest
+    try:
+        head = []
+        for line in proc.stderr:  # wait until it drives
+            head.append(line)
+            if "-> ACTIVE" in line:
+                break
+        else:
+            pytest.fail("never ACTIVE: " + "".join(head))
+        time.sleep(1.0)  # drive for a while (about 100 rows)
+        t_term = time.monotonic()
+        os.kill(proc.pid, signal.SIGTERM)
+        rest = proc.stderr.read()
+        assert proc.wait(timeout=20) == 0, rest
+        assert time.monotonic() - t_term < 15.0  # stopped by the signal, not the duration
+    finally:
+        if proc.poll() is None:
+            os.kill(proc.pid, signal.SIGKILL)
+            proc.wait()
+        proc.stderr.close()
     assert "log flushed" in rest
     files = sorted((tmp_path / "logs").glob("*.csv"))
     assert len(files) == 1
