@@ -92,6 +92,13 @@ def test_follow_15s_rate_safety_and_steady_state(tmp_path: Path) -> None:
     assert len(msgs) >= 0.95 * rate * RUN_S, f"{len(msgs)} states in {RUN_S} s"
     seqs = [m["seq"] for m in msgs]
     assert seqs == sorted(seqs)  # in order
+    # CONTRACTS.md section 5: state keys; health at least 1 Hz with timing, link, freshness
+    contract = {"seq", "t", "mode", "v", "gap", "gap_ref", "v_lead", "u", "u_ff", "solve_us"}
+    assert all(contract <= m.keys() for m in msgs), contract - msgs[0].keys()
+    health = [h.msg for h in watch.health if t_lead <= h.rx <= t_lead + RUN_S]
+    assert len(health) >= RUN_S
+    assert all({"loop", "link", "ages_s", "faults"} <= h.keys() for h in health)
+    assert {"lateness_us_p99", "compute_us_p99", "misses"} <= health[-1]["loop"].keys()
     # safety: no collision, commands finite and within limits
     assert min(true_gaps) > 0.0
     u_max = min(cfg.control.u_max, cfg.vehicle.V_batt)
