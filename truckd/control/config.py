@@ -66,7 +66,7 @@ class EstimatorConfig:
         lo=0.0,
         lo_open=True,
         hi=1e3,
-        default=4.0,
+        default=1.5,
     )
     gate_sigma: float = spec(
         "innovation gate: readings further than this many std away are outliers",
@@ -144,10 +144,10 @@ class ControlConfig:
         "weight on (u[k] - u[k-1])^2", unit="1/V^2", lo=0.0, lo_open=True, hi=1e9, default=0.3
     )
     slack_linear: float = spec(
-        "linear penalty on constraint slack (exact penalty)", lo=0.0, hi=1e12, default=1e3
+        "linear penalty on constraint slack (exact penalty)", lo=0.0, hi=1e12, default=1e2
     )
     slack_quadratic: float = spec(
-        "quadratic penalty on constraint slack", lo=0.0, lo_open=True, hi=1e12, default=1e3
+        "quadratic penalty on constraint slack", lo=0.0, lo_open=True, hi=1e12, default=1e2
     )
     follow_window: float = spec(
         "follow the lead when gap - d_ref is below this (else cruise, min gap still kept)",

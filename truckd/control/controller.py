@@ -128,9 +128,16 @@ class Controller:
             else 0.0
         )
         u_prev_mpc = self.u_prev - ff
+        if abs(v) <= cfg.moving_speed:
+            # At rest the previous voltage moved nothing (stiction), so to the friction-free
+            # model it is 0 V: else the rate penalty keeps asking for it and the breakaway
+            # feedforward kicks the truck forward again and again while it should stand.
+            u_prev_mpc = 0.0
         v_lead_h = self._lead_horizon(est, forecast) if lead else np.zeros(self.mpc.horizon)
         inp = QpInputs(
-            x0=self._initial_state(v, est.gap if lead else 0.0, ff, float(v_lead_h[0])),
+            x0=self._initial_state(
+                v, est.gap if lead else 0.0, ff, float(v_lead_h[0]), held=u_prev_mpc == 0.0
+            ),
             u_prev=u_prev_mpc,
             v_lead=v_lead_h,
             lead=lead,
@@ -161,7 +168,9 @@ class Controller:
             est, v, res.u0, ff, mode, None, res.status, res.iterations, res.run_time_s, gap_ref
         )
 
-    def _initial_state(self, v: float, gap: float, ff: float, v_lead: float) -> Vec:
+    def _initial_state(
+        self, v: float, gap: float, ff: float, v_lead: float, held: bool = False
+    ) -> Vec:
         """The QP's ``x_0``: the current ``R_m i`` after the electrical transient (about
         0.5 ms, so settled within a cycle) from the voltage acting now; with a known input
         delay, the state predicted over the commands sent but not yet acting."""
@@ -170,6 +179,8 @@ class Controller:
         acting = sent[0] if len(sent) == sent.maxlen else 0.0
         if self._delay_steps == 0:
             acting = self.u_prev
+        if held:
+            acting = ff  # no current beyond what the feedforward accounts for
         x: Vec = np.array([acting - ff - p.K_v * p.omega(v), v, gap])
         if self._delay_steps > 0:
             pred = self.mpc.qp.pred

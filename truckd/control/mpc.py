@@ -126,10 +126,14 @@ class MpcSolver:
         run_time = float(getattr(info, "run_time", 0.0))
         iters = int(info.iter)
         status = str(info.status)
+        # After a failure the next solve starts cold: a warm start that led nowhere once
+        # (e.g. from before a sudden jump) is not offered again.
         if info.status_val not in _USABLE:
+            self.reset()
             return MpcResult(False, math.nan, status, iters, run_time, None)
         z = np.array(res.x, dtype=float)
         if not np.all(np.isfinite(z)):
+            self.reset()
             return MpcResult(False, math.nan, "non-finite", iters, run_time, None)
         if run_time > self.cfg.time_budget_s:
             return MpcResult(False, math.nan, "overrun", iters, run_time, z)
