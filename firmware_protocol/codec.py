@@ -125,11 +125,6 @@ def _by_id() -> dict[int, MessageSpec]:
     return {s.can_id: s for s in specs().values()}
 
 
-def spec_by_id(can_id: int) -> MessageSpec | None:
-    """The message with that id, or None."""
-    return _by_id().get(can_id)
-
-
 def _raw(spec: MessageSpec, signal: str, value: float) -> int:
     if not math.isfinite(value):
         raise ValueError(f"{spec.name}.{signal}: value must be finite, got {value!r}")

@@ -61,9 +61,6 @@ class _Ring:
     def values(self) -> np.ndarray:
         return self.buf[: min(self.n, self.buf.size)]
 
-    def clear(self) -> None:
-        self.n = 0
-
 
 def _pct(values: np.ndarray, q: float) -> float:
     return float(np.percentile(values, q)) * 1e6 if values.size else 0.0
@@ -165,8 +162,3 @@ class RateKeeper:
             compute_us_p99=_pct(comp, 99),
             compute_us_max=float(comp.max()) * 1e6 if comp.size else 0.0,
         )
-
-    def reset_window(self) -> None:
-        """Forget the percentile window (counters are kept)."""
-        self._late.clear()
-        self._comp.clear()
