@@ -72,3 +72,19 @@ def test_feedforward_on_beats_off_at_steady_state() -> None:
     assert err_on < 0.005
     assert err_off > 5 * err_on
     assert on["gap_error_rms_m"] < off["gap_error_rms_m"]
+
+
+def test_feedforward_on_starts_sooner_after_the_lead_goes() -> None:
+    """Stop-and-go: the lead waits, then goes; with the breakaway feedforward the truck
+    leaves stiction sooner (the friction-free MPC alone has to wind up past 0.65 V)."""
+    cfg = load_config()
+    sc = make_scenario("stop-and-go", cfg.vehicle, cfg.control)
+    assert sc.lead is not None
+    t_go = sc.lead.times[3]  # the lead's first start
+    lags = {}
+    for ff in (True, False):
+        _, tr = _run("stop-and-go", ff, t_go + 2.0)
+        t, v = np.array(tr.t), np.array(tr.v)
+        assert np.all(v[(t > t_go - 0.15) & (t <= t_go)] < 0.01)  # at rest before
+        lags[ff] = float(t[np.argmax((t > t_go) & (v > 0.02))] - t_go)
+    assert 0.0 < lags[True] < lags[False]
