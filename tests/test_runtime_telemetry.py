@@ -3,13 +3,18 @@
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 import threading
 import time
+from pathlib import Path
 from typing import Any
 
+import pytest
 import zenoh
-from runtime_support import endpoint, free_port
+from runtime_support import endpoint, free_port, write_config
 
+from truckd.errors import InputError
 from truckd.runtime.config import TelemetryConfig
 from truckd.runtime.telemetry import Telemetry, keys, zenoh_config
 
@@ -112,3 +117,35 @@ def test_stalled_publisher_never_blocks_the_caller_and_drops_oldest() -> None:
     worker.join(5.0)
     assert not worker.is_alive()
     assert stuck.puts == 1 + 8
+
+
+def test_bad_endpoint_is_an_input_error_naming_it() -> None:
+    with pytest.raises(InputError, match=r"runtime\.telemetry\.connect 'tcpp:1'"):
+        zenoh_config(
+            connect=["tcp/127.0.0.1:7447", "tcpp:1"],
+            names=("runtime.telemetry.listen", "runtime.telemetry.connect"),
+        )
+    with pytest.raises(InputError, match=r"listen 'nowhere'"):
+        zenoh_config(listen=["nowhere"])
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["monitor", "--connect", "notanendpoint", "--duration", "0"],
+        ["run", "--config", "{cfg}", "--backend", "sim", "--duration", "1"],
+    ],
+)
+def test_bad_endpoint_on_the_command_line_is_exit_2(tmp_path: Path, argv: list[str]) -> None:
+    cfg = write_config(
+        tmp_path / "truck.yaml",
+        {"runtime": {"realtime": False, "telemetry": {"listen": ["nowhere"]},
+                     "recorder": {"dir": str(tmp_path / "logs")}}},
+    )  # fmt: skip
+    r = subprocess.run(
+        [sys.executable, "-m", "truckd.cli.main", *(a.format(cfg=cfg) for a in argv)],
+        capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert r.returncode == 2, r.stderr
+    assert "Traceback" not in r.stderr
+    assert ("'notanendpoint'" if argv[0] == "monitor" else "runtime.telemetry.listen") in r.stderr

@@ -138,7 +138,7 @@ def run_monitor(
 ) -> FleetView:
     """Show the fleet table every ``interval`` s until ``duration`` (None: forever)."""
     view = FleetView()
-    conf = zenoh_config(zenoh_file, listen=[], connect=list(connect))
+    conf = zenoh_config(zenoh_file, listen=[], connect=list(connect), names=("", "--connect"))
     session = open_session(conf, "monitor")
 
     def on_data(sample: zenoh.Sample) -> None:

@@ -35,22 +35,47 @@ def default_zenoh_config_path() -> Path:
     return Path(__file__).resolve().parent.parent / "defaults" / "zenoh.json5"
 
 
+def _set_endpoints(conf: zenoh.Config, key: str, endpoints: Sequence[str], name: str) -> None:
+    """``conf[key] = endpoints``; InputError naming ``name`` and the bad endpoint."""
+    try:
+        conf.insert_json5(key, json.dumps(list(endpoints)))
+        return
+    except Exception:  # zenoh's ZError: find the endpoint it refused
+        pass
+    bad = list(endpoints)
+    for e in endpoints:
+        try:
+            conf.insert_json5(key, json.dumps([e]))
+        except Exception:
+            bad = [e]
+            break
+    raise InputError(
+        f"{name} {', '.join(map(repr, bad))}: not a Zenoh endpoint; expected "
+        "<protocol>/<address>, e.g. tcp/127.0.0.1:7447"
+    )
+
+
 def zenoh_config(
     path: str | Path = "",
     listen: Sequence[str] | None = None,
     connect: Sequence[str] | None = None,
+    *,
+    names: tuple[str, str] = ("listen", "connect"),
 ) -> zenoh.Config:
     """Load a Zenoh JSON5 file (the shipped one when ``path`` is empty) and override its
-    listen/connect endpoints when given (``None`` keeps the file's; ``[]`` clears)."""
+    listen/connect endpoints when given (``None`` keeps the file's; ``[]`` clears).
+
+    A bad file or endpoint raises InputError; ``names`` are what the error calls the
+    listen and connect settings (a config key, a command-line option)."""
     p = Path(path) if path else default_zenoh_config_path()
     try:
         conf = zenoh.Config.from_file(str(p))
     except Exception as exc:  # zenoh raises its own ZError for bad files
         raise InputError(f"{p}: not a valid Zenoh configuration: {exc}") from None
     if listen is not None:
-        conf.insert_json5("listen/endpoints", json.dumps(list(listen)))
+        _set_endpoints(conf, "listen/endpoints", listen, names[0])
     if connect is not None:
-        conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
+        _set_endpoints(conf, "connect/endpoints", connect, names[1])
     return conf
 
 
@@ -97,7 +122,12 @@ class Telemetry:
     def start(self) -> None:
         """Open the session and declare everything (blocking; call before the loop)."""
         c = self.cfg
-        conf = zenoh_config(c.zenoh_config, c.listen or None, c.connect or None)
+        conf = zenoh_config(
+            c.zenoh_config,
+            c.listen or None,
+            c.connect or None,
+            names=("runtime.telemetry.listen", "runtime.telemetry.connect"),
+        )
         self._session = s = open_session(conf, self.keys["state"])
         for k in ("state", "health"):
             self._pubs[k] = s.declare_publisher(
