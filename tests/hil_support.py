@@ -6,7 +6,6 @@ from __future__ import annotations
 import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -20,6 +19,7 @@ import zenoh
 from runtime_support import endpoint, free_port, write_config
 
 from truckd.runtime.telemetry import zenoh_config
+from truckd.sim.firmware_proc import FirmwareProcess
 
 PY = sys.executable
 ROOT = Path(__file__).resolve().parent.parent
@@ -41,49 +41,21 @@ def hil_config(tmp: Path, pty: str, port: int, **runtime: Any) -> Path:
     )  # fmt: skip
 
 
-class Firmware:
-    """``python -m truckd.sim.firmware_main`` on a pty, with its UDP fault control."""
+class Firmware(FirmwareProcess):
+    """``python -m truckd.sim.firmware_main`` on a pty (started), whose control commands
+    must succeed."""
 
     def __init__(self, pty: str, config: Path, *args: str) -> None:
-        self.pty = pty
-        self.proc = subprocess.Popen(
-            [PY, "-m", "truckd.sim.firmware_main", "--pty", pty, "--config", str(config), *args],
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-            cwd=ROOT,
-            env={**os.environ, "PYTHONPATH": f"{ROOT}{os.pathsep}{ROOT / 'tests'}"},
-        )
-        assert self.proc.stdout is not None
-        line = self.proc.stdout.readline()
-        if not line:
-            raise RuntimeError(f"firmware did not start: {self.proc.stderr.read()}")  # type: ignore[union-attr]
-        ready = json.loads(line)
-        self.port = int(ready["control_port"])
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.sock.settimeout(2.0)
+        super().__init__(pty, ["--config", str(config), *args], start_timeout=60.0)
+        self.start()
 
     def cmd(self, c: dict[str, Any]) -> dict[str, Any]:
-        self.sock.sendto(json.dumps(c).encode(), ("127.0.0.1", self.port))
-        reply: dict[str, Any] = json.loads(self.sock.recv(65536))
+        reply = self.control(c)
         assert reply.get("ok"), reply
         return reply
 
     def status(self) -> dict[str, Any]:
         return self.cmd({"cmd": "status"})
-
-    def stop(self) -> None:
-        if self.proc.poll() is None:
-            os.kill(self.proc.pid, signal.SIGTERM)
-            try:
-                self.proc.wait(10)
-            except subprocess.TimeoutExpired:
-                os.kill(self.proc.pid, signal.SIGKILL)
-                self.proc.wait(10)
-        for f in (self.proc.stdout, self.proc.stderr):
-            if f is not None:
-                f.close()
-        self.sock.close()
 
 
 class Daemon:
