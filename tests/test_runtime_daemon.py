@@ -44,6 +44,17 @@ def test_sensors_ignore_nan_and_repeated_samples() -> None:
     assert s.t_range == 0.06 and s.range_raw is None and s.ranges[0].distance is None
 
 
+def test_sensors_range_fault_is_not_no_target() -> None:
+    s = SensorState(tick_len=0.001)
+    s.update(0.0, [rx(0.0, RangeReading(1.5, RangeStatus.VALID, 0.10))])
+    assert not s.range_fault
+    s.update(0.02, [rx(0.02, RangeReading(0.0, RangeStatus.SENSOR_FAULT, 0.12))])
+    assert s.range_fault and s.range_faults == 1
+    assert s.ranges == [] and s.range_raw is None  # no sample for the estimator
+    s.update(0.04, [rx(0.04, RangeReading(1.4, RangeStatus.VALID, 0.14))])
+    assert not s.range_fault and s.ranges[0].distance == 1.4
+
+
 def test_sensors_integrate_distance_across_wrap() -> None:
     s = SensorState(tick_len=0.002)
     s.update(0.0, [rx(0.0, WheelEncoders(65530, 65530, 0.01))])

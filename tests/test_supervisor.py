@@ -110,6 +110,16 @@ def test_lead_lost_by_config(action: str, mode: Mode) -> None:
     assert d.mode == mode and "lead_lost" in d.causes
 
 
+def test_range_sensor_fault_stops_even_when_lead_lost_means_cruise() -> None:
+    # a faulty sensor is not "no target": no blind cruising
+    sup, t = active_supervisor(lead_lost_action="cruise", recovery_s=0.1)
+    d = sup.update(healthy(t, lead_valid=False, range_value=None, range_fault=True))
+    assert d.mode == Mode.SAFE_STOP and d.causes == ("range_fault",)
+    ds = run(sup, t + P, t + 0.3, healthy)
+    assert ds[0].mode == Mode.SAFE_STOP and ds[-1].mode == Mode.ACTIVE
+    assert Supervisor().update(healthy(0.0, range_fault=True)).mode == Mode.INIT
+
+
 def test_solver_failures_degrade_then_stop_then_recover() -> None:
     sup, t = active_supervisor(solver_fail_limit=4, solver_degrade_after=2, recovery_s=0.1)
     modes = [sup.update(healthy(t + k * P, solver_ok=False)).mode for k in range(6)]

@@ -12,8 +12,9 @@ Modes (the daemon maps them to commands):
   and the lead-lost action is ``cruise``.  Single failures and misses are only counted
   (the controller's held plan covers one failed solve).
 - ``SAFE_STOP``: a controlled stop (voltage ramped to zero): encoder or link stale, range
-  sensor stale or frozen, the solver failing ``solver_fail_limit`` cycles in a row, the loop
-  overrunning ``overrun_limit`` cycles in a row, or the lead lost with action ``stop``.
+  sensor stale, frozen or reporting a fault, the solver failing ``solver_fail_limit`` cycles
+  in a row, the loop overrunning ``overrun_limit`` cycles in a row, or the lead lost with
+  action ``stop``.
 - ``FAULT``: the link is down (device gone, bus off): motor off, nothing to command
   through.  (The firmware's own fault bits are published in health, not acted on here:
   the firmware already switches the motor off on its command timeout.)
@@ -102,6 +103,8 @@ class SupervisorInputs:
     encoder_age: float
     range_age: float
     range_value: float | None = None
+    range_fault: bool = False
+    """The range sensor reports a fault (not the same as no target in range)."""
     speed: float = 0.0
     lead_valid: bool = True
     solver_ok: bool = True
@@ -190,7 +193,9 @@ class Supervisor:
             out["range_stale"] = Mode.SAFE_STOP
         if self._frozen(x):
             out["range_frozen"] = Mode.SAFE_STOP
-        if not x.lead_valid and "range_stale" not in out and "range_frozen" not in out:
+        if x.range_fault:
+            out["range_fault"] = Mode.SAFE_STOP
+        if not x.lead_valid and not {"range_stale", "range_frozen", "range_fault"} & out.keys():
             out["lead_lost"] = Mode.SAFE_STOP if self.lead_lost_action == "stop" else Mode.DEGRADED
         if c.solver_fails >= cfg.solver_fail_limit:
             out["solver_failed"] = Mode.SAFE_STOP

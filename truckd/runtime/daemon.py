@@ -257,6 +257,7 @@ class Daemon:
                 encoder_age=ages["encoder"],
                 range_age=ages["range"],
                 range_value=s.range_raw,
+                range_fault=s.range_fault,
                 speed=est.v if est is not None and est.speed_valid else 0.0,
                 lead_valid=est.lead_valid if est is not None else False,
                 solver_ok=solver_ok,
@@ -354,6 +355,7 @@ class Daemon:
                 "faults": int(self.sensors.fw_faults),
                 "invalid_messages": self.sensors.invalid,
                 "repeated_samples": self.sensors.repeated,
+                "range_faults": self.sensors.range_faults,
             },
             "controller": {
                 "solver_failures": out.solver_failures if out is not None else None,

@@ -5,7 +5,8 @@ caller passes the received messages and its clock's time.
 A sensor message counts as fresh data only when its MCU sample time moved on: a message
 repeating the previous sample time (a frozen sensor or a stuck firmware buffer) is counted
 in ``repeated`` and ignored, so the sensor goes stale.  Non-finite fields are ignored and
-counted in ``invalid``."""
+counted in ``invalid``.  A range reading whose status is ``SENSOR_FAULT`` is not "no target":
+it sets ``range_fault`` (the supervisor stops) and gives the estimator no sample."""
 
 from __future__ import annotations
 
@@ -19,6 +20,7 @@ from firmware_protocol.messages import (
     FirmwareState,
     MotorFeedback,
     RangeReading,
+    RangeStatus,
     WheelEncoders,
     ticks_delta,
 )
@@ -44,6 +46,8 @@ class SensorState:
     ranges: list[RangeSample] = field(default_factory=list)  # this cycle's, oldest first
     range_raw: float | None = None  # the last range value received (frozen check)
     range_valid: bool = False
+    range_fault: bool = False  # the last range reading reported SENSOR_FAULT
+    range_faults: int = 0  # range readings with SENSOR_FAULT
     current: float = 0.0  # A
     vbat: float = 0.0  # V
     u_fw: float = 0.0  # V the driver applies (firmware's report)
@@ -72,7 +76,11 @@ class SensorState:
                     self.repeated += 1  # a frozen sensor: same sample again, not fresh
                     continue
                 self._range_sample_time = m.sample_time
-                self.ranges.append(RangeSample(m.gap, m.sample_time))
+                self.range_fault = m.status == RangeStatus.SENSOR_FAULT
+                if self.range_fault:
+                    self.range_faults += 1
+                else:
+                    self.ranges.append(RangeSample(m.gap, m.sample_time))
                 self.range_raw = m.distance if m.valid else None
                 self.range_valid = m.valid
                 self.t_range = r.t
