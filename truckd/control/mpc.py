@@ -83,7 +83,7 @@ class MpcSolver:
             )
             self._solvers[mode] = s
         self._last_z: Vec | None = None
-        self._last_y: Vec | None = None
+        self._warm: tuple[Vec, Vec] | None = None
         self.inaccurate = 0
         """Solutions used although OSQP reported ``solved inaccurate``."""
 
@@ -100,7 +100,7 @@ class MpcSolver:
     def reset(self) -> None:
         """Forget the previous solution (no warm start next time)."""
         self._last_z = None
-        self._last_y = None
+        self._warm = None
 
     def solve(self, mode: str, inp: QpInputs, warm: bool = True) -> MpcResult:
         """Update the vectors, warm start, solve, check.  Never raises on solver trouble."""
@@ -114,31 +114,38 @@ class MpcSolver:
             return MpcResult(False, math.nan, "non-finite-input", 0, 0.0, None)
         q, lo, hi = self.qp.vectors(mode, inp)
         s.update(q=q, l=lo, u=hi)
-        if warm and self._last_z is not None and self._last_y is not None:
-            s.warm_start(x=self.qp.shift(self._last_z), y=self.qp.shift_dual(self._last_y))
+        if warm and self._warm is not None:
+            s.warm_start(x=self.qp.shift(self._warm[0]), y=self.qp.shift_dual(self._warm[1]))
         else:  # cold: from zero, not from whatever this mode's solver saw last
             s.warm_start(x=np.zeros(self.qp.lay.nz), y=np.zeros(self.qp.lay.m))
         try:
             res = s.solve(raise_error=False)
         except (ValueError, osqp.OSQPException) as exc:  # defensive: bindings may raise
+            self.reset()
             return MpcResult(False, math.nan, f"error: {exc}", 0, 0.0, None)
         info = res.info
         run_time = float(getattr(info, "run_time", 0.0))
         iters = int(info.iter)
         status = str(info.status)
-        # After a failure the next solve starts cold: a warm start that led nowhere once
-        # (e.g. from before a sudden jump) is not offered again.
-        if info.status_val not in _USABLE:
-            self.reset()
-            return MpcResult(False, math.nan, status, iters, run_time, None)
         z = np.array(res.x, dtype=float)
-        if not np.all(np.isfinite(z)):
-            self.reset()
-            return MpcResult(False, math.nan, "non-finite", iters, run_time, None)
+        y = np.array(res.y, dtype=float)
+        finite = bool(np.isfinite(z).all() and np.isfinite(y).all())
+        timed_out = info.status_val == osqp.SolverStatus.OSQP_TIME_LIMIT_REACHED
+        if info.status_val not in _USABLE or not finite:
+            # Out of time: the unfinished iterate still warm starts the next cycle (a cold
+            # start is slower, and overruns would cascade).  Any other failure: the next
+            # solve starts cold, a warm start that led nowhere is not offered again.
+            if timed_out and finite:
+                self._warm = (z, y)
+            else:
+                self.reset()
+            return MpcResult(
+                False, math.nan, status if finite else "non-finite", iters, run_time, None
+            )
+        self._warm = (z, y)
         if run_time > self.cfg.time_budget_s:
             return MpcResult(False, math.nan, "overrun", iters, run_time, z)
         self._last_z = z
-        self._last_y = np.array(res.y, dtype=float)
         if info.status_val != osqp.SolverStatus.OSQP_SOLVED:
             self.inaccurate += 1
         return MpcResult(True, self.qp.first_move(z), status, iters, run_time, z)
