@@ -264,3 +264,31 @@ def test_lead_forecast_hook_changes_the_plan(params: VehicleParams) -> None:
         end_speeds.append(ctrl.mpc.qp.plan(z)[1][-1])
     assert end_speeds[0] == pytest.approx(1.2, abs=0.05)
     assert end_speeds[1] < end_speeds[0] - 0.3
+
+
+def _inputs(cfg: ControlConfig) -> QpInputs:
+    return QpInputs(
+        x0=np.array([0.0, 1.2, 1.0]),
+        u_prev=2.0,
+        v_lead=np.full(cfg.horizon, 1.0),
+        lead=True,
+        v_ref=cfg.v_set,
+        v_cap=cfg.v_max,
+        u_lo=-cfg.u_max,
+        u_hi=cfg.u_max,
+    )
+
+
+def test_time_limit_keeps_the_iterate_as_warm_start_other_failures_restart_cold(
+    params: VehicleParams,
+) -> None:
+    cfg = dataclasses.replace(ControlConfig(), time_budget_s=1e-7)
+    s = MpcSolver(ControlModel(params), cfg)
+    res = s.solve("follow", _inputs(cfg))
+    assert not res.ok and "time limit" in res.status
+    assert s.has_warm_start and s.last_solution is None
+    cfg = dataclasses.replace(ControlConfig(), time_budget_s=1.0, max_iter=5)
+    s = MpcSolver(ControlModel(params), cfg)
+    res = s.solve("follow", _inputs(cfg))
+    assert not res.ok and "maximum iterations" in res.status
+    assert not s.has_warm_start

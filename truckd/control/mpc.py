@@ -97,6 +97,11 @@ class MpcSolver:
         """The last accepted solution vector (see :class:`~truckd.control.qp.Layout`)."""
         return self._last_z
 
+    @property
+    def has_warm_start(self) -> bool:
+        """Whether the next solve is warm started (else it starts from zero)."""
+        return self._warm is not None
+
     def reset(self) -> None:
         """Forget the previous solution (no warm start next time)."""
         self._last_z = None
