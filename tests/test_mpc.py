@@ -292,3 +292,16 @@ def test_time_limit_keeps_the_iterate_as_warm_start_other_failures_restart_cold(
     res = s.solve("follow", _inputs(cfg))
     assert not res.ok and "maximum iterations" in res.status
     assert not s.has_warm_start
+
+
+def test_without_any_plan_a_failure_holds_the_last_command_then_brakes(
+    params: VehicleParams,
+) -> None:
+    cfg = dataclasses.replace(ControlConfig(), time_budget_s=1.0, max_iter=1, plan_hold_steps=2)
+    ctrl = Controller(ControlModel(params), cfg)
+    ctrl.u_prev = 2.5
+    outs = [ctrl.control(_estimate(1.2, 1.12, 1.2)) for _ in range(4)]
+    reasons = [o.fallback_reason or "" for o in outs]
+    assert [r.rsplit(":", 1)[-1] for r in reasons] == ["hold", "hold", "brake", "brake"]
+    assert outs[0].u == pytest.approx(2.5) and outs[1].u == pytest.approx(2.5)
+    assert outs[3].u < 0.0

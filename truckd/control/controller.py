@@ -134,6 +134,10 @@ class Controller:
             # feedforward kicks the truck forward again and again while it should stand.
             u_prev_mpc = 0.0
         v_lead_h = self._lead_horizon(est, forecast) if lead else np.zeros(self.mpc.horizon)
+        if mode == "follow":
+            # Never follow faster than the set speed: a faster lead is taken as driving at
+            # v_set (conservative, the predicted gap is smaller than the real one).
+            v_lead_h = np.minimum(v_lead_h, cfg.v_set)
         inp = QpInputs(
             x0=self._initial_state(
                 v, est.gap if lead else 0.0, ff, float(v_lead_h[0]), held=u_prev_mpc == 0.0
@@ -210,6 +214,24 @@ class Controller:
         if held is not None:
             return self._finish(
                 est, v, held, ff, mode, reason + ":plan", status, iters, run_time, gap_ref
+            )
+        if (
+            self._plan is None
+            and reason != "speed_stale"
+            and (self._plan_age <= self.cfg.plan_hold_steps)
+        ):
+            # No plan yet (the first, cold solve ran out of time): hold the last command.
+            return self._finish(
+                est,
+                v,
+                self.u_prev - ff,
+                ff,
+                mode,
+                reason + ":hold",
+                status,
+                iters,
+                run_time,
+                gap_ref,
             )
         self.braking_cycles += 1
         u = braking_law(v, self.cfg.brake_gain, self.u_max)

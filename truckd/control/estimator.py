@@ -166,9 +166,15 @@ class Estimator:
         st.last = s
         if not deltas:
             return  # no healthy wheel: the speed goes stale
-        st.distance += self.tick_len * sum(deltas) / len(deltas)
-        st.kf.predict(dt, self.cfg.speed_accel_std)
-        st.kf.update(st.distance, self._r_tick / len(deltas))
+        step = self.tick_len * sum(deltas) / len(deltas)
+        st.distance += step
+        if st.samples == 2:
+            # Start from the first finite difference, not from 0 (the truck may be moving).
+            var_v = 2.0 * self._r_tick / (dt * dt)
+            st.kf = _Kf2(st.distance, step / dt, self._r_tick, 0.0, var_v)
+        else:
+            st.kf.predict(dt, self.cfg.speed_accel_std)
+            st.kf.update(st.distance, self._r_tick / len(deltas))
         st.t_last = t
 
     def speed(self, t: float) -> tuple[float, bool]:
