@@ -49,6 +49,16 @@ class Rig:
         t0, x0, g0 = self.lead
         return x0 + g0 + LEAD_SPEED * (st["t"] - t0) - st["x"]
 
+    def wait_fw(self, seconds: float) -> dict[str, Any]:
+        """The firmware's status once ``seconds`` of its (simulated, real-time) clock have
+        passed: plant motion judged on the plant's clock, not on the test process's."""
+        t0 = self.fw.status()["t"]
+        st = self.fw.status()
+        while st["t"] - t0 < seconds:
+            time.sleep(0.02)
+            st = self.fw.status()
+        return st
+
     def reset_lead(self) -> None:
         c = self.cfg.control
         gap = c.d_0 + c.time_headway * LEAD_SPEED + 0.1
@@ -131,8 +141,7 @@ def test_encoder_silence(rig: Rig) -> None:
     stop = rig.wait_mode(("SAFE_STOP",), t0)
     assert "encoder_stale" in stop.msg["faults"]
     stop_detected_in_time(stop, "encoder", rig.cfg.runtime.supervisor.encoder_timeout_s, rig.period)
-    time.sleep(1.0)
-    assert rig.fw.status()["v"] < 0.05  # stopped for real (the plant's speed)
+    assert rig.wait_fw(1.0)["v"] < 0.05  # stopped for real (the plant's speed)
     ramps_to_zero(rig.check_window(t0))
     rig.fw.cmd({"fault": "drop", "message": "WHEEL_ENCODERS", "count": 0})
     rig.recover(time.monotonic())
