@@ -188,6 +188,36 @@ def test_sigterm_while_driving_commands_the_motor_off(tmp_path: Path) -> None:
     assert signal.getsignal(signal.SIGTERM) != d.request_stop  # handler restored
 
 
+def test_an_exception_in_the_loop_still_commands_the_motor_off(tmp_path: Path) -> None:
+    """A bug that escapes a cycle ends the daemon (exit 1 via the CLI, systemd restarts
+    it), but only after the motor is commanded off."""
+    cfg_path = write_config(
+        tmp_path / "truck.yaml",
+        {"runtime": {"realtime": False, "telemetry": {"enabled": False},
+                     "recorder": {"dir": str(tmp_path / "logs")}}},
+    )  # fmt: skip
+    d = Daemon(load_config(cfg_path), "sim", duration=30.0, env={})
+    one_cycle = d.cycle
+
+    def cycle_then_fail() -> None:
+        one_cycle()
+        assert d.backend is not None and d.backend.firmware is not None
+        fw = d.backend.firmware
+        if d.decision.mode == Mode.ACTIVE and fw.enabled and fw.voltage > 0.5:
+            raise RuntimeError("injected bug")
+
+    d.cycle = cycle_then_fail  # type: ignore[method-assign]
+    try:
+        with pytest.raises(RuntimeError, match="injected bug"):
+            d.run()
+    finally:
+        unfreeze_gc()
+    assert d.backend is not None and d.backend.firmware is not None
+    fw = d.backend.firmware
+    assert (fw.voltage, fw.enabled, fw.state) == (0.0, False, FirmwareState.IDLE)
+    assert signal.getsignal(signal.SIGTERM) != d.request_stop  # handler restored
+
+
 def test_bad_config_is_exit_2(tmp_path: Path) -> None:
     cfg_path = write_config(tmp_path / "truck.yaml", {"runtime": {"backend": "carrier-pigeon"}})
     r = subprocess.run(
