@@ -24,6 +24,7 @@ from firmware_protocol.messages import (
     CompanionState,
     MotorCommand,
     RangeReading,
+    RangeStatus,
     WheelEncoders,
 )
 from truckd.control.config import ControlConfig
@@ -112,7 +113,9 @@ def run_scenario(
                         right_ok=not m.status & 2,
                     )
                 )
-            elif isinstance(m, RangeReading):
+            elif isinstance(m, RangeReading) and m.status != RangeStatus.SENSOR_FAULT:
+                # A faulty sensor is not "no target": no sample (as the daemon does), so the
+                # lead times out instead of the truck cruising blind.
                 rngs.append(RangeSample(m.gap, m.sample_time))
         out = ctrl.step(t, encs, rngs)
         port.send(MotorCommand(voltage=out.u, enable=True))
