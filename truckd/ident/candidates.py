@@ -63,7 +63,12 @@ def voltage_candidates(p0: VehicleParams, data: Series) -> list[Candidate]:
         Candidate(
             "input_delay",
             Param("input_delay", h, 0.0, 0.5),
-            tuple(float(x) for x in h * np.array([0.3, 1.0, 2.0, 4.0, 8.0, 15.0])),
+            # Fine start grid: the cost has local minima about a sample apart.
+            tuple(
+                float(x)
+                for x in h
+                * np.concatenate([[0.3], np.arange(0.5, 10.0, 0.5), [11.0, 13.0, 15.0, 20.0]])
+            ),
         ),
         Candidate("dead_zone", Param("dead_zone", 1.0, 0.0, 0.8 * u_max), mids, smooth=False),
         Candidate(
@@ -79,7 +84,7 @@ def voltage_candidates(p0: VehicleParams, data: Series) -> list[Candidate]:
         Candidate(
             "sensor_lag",
             Param("sensor_lag", h, 0.0, 2.0),
-            tuple(float(x) for x in h * np.array([0.5, 2.0, 5.0, 10.0, 20.0])),
+            tuple(float(x) for x in h * np.array([0.5, 1.0, 2.0, 3.0, 5.0, 7.0, 10.0, 15.0, 20.0])),
         ),
     ]
     with_current = data.i is not None

@@ -128,8 +128,13 @@ def _fit_candidate(
     w: Weights,
     grid: Sequence[float],
     progress: Progress,
+    val_data: list[Series] | None = None,
 ) -> FitResult:
-    """Fit ``base`` + one more candidate (grid start, then joint refit)."""
+    """Fit ``base`` + one more candidate (grid start, then joint refit).
+
+    A threshold (dead zone) is only known to between the command levels of the fit
+    data; among the values those data cannot tell apart, the validation data choose.
+    """
     name = cand.param.name
     value, _ = scan(base.params, base.effects, name, cand.grid, fit_data, w)
     e0 = dataclasses.replace(base.effects, **{name: value})
@@ -138,11 +143,42 @@ def _fit_candidate(
         out = fit_with_stiction(base.params, e0, [*free, cand.param], fit_data, w, grid, progress)
     else:
         first = fit_with_stiction(base.params, e0, free, fit_data, w, grid, progress)
-        value, _ = scan(first.params, first.effects, name, cand.grid, fit_data, w)
+        value, _ = scan(first.params, first.effects, name, cand.grid, fit_data, w, coarse=200)
         e1 = dataclasses.replace(first.effects, **{name: value})
         out = fit_with_stiction(first.params, e1, free, fit_data, w, grid, progress)
+        if val_data is not None:
+            out = _settle_tie(out, name, cand.grid, fit_data, val_data, w)
     # Never worse than without the candidate (a local minimum): then it is simply off.
     return out if out.sse <= base.sse else base
+
+
+def _settle_tie(
+    m: FitResult,
+    name: str,
+    values: Sequence[float],
+    fit_data: list[Series],
+    val_data: list[Series],
+    w: Weights,
+) -> FitResult:
+    """Among grid values of ``name`` that fit ``fit_data`` equally, the validation-best."""
+    costs = {}
+    for val in values:
+        r = residuals(m.params, dataclasses.replace(m.effects, **{name: float(val)}), fit_data, w)
+        costs[float(val)] = float(r @ r)
+    low = min(costs.values())
+    ties = [v for v, c in costs.items() if c <= low * (1.0 + 1e-9) + 1e-12]
+    if len(ties) < 2:
+        return m
+    best = min(
+        ties,
+        key=lambda v: _val_cost(
+            dataclasses.replace(m, effects=dataclasses.replace(m.effects, **{name: v})),
+            val_data,
+            w,
+        ),
+    )
+    eff = dataclasses.replace(m.effects, **{name: best})
+    return dataclasses.replace(m, effects=eff, sse=costs[best])
 
 
 def _close(a: float, b: float) -> bool:
@@ -220,7 +256,7 @@ def diagnose_voltage(
     base_fit_pct = _summary(base_fit.params, base_fit.effects, val)[0].fit_percent
     for k, cand in enumerate(cands):
         progress(f"candidate {k + 1}/{len(cands)}: {cand.name}")
-        f = _fit_candidate(base_fit, seed_free, [], cand, fit_data, w, grid, progress)
+        f = _fit_candidate(base_fit, seed_free, [], cand, fit_data, w, grid, progress, val_data)
         m = _Model(f, (cand.name,), _val_cost(f, val_data, w))
         ok, dbic = _passes(m, base, 1)
         tried[cand.name] = m
@@ -250,7 +286,9 @@ def diagnose_voltage(
         else:
             progress(f"joint refit: {', '.join(accepted)} + {name}")
             extra = [by_name[a].param for a in accepted if by_name[a].smooth]
-            f = _fit_candidate(current.fit, seed_free, extra, cand, fit_data, w, grid, progress)
+            f = _fit_candidate(
+                current.fit, seed_free, extra, cand, fit_data, w, grid, progress, val_data
+            )
             new = _Model(f, (*current.names, name), _val_cost(f, val_data, w))
         ok, _ = _passes(new, current, 1)
         if ok:
