@@ -203,6 +203,16 @@ class ControlConfig:
         hi=10.0,
         default=0.05,
     )
+    disturbance_gain: float = spec(
+        "offset-free action: integrator gain per cycle on the voltage disturbance the model "
+        "lacks (0 = off: the controller relies on its model alone)",
+        lo=0.0,
+        hi=1.0,
+        default=0.0,
+    )
+    disturbance_max: float = spec(
+        "limit of the estimated voltage disturbance", unit="V", lo=0.0, hi=100.0, default=2.0
+    )
     estimator: EstimatorConfig = spec("state estimation", default_factory=EstimatorConfig)
 
     @property

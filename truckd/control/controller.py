@@ -72,6 +72,9 @@ class Controller:
         self.fallback_cycles = 0
         self.overruns = 0
         self.braking_cycles = 0
+        self.disturbance_v = 0.0
+        """Estimated input-voltage disturbance (V), added to the feedforward."""
+        self._v_expected = math.nan
 
     def step(
         self,
@@ -127,6 +130,7 @@ class Controller:
             if cfg.feedforward
             else 0.0
         )
+        ff += self._update_disturbance(v)
         u_prev_mpc = self.u_prev - ff
         if abs(v) <= cfg.moving_speed:
             # At rest the previous voltage moved nothing (stiction), so to the friction-free
@@ -166,11 +170,30 @@ class Controller:
                 ff,
             )
         assert res.z is not None
-        self._plan = [float(x) for x in self.mpc.qp.plan(res.z)[0]]
+        plan_u, plan_v, _ = self.mpc.qp.plan(res.z)
+        self._plan = [float(x) for x in plan_u]
         self._plan_age = 0
+        self._v_expected = float(plan_v[1])
         return self._finish(
             est, v, res.u0, ff, mode, None, res.status, res.iterations, res.run_time_s, gap_ref
         )
+
+    def _update_disturbance(self, v: float) -> float:
+        """Offset-free action (``disturbance_gain`` > 0): the voltage the model lacks.
+
+        The speed the last plan expected now minus the speed measured, divided by the
+        model's speed-per-volt over one step, is an input-voltage disturbance; a slow
+        integrator (gain per cycle) estimates it and the feedforward adds it.  Frozen at
+        rest (stiction, not a disturbance) and after fallbacks (no plan expected anything).
+        """
+        gain = self.cfg.disturbance_gain
+        expected, self._v_expected = self._v_expected, math.nan
+        if gain > 0.0 and math.isfinite(expected) and abs(v) > self.cfg.moving_speed:
+            b_v = float(self.mpc.qp.pred.bu[1])
+            self.disturbance_v += gain * (expected - v) / b_v
+            limit = self.cfg.disturbance_max
+            self.disturbance_v = min(max(self.disturbance_v, -limit), limit)
+        return self.disturbance_v
 
     def _initial_state(
         self, v: float, gap: float, ff: float, v_lead: float, held: bool = False
