@@ -32,7 +32,9 @@ class ControlOutput:
     feedforward part, ``u_mpc`` the MPC's (or fallback's) part (V); ``mode`` one of
     ``follow``, ``cruise``, ``stop``, ``fallback``; ``fallback_reason`` None when the MPC
     solved; ``solver_status``, ``solve_iterations``, ``solve_time_s`` (OSQP's own time);
-    ``gap_ref`` (m, NaN without lead); the estimate; cumulative counters.
+    ``gap_ref`` (m, NaN without lead); the estimate; cumulative counters (``inaccurate``:
+    solutions used although OSQP said ``solved inaccurate``); ``disturbance_v`` the
+    offset-free action's voltage (V, 0 when off).
     """
 
     u: float
@@ -49,6 +51,8 @@ class ControlOutput:
     fallback_cycles: int
     overruns: int
     braking_cycles: int
+    inaccurate: int = 0
+    disturbance_v: float = 0.0
 
 
 class Controller:
@@ -300,4 +304,6 @@ class Controller:
             fallback_cycles=self.fallback_cycles,
             overruns=self.overruns,
             braking_cycles=self.braking_cycles,
+            inaccurate=self.mpc.inaccurate,
+            disturbance_v=self.disturbance_v,
         )
