@@ -150,5 +150,15 @@ class Watch:
         self.session.close()  # type: ignore[no-untyped-call]
 
 
+def end_process(p: subprocess.Popen[str]) -> None:
+    """Kill ``p`` by its pid if it still runs, reap it, close its pipes."""
+    if p.poll() is None:
+        os.kill(p.pid, signal.SIGKILL)
+        p.wait(10)
+    for f in (p.stdin, p.stdout, p.stderr):
+        if f is not None:
+            f.close()
+
+
 def new_port() -> int:
     return free_port()

@@ -9,6 +9,7 @@ The tests share the processes (start-up is seconds), so they run in file order."
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import math
 import signal
@@ -106,17 +107,18 @@ def rig(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Rig]:
     pty = str(tmp / "ttyTRUCK")
     port = new_port()
     cfg_path = hil_config(tmp, pty, port)
-    fw = Firmware(pty, cfg_path, "--no-lead")
-    daemon = Daemon(cfg_path, tmp / "daemon.log")
-    watch = Watch(port)
-    r = Rig(fw, daemon, watch, load_config(cfg_path))
-    try:
+    cfg = load_config(cfg_path)
+    # each process/session is ended even when a later start-up step fails (a leaked Zenoh
+    # session keeps pytest from exiting)
+    with contextlib.ExitStack() as stack:
+        fw = Firmware(pty, cfg_path, "--no-lead")
+        stack.callback(fw.stop)
+        daemon = Daemon(cfg_path, tmp / "daemon.log")
+        stack.callback(daemon.stop)
+        watch = Watch(port)
+        stack.callback(watch.close)
         assert watch.wait_state(lambda m: True, 60.0) is not None, daemon.stderr()
-        yield r
-    finally:
-        watch.close()
-        daemon.stop()
-        fw.stop()
+        yield Rig(fw, daemon, watch, cfg)
 
 
 def stop_detected_in_time(stop: Sample, age_key: str, timeout: float, period: float) -> None:

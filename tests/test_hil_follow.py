@@ -7,6 +7,7 @@ spacing policy's gap; SIGTERM -> exit 0 with the log flushed (readable by read_l
 
 from __future__ import annotations
 
+import contextlib
 import json
 import subprocess
 import time
@@ -14,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hil_support import PY, ROOT, Daemon, Firmware, Watch, hil_config, new_port
+from hil_support import PY, ROOT, Daemon, Firmware, Watch, end_process, hil_config, new_port
 from runtime_support import endpoint
 
 from truckd.config.truck import load_config
@@ -33,11 +34,15 @@ def test_follow_15s_rate_safety_and_steady_state(tmp_path: Path) -> None:
     cfg_path = hil_config(tmp_path, pty, port)
     cfg = load_config(cfg_path)
     rate = cfg.control.rate_hz
-    fw = Firmware(pty, cfg_path, "--no-lead")
-    daemon = Daemon(cfg_path, tmp_path / "daemon.log")
-    watch = Watch(port)
-    sub = None
-    try:
+    # each process/session is ended even when a later step fails (a leaked Zenoh session
+    # keeps pytest from exiting)
+    with contextlib.ExitStack() as stack:
+        fw = Firmware(pty, cfg_path, "--no-lead")
+        stack.callback(fw.stop)
+        daemon = Daemon(cfg_path, tmp_path / "daemon.log")
+        stack.callback(daemon.stop)
+        watch = Watch(port)
+        stack.callback(watch.close)
         # no lead yet: the daemon is up and holds the truck (lead lost -> stop)
         first = watch.wait_state(lambda m: m["mode"] in ("SAFE_STOP", "ACTIVE"), 60.0)
         assert first is not None, daemon.stderr()
@@ -47,6 +52,7 @@ def test_follow_15s_rate_safety_and_steady_state(tmp_path: Path) -> None:
              "--vehicle", "truck1", "--out", str(sub_out), "--duration", str(RUN_S + 3.0)],
             stdout=subprocess.PIPE, text=True,
         )  # fmt: skip
+        stack.callback(end_process, sub)
         assert sub.stdout is not None and sub.stdout.readline().strip() == "ready"
         # the subscription reached the daemon's session (EOF after its duration if never)
         assert sub.stdout.readline().strip() == "receiving"
@@ -75,15 +81,6 @@ def test_follow_15s_rate_safety_and_steady_state(tmp_path: Path) -> None:
             off = fw.status()
         assert off["last_command"] == {"voltage": 0.0, "enable": False}, off
         assert off["voltage"] == 0.0, off
-    finally:
-        if sub is not None and sub.poll() is None:
-            sub.kill()
-            sub.wait()
-        if sub is not None and sub.stdout is not None:
-            sub.stdout.close()
-        watch.close()
-        daemon.stop()
-        fw.stop()
 
     (tmp_path / "trace.json").write_text(json.dumps({"st0": st0, "trace": trace}))
     # the independent subscriber: state at >= 95 % of the configured rate
