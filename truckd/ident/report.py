@@ -15,14 +15,19 @@ from typing import Any
 
 import numpy as np
 
+from truckd.errors import TruckdError
 from truckd.ident.residuals import autocorr, band, binned, crosscorr
 from truckd.ident.result import Diagnosis, Traces
 
 
 def write_report(diag: Diagnosis, out_dir: str | Path, source: str) -> Path:
     """Write the report; returns the path of index.html."""
-    import matplotlib
-
+    try:
+        import matplotlib
+    except ImportError:
+        raise TruckdError(
+            "--report needs matplotlib (install the 'plot' extra: pip install 'truckd[plot]')"
+        ) from None
     matplotlib.use("Agg")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
