@@ -256,10 +256,16 @@ class QpBuilder:
         self._templates()
 
     def _templates(self) -> None:
-        """Constant parts of q, l, u (the per-cycle parts are written over copies)."""
+        """Constant parts of q, l, u (the per-cycle parts are written over copies), and the
+        index arrays of the per-cycle updates and of the warm-start shift."""
         cfg, lay, n = self.cfg, self.lay, self.lay.N
         self._ks_v = NX * np.arange(1, n) + I_V
+        # The terminal cost's linear term is -2 Pf [e_ss, v_end, d_end, u_ss]; the steady
+        # state is linear in v_end, so it is a constant plus v_end times a slope.
+        e1, u1 = steady_state(self.model, 1.0)
+        self._term_idx = np.array([lay.x(n) + j for j in range(NX)] + [lay.u0 + n - 1])
         self._q0: dict[str, Vec] = {}
+        self._term_slope: dict[str, Vec] = {}
         for mode in MODES:
             q = np.zeros(lay.nz)
             if mode == "follow":
@@ -267,8 +273,15 @@ class QpBuilder:
                 g = -2.0 * cfg.q_gap * cfg.d_0
                 q[self._ks_v] += g * (-cfg.time_headway)
                 q[self._ks_v + (I_D - I_V)] += g
+                end0 = np.array([0.0, 0.0, cfg.d_0, 0.0])
+                slope = np.array([e1, 1.0, cfg.time_headway, u1])
+            else:
+                end0 = np.zeros(NX + 1)
+                slope = np.array([e1, 1.0, 0.0, u1])
+            q[self._term_idx] += -2.0 * self.Pf[mode] @ end0
             q[lay.sg0 :] += cfg.slack_linear
             self._q0[mode] = q
+            self._term_slope[mode] = -2.0 * self.Pf[mode] @ slope
         lo = np.empty(lay.m)
         hi = np.empty(lay.m)
         du = cfg.du_max * cfg.period
@@ -281,30 +294,52 @@ class QpBuilder:
         lo[lay.r_slack :] = 0.0
         hi[lay.r_slack :] = INF
         self._lo0, self._hi0 = lo, hi
+        self._neg_bl = -self.pred.bl
+        # Warm-start shifts as one gather each: source index of every output entry.
+        zi = np.arange(lay.nz)
+        zi[: NX * n] = zi[NX : NX * (n + 1)]
+        zi[lay.u0 : lay.u0 + n - 1] = zi[lay.u0 + 1 : lay.u0 + n]
+        self._shift_idx = zi
+        yi = np.arange(lay.m)
+        for start, width, count in (
+            (lay.r_dyn, NX, n),
+            (lay.r_u, 1, n),
+            (lay.r_du, 1, n - 1),
+            (lay.r_gap, 1, n),
+            (lay.r_vhi, 1, n),
+            (lay.r_vlo, 1, n),
+        ):
+            yi[start : start + width * (count - 1)] = yi[start + width : start + width * count]
+        self._shift_dual_idx = yi
 
     def vectors(self, mode: str, inp: QpInputs) -> tuple[Vec, Vec, Vec]:
-        """``(q, l, u)`` for this cycle."""
+        """``(q, l, u)`` for this cycle (new arrays)."""
+        q, lo, hi = np.empty(self.lay.nz), np.empty(self.lay.m), np.empty(self.lay.m)
+        self.vectors_into(mode, inp, q, lo, hi)
+        return q, lo, hi
+
+    def vectors_into(self, mode: str, inp: QpInputs, q: Vec, lo: Vec, hi: Vec) -> None:
+        """Write this cycle's ``q``, ``l``, ``u`` into the given arrays (no allocation of
+        vectors of the QP's size: this runs every cycle)."""
         cfg, lay, n = self.cfg, self.lay, self.lay.N
-        q = self._q0[mode].copy()
+        np.copyto(q, self._q0[mode])
         vl = np.asarray(inp.v_lead, dtype=float)
         if mode == "follow":
-            q[self._ks_v] += -2.0 * cfg.q_rel_speed * vl[1:n]
+            q[self._ks_v] -= (2.0 * cfg.q_rel_speed) * vl[1:n]
             v_end = float(vl[n - 1])
-            d_end = cfg.d_0 + cfg.time_headway * v_end
         else:
-            q[self._ks_v] += -2.0 * cfg.q_cruise * inp.v_ref
-            v_end, d_end = inp.v_ref, 0.0
-        q[lay.u0] += -2.0 * cfg.r_du * inp.u_prev
-        e_ss, u_ss = steady_state(self.model, v_end)
-        term = -2.0 * self.Pf[mode] @ np.array([e_ss, v_end, d_end, u_ss])
-        q[lay.x(n) : lay.x(n) + NX] += term[:NX]
-        q[lay.u0 + n - 1] += term[NX]
+            q[self._ks_v] -= 2.0 * cfg.q_cruise * inp.v_ref
+            v_end = inp.v_ref
+        q[lay.u0] -= 2.0 * cfg.r_du * inp.u_prev
+        q[self._term_idx] += v_end * self._term_slope[mode]
 
-        lo = self._lo0.copy()
-        hi = self._hi0.copy()
-        lo[:NX] = hi[:NX] = inp.x0
-        dyn = -np.outer(vl, self.pred.bl).ravel()
-        lo[lay.r_dyn : lay.r_u] = hi[lay.r_dyn : lay.r_u] = dyn
+        np.copyto(lo, self._lo0)
+        np.copyto(hi, self._hi0)
+        lo[:NX] = inp.x0
+        hi[:NX] = inp.x0
+        dyn = lo[lay.r_dyn : lay.r_u]
+        np.multiply(vl[:, None], self._neg_bl, out=dyn.reshape(n, NX))
+        hi[lay.r_dyn : lay.r_u] = dyn
         lo[lay.r_u : lay.r_du] = inp.u_lo
         hi[lay.r_u : lay.r_du] = inp.u_hi
         du = cfg.du_max * cfg.period
@@ -315,45 +350,28 @@ class QpBuilder:
         lo[lay.r_u], hi[lay.r_u] = lo0, hi0
         lo[lay.r_gap : lay.r_vhi] = cfg.d_min if inp.lead else -INF
         hi[lay.r_vhi : lay.r_vlo] = inp.v_cap
-        return q, lo, hi
 
     def first_move(self, z: Vec) -> float:
         """``u_0`` (V) from a solution vector."""
         return float(z[self.lay.u0])
 
-    def shift(self, z: Vec) -> Vec:
-        """A solution shifted one step ahead: the primal warm start.
+    def shift(self, z: Vec, out: Vec | None = None) -> Vec:
+        """A solution shifted one step ahead: the primal warm start (into ``out`` if given).
 
         The inputs repeat their last step, the slacks stay; the new last state is extrapolated
         with the model (``x_N + Ad (x_N - x_{N-1})`` keeps the lead-speed term of the last
         step), so the guess satisfies the dynamics rows.
         """
-        lay, n = self.lay, self.lay.N
-        out = z.copy()
-        out[: NX * n] = z[NX : NX * (n + 1)]
+        n = self.lay.N
+        out = np.take(z, self._shift_idx, out=out)
         x_n = z[NX * n : NX * (n + 1)]
-        x_n1 = z[NX * (n - 1) : NX * n]
-        out[NX * n : NX * (n + 1)] = x_n + self.pred.Ad @ (x_n - x_n1)
-        for start in (lay.u0,):
-            out[start : start + n - 1] = z[start + 1 : start + n]
+        out[NX * n : NX * (n + 1)] += self.pred.Ad @ (x_n - z[NX * (n - 1) : NX * n])
         return out
 
-    def shift_dual(self, y: Vec) -> Vec:
+    def shift_dual(self, y: Vec, out: Vec | None = None) -> Vec:
         """Constraint multipliers shifted one step ahead, block by block (the dual warm
         start); the last step of each block repeats."""
-        lay, n = self.lay, self.lay.N
-        out = y.copy()
-        blocks = (
-            (lay.r_dyn, NX, n),
-            (lay.r_u, 1, n),
-            (lay.r_du, 1, n - 1),
-            (lay.r_gap, 1, n),
-            (lay.r_vhi, 1, n),
-            (lay.r_vlo, 1, n),
-        )
-        for start, width, count in blocks:
-            out[start : start + width * (count - 1)] = y[start + width : start + width * count]
-        return out
+        return np.take(y, self._shift_dual_idx, out=out)
 
     def plan(self, z: Vec) -> tuple[Vec, Vec, Vec]:
         """``(u (N,), v (N+1,), d (N+1,))`` of a solution."""
