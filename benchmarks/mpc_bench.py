@@ -1,6 +1,18 @@
 """MPC solve time: warm-started OSQP (the controller) vs a cold OSQP setup per cycle vs
 cvxpy (CLARABEL) per cycle, on the same sequence of QPs, for horizons 20, 40, 80.
 
+What each time covers (wall clock, ``time.perf_counter`` around the call):
+
+* warm: ``MpcSolver.solve`` whole, as the controller calls it every cycle: input check,
+  building q/l/u, OSQP update, shifted warm start, solve, status and solution checks;
+* cold: a new OSQP object set up on the same P, A, q, l, u and solved (the controller's
+  settings without its time budget; building q/l/u is not timed);
+* cvxpy: a parametrised cvxpy problem (built once per mode, so cvxpy's compilation is in
+  the first cycle only, as a controller written with cvxpy would do it): setting the
+  parameters q, l, u and ``Problem.solve(solver=CLARABEL)``, i.e. cvxpy's per-solve
+  canonicalisation plus the interior-point solve, every cycle, no warm start (CLARABEL
+  has none).
+
 The QP sequence is recorded from a closed-loop stop-and-go run (ideal estimates, the
 plant with Coulomb friction and stiction), so the warm start sees what it sees on the
 car.  Each solver then replays the same sequence.  ``max_abs_diff_u`` is the largest
@@ -29,10 +41,16 @@ from truckd.config.truck import load_config
 from truckd.control.config import ControlConfig
 from truckd.control.controller import Controller
 from truckd.control.estimator import Estimate
-from truckd.control.mpc import MpcSolver
+from truckd.control.mpc import MpcSolver, osqp_settings
 from truckd.control.qp import ControlModel, QpInputs
 from truckd.sim.plant import Plant
 from truckd.sim.scenarios import World, make_scenario
+
+CVXPY_NOTE = (
+    "warm: MpcSolver.solve whole (q/l/u, update, shifted warm start, solve, checks); "
+    "cold: new OSQP setup + solve per QP; cvxpy: parametrised problem built once, each "
+    "QP = set parameters + Problem.solve(CLARABEL) (canonicalisation + solve)"
+)
 
 
 def record_sequence(
@@ -64,19 +82,33 @@ def record_sequence(
     return seq
 
 
-def time_warm(
-    model: ControlModel, cfg: ControlConfig, seq: list[tuple[str, QpInputs]]
-) -> tuple[list[float], list[float], list[int], int]:
+@dataclasses.dataclass
+class WarmRun:
+    """One replay of the sequence by the warm-started controller."""
+
+    wall: list[float]
+    """Wall-clock time per solve (s)."""
+    cpu: list[float]
+    """CPU time of this thread per solve (s): without the time other processes held the
+    CPU (on a shared machine they preempt at random; the wall clock counts it)."""
+    u0: list[float]
+    iters: list[int]
+    fails: int
+
+
+def time_warm(model: ControlModel, cfg: ControlConfig, seq: list[tuple[str, QpInputs]]) -> WarmRun:
     s = MpcSolver(model, cfg)
-    times, u0, iters, fails = [], [], [], 0
+    run = WarmRun([], [], [], [], 0)
     for mode, inp in seq:
+        c0 = time.thread_time()
         t0 = time.perf_counter()
         r = s.solve(mode, inp)
-        times.append(time.perf_counter() - t0)
-        u0.append(r.u0 if r.ok else float("nan"))
-        iters.append(r.iterations)
-        fails += not r.ok
-    return times, u0, iters, fails
+        run.wall.append(time.perf_counter() - t0)
+        run.cpu.append(time.thread_time() - c0)
+        run.u0.append(r.u0 if r.ok else float("nan"))
+        run.iters.append(r.iterations)
+        run.fails += not r.ok
+    return run
 
 
 def time_cold(
@@ -85,25 +117,14 @@ def time_cold(
     s = MpcSolver(model, cfg)  # only for P, A and the vectors
     qp = s.qp
     p_triu = {m: sp.triu(qp.P[m], format="csc") for m in qp.P}
+    settings = osqp_settings(cfg)  # the controller's, without its time budget
+    del settings["time_limit"]
     times = []
     for mode, inp in seq:
         q, lo, hi = qp.vectors(mode, inp)
         t0 = time.perf_counter()
         solver = osqp.OSQP()
-        solver.setup(
-            p_triu[mode],
-            q,
-            qp.A,
-            lo,
-            hi,
-            verbose=False,
-            eps_abs=cfg.eps,
-            eps_rel=cfg.eps,
-            max_iter=cfg.max_iter,
-            polishing=False,
-            check_termination=5,
-            adaptive_rho_interval=50,
-        )
+        solver.setup(p_triu[mode], q, qp.A, lo, hi, **settings)
         solver.solve(raise_error=False)
         times.append(time.perf_counter() - t0)
     return times
@@ -153,11 +174,13 @@ def main(argv: list[str] | None = None) -> int:
     for n in (20, 40, 80):
         cfg = dataclasses.replace(tc.control, horizon=n)
         seq = record_sequence(model, cfg, args.cycles)
-        warm, u_warm, iters, fails = time_warm(model, cfg, seq)
-        # Replays with fresh solvers: the pooled percentiles are reported, and the best
-        # replay's p99 beside them (other jobs on a shared machine preempt at random).
-        runs = [warm] + [time_warm(model, cfg, seq)[0] for _ in range(args.repeats - 1)]
-        pooled = [x for r in runs for x in r]
+        # Replays with fresh solvers: the pooled percentiles are reported, the best
+        # replay's p99 and the CPU-time p99 beside them (other jobs on a shared machine
+        # preempt at random, and the wall clock counts it).
+        runs = [time_warm(model, cfg, seq) for _ in range(args.repeats)]
+        u_warm = runs[0].u0
+        pooled = [x for r in runs for x in r.wall]
+        pooled_cpu = [x for r in runs for x in r.cpu]
         cold = time_cold(model, cfg, seq[: args.cvxpy_cycles * 2])
         # cvxpy on a stride through the sequence (it is slow); compare first moves there.
         stride = max(1, len(seq) // args.cvxpy_cycles)
@@ -171,25 +194,31 @@ def main(argv: list[str] | None = None) -> int:
                 "horizon": n,
                 "warm_us_p50": us(pooled, 50),
                 "warm_us_p99": us(pooled, 99),
-                "warm_us_p99_best_replay": min(us(r, 99) for r in runs),
+                "warm_us_p99_best_replay": min(us(r.wall, 99) for r in runs),
+                "warm_cpu_us_p50": us(pooled_cpu, 50),
+                "warm_cpu_us_p99": us(pooled_cpu, 99),
                 "replays": args.repeats,
                 "cold_us_p50": us(cold, 50),
                 "cvxpy_us_p50": us(cvx, 50),
                 "max_abs_diff_u": max(diffs) if diffs else None,
-                "warm_iters_p50": float(np.median(iters)),
-                "warm_failures": fails,
+                "warm_iters_p50": float(np.median(runs[0].iters)),
+                "warm_iters_p99": float(np.percentile(runs[0].iters, 99)),
+                "warm_failures": sum(r.fails for r in runs),
                 "qps": len(seq),
                 "cvxpy_qps": len(idx),
             }
         )
+    print(CVXPY_NOTE)
+    print(f"load average (1, 5, 15 min): {os.getloadavg()}")
     print(
-        f"{'N':>4} {'warm p50 us':>12} {'warm p99 us':>12} {'best p99':>9} {'cold p50 us':>12} "
-        f"{'cvxpy p50 us':>13} {'speedup':>8} {'max|du0| V':>11} {'iters':>6} {'fails':>6}"
+        f"{'N':>4} {'warm p50 us':>12} {'warm p99 us':>12} {'best p99':>9} {'cpu p99':>8} "
+        f"{'cold p50 us':>12} {'cvxpy p50 us':>13} {'speedup':>8} {'max|du0| V':>11} "
+        f"{'iters':>6} {'fails':>6}"
     )
     for r in rows:
         print(
             f"{r['horizon']:>4} {r['warm_us_p50']:>12.0f} {r['warm_us_p99']:>12.0f} "
-            f"{r['warm_us_p99_best_replay']:>9.0f} "
+            f"{r['warm_us_p99_best_replay']:>9.0f} {r['warm_cpu_us_p99']:>8.0f} "
             f"{r['cold_us_p50']:>12.0f} {r['cvxpy_us_p50']:>13.0f} "
             f"{r['cvxpy_us_p50'] / r['warm_us_p50']:>7.0f}x {r['max_abs_diff_u']:>11.2e} "
             f"{r['warm_iters_p50']:>6.0f} {r['warm_failures']:>6}"
@@ -202,7 +231,9 @@ def main(argv: list[str] | None = None) -> int:
                 "cpus": os.cpu_count(),
                 "osqp": osqp.__version__,
                 "cvxpy": cp.__version__,
+                "loadavg_1_5_15": list(os.getloadavg()),
             },
+            "measured": CVXPY_NOTE,
             "results": rows,
         }
         with open(args.json, "w", encoding="utf-8") as f:
