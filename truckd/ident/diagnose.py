@@ -64,6 +64,9 @@ ACF_MAX = 0.2
 STRUCT_MIN = 0.5
 """... and its RMS beyond the noise exceeds this multiple of the noise level."""
 
+MAX_EXTRA_ROUNDS = 2
+"""Rounds of trying the remaining candidates on top of the accepted ones."""
+
 SEED_NAMES = ("R_m", "L_m", "K_v", "K_T", "J_S", "K_coulomb", "K_stiction")
 
 
@@ -181,6 +184,19 @@ def _settle_tie(
     return dataclasses.replace(m, effects=eff, sse=costs[best])
 
 
+def _structured(m: FitResult, s: Series) -> bool:
+    """The free-run speed residual of ``m`` on ``s`` has structure beyond the noise."""
+    pred = simulate_voltage(
+        m.params, m.effects, s.t, s.inp, initial_speed(s.v), s.hist_t, s.hist_inp
+    )
+    r = s.v - pred.v
+    noise = noise_std(s.v)
+    h = float(np.median(np.diff(s.t)))
+    wt = whiteness(r, s.inp, noise, max_lag=max(10, round(1.0 / h)))
+    floor = max(STRUCT_MIN * noise, 2e-3 * float(np.std(s.v)))
+    return wt.acf_outside > ACF_MAX and wt.structure > floor
+
+
 def _close(a: float, b: float) -> bool:
     """Two validation costs the data cannot tell apart (see :data:`AMBIGUOUS`)."""
     return abs(a - b) < max(2.0 * BIC_MIN, AMBIGUOUS * min(a, b))
@@ -277,7 +293,6 @@ def diagnose_voltage(
     by_name = {c.name: c for c in cands}
     current = base
     accepted: list[str] = []
-    steps: list[_Model] = [base]
     ambiguous: list[tuple[str, str]] = []
     for name in passing:
         cand = by_name[name]
@@ -294,7 +309,6 @@ def diagnose_voltage(
         if ok:
             accepted.append(name)
             current = new
-            steps.append(new)
             rows[name] = dataclasses.replace(rows[name], accepted=True, note="accepted")
             continue
         rival = _rival(
@@ -315,6 +329,51 @@ def diagnose_voltage(
             rows[name] = dataclasses.replace(rows[name], note=f"ambiguous with {rival}")
         else:
             rows[name] = dataclasses.replace(rows[name], note="adds nothing once others are in")
+
+    # A weaker effect can be masked by a stronger one when tried alone: while the
+    # validation residual still has structure, try the rest on top of the current model.
+    for _ in range(MAX_EXTRA_ROUNDS):
+        if not accepted or not _structured(current.fit, val):
+            break
+        taken = set(accepted) | {b for _, b in ambiguous}
+        rest = [c for c in cands if c.name not in taken]
+        extra = [by_name[a].param for a in accepted if by_name[a].smooth]
+        best: _Model | None = None
+        for cand in rest:
+            progress(f"structure remains: trying {cand.name} on top of {', '.join(accepted)}")
+            f = _fit_candidate(
+                current.fit, seed_free, extra, cand, fit_data, w, grid, progress, val_data
+            )
+            new = _Model(f, (*current.names, cand.name), _val_cost(f, val_data, w))
+            if _passes(new, current, 1)[0] and (best is None or new.val_cost < best.val_cost):
+                best = new
+        if best is None:
+            break
+        name = best.names[-1]
+        accepted.append(name)
+        current = best
+        rows[name] = dataclasses.replace(
+            rows[name], accepted=True, note="accepted on top of the others"
+        )
+
+    # Backward check: an effect accepted early may be redundant once later ones are in.
+    if len(accepted) > 1:
+        for name in list(accepted):
+            others = [a for a in accepted if a != name]
+            progress(f"backward check: {', '.join(others)} without {name}")
+            off = dataclasses.replace(current.fit.effects, **{by_name[name].param.name: 0.0})
+            base_wo = FitResult(current.fit.params, off, float("inf"), current.fit.n, 0)
+            extra = [by_name[a].param for a in others if by_name[a].smooth]
+            f = fit_with_stiction(
+                base_wo.params, off, [*seed_free, *extra], fit_data, w, grid, progress
+            )
+            reduced = _Model(f, tuple(others), _val_cost(f, val_data, w))
+            if not _passes(current, reduced, 1)[0]:
+                accepted.remove(name)
+                current = reduced
+                rows[name] = dataclasses.replace(
+                    rows[name], accepted=False, note="redundant once the others are in"
+                )
 
     # Final joint refit of the extended model on more of the data; stiction shows only
     # at the breakaways, which chunks may miss: a last look at it on all the data.
@@ -337,7 +396,13 @@ def diagnose_voltage(
             max_nfev=30,
         )
         final = _restick(final, grid, full, w)
-    models = [base_pol, *(st.fit for st in steps[1:-1]), final] if accepted else [base_pol]
+    # The k-th step: the final model with only the first k effects switched on.
+    models = [base_pol]
+    for k in range(1, len(accepted) + 1):
+        later = {by_name[a].param.name: 0.0 for a in accepted[k:]}
+        models.append(
+            dataclasses.replace(final, effects=dataclasses.replace(final.effects, **later))
+        )
     base_sum, y_base = _summary(base_pol.params, base_pol.effects, report)
     findings: list[Finding] = []
     prev = base_sum.fit_percent
