@@ -167,3 +167,22 @@ def test_invalid_readings_are_no_target(bad: float | None) -> None:
 def test_rejects_a_bad_tick_resolution() -> None:
     with pytest.raises(ValueError, match="ticks_per_rev"):
         Estimator(EstimatorConfig(), R_W, 0)
+
+
+def test_a_sample_without_a_finite_time_is_ignored_not_poisoning_the_filters() -> None:
+    """A NaN or infinite time stamp (caller or firmware) is no sample: the speed and the
+    lead filter go on from the samples around it, finite."""
+    est = Estimator(EstimatorConfig(), R_W, TICKS)
+    x, t = drive(est, 1.0, 50)
+    est.update_range(t, RangeSample(1.0, t), 1.0)
+    for bad in (math.nan, math.inf):
+        est.update_encoders(t, EncoderSample(5, 5, bad))
+        est.update_encoders(bad, EncoderSample(5, 5, t))
+        est.update_range(t, RangeSample(1.0, bad), 1.0)
+        est.update_range(bad, RangeSample(1.0, t), 1.0)
+        est.update_range(t, RangeSample(1.0, t), bad)
+    x, t = drive(est, 1.0, 10, x0=x, t0=t)
+    est.update_range(t, RangeSample(1.0 - 0.1, t), 1.0)
+    e = est.estimate(t)
+    assert e.speed_valid and e.v == pytest.approx(1.0, abs=0.05)
+    assert e.lead_valid and math.isfinite(e.gap) and math.isfinite(e.v_lead)

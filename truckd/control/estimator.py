@@ -149,6 +149,8 @@ class Estimator:
     def update_encoders(self, t: float, s: EncoderSample) -> None:
         """A new encoder sample received at caller time t (s)."""
         st = self._s
+        if not (math.isfinite(t) and math.isfinite(s.sample_time)):
+            return  # no time to place it at: a NaN would poison the filter for good
         st.samples += 1
         if st.last is None:
             st.last, st.t_last = s, t
@@ -187,6 +189,8 @@ class Estimator:
     def update_range(self, t: float, r: RangeSample, v_own: float) -> None:
         """A new range sample received at caller time t (s); v_own the own speed (m/s)."""
         cfg, ld = self.cfg, self._l
+        if not (math.isfinite(t) and math.isfinite(r.sample_time) and math.isfinite(v_own)):
+            return  # no time (or own speed) to place it at: not a sample
         ld.samples += 1
         d = r.distance
         if d is None or not math.isfinite(d) or not (cfg.range_min <= d <= cfg.range_max):
