@@ -305,3 +305,15 @@ def test_without_any_plan_a_failure_holds_the_last_command_then_brakes(
     assert [r.rsplit(":", 1)[-1] for r in reasons] == ["hold", "hold", "brake", "brake"]
     assert outs[0].u == pytest.approx(2.5) and outs[1].u == pytest.approx(2.5)
     assert outs[3].u < 0.0
+
+
+@pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
+def test_a_non_finite_speed_marked_valid_is_no_speed(params: VehicleParams, bad: float) -> None:
+    """Taking it as 0 m/s would plan for a truck at rest (breakaway kick, no braking)
+    while it may be moving: the fallback runs instead, and the command stays in limits."""
+    cfg = dataclasses.replace(ControlConfig(), time_budget_s=1.0)
+    ctrl = Controller(ControlModel(params), cfg)
+    ctrl.u_prev = 3.0
+    out = ctrl.control(_estimate(bad, 0.5, 1.0))
+    assert out.fallback_reason is not None and out.solver_status == "not-run"
+    assert math.isfinite(out.u) and abs(out.u - 3.0) <= cfg.du_max * cfg.period + 1e-12

@@ -116,7 +116,9 @@ class Controller:
         """The control law on a given estimate (the estimator bypassed, for tests)."""
         cfg, p = self.cfg, self.model.params
         v = est.v if math.isfinite(est.v) else 0.0
-        if not est.speed_valid:
+        if not (est.speed_valid and math.isfinite(est.v)):
+            # A non-finite speed said to be valid is no speed either: planning with 0 m/s
+            # in its place would take a moving truck for one at rest.
             return self._fallback(est, v, "speed_stale", "fallback", math.nan, "not-run", 0, 0.0)
         lead = est.lead_valid and math.isfinite(est.gap) and math.isfinite(est.v_lead)
         gap_ref = cfg.d_0 + cfg.time_headway * v if lead else math.nan
