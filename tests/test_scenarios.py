@@ -156,6 +156,28 @@ def test_cli_sim_writes_contract_json_and_plot(tmp_path: Path) -> None:
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+def test_cli_sim_all_writes_a_list_of_every_scenario(tmp_path: Path) -> None:
+    out = tmp_path / "all.json"
+    assert main(["sim", "--scenario", "all", "--duration", "0.5", "--json", str(out)]) == 0
+    doc = json.loads(out.read_text())
+    assert isinstance(doc, list)
+    assert [d["scenario"] for d in doc] == list(SCENARIO_NAMES)
+    assert all(set(d) >= CONTRACT_KEYS and d["cycles"] == 50 for d in doc)
+
+
+def test_cli_sim_collision_exits_1(monkeypatch: pytest.MonkeyPatch) -> None:
+    import truckd.cli.sim as cli_sim
+
+    real = cli_sim.run_scenario
+
+    def crashed(*args: Any, **kwargs: Any) -> tuple[dict[str, Any], Trace]:
+        m, tr = real(*args, **kwargs)
+        return {**m, "collision": True}, tr
+
+    monkeypatch.setattr(cli_sim, "run_scenario", crashed)
+    assert main(["sim", "--scenario", "follow", "--duration", "0.2"]) == 1
+
+
 def test_cli_sim_bad_duration_and_model_exit_2(tmp_path: Path) -> None:
     assert main(["sim", "--scenario", "follow", "--duration", "-1"]) == 2
     bad = tmp_path / "m.yaml"
@@ -174,6 +196,8 @@ def test_model_file_with_the_plants_effect_beats_the_seed_model(tmp_path: Path) 
 
     doc = yaml.safe_load(default_config_path().read_text())
     doc["plant"]["effects"]["input_delay"] = 0.05
+    # No solve reaches the budget: the comparison does not depend on the machine's load.
+    doc["control"]["time_budget_s"] = 1.0
     cfg_file = tmp_path / "truck.yaml"
     cfg_file.write_text(yaml.safe_dump(doc))
     model_file = tmp_path / "MODEL.yaml"
