@@ -120,16 +120,7 @@ def test_riccati_terminal_cost_makes_the_horizon_irrelevant_when_unconstrained(
         s = MpcSolver(model, cfg)
         v = 1.0
         u_ss = params.K_v * params.omega(v)
-        inp = QpInputs(
-            x0=np.array([0.0, v, cfg.d_0 + cfg.time_headway * v + 0.02]),
-            u_prev=u_ss,
-            v_lead=np.full(n, v),
-            lead=True,
-            v_ref=cfg.v_set,
-            v_cap=cfg.v_max,
-            u_lo=-cfg.u_max,
-            u_hi=cfg.u_max,
-        )
+        inp = _inputs(cfg, (0.0, v, cfg.d_0 + cfg.time_headway * v + 0.02), u_ss, v)
         res = s.solve("follow", inp)
         assert res.ok
         moves.append(res.u0 - u_ss)
@@ -149,16 +140,7 @@ def test_qp_is_never_infeasible(gap: float, v: float, u_prev: float, v_lead: flo
     (state constraints are soft; input bounds and rate are met by holding u_prev)."""
     s = _SOLVER
     cfg = s.cfg
-    inp = QpInputs(
-        x0=np.array([0.0, v, gap]),
-        u_prev=u_prev,
-        v_lead=np.full(cfg.horizon, v_lead),
-        lead=True,
-        v_ref=cfg.v_set,
-        v_cap=cfg.v_max,
-        u_lo=-cfg.u_max,
-        u_hi=cfg.u_max,
-    )
+    inp = _inputs(cfg, (0.0, v, gap), u_prev, v_lead)
     res = s.solve("follow", inp)
     assert res.ok, res.status
     assert -cfg.u_max - 1e-3 <= res.u0 <= cfg.u_max + 1e-3
@@ -266,11 +248,17 @@ def test_lead_forecast_hook_changes_the_plan(params: VehicleParams) -> None:
     assert end_speeds[1] < end_speeds[0] - 0.3
 
 
-def _inputs(cfg: ControlConfig) -> QpInputs:
+def _inputs(
+    cfg: ControlConfig,
+    x0: tuple[float, float, float] = (0.0, 1.2, 1.0),
+    u_prev: float = 2.0,
+    v_lead: float = 1.0,
+) -> QpInputs:
+    """Follow-mode inputs with a lead at constant speed and the configured limits."""
     return QpInputs(
-        x0=np.array([0.0, 1.2, 1.0]),
-        u_prev=2.0,
-        v_lead=np.full(cfg.horizon, 1.0),
+        x0=np.array(x0),
+        u_prev=u_prev,
+        v_lead=np.full(cfg.horizon, v_lead),
         lead=True,
         v_ref=cfg.v_set,
         v_cap=cfg.v_max,
