@@ -13,12 +13,16 @@ What each time covers (wall clock, ``time.perf_counter`` around the call):
   canonicalisation plus the interior-point solve, every cycle, no warm start (CLARABEL
   has none).
 
-The QP sequence is recorded from a closed-loop stop-and-go run (ideal estimates, the
-plant with Coulomb friction and stiction), so the warm start sees what it sees on the
-car.  Each solver then replays the same sequence.  ``max_abs_diff_u`` is the largest
+The QP sequence is recorded from ``truckd sim``'s stop-and-go scenario (the controller
+through the simulated firmware, the protocol and the estimator, the plant with Coulomb
+friction and stiction), so the warm start sees what it sees on the car: encoder
+quantisation and range noise change the QP from cycle to cycle.  ``--sequence ideal``
+records it from a loop on the true speed and gap instead (smoother: fewer iterations).
+Each solver then replays the same sequence.  ``max_abs_diff_u`` is the largest
 first-move difference (V) between the warm-started controller and cvxpy.
 
     .venv/bin/python benchmarks/mpc_bench.py [--json FILE] [--cycles N] [--cvxpy-cycles M]
+        [--sequence sim|ideal]
 """
 
 from __future__ import annotations
@@ -31,18 +35,20 @@ import platform
 import sys
 import time
 from typing import Any
+from unittest import mock
 
 import cvxpy as cp
 import numpy as np
 import osqp
 import scipy.sparse as sp
 
-from truckd.config.truck import load_config
+from truckd.config.truck import TruckConfig, load_config
 from truckd.control.config import ControlConfig
 from truckd.control.controller import Controller
 from truckd.control.estimator import Estimate
-from truckd.control.mpc import MpcSolver, osqp_settings
+from truckd.control.mpc import MpcResult, MpcSolver, osqp_settings
 from truckd.control.qp import ControlModel, QpInputs
+from truckd.sim.closed_loop import SimSetup, run_scenario
 from truckd.sim.plant import Plant
 from truckd.sim.scenarios import World, make_scenario
 
@@ -53,10 +59,33 @@ CVXPY_NOTE = (
 )
 
 
+def record_sim_sequence(
+    tc: TruckConfig, cfg: ControlConfig, cycles: int
+) -> list[tuple[str, QpInputs]]:
+    """QPs the controller solves in ``truckd sim``'s stop-and-go scenario: through the
+    simulated firmware, the protocol and the estimator (encoder quantisation, range noise),
+    as on the car.  A budget no solve reaches, so the sequence does not depend on load."""
+    seq: list[tuple[str, QpInputs]] = []
+    inner = MpcSolver.solve
+
+    def recording(self: MpcSolver, mode: str, inp: QpInputs, warm: bool = True) -> MpcResult:
+        seq.append((mode, inp))
+        return inner(self, mode, inp, warm)
+
+    cfg = dataclasses.replace(cfg, time_budget_s=1.0)
+    setup = SimSetup(
+        tc.vehicle, tc.plant, cfg, ControlModel(tc.vehicle), tc.link.encoder_ticks_per_rev
+    )
+    with mock.patch.object(MpcSolver, "solve", recording):
+        run_scenario(make_scenario("stop-and-go", tc.vehicle, cfg), setup, cycles * cfg.period)
+    return seq
+
+
 def record_sequence(
     model: ControlModel, cfg: ControlConfig, cycles: int
 ) -> list[tuple[str, QpInputs]]:
-    """QPs the controller solves in a closed-loop stop-and-go run (ideal estimates)."""
+    """QPs the controller solves in a closed-loop stop-and-go run with ideal estimates
+    (the true speed and gap: smoother than on the car, so warm starts fare better)."""
     ctrl = Controller(model, dataclasses.replace(cfg, time_budget_s=1.0))
     seq: list[tuple[str, QpInputs]] = []
     inner = ctrl.mpc.solve
@@ -167,13 +196,23 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cycles", type=int, default=1200, help="QPs per horizon (12 s at 100 Hz)")
     ap.add_argument("--cvxpy-cycles", type=int, default=150, help="QPs solved by cvxpy")
     ap.add_argument("--repeats", type=int, default=3, help="replays of the warm solver")
+    ap.add_argument(
+        "--sequence",
+        choices=("sim", "ideal"),
+        default="sim",
+        help="QPs from truckd sim's stop-and-go (estimator, firmware; default) or from a "
+        "loop on ideal estimates",
+    )
     args = ap.parse_args(argv)
     tc = load_config()
     model = ControlModel(tc.vehicle)
     rows = []
     for n in (20, 40, 80):
         cfg = dataclasses.replace(tc.control, horizon=n)
-        seq = record_sequence(model, cfg, args.cycles)
+        if args.sequence == "sim":
+            seq = record_sim_sequence(tc, cfg, args.cycles)
+        else:
+            seq = record_sequence(model, cfg, args.cycles)
         # Replays with fresh solvers: the pooled percentiles are reported, the best
         # replay's p99 and the CPU-time p99 beside them (other jobs on a shared machine
         # preempt at random, and the wall clock counts it).
@@ -209,6 +248,7 @@ def main(argv: list[str] | None = None) -> int:
             }
         )
     print(CVXPY_NOTE)
+    print(f"QP sequence: {args.sequence} (stop-and-go, {args.cycles} cycles)")
     print(f"load average (1, 5, 15 min): {os.getloadavg()}")
     print(
         f"{'N':>4} {'warm p50 us':>12} {'warm p99 us':>12} {'best p99':>9} {'cpu p99':>8} "
@@ -234,6 +274,7 @@ def main(argv: list[str] | None = None) -> int:
                 "loadavg_1_5_15": list(os.getloadavg()),
             },
             "measured": CVXPY_NOTE,
+            "sequence": args.sequence,
             "results": rows,
         }
         with open(args.json, "w", encoding="utf-8") as f:
