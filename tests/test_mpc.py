@@ -20,8 +20,9 @@ from truckd.control.qp import ControlModel, QpBuilder, QpInputs, prediction_mode
 from truckd.model.params import VehicleParams
 from truckd.sim.plant import Plant
 
-FIRST_MOVE_TOL_V = 2e-3
-"""OSQP at eps 1e-6 against CLARABEL: first moves agree to 2 mV (of a 14.4 V range)."""
+FIRST_MOVE_TOL_V = 1e-3
+"""OSQP at eps 1e-6 against CLARABEL: first moves agree to 1 mV (of a 14.4 V range); the
+worst of these seeded instances is 0.1 mV (rho 0.03), so this is 10x margin."""
 
 
 def tight(cfg: ControlConfig | None = None, **kw: float | int) -> ControlConfig:
