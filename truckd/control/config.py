@@ -203,6 +203,45 @@ class ControlConfig:
         hi=10.0,
         default=0.05,
     )
+    hold_gap_tol: float = spec(
+        "standstill hold: entered at rest behind a (nearly) stopped lead when the gap is at "
+        "most d_0 + this; the motor is then held at 0 V (no MPC, no breakaway)",
+        unit="m",
+        lo=0.0,
+        hi=1.0,
+        default=0.05,
+    )
+    hold_release_gap: float = spec(
+        "standstill hold: left (start with the breakaway feedforward) when the gap exceeds "
+        "d_0 + this (above hold_gap_tol: hysteresis)",
+        unit="m",
+        lo=0.0,
+        lo_open=True,
+        hi=2.0,
+        default=0.1,
+    )
+    hold_lead_speed: float = spec(
+        "standstill hold: entered only when the lead's estimated speed is at most this",
+        unit="m/s",
+        lo=0.0,
+        hi=1.0,
+        default=0.04,
+    )
+    hold_release_speed: float = spec(
+        "standstill hold: left when the lead's estimated speed exceeds this (above "
+        "hold_lead_speed: hysteresis)",
+        unit="m/s",
+        lo=0.0,
+        lo_open=True,
+        hi=2.0,
+        default=0.08,
+    )
+    hold_release_cycles: int = spec(
+        "standstill hold: a release condition must hold this many consecutive cycles",
+        lo=1,
+        hi=100,
+        default=3,
+    )
     disturbance_gain: float = spec(
         "offset-free action: integrator gain per cycle on the voltage disturbance the model "
         "lacks (0 = off: the controller relies on its model alone)",
@@ -224,6 +263,16 @@ class ControlConfig:
         """Cross-field checks."""
         if self.d_min >= self.d_0:
             return f"d_min ({self.d_min}) must be below the standstill gap d_0 ({self.d_0})"
+        if self.hold_release_gap <= self.hold_gap_tol:
+            return (
+                f"hold_release_gap ({self.hold_release_gap}) must exceed hold_gap_tol "
+                f"({self.hold_gap_tol})"
+            )
+        if self.hold_release_speed <= self.hold_lead_speed:
+            return (
+                f"hold_release_speed ({self.hold_release_speed}) must exceed hold_lead_speed "
+                f"({self.hold_lead_speed})"
+            )
         if self.v_set > self.v_max:
             return f"v_set ({self.v_set}) must not exceed v_max ({self.v_max})"
         return None
