@@ -1,7 +1,7 @@
 """The controller the daemon calls once per cycle: plain inputs in, command out.
 
-Each cycle: estimate (encoders, range) -> choose the MPC mode -> friction feedforward
--> warm-started MPC solve -> on failure the shifted previous plan, then a braking law ->
+Each cycle: estimate (encoders, range) -> standstill hold or the MPC mode -> friction
+feedforward -> warm-started MPC solve -> on failure the shifted previous plan, then a braking law ->
 limits (finite, ``|u| <= u_max``, rate limit, no reversing from rest).  Everything the
 supervisor and telemetry need comes back in :class:`ControlOutput`.  No clock: the
 caller passes its time ``t`` (s); the MPC step is the configured period.
@@ -30,7 +30,8 @@ class ControlOutput:
 
     ``u`` the voltage command (V, always finite and within limits); ``u_ff`` its
     feedforward part, ``u_mpc`` the MPC's (or fallback's) part (V); ``mode`` one of
-    ``follow``, ``cruise``, ``stop``, ``fallback``; ``fallback_reason`` None when the MPC
+    ``follow``, ``cruise``, ``stop``, ``fallback``, ``hold`` (standstill hold: 0 V, the MPC
+    not solved, ``solver_status`` ``not-run``); ``fallback_reason`` None when the MPC
     solved; ``solver_status``, ``solve_iterations``, ``solve_time_s`` (OSQP's own time);
     ``gap_ref`` (m, NaN without lead); the estimate; cumulative counters (``inaccurate``:
     solutions used although OSQP said ``solved inaccurate``); ``disturbance_v`` the
@@ -79,6 +80,9 @@ class Controller:
         self.disturbance_v = 0.0
         """Estimated input-voltage disturbance (V), added to the feedforward."""
         self._v_expected = math.nan
+        self.holding = False
+        """Standstill hold active (see :meth:`_update_hold`)."""
+        self._release_cycles = 0
 
     def step(
         self,
@@ -122,6 +126,8 @@ class Controller:
             return self._fallback(est, v, "speed_stale", "fallback", math.nan, "not-run", 0, 0.0)
         lead = est.lead_valid and math.isfinite(est.gap) and math.isfinite(est.v_lead)
         gap_ref = cfg.d_0 + cfg.time_headway * v if lead else math.nan
+        if self._update_hold(est, v, lead):
+            return self._hold(est, v, gap_ref)
         # Follow a lead that is near and either slower than the set speed or too close;
         # otherwise cruise at the set speed (the minimum gap is still a constraint).
         near = lead and est.gap - gap_ref < cfg.follow_window
@@ -183,6 +189,45 @@ class Controller:
         return self._finish(
             est, v, res.u0, ff, mode, None, res.status, res.iterations, res.run_time_s, gap_ref
         )
+
+    def _update_hold(self, est: Estimate, v: float, lead: bool) -> bool:
+        """Standstill hold, as an ACC holds the car behind a stopped lead.
+
+        Entered at rest (``|v| <= moving_speed``) behind a lead no faster than
+        ``hold_lead_speed`` with the gap at most ``d_0 + hold_gap_tol``; left only when the
+        lead is faster than ``hold_release_speed`` or the gap exceeds ``d_0 +
+        hold_release_gap`` (both above the entry thresholds) for ``hold_release_cycles``
+        consecutive cycles (the lead-speed estimate is noisy at rest): no chatter.  A lead
+        lost while holding keeps the hold: it was last seen stopped just ahead.
+        """
+        cfg = self.cfg
+        if self.holding:
+            going = lead and (
+                est.v_lead > cfg.hold_release_speed or est.gap > cfg.d_0 + cfg.hold_release_gap
+            )
+            self._release_cycles = self._release_cycles + 1 if going else 0
+            if self._release_cycles >= cfg.hold_release_cycles:
+                self.holding = False
+                self._release_cycles = 0
+        elif (
+            lead
+            and abs(v) <= cfg.moving_speed
+            and est.v_lead <= cfg.hold_lead_speed
+            and est.gap <= cfg.d_0 + cfg.hold_gap_tol
+        ):
+            self.holding = True
+        return self.holding
+
+    def _hold(self, est: Estimate, v: float, gap_ref: float) -> ControlOutput:
+        """0 V, no MPC solve: the truck stands on stiction.  Solving would cost a QP per
+        cycle whose answer is not used, and a plan of standing still is no warm start for
+        the start; the first solve after the hold starts cold (and, should it fail, the
+        fallback holds the last command, 0 V, instead of a stale plan)."""
+        self._plan = None
+        self._plan_age = 0
+        self._v_expected = math.nan
+        self.mpc.reset()
+        return self._finish(est, v, 0.0, 0.0, "hold", None, "not-run", 0, 0.0, gap_ref)
 
     def _update_disturbance(self, v: float) -> float:
         """Offset-free action (``disturbance_gain`` > 0): the voltage the model lacks.
