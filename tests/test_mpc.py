@@ -306,3 +306,65 @@ def test_a_non_finite_speed_marked_valid_is_no_speed(params: VehicleParams, bad:
     out = ctrl.control(_estimate(bad, 0.5, 1.0))
     assert out.fallback_reason is not None and out.solver_status == "not-run"
     assert math.isfinite(out.u) and abs(out.u - 3.0) <= cfg.du_max * cfg.period + 1e-12
+
+
+def test_standstill_hold_enters_at_rest_and_releases_with_hysteresis(
+    params: VehicleParams,
+) -> None:
+    """At rest behind a stopped lead within d_0 + hold_gap_tol: 0 V, mode hold, no solve.
+    Noise between the entry and release thresholds keeps the hold; a release condition must
+    last hold_release_cycles; then the MPC starts the truck with the breakaway feedforward."""
+    cfg = dataclasses.replace(ControlConfig(), time_budget_s=1.0)
+    ctrl = Controller(ControlModel(params), cfg)
+    ctrl.u_prev = 0.4  # the creep's last command
+    gap = cfg.d_0 + 0.8 * cfg.hold_gap_tol
+    out = ctrl.control(_estimate(0.0, gap, 0.0))
+    assert out.mode == "hold" and out.u == 0.0 and out.u_ff == 0.0
+    assert out.solve_iterations == 0 and out.solver_status == "not-run"
+    assert out.fallback_reason is None
+    between_v = 0.5 * (cfg.hold_lead_speed + cfg.hold_release_speed)
+    between_gap = cfg.d_0 + 0.5 * (cfg.hold_gap_tol + cfg.hold_release_gap)
+    for k in range(50):
+        noisy = _estimate(0.0, between_gap if k % 2 else gap, between_v if k % 3 else 0.0)
+        out = ctrl.control(noisy)
+        assert out.mode == "hold" and out.u == 0.0
+    # A lead lost while holding keeps the hold (it was last seen stopped just ahead).
+    assert ctrl.control(_estimate(0.0, math.nan, math.nan, lead=False)).mode == "hold"
+    # Release speed exceeded for one cycle less than required, then broken: still held.
+    going = _estimate(0.0, gap, 1.5 * cfg.hold_release_speed)
+    for _ in range(cfg.hold_release_cycles - 1):
+        assert ctrl.control(going).mode == "hold"
+    assert ctrl.control(_estimate(0.0, gap, 0.0)).mode == "hold"
+    for _ in range(cfg.hold_release_cycles - 1):
+        assert ctrl.control(going).mode == "hold"
+    out = ctrl.control(going)
+    assert out.mode == "follow" and out.solve_iterations > 0
+    assert out.u_ff > 0.0 and out.u > 0.0  # the start, with the breakaway feedforward
+    # Not re-entered while the truck is still at rest and the lead goes.
+    assert ctrl.control(going).mode == "follow"
+
+
+def test_standstill_hold_not_entered_when_moving_far_or_lead_moving(
+    params: VehicleParams,
+) -> None:
+    cfg = dataclasses.replace(ControlConfig(), time_budget_s=1.0)
+    near = cfg.d_0 + 0.5 * cfg.hold_gap_tol
+    for est in (
+        _estimate(2.0 * cfg.moving_speed, near, 0.0),  # still moving
+        _estimate(0.0, cfg.d_0 + 1.5 * cfg.hold_gap_tol, 0.0),  # too far: close up first
+        _estimate(0.0, near, 2.0 * cfg.hold_lead_speed),  # lead moving
+        _estimate(0.0, math.nan, math.nan, lead=False),  # no lead
+    ):
+        ctrl = Controller(ControlModel(params), cfg)
+        assert ctrl.control(est).mode != "hold"
+    # A gap below d_0 (stopped short) is held too: never reverse to open it.
+    ctrl = Controller(ControlModel(params), cfg)
+    assert ctrl.control(_estimate(0.0, cfg.d_min + 0.01, 0.0)).mode == "hold"
+
+
+def test_hold_thresholds_must_have_hysteresis() -> None:
+    assert ControlConfig().validate() is None
+    bad_gap = dataclasses.replace(ControlConfig(), hold_release_gap=0.05, hold_gap_tol=0.05)
+    assert "hold_release_gap" in (bad_gap.validate() or "")
+    bad_v = dataclasses.replace(ControlConfig(), hold_release_speed=0.05, hold_lead_speed=0.05)
+    assert "hold_release_speed" in (bad_v.validate() or "")

@@ -210,3 +210,60 @@ def test_model_file_with_the_plants_effect_beats_the_seed_model(tmp_path: Path) 
         rms[name] = json.loads(out.read_text())["gap_error_rms_m"]
     assert rms["extended"] < 0.01
     assert rms["seed"] > 5 * rms["extended"]
+
+
+def _segments(mask: np.ndarray) -> list[tuple[int, int]]:
+    """Index ranges [start, end) where mask is True."""
+    out, k = [], 0
+    while k < len(mask):
+        if mask[k]:
+            j = k
+            while j < len(mask) and mask[j]:
+                j += 1
+            out.append((k, j))
+            k = j
+        else:
+            k += 1
+    return out
+
+
+HOLD_WITHIN_S = 3.0
+"""The standstill hold starts at most this long after the lead has stopped (measured:
+2.3 s after lead-brake's hardest stop from 1.6 m/s, 1.8 s in stop-and-go)."""
+RESTART_WITHIN_S = 0.25
+"""The truck moves (> moving_speed) at most this long after the lead starts to move
+(measured: 0.17 s, the lead accelerating at 2 m/s^2; the lead-speed estimate must exceed
+hold_release_speed for hold_release_cycles cycles, then the breakaway)."""
+
+
+@pytest.mark.parametrize(("name", "stops"), [("lead-brake", 1), ("stop-and-go", 2)])
+def test_standstill_hold_no_creep_then_prompt_restart(
+    runs: dict[str, tuple[dict[str, Any], Trace]], name: str, stops: int
+) -> None:
+    """Behind a stopped lead the truck ends exactly at rest (the gap, i.e. its position,
+    constant) in mode hold, with the gap within hold_gap_tol of d_0 and above d_min, until
+    the lead goes; then it starts promptly; one hold per stop (no chatter)."""
+    cfg = load_config().control
+    _, tr = runs[name]
+    t, gap, v = np.array(tr.t), np.array(tr.gap), np.array(tr.v)
+    hold = np.array([m == "hold" for m in tr.mode])
+    stopped = _segments(np.array(tr.v_lead) == 0.0)
+    assert len(stopped) == stops
+    assert len(_segments(hold)) == stops  # one hold per stop: no chatter
+    for a, b in stopped:
+        k = a + int(np.argmax(hold[a:b]))
+        assert hold[k] and t[k] - t[a] <= HOLD_WITHIN_S
+        assert np.all(hold[k:b])  # held for the remainder of the standstill
+        # Entered at an estimated speed <= moving_speed: the truck coasts to rest on
+        # friction within a few cycles, then does not move at all (no creep).
+        r = k + int(np.argmax(v[k:b] == 0.0))
+        assert v[r] == 0.0 and t[r] - t[k] <= 0.1
+        assert np.all(v[r:b] == 0.0)
+        assert np.ptp(gap[r:b]) == 0.0
+        assert abs(gap[b - 1] - cfg.d_0) <= cfg.hold_gap_tol
+        assert np.min(gap[a:b]) >= cfg.d_min
+        assert np.all(np.array(tr.u)[k:b] == 0.0)
+        if b < len(t):  # the lead goes again
+            moving = np.nonzero(v[b:] > cfg.moving_speed)[0]
+            assert moving.size and t[b + moving[0]] - t[b] <= RESTART_WITHIN_S
+            assert not np.any(hold[b + moving[0] :][: int(1.0 / cfg.period)])
