@@ -13,11 +13,12 @@ from truckd.config.truck import load_config
 from truckd.control.config import ControlConfig
 from truckd.control.feedforward import (
     breakaway_feedforward,
+    dead_zone_command,
     moving_feedforward,
     torque_to_voltage,
 )
 from truckd.control.qp import ControlModel
-from truckd.model.effects import Effects
+from truckd.model.effects import Effects, driver_output
 from truckd.model.motor import steady_speed
 from truckd.model.params import VehicleParams
 from truckd.sim.closed_loop import SimSetup, Trace, run_scenario
@@ -50,8 +51,31 @@ def test_known_effects_enter_the_feedforward(params: VehicleParams) -> None:
     v = 1.5
     base = moving_feedforward(params, Effects(), v, 0.02)
     force = 2.0 + 0.5 * v * v
-    expected = base + torque_to_voltage(params, params.force_to_torque(force)) + 0.3
+    expected = base + torque_to_voltage(params, params.force_to_torque(force))
+    # The dead zone is not an offset: the driver passes commands above it unchanged.
     assert moving_feedforward(params, eff, v, 0.02) == pytest.approx(expected)
+
+
+@pytest.mark.parametrize(
+    ("wanted", "sent"),
+    [
+        (0.0, 0.0),
+        (0.2, 0.0),
+        (-0.59, 0.0),
+        (0.6, 1.2),
+        (-0.9, -1.2),
+        (1.2, 1.2),
+        (3.0, 3.0),
+        (-5.0, -5.0),
+    ],
+)
+def test_dead_zone_command_sends_the_nearest_voltage_the_driver_applies(
+    wanted: float, sent: float
+) -> None:
+    assert dead_zone_command(wanted, 1.2) == sent
+    applied, _ = driver_output(dead_zone_command(wanted, 1.2), Effects(dead_zone=1.2), 7.2)
+    # What the driver applies is the best it can do for the wanted voltage.
+    assert abs(applied - wanted) <= min(abs(wanted), abs(abs(wanted) - 1.2)) + 1e-12
 
 
 def _run(name: str, feedforward: bool, duration: float) -> tuple[dict[str, Any], Trace]:
@@ -103,3 +127,18 @@ def test_offset_free_action_removes_the_error_of_an_unknown_load() -> None:
         errors[gain] = abs(m["final_gap_error_m"])
     assert errors[0.01] < 0.002
     assert errors[0.0] > 0.005
+
+
+def test_known_dead_zone_helps_instead_of_hurting() -> None:
+    """Plant with a 1.2 V driver dead zone: the controller that knows it keeps a smaller gap
+    error in stop-and-go than the seed model (it used to add the zone as an offset and lose)."""
+    tc = load_config()
+    cfg = dataclasses.replace(ControlConfig(), time_budget_s=1.0)
+    plant = dataclasses.replace(tc.plant, effects=Effects(dead_zone=1.2))
+    rms = {}
+    for label, eff in (("seed", Effects()), ("known", Effects(dead_zone=1.2))):
+        setup = SimSetup(tc.vehicle, plant, cfg, ControlModel(tc.vehicle, eff))
+        metrics, _ = run_scenario(make_scenario("stop-and-go", tc.vehicle, cfg), setup, 25.0)
+        assert not metrics["collision"]
+        rms[label] = metrics["gap_error_rms_m"]
+    assert rms["known"] < 0.85 * rms["seed"]

@@ -19,7 +19,11 @@ import numpy as np
 from truckd.control.config import ControlConfig
 from truckd.control.estimator import EncoderSample, Estimate, Estimator, RangeSample
 from truckd.control.fallback import braking_law, held_plan_move, limit_command
-from truckd.control.feedforward import breakaway_feedforward, moving_feedforward
+from truckd.control.feedforward import (
+    breakaway_feedforward,
+    dead_zone_command,
+    moving_feedforward,
+)
 from truckd.control.mpc import MpcSolver
 from truckd.control.qp import ControlModel, QpInputs, Vec
 
@@ -334,6 +338,9 @@ class Controller:
         if at_rest and u < 0.0:
             u = 0.0  # never drive backwards from rest
         u = limit_command(u, self.u_prev, self.u_max, self._du)
+        # A known driver dead zone: a voltage inside it cannot be applied; send the nearest
+        # one that can (may exceed the rate limit by the zone's width, never the voltage limit).
+        u = min(max(dead_zone_command(u, self.model.effects.dead_zone), -self.u_max), self.u_max)
         self.u_prev = u
         self._sent.append(u)
         return ControlOutput(

@@ -9,8 +9,10 @@ its command, the armature voltage whose steady current produces the missing torq
 * at rest with a start commanded: ``T = margin * K_stiction`` (breaks stiction);
 * otherwise 0.
 
-A known driver dead zone adds ``dead_zone * sign`` whenever a direction is defined.
-Pure numerics.
+A known driver dead zone is not an offset: the driver (``truckd.model.effects.driver_output``)
+outputs 0 for ``|u| < dead_zone`` and passes larger commands unchanged, so
+:func:`dead_zone_command` only moves a wanted voltage that falls inside the zone to the nearest
+voltage the driver can produce.  Pure numerics.
 """
 
 from __future__ import annotations
@@ -38,10 +40,21 @@ def moving_feedforward(p: VehicleParams, eff: Effects, v: float, moving_speed: f
         return 0.0
     s = math.copysign(1.0, v)
     torque = s * p.K_coulomb + load_torque_known(p, eff, v)
-    return torque_to_voltage(p, torque) + s * eff.dead_zone
+    return torque_to_voltage(p, torque)
 
 
 def breakaway_feedforward(p: VehicleParams, eff: Effects, margin: float) -> float:
     """Forward start voltage (V) that breaks stiction (and holds the known load)."""
     torque = margin * p.K_stiction + p.force_to_torque(eff.load_force)
-    return torque_to_voltage(p, torque) + eff.dead_zone
+    return torque_to_voltage(p, torque)
+
+
+def dead_zone_command(u: float, dead_zone: float) -> float:
+    """The command (V) that makes a driver with a dead zone (V) apply as close to ``u`` as it can.
+
+    Outside the zone the driver passes the command unchanged, so it is sent as is; inside,
+    the driver can only make 0 V or the threshold: the nearer of the two is sent.
+    """
+    if dead_zone <= 0.0 or abs(u) >= dead_zone or not math.isfinite(u):
+        return u
+    return math.copysign(dead_zone, u) if abs(u) >= 0.5 * dead_zone else 0.0
