@@ -17,6 +17,7 @@ from truckd.ident.synth import plant_log, random_effect, with_effect
 from truckd.logfile import Log
 from truckd.model.effects import EFFECT_NAMES, Effects
 from truckd.model.params import VehicleParams
+from truckd.sim.plant import PlantConfig, simulate_open_loop
 
 SEEDS = [int(s) for s in np.random.SeedSequence(6).generate_state(12)]
 N = 5000  # 50 s at 100 Hz
@@ -97,3 +98,29 @@ def test_viscous_friction_needs_current(params: VehicleParams) -> None:
     assert any("viscous_friction" in n for n in d.notes)
     assert d.effects == []  # K_v absorbs it; the speed is fully explained
     assert not d.unexplained
+
+
+def test_delay_with_a_validation_log_starting_mid_motion(params: VehicleParams) -> None:
+    """A separate validation log that starts while the truck moves, at a command jump.
+
+    Delay of exactly 3 samples, current logged.  The commands before the validation
+    log still act for 30 ms; simulating them as 0 V left a braking transient that
+    flagged the correct model as ``unexplained`` (validation rmse 0.0125 m/s against
+    0.010 m/s noise).
+    """
+    rng = np.random.default_rng(123)
+    t = np.arange(0, 120, 0.01)
+    u = np.clip(rng.uniform(-6, 6, 240).repeat(50)[: len(t)] + np.sin(2 * np.pi * 0.3 * t), -7, 7)
+    cfg = PlantConfig(effects=Effects(input_delay=0.03), noise_v=0.01, seed=5)
+    log = simulate_open_loop(params, t, u, cfg)
+    n = len(t) // 2  # t = 60 s: the command jumps from -2.5 V to 5.5 V at 1.1 m/s
+    half = [
+        Log({"t": t[a:b], "u": u[a:b], "v": log.v[a:b], "i": log.i[a:b]}, name)
+        for a, b, name in ((0, n, "first"), (n, len(t), "second"))
+    ]
+    d = diagnose_log(half[0], params, validate=half[1])
+    assert [f.name for f in d.effects] == ["input_delay"]
+    assert d.effects[0].params["input_delay"] == pytest.approx(0.03, abs=0.002)
+    assert d.extended.rmse < 0.0105
+    assert not d.unexplained
+    assert d.ambiguous == []

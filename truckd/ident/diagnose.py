@@ -22,8 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from truckd.ident.candidates import Candidate, voltage_candidates
-from truckd.ident.data import Series, chunks, initial_speed, noise_std, split
-from truckd.ident.fastsim import simulate_voltage
+from truckd.ident.data import Series, chunks, noise_std, split
 from truckd.ident.residuals import whiteness
 from truckd.ident.result import CandidateRow, Diagnosis, Finding, ModelSummary, Traces
 from truckd.ident.voltage import (
@@ -32,6 +31,7 @@ from truckd.ident.voltage import (
     Weights,
     fit_percent,
     fit_with_stiction,
+    predict,
     residuals,
     rmse,
     scan,
@@ -186,9 +186,7 @@ def _settle_tie(
 
 def _structured(m: FitResult, s: Series) -> bool:
     """The free-run speed residual of ``m`` on ``s`` has structure beyond the noise."""
-    pred = simulate_voltage(
-        m.params, m.effects, s.t, s.inp, initial_speed(s.v), s.hist_t, s.hist_inp
-    )
+    pred = predict(m.params, m.effects, s)
     r = s.v - pred.v
     noise = noise_std(s.v)
     h = float(np.median(np.diff(s.t)))
@@ -240,9 +238,7 @@ def _passes(new: _Model, old: _Model, extra: int) -> tuple[bool, float]:
 
 
 def _summary(p: VehicleParams, e: Effects, report: Series) -> tuple[ModelSummary, np.ndarray]:
-    pred = simulate_voltage(
-        p, e, report.t, report.inp, initial_speed(report.v), report.hist_t, report.hist_inp
-    )
+    pred = predict(p, e, report)
     params = {n: float(getattr(p, n)) for n in SEED_NAMES}
     for n in e.active():
         params[n] = float(getattr(e, n))

@@ -307,6 +307,29 @@ def electrical_correction(
     return -lam_s / beta, -1.0 / lam_f
 
 
+def prelog_voltage(p: VehicleParams, eff: Effects, w0: float, i0: float | None) -> float:
+    """Motor voltage (V) acting at the start of a log, before its first command does.
+
+    A log that starts mid-motion leaves the commands issued before it unknown; with an
+    input delay they still drive the motor for ``input_delay`` s (0 V there would brake
+    a moving truck and mis-simulate the next second).  With the current ``i0`` (A)
+    measured at the start the voltage is the quasi-static ``R_m i0 + K_v w0``; without
+    it, the voltage that holds the start speed ``w0`` (motor rad/s) steady (0 at rest).
+    """
+    if i0 is not None and np.isfinite(i0):
+        return p.R_m * float(i0) + p.K_v * w0
+    if w0 == 0.0:
+        return 0.0
+    s = 1.0 if w0 > 0.0 else -1.0
+    torque = (
+        s * p.K_coulomb
+        + eff.viscous_friction * w0
+        + p.force_to_torque(eff.load_force)
+        + eff.aero_drag * p.ratio**3 * w0 * abs(w0)
+    )
+    return p.R_m * torque / p.K_T + p.K_v * w0
+
+
 def simulate_voltage(
     p: VehicleParams,
     eff: Effects,
@@ -315,11 +338,14 @@ def simulate_voltage(
     v0: float = 0.0,
     t_hist: Array | None = None,
     u_hist: Array | None = None,
+    v_pre: float = 0.0,
 ) -> VoltagePrediction:
     """Fast free run of the plant model on a log's input (``u[k]`` from ``t[k]``).
 
     ``t_hist``/``u_hist``: commands issued before ``t[0]`` (a chunk's history), which
-    still act after ``t[0]`` when there is an input delay.
+    still act after ``t[0]`` when there is an input delay.  ``v_pre``: the motor
+    voltage (V) until the first known command acts; 0 as in a plant started by
+    :func:`truckd.sim.plant.simulate_open_loop`, see :func:`prelog_voltage` for a log.
     """
     n = len(t)
     hist = 0 if t_hist is None or u_hist is None else len(t_hist)
@@ -338,7 +364,7 @@ def simulate_voltage(
     kin = Kinetics(
         a=a,
         b=b,
-        a_idle=0.0,
+        a_idle=kappa * p.K_T / p.J_S * v_pre / p.R_m,
         b_idle=kappa * (p.K_T * p.K_v / p.R_m + eff.viscous_friction) / p.J_S,
         c=kappa * p.K_coulomb / p.J_S,
         sigma=kappa * p.K_stiction / p.J_S,
@@ -353,13 +379,13 @@ def simulate_voltage(
     # Active command at each sample instant (for the quasi-static current).
     act = t_cmd + eff.input_delay
     idx = np.searchsorted(act, t, "left") - 1
-    v_at = np.where(idx >= 0, volts[np.maximum(idx, 0)], 0.0)
+    v_at = np.where(idx >= 0, volts[np.maximum(idx, 0)], v_pre)
     r_at = np.where(idx >= 0, r_tot[np.maximum(idx, 0)], p.R_m)
     cur = (v_at - p.K_v * raw) / r_at
     # A command that acted just before the sample: the current is still settling.
     prev = idx - 1
     since = np.where(idx >= 0, t - act[np.maximum(idx, 0)], np.inf)
-    v_old = np.where(prev >= 0, volts[np.maximum(prev, 0)], 0.0)
+    v_old = np.where(prev >= 0, volts[np.maximum(prev, 0)], v_pre)
     r_old = np.where(prev >= 0, r_tot[np.maximum(prev, 0)], p.R_m)
     cur_old = (v_old - p.K_v * raw) / r_old
     cur = cur + (cur_old - cur) * np.exp(-since * r_at / p.L_m)

@@ -24,7 +24,7 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from truckd.ident.data import Series, initial_speed, noise_std
-from truckd.ident.fastsim import simulate_voltage
+from truckd.ident.fastsim import VoltagePrediction, prelog_voltage, simulate_voltage
 from truckd.model.effects import Effects
 from truckd.model.params import VehicleParams
 
@@ -120,11 +120,20 @@ def weights_for(data: Sequence[Series]) -> Weights:
     return Weights(v=1.0 / sv)
 
 
+def predict(p: VehicleParams, e: Effects, s: Series) -> VoltagePrediction:
+    """Free run of the model over ``s`` from its measured start (speed, and current when
+    logged: it tells which voltage acts before the log's first command does)."""
+    v0 = initial_speed(s.v)
+    i0 = None if s.i is None else float(s.i[0])
+    v_pre = prelog_voltage(p, e, p.omega(v0), i0)
+    return simulate_voltage(p, e, s.t, s.inp, v0, s.hist_t, s.hist_inp, v_pre)
+
+
 def residuals(p: VehicleParams, e: Effects, data: Sequence[Series], w: Weights) -> Array:
     """Weighted free-run residuals (speed, then current when weighted) of all chunks."""
     parts = []
     for s in data:
-        pred = simulate_voltage(p, e, s.t, s.inp, initial_speed(s.v), s.hist_t, s.hist_inp)
+        pred = predict(p, e, s)
         parts.append((s.v - pred.v) * w.v)
         if w.i and s.i is not None:
             parts.append((s.i[1:] - pred.i[1:]) * w.i)
@@ -134,7 +143,7 @@ def residuals(p: VehicleParams, e: Effects, data: Sequence[Series], w: Weights) 
 
 def speed_fit(p: VehicleParams, e: Effects, s: Series) -> tuple[float, float, Array]:
     """``(fit_percent, rmse (m/s), simulated speed)`` of a free run over ``s``."""
-    pred = simulate_voltage(p, e, s.t, s.inp, initial_speed(s.v), s.hist_t, s.hist_inp)
+    pred = predict(p, e, s)
     return fit_percent(s.v, pred.v), rmse(s.v, pred.v), pred.v
 
 
