@@ -211,6 +211,21 @@ def fit(
     return FitResult(p, e, float(r @ r), len(r), nfev)
 
 
+def _coarse_then_fine(
+    g: Sequence[float], cost: Callable[[float], float], coarse: int, fine: int
+) -> None:
+    """Evaluate ``cost`` on a sorted grid: at most ``coarse`` evenly spread points, then up
+    to ``fine`` points between the best one's coarse neighbours (the caller keeps the costs).
+    """
+    idx = np.unique(np.linspace(0, len(g) - 1, min(coarse, len(g))).round().astype(int))
+    costs = [cost(g[k]) for k in idx]
+    j = int(np.argmin(costs))
+    lo = int(idx[max(j - 1, 0)])
+    hi = int(idx[min(j + 1, len(idx) - 1)])
+    for k in np.unique(np.linspace(lo, hi, min(fine, hi - lo + 1)).round().astype(int)):
+        cost(g[k])
+
+
 def scan(
     p: VehicleParams,
     e: Effects,
@@ -237,13 +252,7 @@ def scan(
     g = [float(v) for v in values]
     if not g:
         return float(getattr(e, name)), float("inf")
-    idx = np.unique(np.linspace(0, len(g) - 1, min(coarse, len(g))).round().astype(int))
-    costs = [cost(g[k]) for k in idx]
-    j = int(np.argmin(costs))
-    lo = int(idx[max(j - 1, 0)])
-    hi = int(idx[min(j + 1, len(idx) - 1)])
-    for k in np.unique(np.linspace(lo, hi, min(fine, hi - lo + 1)).round().astype(int)):
-        cost(g[k])
+    _coarse_then_fine(g, cost, coarse, fine)
     best = min(cache, key=lambda v: cache[v])
     return best, cache[best]
 
@@ -284,14 +293,7 @@ def scan_stiction(
             cache[ks] = float(r @ r)
         return cache[ks]
 
-    g = np.asarray(grid, float) * (p.K_T / p.R_m)
-    idx = np.unique(np.linspace(0, len(g) - 1, min(coarse, len(g))).round().astype(int))
-    costs = [cost(g[k]) for k in idx]
-    j = int(np.argmin(costs))
-    lo = int(idx[max(j - 1, 0)])
-    hi = int(idx[min(j + 1, len(idx) - 1)])
-    for k in np.unique(np.linspace(lo, hi, min(fine, hi - lo + 1)).round().astype(int)):
-        cost(g[k])
+    _coarse_then_fine([float(v) * (p.K_T / p.R_m) for v in grid], cost, coarse, fine)
     cost(p.K_stiction)
     low = min(cache.values())
     # Where the data cannot tell (no command level in between), keep the value closest
