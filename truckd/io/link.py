@@ -222,3 +222,15 @@ class FramedStreamLink(Link):
             self._down(exc)
             return False
         return True
+
+    def recv_raw(self, timeout: float = 0.0) -> bytes:
+        """Raw received bytes, unframed (for a peer that runs its own deframer, e.g. the
+        C firmware core); b"" when none or while disconnected."""
+        if not self._ensure():
+            self._idle(timeout)
+            return b""
+        try:
+            return self._read_bytes(timeout)
+        except LinkDownError as exc:
+            self._down(exc)
+            return b""

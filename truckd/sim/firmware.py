@@ -1,19 +1,25 @@
-"""The simulated microcontroller: the real protocol on top of the simulated plant.
+"""The simulated microcontroller: the C firmware core on top of the simulated plant.
 
-:class:`SimulatedFirmware` does what the real firmware does, in simulated time driven by
-:meth:`SimulatedFirmware.step`:
+The firmware logic is the microcontroller's own code, ``firmware_protocol/firmware/``
+(C99), loaded through ctypes (:mod:`firmware_protocol.fwcore`).  :class:`SimulatedFirmware`
+is its board: the hardware abstraction layer on the simulated plant (encoders from the
+plant position, current and battery from ``plant.measure()``, range from ``range_fn``,
+the motor voltage into ``plant.command``), a millisecond clock from the plant's time, and
+the link.  In simulated time driven by :meth:`SimulatedFirmware.step`, the C core:
 
-- applies every valid ``MOTOR_CMD`` (checksum, counter, length checked; voltage clamped
-  to the measured battery voltage; ``ENABLE`` 0 = motor off) at the start of the step;
+- applies every valid ``MOTOR_CMD`` (checksum, counter, length, value range checked;
+  voltage clamped to the measured battery voltage; ``ENABLE`` 0 = motor off) at the
+  start of the step;
 - switches the motor off when no valid command arrived for ``cmd_timeout`` (100 ms),
   sets ``CMD_TIMEOUT`` in its heartbeat and enters ``FAILSAFE``; the next valid command
   drives again (the bit stays set until one heartbeat has reported it);
 - publishes each sensor message when its period (truck.dbc) is due, with counters and
-  checksums, splitting the plant step at each due time.
+  checksums; the plant step is split at each due time and at the timeout instant.
 
-Run-time fault injection (:class:`FaultInjector`, or :meth:`SimulatedFirmware.apply_fault`
-with a JSON-style dict): drop messages, freeze a sensor value, corrupt checksums, break
-(freeze) counters, inject garbage bytes/frames, go silent, disconnect and come back.
+Run-time fault injection (:meth:`SimulatedFirmware.apply_fault` with a JSON-style dict):
+drop messages, freeze a message's values, corrupt checksums, break (freeze) counters and
+go silent are the C core's test hooks; garbage bytes/frames and disconnect-and-come-back
+happen here, on the link.
 
 ``range_fn(t, ego_x) -> float | None`` gives the true gap to the lead (m) at time t (s)
 for the ego position ego_x (m); None means no target in range.
@@ -27,23 +33,21 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
-from firmware_protocol.codec import Frame, encode, specs
+from firmware_protocol.codec import Frame
 from firmware_protocol.framing import MAX_PAYLOAD
-from firmware_protocol.messages import (
-    FirmwareFault,
-    FirmwareHeartbeat,
-    FirmwareState,
-    Message,
-    MotorCommand,
-    MotorFeedback,
-    RangeReading,
-    RangeStatus,
-    WheelEncoders,
+from firmware_protocol.fwcore import (
+    RANGE_NO_TARGET,
+    RANGE_VALID,
+    TX_BAD_CHECKSUM,
+    TX_FREEZE,
+    TX_STUCK_COUNTER,
+    CoreConfig,
+    FirmwareCore,
 )
+from firmware_protocol.messages import FirmwareFault, FirmwareState, MotorCommand
 from truckd.config.schema import spec
 from truckd.io.inproc import Wire, inproc_pair
 from truckd.io.link import FramedStreamLink, Link
-from truckd.io.port import firmware_port
 from truckd.sim.plant import Plant
 
 RangeFn = Callable[[float, float], float | None]
@@ -53,6 +57,7 @@ PUBLISHED = ("WHEEL_ENCODERS", "MOTOR_FEEDBACK", "RANGE", "FIRMWARE_HEARTBEAT")
 """Messages the firmware publishes, in the order it sends them when due together."""
 
 _EPS = 1e-9
+_MS_EPS = 1e-6  # ms: plant times a float rounding below a whole millisecond count as it
 
 
 @dataclass(frozen=True)
@@ -82,14 +87,8 @@ class FirmwareSimConfig:
 
 @dataclass
 class FaultInjector:
-    """Faults switchable at run time (see :meth:`SimulatedFirmware.apply_fault`).
-
-    ``drop[name]``: frames of ``name`` still to drop (-1 = until cleared); ``freeze``:
-    messages whose values stay at the last sent ones; ``bad_checksum``: messages sent
-    with a wrong CHECKSUM; ``stuck_counter``: messages whose COUNTER stops advancing;
-    ``garbage``: random bytes (stream links) or random frames (frame links) still to
-    send; ``silent``: send nothing.
-    """
+    """Faults switched on now (a mirror of what :meth:`SimulatedFirmware.apply_fault` set;
+    drop counts are counted down in the C core, see ``stats.frames_dropped``)."""
 
     drop: dict[str, int] = field(default_factory=dict)
     freeze: set[str] = field(default_factory=set)
@@ -119,11 +118,18 @@ class FirmwareStats:
     garbage_sent: int = 0
 
 
-class SimulatedFirmware:
-    """Microcontroller emulator (see module docstring).
+def _mv(volts: float) -> int:
+    """V -> mV, non-finite as 0 (an ADC never reads NaN)."""
+    return round(volts * 1000.0) if math.isfinite(volts) else 0
 
-    ``link`` is the firmware's end of the link; ``unplug``/``replug`` are called for the
-    disconnect fault (e.g. an in-process :class:`~truckd.io.inproc.Wire`'s methods).
+
+class SimulatedFirmware:
+    """The C firmware core on the simulated plant (see module docstring).
+
+    ``link`` is the firmware's end of the link: a byte-stream link
+    (:class:`~truckd.io.link.FramedStreamLink`: serial framing, done by the C core) or a
+    frame link (CAN); ``unplug``/``replug`` are called for the disconnect fault (e.g. an
+    in-process :class:`~truckd.io.inproc.Wire`'s methods).
     """
 
     def __init__(
@@ -139,189 +145,162 @@ class SimulatedFirmware:
         self.range_fn = range_fn
         self.link = link
         self.cfg = config or FirmwareSimConfig()
-        self.port = firmware_port(link, clock=lambda: self.plant.t)
         self.faults = FaultInjector()
-        self.stats = FirmwareStats()
+        self._garbage_sent = 0
         self._unplug = unplug
         self._replug = replug
         self._replug_at: float | None = None
         self._rng = random.Random(self.cfg.seed)
         self._t0 = plant.t
-        p = plant.p
-        self._ticks_per_m = self.cfg.ticks_per_rev / (2.0 * math.pi * p.r_w)
-        s = specs()
-        self._period = {n: s[n].period for n in PUBLISHED}
-        self._n_sent = dict.fromkeys(PUBLISHED, 0)
-        self._counter = dict.fromkeys(PUBLISHED, 0)
-        self._last: dict[str, Message] = {}
+        self._ticks_per_m = self.cfg.ticks_per_rev / (2.0 * math.pi * plant.p.r_w)
+        self._stream = isinstance(link, FramedStreamLink)
+        self._reconnects = link.stats.reconnects
         self.voltage = 0.0
         """Voltage (V) the firmware commands the driver now."""
         self.enabled = False
-        self.last_command: MotorCommand | None = None
-        """The last valid command received (as sent: before clamping)."""
-        self._last_cmd: float | None = None
-        self._timed_out = False
-        self._sticky = FirmwareFault.NONE
-        self._crc_seen = 0
-        self._cnt_seen = 0
-        plant.command(0.0)
+        c = self.cfg
+        self.core = FirmwareCore(
+            self,
+            CoreConfig(
+                link="serial" if self._stream else "can",
+                cmd_timeout_ms=max(1, round(c.cmd_timeout * 1000.0)),
+                undervoltage_mv=_mv(c.undervoltage),
+                range_min_mm=round(c.range_min * 1000.0),
+                range_max_mm=round(c.range_max * 1000.0),
+            ),
+        )
+        """The C firmware (:class:`~firmware_protocol.fwcore.FirmwareCore`)."""
 
-    # -- state ---------------------------------------------------------------------
+    # -- the HAL (called back from C) ----------------------------------------------------
+    def read_encoders(self) -> tuple[int, int, int]:
+        """Both wheels from the plant position (the plant has one wheel speed)."""
+        ticks = math.floor(self.plant.x * self._ticks_per_m) & 0xFFFF
+        return ticks, ticks, 0
+
+    def read_power(self) -> tuple[int, int, int]:
+        """Plant current, battery and applied voltage, in mA and mV."""
+        m = self.plant.measure()
+        return _mv(m.i), _mv(m.vbat), _mv(m.u_applied)
+
+    def read_range(self) -> tuple[int, int]:
+        """``range_fn`` at the plant's time and position (+ noise), in mm."""
+        gap = self.range_fn(self.t, self.plant.x)
+        if gap is None or not math.isfinite(gap) or gap > self.cfg.range_max:
+            return RANGE_NO_TARGET, 0
+        if self.cfg.range_noise:
+            gap += self._rng.gauss(0.0, self.cfg.range_noise)
+        return RANGE_VALID, round(max(gap, -1e6) * 1000.0)
+
+    def set_motor(self, voltage_mv: int, enable: bool) -> None:
+        """The driver: the plant gets the voltage (0 V when disabled: braking)."""
+        self.voltage = voltage_mv / 1000.0 if enable else 0.0
+        self.enabled = enable
+        self.plant.command(self.voltage)
+
+    def send_bytes(self, data: bytes) -> bool:
+        """Serial wire bytes from the core."""
+        assert isinstance(self.link, FramedStreamLink)
+        return self.link.send_raw(data)
+
+    def send_frame(self, can_id: int, data: bytes) -> bool:
+        """A CAN frame from the core."""
+        return self.link.send(Frame(can_id, data))
+
+    # -- state ---------------------------------------------------------------------------
     @property
     def t(self) -> float:
         """Firmware/plant time, s."""
         return self.plant.t
 
+    def _sync_clock(self) -> None:
+        self.core.now_ms = math.floor((self.plant.t - self._t0) * 1000.0 + _MS_EPS)
+
     @property
     def state(self) -> FirmwareState:
         """IDLE before the first valid command or while disabled, FAILSAFE when timed out."""
-        if self._last_cmd is None:
-            return FirmwareState.IDLE
-        if self._timed_out:
-            return FirmwareState.FAILSAFE
-        return FirmwareState.ACTIVE if self.enabled else FirmwareState.IDLE
-
-    def _cmd_errors(self) -> int:
-        st = self.port.checker.stats
-        return st.checksum_errors + st.length_errors + st.counter_errors + st.payload_errors
+        return FirmwareState(self.core.state)
 
     def fault_bits(self) -> FirmwareFault:
         """Fault bits the next heartbeat reports."""
-        bits = self._sticky
-        if self._timed_out or (self._last_cmd is None and self.t - self._t0 > self.cfg.cmd_timeout):
-            bits |= FirmwareFault.CMD_TIMEOUT
-        if not self.port.checker.fresh("COMPANION_HEARTBEAT", self.t):
-            bits |= FirmwareFault.COMPANION_TIMEOUT
-        if self.plant.measure().vbat < self.cfg.undervoltage:
-            bits |= FirmwareFault.UNDERVOLTAGE
-        return bits
+        self._sync_clock()
+        return FirmwareFault(self.core.fault_bits())
 
-    # -- commands ------------------------------------------------------------------
-    def _set_motor(self, voltage: float, enabled: bool) -> None:
-        self.voltage = voltage
-        self.enabled = enabled
-        self.plant.command(voltage)
+    @property
+    def last_command(self) -> MotorCommand | None:
+        """The last valid command received (as sent: before clamping)."""
+        last = self.core.last_command()
+        return None if last is None else MotorCommand(last[0] / 1000.0, last[1])
 
+    @property
+    def stats(self) -> FirmwareStats:
+        """What the firmware did (from the C core, plus the garbage sent here)."""
+        fw = self.core.stats()["fw"]
+        return FirmwareStats(
+            commands_applied=fw["commands_applied"],
+            cmd_timeouts=fw["cmd_timeouts"],
+            frames_sent=fw["frames_sent"],
+            frames_dropped=fw["frames_dropped"],
+            garbage_sent=self._garbage_sent,
+        )
+
+    def link_stats(self) -> dict[str, int | bool]:
+        """The firmware end's counters, flat (like ``Port.stats()``): the link's, the C
+        core's receive checks (``rx_*``) and, on serial, its deframer (``framing_*``)."""
+        self._sync_clock()
+        self.core.rx_fresh("MOTOR_CMD")  # counts a pending timeout
+        self.core.rx_fresh("COMPANION_HEARTBEAT")
+        st = self.core.stats()
+        d: dict[str, int | bool] = {"connected": self.link.connected}
+        d.update({k: v for k, v in self.link.stats.as_dict().items() if k[:8] != "framing_"})
+        d.update({f"rx_{k}": v for k, v in st["rx"].items()})
+        if self._stream:
+            d.update({f"framing_{k}": v for k, v in st["framing"].items()})
+        return d
+
+    # -- stepping ------------------------------------------------------------------------
     def _receive(self) -> None:
-        st = self.port.checker.stats
-        for r in self.port.poll():
-            if isinstance(r.msg, MotorCommand):
-                v = r.msg.voltage
-                limit = self.plant.measure().vbat
-                if not math.isfinite(v):
-                    v = 0.0
-                if abs(v) > limit:
-                    self._sticky |= FirmwareFault.CMD_INVALID
-                    v = math.copysign(limit, v)
-                self._set_motor(v if r.msg.enable else 0.0, r.msg.enable)
-                self.last_command = r.msg
-                self._last_cmd = r.t
-                self._timed_out = False
-                self.stats.commands_applied += 1
-        if st.checksum_errors or st.length_errors or st.payload_errors:
-            n = st.checksum_errors + st.length_errors + st.payload_errors
-            if n != self._crc_seen:
-                self._sticky |= FirmwareFault.CMD_CHECKSUM
-                self._crc_seen = n
-        if st.counter_errors + st.counter_gaps != self._cnt_seen:
-            self._sticky |= FirmwareFault.CMD_COUNTER
-            self._cnt_seen = st.counter_errors + st.counter_gaps
-
-    def _timeout_at(self) -> float:
-        base = self._last_cmd if self._last_cmd is not None else math.inf
-        return base + self.cfg.cmd_timeout
-
-    def _check_timeout(self) -> None:
-        if (
-            not self._timed_out
-            and self._last_cmd is not None
-            and (self.t >= self._timeout_at() - _EPS)
-        ):
-            self._timed_out = True
-            self._sticky |= FirmwareFault.CMD_TIMEOUT
-            self.stats.cmd_timeouts += 1
-            self._set_motor(0.0, False)
-
-    # -- stepping ------------------------------------------------------------------
-    def _next_due(self, name: str) -> float:
-        return self._t0 + self._n_sent[name] * self._period[name]
+        self._sync_clock()
+        link = self.link
+        if isinstance(link, FramedStreamLink):
+            data = link.recv_raw(0.0)
+            if link.stats.reconnects != self._reconnects:
+                self._reconnects = link.stats.reconnects
+                self.core.link_reset()  # a partial frame from before the outage is gone
+            self.core.rx_bytes(data)
+            return
+        while (frame := link.recv(0.0)) is not None:
+            self.core.rx_frame(frame.can_id, frame.data)
 
     def step(self, dt: float) -> None:
         """Advance ``dt`` s (> 0): apply received commands, run the plant, publish."""
         if not dt > 0.0 or not math.isfinite(dt):
             raise ValueError(f"firmware step must be positive and finite, got {dt!r}")
-        t_end = self.t + dt
+        plant = self.plant
+        t_end = plant.t + dt
         self._receive()
-        self._check_timeout()
-        self._publish_due()
-        while self.t < t_end - _EPS:
-            nxt = min(min(self._next_due(n) for n in PUBLISHED), t_end)
-            if not self._timed_out:
-                nxt = min(nxt, max(self._timeout_at(), self.t))
+        self._poll()
+        while plant.t < t_end - _EPS:
+            nxt = min(self._t0 + self.core.next_event() / 1000.0, t_end)
             if self._replug_at is not None:
-                nxt = min(nxt, max(self._replug_at, self.t))
-            if nxt > self.t + _EPS:
-                self.plant.advance(nxt - self.t)
+                nxt = min(nxt, max(self._replug_at, plant.t))
+            if nxt > plant.t + _EPS:
+                plant.advance(nxt - plant.t)
             else:  # defensive: never spin on an event that is already handled
-                self.plant.advance(t_end - self.t)
-            self._check_timeout()
+                plant.advance(t_end - plant.t)
             self._check_replug()
-            self._publish_due()
+            self._poll()
+
+    def _poll(self) -> None:
+        self._sync_clock()
+        self.core.poll()
+        if self.faults.garbage > 0 and not self.faults.silent:
+            self._send_garbage()
 
     def _check_replug(self) -> None:
         if self._replug_at is not None and self.t >= self._replug_at - _EPS:
             self._replug_at = None
             if self._replug is not None:
                 self._replug()
-
-    def _publish_due(self) -> None:
-        for name in PUBLISHED:
-            while self._next_due(name) <= self.t + _EPS:
-                self._n_sent[name] += 1
-                self._publish(name)
-        if self.faults.garbage > 0 and not self.faults.silent:
-            self._send_garbage()
-
-    # -- messages ------------------------------------------------------------------
-    def _make(self, name: str) -> Message:
-        t = self.t
-        if name == "WHEEL_ENCODERS":
-            ticks = math.floor(self.plant.x * self._ticks_per_m)
-            return WheelEncoders(ticks, ticks, t - self._t0, 0)
-        if name == "MOTOR_FEEDBACK":
-            m = self.plant.measure()
-            return MotorFeedback(m.i, m.vbat, m.u_applied, int(self.enabled))
-        if name == "RANGE":
-            gap = self.range_fn(t, self.plant.x)
-            if gap is None or not math.isfinite(gap) or gap > self.cfg.range_max:
-                return RangeReading(0.0, RangeStatus.NO_TARGET, t - self._t0)
-            if self.cfg.range_noise:
-                gap += self._rng.gauss(0.0, self.cfg.range_noise)
-            return RangeReading(max(gap, self.cfg.range_min), RangeStatus.VALID, t - self._t0)
-        bits = self.fault_bits()
-        self._sticky = FirmwareFault.NONE
-        return FirmwareHeartbeat(self.state, bits, self._cmd_errors())
-
-    def _publish(self, name: str) -> None:
-        f = self.faults
-        msg = self._last[name] if name in f.freeze and name in self._last else self._make(name)
-        self._last[name] = msg
-        counter = self._counter[name]
-        if name not in f.stuck_counter:
-            self._counter[name] = (counter + 1) & 0xF
-        if f.silent:
-            return
-        left = f.drop.get(name, 0)
-        if left != 0:
-            if left > 0:
-                f.drop[name] = left - 1
-            self.stats.frames_dropped += 1
-            return
-        frame = encode(msg, counter)
-        if name in f.bad_checksum:
-            frame = Frame(frame.can_id, frame.data[:-1] + bytes((frame.data[-1] ^ 0xA5,)))
-        if self.link.send(frame):
-            self.stats.frames_sent += 1
 
     def _send_garbage(self) -> None:
         n = self.faults.garbage
@@ -333,15 +312,24 @@ class SimulatedFirmware:
             for _ in range(n):
                 data = bytes(rng.randrange(256) for _ in range(rng.randrange(MAX_PAYLOAD + 1)))
                 self.link.send(Frame(rng.randrange(0x800), data))
-        self.stats.garbage_sent += n
+        self._garbage_sent += n
 
-    # -- faults --------------------------------------------------------------------
+    # -- faults --------------------------------------------------------------------------
     def disconnect(self, duration: float) -> None:
         """Unplug now and plug back in after ``duration`` s of simulated time."""
         if self._unplug is None:
             raise ValueError("this firmware has no unplug hook for the disconnect fault")
         self._unplug()
         self._replug_at = self.t + max(duration, 0.0)
+
+    def _push_tx_faults(self, name: str) -> None:
+        f = self.faults
+        bits = (
+            (TX_FREEZE if name in f.freeze else 0)
+            | (TX_BAD_CHECKSUM if name in f.bad_checksum else 0)
+            | (TX_STUCK_COUNTER if name in f.stuck_counter else 0)
+        )
+        self.core.set_tx_fault(name, bits)
 
     def apply_fault(self, cmd: Mapping[str, Any]) -> None:
         """Switch a fault from a JSON-style command; ValueError when malformed.
@@ -356,9 +344,11 @@ class SimulatedFirmware:
         f = self.faults
         if kind == "clear":
             f.clear()
+            self.core.clear_faults()
             return
         if kind == "silent":
             f.silent = bool(cmd.get("on", True))
+            self.core.set_silent(f.silent)
             return
         if kind == "garbage":
             n = cmd.get("bytes", 64)
@@ -382,15 +372,17 @@ class SimulatedFirmware:
             raise ValueError(f"{kind}: 'message' must be one of {PUBLISHED}, got {name!r}")
         if kind == "drop":
             count = cmd.get("count", -1)
-            if not isinstance(count, int) or isinstance(count, bool) or count < -1:
+            if not isinstance(count, int) or isinstance(count, bool) or not -1 <= count < 2**31:
                 raise ValueError(f"drop: 'count' must be an integer >= -1, got {count!r}")
             f.drop[name] = count
+            self.core.set_drop(name, count)
             return
         sets = {"freeze": f.freeze, "checksum": f.bad_checksum, "counter": f.stuck_counter}
         if cmd.get("on", True):
             sets[kind].add(name)
         else:
             sets[kind].discard(name)
+        self._push_tx_faults(name)
 
 
 def constant_speed_lead(gap0: float, v_lead: float) -> RangeFn:

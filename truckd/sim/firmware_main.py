@@ -96,7 +96,7 @@ def _handle(fw: SimulatedFirmware, cmd: Any) -> tuple[dict[str, Any], bool]:
     if what == "stop":
         return {"ok": True}, True
     if what == "status":
-        st = fw.port.stats()
+        st = fw.link_stats()
         last = fw.last_command
         return {
             "ok": True,
