@@ -45,6 +45,8 @@ class CanLink(Link):
         kwargs: dict[str, Any] = {"interface": self.interface, "channel": self.channel}
         if self.interface != "virtual":
             kwargs["bitrate"] = self.bitrate
+        if self.interface == "slcan":
+            kwargs["sleep_after_open"] = 0.0  # CANable/USBtin do not reset when opened
         try:
             self._bus = can.Bus(**kwargs)
         except (can.CanError, OSError, ValueError) as exc:
@@ -84,6 +86,10 @@ class CanLink(Link):
                 msg = self._bus.recv(wait)
             except (can.CanOperationError, OSError) as exc:
                 raise LinkDownError(f"CAN {self.channel}: {exc}") from None
+            except (ValueError, IndexError):  # a garbled line from a serial-line adapter
+                self.stats.bus_errors += 1
+                wait = 0.0
+                continue
             if msg is None:
                 return out
             wait = 0.0

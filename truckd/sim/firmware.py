@@ -306,8 +306,11 @@ class SimulatedFirmware:
         n = self.faults.garbage
         self.faults.garbage = 0
         rng = self._rng
+        line_garbage = getattr(self.link, "send_garbage", None)  # e.g. an slcan adapter
         if isinstance(self.link, FramedStreamLink):
             self.link.send_raw(bytes(rng.randrange(256) for _ in range(n)))
+        elif callable(line_garbage):
+            line_garbage(rng, n)
         else:
             for _ in range(n):
                 data = bytes(rng.randrange(256) for _ in range(rng.randrange(MAX_PAYLOAD + 1)))

@@ -2,17 +2,20 @@
 
 Usage::
 
-    python -m truckd.sim.firmware_main --pty PATH [--config FILE] [--scenario NAME]
-        [--lead-gap M] [--lead-speed M/S] [--lead MODULE:FACTORY [--lead-arg STR]]
-        [--no-lead] [--control-port N] [--duration S] [--tick S]
+    python -m truckd.sim.firmware_main --pty PATH [--link serial|slcan] [--config FILE]
+        [--scenario NAME] [--lead-gap M] [--lead-speed M/S]
+        [--lead MODULE:FACTORY [--lead-arg STR]] [--no-lead] [--control-port N]
+        [--duration S] [--tick S]
 
 It creates a pty whose slave is reachable at PATH (a symlink; the daemon opens it as its
-serial device), prints one JSON line ``{"ready": true, "device": PATH, "control_port": N,
-"pid": P}`` on stdout, then runs the plant and firmware in real time.  The lead is the
-built-in constant-speed lead (``--lead-gap``, ``--lead-speed``) or
-a scenario of :mod:`truckd.sim.scenarios` (``--scenario NAME``: its lead, sensor view and
-initial ego speed, with t = 0 at process start), or ``FACTORY(arg: str) -> range_fn``
-imported from MODULE (any other hook).
+serial device; with ``--link slcan`` it is a simulated CANable-style slcan adapter that
+the daemon opens with python-can ``interface="slcan"``, and the C firmware core speaks
+CAN frames instead of COBS serial frames), prints one JSON line ``{"ready": true,
+"device": PATH, "control_port": N, "pid": P}`` on stdout, then runs the plant and
+firmware in real time.  The lead is the built-in constant-speed lead (``--lead-gap``,
+``--lead-speed``) or a scenario of :mod:`truckd.sim.scenarios` (``--scenario NAME``: its
+lead, sensor view and initial ego speed, with t = 0 at process start), or
+``FACTORY(arg: str) -> range_fn`` imported from MODULE (any other hook).
 
 Faults are switched at run time with JSON datagrams to ``127.0.0.1:control_port`` (UDP):
 any :meth:`SimulatedFirmware.apply_fault` command, ``{"cmd": "lead", "gap": M,
@@ -47,6 +50,7 @@ from truckd.sim.firmware import (
 )
 from truckd.sim.plant import Plant
 from truckd.sim.pty_link import PtyDevice
+from truckd.sim.slcan_peer import SlcanDevice
 
 
 def _no_lead(t: float, x: float) -> float | None:
@@ -132,6 +136,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         prog="python -m truckd.sim.firmware_main", description=__doc__.split("\n")[0]
     )
     ap.add_argument("--pty", required=True, help="path of the symlink to the pty slave")
+    ap.add_argument(
+        "--link",
+        choices=("serial", "slcan"),
+        default="serial",
+        help="serial: COBS frames on the pty; slcan: CAN frames through a simulated adapter",
+    )
     ap.add_argument("--config", default=None, help="truck.yaml (default: the shipped one)")
     ap.add_argument("--scenario", default=None, help="lead of a truckd sim scenario")
     ap.add_argument("--lead-gap", type=float, default=2.0, help="built-in lead: start gap, m")
@@ -167,7 +177,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             cfg.plant.encoder_ticks_per_rev, cfg.link.encoder_ticks_per_rev
         )
     )
-    dev = PtyDevice(args.pty, clock=lambda: plant.t)
+    dev: PtyDevice | SlcanDevice
+    if args.link == "slcan":
+        dev = SlcanDevice(args.pty, clock=lambda: plant.t)
+    else:
+        dev = PtyDevice(args.pty, clock=lambda: plant.t)
     fw = SimulatedFirmware(plant, range_fn, dev, fw_cfg, dev.unplug, dev.replug)
     ctl = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     ctl.bind(("127.0.0.1", args.control_port))
