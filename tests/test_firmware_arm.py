@@ -1,0 +1,45 @@
+"""The Cortex-M4 build of the firmware core and the STM32F4 board example:
+`make -C firmware_protocol/firmware arm` with arm-none-eabi-gcc (warnings are errors).
+A missing toolchain fails this test with the install command (never a skip)."""
+
+from __future__ import annotations
+
+import re
+import shutil
+import subprocess
+from pathlib import Path
+
+from firmware_protocol.fwcore import FIRMWARE_DIR
+
+INSTALL = "apt-get update && apt-get install -y gcc-arm-none-eabi libnewlib-arm-none-eabi"
+
+
+def test_arm_build_compiles_and_fits(tmp_path: Path) -> None:
+    assert shutil.which("arm-none-eabi-gcc"), f"arm-none-eabi-gcc missing; install: {INSTALL}"
+    res = subprocess.run(
+        ["make", "-s", "-C", str(FIRMWARE_DIR), f"BUILD={tmp_path}", "arm"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+    )
+    assert res.returncode == 0, res.stdout + res.stderr
+    sizes = re.findall(r"(truck_fw\w*\.elf): flash (\d+) bytes .*?, RAM (\d+) bytes", res.stdout)
+    assert {s[0] for s in sizes} == {"truck_fw.elf", "truck_fw_can.elf"}, res.stdout
+    for _, flash, ram in sizes:
+        # an STM32F407 has 1 MiB flash and 128 KiB RAM; the core is meant to be small
+        assert 1000 < int(flash) < 32 * 1024 and 4096 < int(ram) < 16 * 1024, res.stdout
+    elf = tmp_path / "stm32f4" / "truck_fw.elf"
+    head = elf.read_bytes()[:20]
+    assert head[:4] == b"\x7fELF" and head[18] == 40  # e_machine EM_ARM
+
+
+def test_missing_toolchain_is_an_error_naming_the_install(tmp_path: Path) -> None:
+    res = subprocess.run(
+        ["make", "-s", "-C", str(FIRMWARE_DIR), f"BUILD={tmp_path}", "ARM_PREFIX=no-such-", "arm"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    assert res.returncode != 0 and "apt-get install -y gcc-arm-none-eabi" in res.stderr
