@@ -3,9 +3,12 @@
 :func:`load_library` builds ``libtruckfw.so`` with ``make -C firmware_protocol/firmware
 host`` when it is missing or older than its sources (under a file lock, so concurrent
 processes build it once) and loads it.  ``TRUCKD_FW_LIB`` names a prebuilt library
-instead.  :class:`FirmwareCore` is one firmware instance; its hardware is a Python
-object implementing :class:`CoreHal` (the simulated plant, see
-:mod:`truckd.sim.firmware`), called back from C.  Units are the HAL's: mV, mA, mm,
+instead; ``TRUCKD_FW_BUILD_DIR`` another build directory (default
+``firmware_protocol/firmware/build``, or the user's cache when that is not writable).
+
+:class:`FirmwareCore` is one firmware instance; its hardware is a Python object
+implementing :class:`CoreHal` (the simulated plant, see :mod:`truckd.sim.firmware`),
+called back from C.  Units are the HAL's: mV, mA, mm,
 ticks, ms.  The clock is :attr:`FirmwareCore.now_ms`, set by the caller.
 
 An exception raised in a HAL callback cannot cross C: it is kept and re-raised when the
@@ -180,6 +183,9 @@ def _sources() -> list[Path]:
 
 
 def _build_dir() -> Path:
+    override = os.environ.get("TRUCKD_FW_BUILD_DIR")
+    if override:
+        return Path(override)
     local = FIRMWARE_DIR / "build"
     if os.access(FIRMWARE_DIR, os.W_OK):
         return local

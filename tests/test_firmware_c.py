@@ -6,9 +6,13 @@ handling, and the fault hooks."""
 
 from __future__ import annotations
 
+import os
 import random
+import subprocess
+import sys
 from collections import Counter
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import pytest
 
@@ -439,3 +443,35 @@ def test_hal_exception_is_raised_after_the_c_call() -> None:
 def test_bad_configuration_refused() -> None:
     with pytest.raises(ValueError, match="cmd_timeout_ms"):
         make(cmd_timeout_ms=0)
+
+
+def _in_fresh_process(env: dict[str, str]) -> subprocess.CompletedProcess[str]:
+    code = (
+        "from firmware_protocol.fwcore import FirmwareCore, FirmwareBuildError\n"
+        "from test_firmware_c import Hal\n"
+        "try:\n"
+        "    core = FirmwareCore(Hal())\n"
+        "except FirmwareBuildError as exc:\n"
+        "    raise SystemExit(f'build error: {exc}')\n"
+        "core.poll()\n"
+        "print(core.stats()['fw']['frames_sent'])\n"
+    )
+    return subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env=os.environ | {"PYTHONPATH": str(Path(__file__).parent)} | env,
+        check=False,
+    )
+
+
+def test_library_is_built_on_first_use(tmp_path: Path) -> None:
+    res = _in_fresh_process({"TRUCKD_FW_BUILD_DIR": str(tmp_path / "b")})
+    assert res.returncode == 0 and res.stdout.strip() == "4", res.stderr
+    assert (tmp_path / "b" / "libtruckfw.so").is_file()
+
+
+def test_a_missing_library_is_a_clear_error(tmp_path: Path) -> None:
+    res = _in_fresh_process({"TRUCKD_FW_LIB": str(tmp_path / "nope.so")})
+    assert res.returncode == 1 and "build error: cannot load the C firmware core" in res.stderr
