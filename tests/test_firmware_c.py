@@ -42,7 +42,10 @@ from firmware_protocol.messages import (
     RangeStatus,
     WheelEncoders,
 )
-from truckd.io.port import FIRMWARE_RX
+from truckd.io.port import FIRMWARE_RX, companion_port
+from truckd.model.params import VehicleParams
+from truckd.sim.firmware import constant_speed_lead, simulated_truck
+from truckd.sim.plant import Plant
 
 
 @dataclass
@@ -475,3 +478,19 @@ def test_library_is_built_on_first_use(tmp_path: Path) -> None:
 def test_a_missing_library_is_a_clear_error(tmp_path: Path) -> None:
     res = _in_fresh_process({"TRUCKD_FW_LIB": str(tmp_path / "nope.so")})
     assert res.returncode == 1 and "build error: cannot load the C firmware core" in res.stderr
+
+
+def test_the_simulated_truck_runs_the_c_core(params: VehicleParams) -> None:
+    """One firmware behaviour: what truckd sim and the HIL processes drive is the C core."""
+    plant = Plant(params)
+    link, fw, _ = simulated_truck(plant, constant_speed_lead(2.0, 1.0), "bytes")
+    port = companion_port(link, clock=lambda: fw.t)
+    for _ in range(30):
+        port.send(MotorCommand(2.5, True))
+        fw.step(0.01)
+        port.poll()
+    assert isinstance(fw.core, FirmwareCore) and fw.core.config.link == "serial"
+    core = fw.core.stats()
+    assert core["fw"]["commands_applied"] == fw.stats.commands_applied == 30
+    assert core["framing"]["frames_ok"] == 30  # the C deframer read the serial bytes
+    assert fw.core.voltage_mv == 2500 and plant.v > 0.0
