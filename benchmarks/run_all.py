@@ -1,9 +1,9 @@
 """Run every benchmark in turn, each writing ``benchmarks/<name>.json`` beside its script.
 
 ``python benchmarks/run_all.py [NAME ...]``: all of them (about 15 minutes on 2 cores), or
-only the named ones (``plant_bench``, ``protocol_bench``, ``mpc_bench``, ``loop_bench``,
-``diagnose_bench``, ``closed_loop_gain``).  Run them on a quiet machine: every figure is a
-wall-clock measurement.
+only the named ones (``plant_bench``, ``protocol_bench``, ``firmware_bench``,
+``mpc_bench``, ``loop_bench``, ``diagnose_bench``, ``closed_loop_gain``).  Run them on a
+quiet machine: every figure is a wall-clock measurement.
 """
 
 from __future__ import annotations
@@ -16,6 +16,7 @@ HERE = Path(__file__).resolve().parent
 ORDER = (
     "plant_bench",
     "protocol_bench",
+    "firmware_bench",
     "mpc_bench",
     "loop_bench",
     "diagnose_bench",
