@@ -11,6 +11,8 @@ The log time of a message is the time of the cycle that made it, in ns: wall-clo
 appends to a bounded deque (``record_state``/``record_health``/``record_plan``: no JSON, no
 I/O; the oldest message is dropped and counted when full); the CSV recorder's writer thread
 (:class:`truckd.runtime.recorder.Recorder`, which it is a sidecar of) encodes and writes,
+releasing the GIL every ``YIELD_S`` (so the loop thread, waking, waits about that long at
+most, not the interpreter's 5 ms switch interval),
 closes a chunk at least every ``flush_period_s`` (so a SIGKILL loses at most that much: the
 file reads up to its last complete chunk, see :func:`read_mcap`), rotates with the CSV
 (``<csv stem>.mcap`` beside each CSV) and finishes the file (summary, footer) on stop.
@@ -49,6 +51,9 @@ COMPRESSION = {
     "none": CompressionType.NONE,
 }
 """Chunk compression by its configuration name."""
+
+YIELD_S = 200e-6
+"""The writer releases the GIL at least this often while it encodes and writes."""
 
 Extra = Callable[[], Mapping[str, Any]] | None
 """Computed on the writer thread and merged into a health message (costly statistics)."""
@@ -254,6 +259,7 @@ class McapLog:
         with self._lock:
             f = self._file
             origin = self.origin_ns or 0
+            last_yield = time.perf_counter()
             while self._q:
                 try:
                     p = self._q.popleft()
@@ -270,6 +276,10 @@ class McapLog:
                     self.counts[kind] += 1
                 except Exception as exc:  # a bad message must not stop the log
                     self._error("write", exc)
+                now = time.perf_counter()
+                if now - last_yield > YIELD_S:  # let a waking loop thread take the GIL
+                    time.sleep(0)
+                    last_yield = time.perf_counter()
 
     def flush(self, force: bool = False) -> None:
         """Close the chunk in progress when ``flush_period_s`` has passed (or ``force``)."""
