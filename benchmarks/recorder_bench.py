@@ -1,21 +1,23 @@
 """What recording costs the control loop: CSV alone vs CSV + MCAP (docs/foxglove.md).
 
-    .venv/bin/python benchmarks/recorder_bench.py [--seconds 20] [--rate 100] [--json FILE]
+    .venv/bin/python benchmarks/recorder_bench.py [--seconds 20] [--repeats 5] [--json FILE]
 
-A loop paced like the daemon's (absolute deadlines at ``--rate``) does, per cycle, what
-the daemon's outputs do: one CSV row (``Recorder.record``), one state message (the
-daemon's keys), a plan (40-step horizon) every cycle and a health message every 0.5 s
-into the MCAP log (``McapLog``); the recorder's writer thread writes them as in
-``truckd run``.  Three runs: nothing recorded, CSV only, CSV + MCAP.  Per run:
+A loop paced like the daemon's (absolute deadlines at ``--rate``, 100 Hz) spins 1.5 ms of
+Python per cycle (the controller's share of the GIL) and does what the daemon's outputs
+do: one CSV row (``Recorder.record``), one state message (the daemon's keys), a 40-step
+plan offered every cycle (every 10th kept: ``mcap_plan_every``) and a health message every
+0.5 s into the MCAP log (``McapLog``); the recorder's writer thread writes them as in
+``truckd run``.  Three modes, nothing / CSV / CSV + MCAP, run in interleaved segments so a
+drifting load on a shared machine touches them alike.  Per mode:
 
 - loop-side cost of recording per cycle (the calls the loop makes), median/p99/max;
-- wake lateness median/p99/max (the writer thread competes for the GIL: this is where
-  its work would show in the loop);
+- wake lateness and cycle busy time median/p99/max (the writer thread competes for the
+  GIL: this is where its work would show in the loop);
 - writer-thread CPU per cycle (process CPU minus the loop thread's);
 - bytes written, scaled to one minute.
 
-Also the writer's own cost per MCAP message (JSON encode + add to the chunk, chunks
-closed every second), measured synchronously.
+Also the writer's own cost per cycle (JSON encode + add to the chunk, chunks closed every
+second), measured synchronously, for state alone and state + a plan every cycle.
 """
 
 from __future__ import annotations
@@ -98,12 +100,12 @@ def pct(xs: list[float]) -> dict[str, float]:
     }
 
 
-def paced(mode: str, seconds: float, rate: float, compute_us: float, tmp: Path) -> dict[str, Any]:
-    """One paced run; ``mode`` none | csv | csv+mcap.  Each cycle also spins in Python
-    for ``compute_us`` (the controller's share: it needs the GIL as the writer does)."""
-    d = tmp / mode.replace("+", "_")
+def paced(mode: str, seconds: float, rate: float, compute_us: float, d: Path) -> dict[str, Any]:
+    """One paced segment; ``mode`` none | csv | csv+mcap.  Each cycle also spins in Python
+    for ``compute_us`` (the controller's share: it needs the GIL as the writer does).
+    Returns raw samples."""
     cfg = RecorderConfig(dir=str(d), flush_period_s=1.0)
-    mc = McapLog("bench", flush_period_s=1.0) if mode == "csv+mcap" else None
+    mc = McapLog("bench", flush_period_s=1.0, plan_every=10) if mode == "csv+mcap" else None
     rec = Recorder(cfg, LOG_COLUMNS, sidecar=mc) if mode != "none" else None
     if rec is not None:
         rec.start()
@@ -130,33 +132,58 @@ def paced(mode: str, seconds: float, rate: float, compute_us: float, tmp: Path) 
             rec.record(row)
         if mc is not None:
             mc.record_state(t, msg)
-            mc.record_plan(t, plan)
+            mc.record_plan(t, plan)  # every 10th kept (runtime.recorder.mcap_plan_every)
             if k % round(0.5 * rate) == 0:
                 mc.record_health(t, health_msg(t), loop_stats)
         cost_us.append((time.perf_counter_ns() - c0) * 1e-3)
         busy_us.append((time.perf_counter() - wake) * 1e6)
-    s0 = time.monotonic()
     if rec is not None:
         rec.stop()
-    stop_ms = (time.monotonic() - s0) * 1e3
     cpu, main = time.process_time() - cpu0, time.thread_time() - main0
-    out: dict[str, Any] = {
+    return {
         "cycles": n,
-        "record_cost_us": pct(cost_us),
-        "lateness_us": pct(late_us),
-        "cycle_busy_us": pct(busy_us),
-        "writer_cpu_us_per_cycle": round(max(0.0, cpu - main) / n * 1e6, 1),
-        "stop_ms": round(stop_ms, 1),
+        "cost": cost_us,
+        "late": late_us,
+        "busy": busy_us,
+        "writer_cpu_s": max(0.0, cpu - main),
+        "csv_bytes": sum(p.stat().st_size for p in rec.files) if rec is not None else 0,
+        "mcap_bytes": sum(p.stat().st_size for p in mc.files) if mc is not None else 0,
+        "mcap_counts": dict(mc.counts) if mc is not None else {},
+        "mcap_dropped": mc.dropped if mc is not None else 0,
     }
-    if rec is not None:
-        per_min = 60.0 / seconds
-        out["csv_mb_per_min"] = round(sum(p.stat().st_size for p in rec.files) * per_min / 1e6, 3)
-        out["csv_rows"] = rec.rows
-    if mc is not None:
-        per_min = 60.0 / seconds
-        out["mcap_mb_per_min"] = round(sum(p.stat().st_size for p in mc.files) * per_min / 1e6, 3)
-        out["mcap_messages"] = dict(mc.counts)
-        out["mcap_dropped"] = mc.dropped
+
+
+def interleaved(
+    seconds: float, rate: float, compute_us: float, repeats: int, tmp: Path
+) -> dict[str, Any]:
+    """``repeats`` rounds of none, csv, csv+mcap segments (so a load that drifts on a
+    shared machine affects the three alike), aggregated per mode."""
+    modes = ("none", "csv", "csv+mcap")
+    segs: dict[str, list[dict[str, Any]]] = {m: [] for m in modes}
+    for r in range(repeats):
+        for m in modes:
+            d = tmp / f"{m.replace('+', '_')}-{r}"
+            segs[m].append(paced(m, seconds / repeats, rate, compute_us, d))
+    out: dict[str, Any] = {}
+    for m in modes:
+        ss = segs[m]
+        n = sum(s["cycles"] for s in ss)
+        per_min = 60.0 * rate / n
+        counts: dict[str, int] = {}
+        for s in ss:
+            for k, v in s["mcap_counts"].items():
+                counts[k] = counts.get(k, 0) + v
+        out[m] = {
+            "cycles": n,
+            "record_cost_us": pct([x for s in ss for x in s["cost"]]),
+            "lateness_us": pct([x for s in ss for x in s["late"]]),
+            "cycle_busy_us": pct([x for s in ss for x in s["busy"]]),
+            "writer_cpu_us_per_cycle": round(sum(s["writer_cpu_s"] for s in ss) / n * 1e6, 1),
+            "csv_mb_per_min": round(sum(s["csv_bytes"] for s in ss) * per_min / 1e6, 3),
+            "mcap_mb_per_min": round(sum(s["mcap_bytes"] for s in ss) * per_min / 1e6, 3),
+            "mcap_messages": counts,
+            "mcap_dropped": sum(s["mcap_dropped"] for s in ss),
+        }
     return out
 
 
@@ -184,7 +211,8 @@ def writer_cost(tmp: Path, n: int = 6000, with_plan: bool = True) -> dict[str, A
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--seconds", type=float, default=20.0, help="per paced run (default 20)")
+    ap.add_argument("--seconds", type=float, default=20.0, help="per mode (default 20)")
+    ap.add_argument("--repeats", type=int, default=5, help="interleaved rounds (default 5)")
     ap.add_argument("--rate", type=float, default=100.0, help="loop rate, Hz")
     ap.add_argument(
         "--compute-us", type=float, default=1500.0, help="Python work per cycle (default 1500)"
@@ -196,17 +224,20 @@ def main() -> int:
         f"Python {platform.python_version()}",
         "load_avg_before": [round(x, 2) for x in os.getloadavg()],
         "rate_hz": args.rate,
-        "seconds_per_run": args.seconds,
+        "seconds_per_mode": args.seconds,
+        "repeats": args.repeats,
         "compute_us": args.compute_us,
     }
     with tempfile.TemporaryDirectory(prefix="recorder-bench-") as td:
         tmp = Path(td)
         res["writer_state_only"] = writer_cost(tmp, with_plan=False)
         res["writer_state_and_plan"] = writer_cost(tmp, with_plan=True)
-        for mode in ("none", "csv", "csv+mcap"):
-            res[mode] = paced(mode, args.seconds, args.rate, args.compute_us, tmp)
+        res.update(interleaved(args.seconds, args.rate, args.compute_us, args.repeats, tmp))
     res["load_avg_after"] = [round(x, 2) for x in os.getloadavg()]
-    print(f"recorder cost at {args.rate:.0f} Hz, {args.seconds:.0f} s per run ({res['machine']})")
+    print(
+        f"recorder cost at {args.rate:.0f} Hz, {args.seconds:.0f} s per mode in "
+        f"{args.repeats} interleaved rounds ({res['machine']})"
+    )
     print(f"load average before {res['load_avg_before']}, after {res['load_avg_after']}")
     hdr = ("run", "record us p50/p99/max", "lateness us p50/p99/max", "cycle busy us "
            "p50/p99/max", "writer CPU us/cycle", "CSV MB/min", "MCAP MB/min")  # fmt: skip

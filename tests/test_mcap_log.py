@@ -114,6 +114,16 @@ def test_rotates_with_the_csv_and_keeps_as_many(tmp_path: Path) -> None:
     assert seqs[0] > 1000
 
 
+def test_plan_decimation_keeps_every_nth_from_the_first(tmp_path: Path) -> None:
+    mc = McapLog("t9", plan_every=3, origin_ns=0)
+    mc.open(tmp_path / "p.mcap")
+    for k in range(10):
+        mc.record_plan(0.01 * k, {"t": 0.01 * k, "seq": k, "dt": 0.01, "v": [], "a": []})
+    mc.close()
+    msgs = validate_all(read_mcap(tmp_path / "p.mcap"))
+    assert [m["seq"] for m in msgs["/truckd/t9/plan"]] == [0, 3, 6, 9]
+
+
 def test_bounded_queue_drops_oldest_and_counts(tmp_path: Path) -> None:
     mc = McapLog("t9", maxlen=16, origin_ns=0)
     for k in range(100):  # no writer running: the queue fills

@@ -48,6 +48,11 @@ class RecorderConfig:
         default=True,
     )
     mcap_state_every: int = spec("record the state in MCAP every N control cycles", lo=1, default=1)
+    mcap_plan_every: int = spec(
+        "record every N-th plan in MCAP (a 40-step plan costs the writer ~40 us to encode)",
+        lo=1,
+        default=10,
+    )
     mcap_compression: str = spec(
         "MCAP chunk compression", choices=("zstd", "lz4", "none"), default="zstd"
     )

@@ -140,8 +140,9 @@ class McapLog:
 
     ``origin_ns``: the epoch of the cycle time ``t`` in ns (None: wall-clock now minus
     the first message's ``t``).  ``state_every``: the daemon records every N-th cycle's
-    state (it asks :meth:`wants_state`).  Never raises on the writer side: failures are
-    counted in ``errors`` and logged (three times at most).
+    state (it asks :meth:`wants_state`); ``plan_every``: every N-th plan offered is kept.
+    Never raises on the writer side: failures are counted in ``errors`` and logged (three
+    times at most).
     """
 
     def __init__(
@@ -151,6 +152,7 @@ class McapLog:
         keep: int = 20,
         flush_period_s: float = 1.0,
         state_every: int = 1,
+        plan_every: int = 1,
         compression: str = "zstd",
         chunk_bytes: int = 256 * 1024,
         maxlen: int = 4096,
@@ -164,6 +166,8 @@ class McapLog:
         self.keep = keep
         self.flush_period_s = flush_period_s
         self.state_every = max(1, state_every)
+        self.plan_every = max(1, plan_every)
+        self._plans = 0  # plans offered (record_plan keeps every plan_every-th)
         self.compression = compression
         self.chunk_bytes = chunk_bytes
         self.origin_ns = origin_ns
@@ -188,6 +192,7 @@ class McapLog:
             keep=cfg.keep,
             flush_period_s=cfg.flush_period_s,
             state_every=cfg.mcap_state_every,
+            plan_every=cfg.mcap_plan_every,
             compression=cfg.mcap_compression,
         )
 
@@ -222,8 +227,12 @@ class McapLog:
         self._put("health", t, msg, extra)
 
     def record_plan(self, t: float, msg: Mapping[str, Any]) -> None:
-        """Queue one plan message (CONTRACTS.md section 5: ``t, seq, dt, v, a``)."""
-        self._put("plan", t, msg)
+        """Offer one plan message (CONTRACTS.md section 5: ``t, seq, dt, v, a``); every
+        ``plan_every``-th is queued, starting with the first."""
+        n = self._plans
+        self._plans = n + 1
+        if n % self.plan_every == 0:
+            self._put("plan", t, msg)
 
     # -- writer side (the recorder's thread) -----------------------------------------
     def _error(self, what: str, exc: BaseException) -> None:
