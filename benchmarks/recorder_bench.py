@@ -16,8 +16,10 @@ drifting load on a shared machine touches them alike.  Per mode:
 - writer-thread CPU per cycle (process CPU minus the loop thread's);
 - bytes written, scaled to one minute.
 
-Also the writer's own cost per cycle (JSON encode + add to the chunk, chunks closed every
-second), measured synchronously, for state alone and state + a plan every cycle.
+Also why the writer releases the GIL every 0.2 ms (a thread encoding JSON in 4 ms bursts
+beside the loop, with and without that yield), and the writer's own cost per cycle (JSON
+encode + add to the chunk, chunks closed every second), measured synchronously, for state
+alone and state + a plan every cycle.
 """
 
 from __future__ import annotations
@@ -187,6 +189,41 @@ def interleaved(
     return out
 
 
+def gil_yield_demo(seconds: float, yield_s: float | None) -> dict[str, Any]:
+    """Why the MCAP writer yields: a thread encoding JSON in 4 ms bursts beside a 100 Hz
+    paced loop, releasing the GIL every ``yield_s`` (None: never).  The loop's wake
+    lateness."""
+    import threading
+
+    stop = threading.Event()
+    plan = plan_msg(0, 0.0)
+
+    def burst() -> None:
+        while not stop.is_set():
+            last = time.perf_counter()
+            end = last + 0.004
+            while time.perf_counter() < end:
+                to_json(plan)
+                if yield_s is not None and time.perf_counter() - last > yield_s:
+                    time.sleep(0)
+                    last = time.perf_counter()
+            time.sleep(0.0037)  # out of phase with the loop's 10 ms
+
+    th = threading.Thread(target=burst, daemon=True)
+    th.start()
+    late: list[float] = []
+    start = time.monotonic() + 0.05
+    for k in range(round(seconds * 100)):
+        deadline = start + k * 0.01
+        delay = deadline - time.monotonic()
+        if delay > 0:
+            time.sleep(delay)
+        late.append((time.monotonic() - deadline) * 1e6)
+    stop.set()
+    th.join()
+    return {"yield_s": yield_s, "lateness_us": pct(late)}
+
+
 def writer_cost(tmp: Path, n: int = 6000, with_plan: bool = True) -> dict[str, Any]:
     """Encode + write per message on one thread, chunks closed every 100 messages (1 s)."""
     f = McapFile(tmp / f"sync{int(with_plan)}.mcap", "bench")
@@ -232,6 +269,8 @@ def main() -> int:
         tmp = Path(td)
         res["writer_state_only"] = writer_cost(tmp, with_plan=False)
         res["writer_state_and_plan"] = writer_cost(tmp, with_plan=True)
+        res["gil_no_yield"] = gil_yield_demo(3.0, None)
+        res["gil_yield_200us"] = gil_yield_demo(3.0, 200e-6)
         res.update(interleaved(args.seconds, args.rate, args.compute_us, args.repeats, tmp))
     res["load_avg_after"] = [round(x, 2) for x in os.getloadavg()]
     print(
@@ -257,6 +296,10 @@ def main() -> int:
             f"{key}: {w['us_per_cycle']['p50']:.0f} us/cycle median "
             f"(p99 {w['us_per_cycle']['p99']:.0f}), {w['mb_per_min_at_100hz']:.2f} MB/min"
         )
+    for key in ("gil_no_yield", "gil_yield_200us"):
+        lt = res[key]["lateness_us"]
+        print(f"{key}: 4 ms JSON bursts beside the loop: lateness p50/p99 "
+              f"{lt['p50']:.0f}/{lt['p99']:.0f} us")  # fmt: skip
     if args.json:
         Path(args.json).write_text(json.dumps(res, indent=2) + "\n")
     return 0
