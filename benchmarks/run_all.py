@@ -2,8 +2,8 @@
 
 ``python benchmarks/run_all.py [NAME ...]``: all of them (about 15 minutes on 2 cores), or
 only the named ones (``plant_bench``, ``protocol_bench``, ``mpc_bench``, ``loop_bench``,
-``diagnose_bench``, ``closed_loop_gain``).  Run them on a quiet machine: every figure is a
-wall-clock measurement.
+``recorder_bench``, ``diagnose_bench``, ``closed_loop_gain``).  Run them on a quiet
+machine: every figure is a wall-clock measurement.
 """
 
 from __future__ import annotations
@@ -18,6 +18,7 @@ ORDER = (
     "protocol_bench",
     "mpc_bench",
     "loop_bench",
+    "recorder_bench",
     "diagnose_bench",
     "closed_loop_gain",
 )
