@@ -24,6 +24,7 @@ import pytest
 from runtime_support import endpoint, free_port
 from websockets.sync.client import connect
 
+from truckd.cli.main import main
 from truckd.runtime.config import TelemetryConfig
 from truckd.runtime.foxglove_relay import clean_payload
 from truckd.runtime.msg_schemas import SCHEMAS
@@ -129,21 +130,17 @@ def test_relay_serves_two_vehicles_to_a_foxglove_client() -> None:
         sess_b.close()  # type: ignore[no-untyped-call]
 
 
-def test_relay_without_foxglove_sdk_is_a_clear_error() -> None:
-    code = (
-        "import sys; sys.modules['foxglove'] = None\n"
-        "from truckd.cli.main import main\n"
-        "sys.exit(main(['monitor', '--foxglove', '0', '--duration', '1']))\n"
-    )
-    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
-    assert r.returncode == 1
-    assert "pip install 'truckd[foxglove]'" in r.stderr and r.stderr.count("\n") == 1
+def test_relay_without_foxglove_sdk_is_a_clear_error(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.setitem(sys.modules, "foxglove", None)  # import foxglove -> ImportError
+    assert main(["monitor", "--foxglove", "0", "--duration", "1"]) == 1
+    err = capsys.readouterr().err
+    assert "pip install 'truckd[foxglove]'" in err and err.count("\n") == 1
 
 
 @pytest.mark.parametrize("port", ["70000", "-1"])
-def test_bad_port_is_exit_2(port: str) -> None:
-    r = subprocess.run(
-        [sys.executable, "-m", "truckd.cli.main", "monitor", "--foxglove", port],
-        capture_output=True, text=True, timeout=60,
-    )  # fmt: skip
-    assert r.returncode == 2 and "--foxglove" in r.stderr
+def test_bad_port_is_exit_2(port: str, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["monitor", "--foxglove", port]) == 2
+    err = capsys.readouterr().err
+    assert "--foxglove" in err and err.count("\n") == 1

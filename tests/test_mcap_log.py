@@ -18,6 +18,7 @@ import jsonschema
 import pytest
 from runtime_support import write_config
 
+from truckd.cli.main import main
 from truckd.config.truck import load_config
 from truckd.logfile import read_log
 from truckd.runtime.config import RecorderConfig
@@ -209,12 +210,9 @@ def test_a_file_cut_by_sigkill_reads_up_to_its_last_chunk(tmp_path: Path) -> Non
 
 
 def test_sim_writes_mcap_per_scenario(tmp_path: Path) -> None:
-    r = subprocess.run(
-        [sys.executable, "-m", "truckd.cli.main", "sim", "--scenario", "follow",
-         "--duration", "3", "--mcap", str(tmp_path / "out"), "--json", str(tmp_path / "m.json")],
-        capture_output=True, text=True, timeout=120,
-    )  # fmt: skip
-    assert r.returncode == 0, r.stderr
+    argv = ["sim", "--scenario", "follow", "--duration", "3", "--mcap", str(tmp_path / "out"),
+            "--json", str(tmp_path / "m.json")]  # fmt: skip
+    assert main(argv) == 0
     cycles = json.loads((tmp_path / "m.json").read_text())["cycles"]
     c = read_mcap(tmp_path / "out" / "follow.mcap")
     assert c.complete
@@ -224,13 +222,13 @@ def test_sim_writes_mcap_per_scenario(tmp_path: Path) -> None:
     st = [m for m in c.messages if c.topic(m) == "/truckd/truck1/state"]
     assert [m.log_time for m in st] == [round(s["t"] * 1e9) for s in msgs["/truckd/truck1/state"]]  # type: ignore[operator]
     assert st[1].log_time == 10_000_000  # simulated time, 10 ms period
+    assert not list((tmp_path / "out").glob(".*"))  # no temporary file left
 
 
-def test_sim_mcap_file_needs_one_scenario(tmp_path: Path) -> None:
-    r = subprocess.run(
-        [sys.executable, "-m", "truckd.cli.main", "sim", "--mcap", str(tmp_path / "x.mcap")],
-        capture_output=True, text=True, timeout=60,
-    )  # fmt: skip
-    assert r.returncode == 2
-    assert r.stderr.strip().count("\n") == 0 and "one scenario" in r.stderr
+def test_sim_mcap_file_needs_one_scenario(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["sim", "--mcap", str(tmp_path / "x.mcap")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "one scenario" in err
     assert not (tmp_path / "x.mcap").exists()
