@@ -179,14 +179,17 @@ def test_a_file_cut_by_sigkill_reads_up_to_its_last_chunk(tmp_path: Path) -> Non
     )  # fmt: skip
     logs = tmp_path / "logs"
     try:
-        rows = 0
+        seen = 0
         deadline = time.monotonic() + 30
-        while rows < 150 and time.monotonic() < deadline:  # driving for 1.5 s at least
-            csvs = sorted(logs.glob("*.csv"))
-            rows = csvs[0].read_text().count("\n") - 1 if csvs else 0
+        while seen < 100 and time.monotonic() < deadline:  # chunks on disk
+            mcaps = sorted(logs.glob("*.mcap"))
+            seen = len(read_mcap(mcaps[0]).messages) if mcaps else 0
             time.sleep(0.05)
-        assert rows >= 150, "the recorder never wrote"
-        seen = len(read_mcap(sorted(logs.glob("*.mcap"))[0]).messages)
+        assert seen >= 100, "no MCAP chunk was written"
+        # ~400 states fill far less than the 256 kB that would close a chunk by size:
+        # these chunks were closed by the flush period (0.2 s)
+        rows = (logs / mcaps[0].with_suffix(".csv").name).read_text().count("\n") - 1
+        assert rows < 400
         assert proc.poll() is None
         os.kill(proc.pid, signal.SIGKILL)
         assert proc.wait(timeout=10) == -signal.SIGKILL
@@ -202,11 +205,6 @@ def test_a_file_cut_by_sigkill_reads_up_to_its_last_chunk(tmp_path: Path) -> Non
     seqs = [s["seq"] for s in msgs["/truckd/truck1/state"]]
     assert seqs == list(range(len(seqs)))  # in order, no hole
     assert msgs["/truckd/truck1/health"]
-    # chunks are closed every flush period (0.2 s = 20 cycles), not only when 256 kB
-    # fill up: the MCAP lags the CSV (flushed by the same thread) by at most a period
-    # and one writer batch (64 rows)
-    csv_rows = path.with_suffix(".csv").read_text().count("\n") - 1  # complete rows
-    assert len(seqs) >= csv_rows - 20 - 64 > 0
 
 
 def test_sim_writes_mcap_per_scenario(tmp_path: Path) -> None:
