@@ -1,7 +1,7 @@
 """``truckd monitor --foxglove``: a client speaking the Foxglove WebSocket protocol (the
 ``websockets`` package) against the relay process, with two vehicles publishing over Zenoh
 on loopback: the channels are advertised with their JSON schemas and messages arrive for
-both vehicles.
+both vehicles, and a vehicle that goes has its channels unadvertised.
 
 foxglove-sdk (0.30) accepts the subprotocol ``foxglove.sdk.v1`` only: the same messages as
 ``foxglove.websocket.v1`` under a new name (recent Foxglove and Lichtblick speak both).
@@ -114,6 +114,17 @@ def test_relay_serves_two_vehicles_to_a_foxglove_client() -> None:
                 jsonschema.validate(msg, SCHEMAS[topic.rsplit("/", 1)[1]])
                 assert abs(log_time * 1e-9 - time.time()) < 60
                 got[topic] += 1
+            # vehicle A goes (its liveliness token with it): its channels are unadvertised
+            fa_ids = {channels[t]["id"] for t in wanted if t.startswith("/truckd/fa/")}
+            tel.close()
+            gone: set[int] = set()
+            t_end = time.monotonic() + 20
+            while not fa_ids <= gone:
+                assert time.monotonic() < t_end, f"unadvertised only {gone} of {fa_ids}"
+                frame = ws.recv(timeout=max(0.1, t_end - time.monotonic()))
+                if isinstance(frame, str) and json.loads(frame)["op"] == "unadvertise":
+                    gone |= set(json.loads(frame)["channelIds"])
+            assert not gone & {channels[t]["id"] for t in wanted if t.startswith("/truckd/fb/")}
         stop.set()
         pub.join(timeout=5)
         os.kill(proc.pid, signal.SIGINT)
