@@ -1,9 +1,8 @@
 """Run every benchmark in turn, each writing ``benchmarks/<name>.json`` beside its script.
 
 ``python benchmarks/run_all.py [NAME ...]``: all of them (about 15 minutes on 2 cores), or
-only the named ones (``plant_bench``, ``protocol_bench``, ``firmware_bench``,
-``mpc_bench``, ``loop_bench``, ``diagnose_bench``, ``closed_loop_gain``).  Run them on a
-quiet machine: every figure is a wall-clock measurement.
+only the named ones (the names in ``ORDER`` below).  Run them on a quiet machine: every
+figure is a wall-clock measurement.
 """
 
 from __future__ import annotations
@@ -19,6 +18,7 @@ ORDER = (
     "firmware_bench",
     "mpc_bench",
     "loop_bench",
+    "recorder_bench",
     "diagnose_bench",
     "closed_loop_gain",
 )

@@ -1,4 +1,5 @@
-"""``truckd monitor [--connect ENDPOINT]``: live view of every vehicle reachable over Zenoh."""
+"""``truckd monitor [--connect ENDPOINT] [--foxglove [PORT]]``: live view of every vehicle
+reachable over Zenoh, as a table or served to Foxglove (docs/foxglove.md)."""
 
 from __future__ import annotations
 
@@ -21,6 +22,21 @@ def add_subparser(sub: Any) -> None:
     p.add_argument("--zenoh-config", default="", metavar="FILE", help="Zenoh JSON5 file")
     p.add_argument("--interval", type=float, default=0.5, metavar="S", help="refresh period")
     p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
+    p.add_argument(
+        "--foxglove",
+        nargs="?",
+        type=int,
+        const=8765,
+        metavar="PORT",
+        help="serve state, health and plan of every vehicle to Foxglove over WebSocket "
+        "instead of the table (port default 8765; 0: any free port)",
+    )
+    p.add_argument(
+        "--foxglove-host",
+        default="127.0.0.1",
+        metavar="ADDR",
+        help="address the Foxglove server binds (default 127.0.0.1: this machine only)",
+    )
     p.set_defaults(run=run)
 
 
@@ -30,6 +46,16 @@ def run(args: argparse.Namespace) -> int:
     if args.duration is not None and not args.duration >= 0:
         raise InputError(f"--duration {args.duration}: expected a non-negative number of seconds")
     connect = args.connect or ["tcp/127.0.0.1:7447"]
+    if args.foxglove is not None:
+        if not 0 <= args.foxglove <= 65535:
+            raise InputError(f"--foxglove {args.foxglove}: expected a TCP port in [0, 65535]")
+        from truckd.runtime.foxglove_relay import FoxgloveRelay, run_relay
+
+        relay = FoxgloveRelay(
+            connect, args.zenoh_config, host=args.foxglove_host, port=args.foxglove
+        )
+        run_relay(relay, sys.stdout, duration=args.duration, interval=max(args.interval, 5.0))
+        return 0
     run_monitor(
         connect,
         args.zenoh_config,

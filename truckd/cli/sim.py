@@ -13,6 +13,7 @@ from truckd.control.qp import ControlModel
 from truckd.errors import InputError, TruckdError
 from truckd.modelfile import read_model
 from truckd.sim.closed_loop import SimSetup, run_scenario
+from truckd.sim.mcap_export import mcap_paths, write_trace_mcap
 from truckd.sim.report import json_safe, plot, table
 from truckd.sim.scenarios import SCENARIO_NAMES, make_scenario
 
@@ -28,6 +29,9 @@ def add_subparser(sub: Any) -> None:
     p.add_argument("--model", help="MODEL.yaml: the controller's model (the plant stays)")
     p.add_argument("--json", help="write the metrics as JSON to this file")
     p.add_argument("--plot", help="write a PNG of gap, speeds and voltage to this file")
+    p.add_argument(
+        "--mcap", metavar="FILE|DIR", help="write MCAP (FILE.mcap, or DIR/<scenario>.mcap)"
+    )
     p.set_defaults(run=run)
 
 
@@ -44,6 +48,7 @@ def run(args: argparse.Namespace) -> int:
         cfg.vehicle, cfg.plant, cfg.control, model, ticks_per_rev=cfg.link.encoder_ticks_per_rev
     )
     names = SCENARIO_NAMES if args.scenario == "all" else (args.scenario,)
+    mcaps = mcap_paths(args.mcap, names) if args.mcap else {}
     results, traces = [], []
     for name in names:
         metrics, trace = run_scenario(
@@ -67,6 +72,8 @@ def run(args: argparse.Namespace) -> int:
             raise TruckdError(f"{args.json}: cannot write: {exc.strerror}") from None
     if args.plot:
         plot(args.plot, traces)
+    for name, trace in traces if mcaps else ():
+        write_trace_mcap(mcaps[name], cfg.vehicle_id, name, trace)
     crashed = [r["scenario"] for r in results if r["collision"]]
     if crashed:
         raise TruckdError(f"collision in: {', '.join(crashed)}")

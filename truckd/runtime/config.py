@@ -43,6 +43,19 @@ class RecorderConfig:
     )
     keep: int = spec("rotated files kept (oldest deleted)", lo=1, default=20)
     flush_period_s: float = spec("flush to disk at least this often", unit="s", lo=0.0, default=1.0)
+    mcap: bool = spec(
+        "also write MCAP (state, health, plan channels) beside each CSV, for Foxglove",
+        default=True,
+    )
+    mcap_state_every: int = spec("record the state in MCAP every N control cycles", lo=1, default=1)
+    mcap_plan_every: int = spec(
+        "record every N-th plan in MCAP (a 40-step plan costs the writer ~40 us to encode)",
+        lo=1,
+        default=10,
+    )
+    mcap_compression: str = spec(
+        "MCAP chunk compression", choices=("zstd", "lz4", "none"), default="zstd"
+    )
 
 
 @dataclass(frozen=True)

@@ -29,6 +29,7 @@ from truckd.io.port import Port, companion_port
 from truckd.runtime.backend import Backend, open_backend
 from truckd.runtime.command import motor_command
 from truckd.runtime.faults import RuntimeFaults, wrap_solver
+from truckd.runtime.mcap_log import McapLog
 from truckd.runtime.notify import Notifier
 from truckd.runtime.ratekeeper import RateKeeper
 from truckd.runtime.realtime import RealtimeReport, setup_realtime
@@ -96,6 +97,7 @@ class Daemon:
         self.port: Port | None = None
         self.telemetry: Telemetry | None = None
         self.recorder: Recorder | None = None
+        self.mcap: McapLog | None = None  # MCAP beside the CSV (recorder.mcap)
         self.realtime = RealtimeReport()
         self.stop_requested = False
         self.t0 = 0.0
@@ -142,7 +144,8 @@ class Daemon:
             if self.rt.fault_injection:
                 self.telemetry.subscribe("inject", self.faults.apply)
         if self.rt.recorder.enabled:
-            self.recorder = Recorder(self.rt.recorder, LOG_COLUMNS)
+            self.mcap = McapLog.for_recorder(self.cfg.vehicle_id, self.rt.recorder)
+            self.recorder = Recorder(self.rt.recorder, LOG_COLUMNS, sidecar=self.mcap)
             self.recorder.start()
             log.info("recording to %s", self.recorder.path)
         log.info(
@@ -300,41 +303,42 @@ class Daemon:
 
     # -- outputs -------------------------------------------------------------------
     def publish(self, t: float, out: ControlOutput | None) -> None:
-        tel = self.telemetry
-        if tel is None:
-            return
-        if self.seq % self.rt.telemetry.state_every == 0:
+        tel, mc = self.telemetry, self.mcap
+        to_tel = tel is not None and self.seq % self.rt.telemetry.state_every == 0
+        if to_tel or (mc is not None and mc.wants_state(self.seq)):
             est = out.estimate if out is not None else None
             nan = math.nan
-            tel.publish_state(
-                {
-                    "seq": self.seq,
-                    "t": t,
-                    "mode": self.decision.mode.value,
-                    "v": _j(est.v if est is not None else nan),
-                    "gap": _j(est.gap if est is not None else nan),
-                    "gap_ref": _j(out.gap_ref if out is not None else nan),
-                    "v_lead": _j(est.v_lead if est is not None else nan),
-                    "u": self.u,
-                    "u_ff": _j(out.u_ff if out is not None else nan),
-                    "solve_us": _j(out.solve_time_s * 1e6 if out is not None else nan),
-                    "enable": self.enable,
-                    "ctrl": out.mode if out is not None else None,
-                    "fallback": out.fallback_reason if out is not None else "exception",
-                    "lead_valid": bool(est.lead_valid) if est is not None else False,
-                    "lateness_us": self.rk.last_lateness * 1e6,
-                    "faults": list(self.decision.causes),
-                    "ages_ms": {k: _j(a * 1e3) for k, a in self._ages.items()},
-                }
-            )
-            self._states_sent += 1
-        if t >= self._next_health:
+            msg: dict[str, Any] = {
+                "seq": self.seq,
+                "t": t,
+                "mode": self.decision.mode.value,
+                "v": _j(est.v if est is not None else nan),
+                "gap": _j(est.gap if est is not None else nan),
+                "gap_ref": _j(out.gap_ref if out is not None else nan),
+                "v_lead": _j(est.v_lead if est is not None else nan),
+                "u": self.u,
+                "u_ff": _j(out.u_ff if out is not None else nan),
+                "solve_us": _j(out.solve_time_s * 1e6 if out is not None else nan),
+                "enable": self.enable,
+                "ctrl": out.mode if out is not None else None,
+                "fallback": out.fallback_reason if out is not None else "exception",
+                "lead_valid": bool(est.lead_valid) if est is not None else False,
+                "lateness_us": self.rk.last_lateness * 1e6,
+                "faults": list(self.decision.causes),
+                "ages_ms": {k: _j(a * 1e3) for k, a in self._ages.items()},
+            }
+            if mc is not None and mc.wants_state(self.seq):
+                mc.record_state(t, msg)
+            if tel is not None and to_tel:
+                tel.publish_state(msg)
+                self._states_sent += 1
+        if (tel is not None or mc is not None) and t >= self._next_health:
             self.publish_health(t)
             self._next_health = t + self.rt.telemetry.health_period_s
 
     def publish_health(self, t: float) -> None:
         tel, port = self.telemetry, self.port
-        if tel is None:
+        if tel is None and self.mcap is None:
             return
         t_mark, n_mark = self._rate_mark
         rate = (self._states_sent - n_mark) / (t - t_mark) if t - t_mark > 0.2 else None
@@ -363,20 +367,27 @@ class Daemon:
                 "braking_cycles": out.braking_cycles if out is not None else None,
                 "errors": self.controller_errors,
             },
-            "telemetry": {"dropped": tel.dropped, "sent": tel.sent, "errors": tel.errors},
+            "telemetry": {"dropped": tel.dropped, "sent": tel.sent, "errors": tel.errors}
+            if tel is not None
+            else None,
             "recorder": self._recorder_health(),
             "realtime": self.realtime.as_dict(),
             "state_rate_hz": rate,
             "injected": {"solver": self.faults.solver_fail, "overrun_s": self.faults.overrun_s},
             "pid": os.getpid(),
         }
-        tel.publish_health(msg, lambda: {"loop": rk.stats().as_dict()})
+        extra = lambda: {"loop": rk.stats().as_dict()}  # noqa: E731
+        if self.mcap is not None:
+            self.mcap.record_health(t, dict(msg), extra)  # a copy: telemetry updates msg
+        if tel is not None:
+            tel.publish_health(msg, extra)
 
     def _recorder_health(self) -> dict[str, Any] | None:
         r = self.recorder
         if r is None:
             return None
-        return {"rows": r.rows, "dropped": r.dropped, "errors": r.errors, "file": str(r.path)}
+        d = {"rows": r.rows, "dropped": r.dropped, "errors": r.errors, "file": str(r.path)}
+        return d if self.mcap is None else {**d, "mcap": self.mcap.health()}
 
     def record(self, t: float, out: ControlOutput | None) -> None:
         rec = self.recorder

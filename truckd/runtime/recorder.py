@@ -17,12 +17,22 @@ import time
 from collections import deque
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TextIO
+from typing import Protocol, TextIO
 
 from truckd.errors import TruckdError
 from truckd.runtime.config import RecorderConfig
 
 log = logging.getLogger("truckd.recorder")
+
+
+class Sidecar(Protocol):
+    """A second log written on the recorder's thread and rotated with the CSV (the MCAP
+    log, :class:`truckd.runtime.mcap_log.McapLog`).  Its methods never raise."""
+
+    def open(self, path: Path) -> None: ...
+    def write_pending(self) -> None: ...
+    def flush(self, force: bool = False) -> None: ...
+    def close(self) -> None: ...
 
 
 class Recorder:
@@ -34,6 +44,7 @@ class Recorder:
         columns: Sequence[str],
         prefix: str = "truckd",
         maxlen: int = 100_000,
+        sidecar: Sidecar | None = None,
     ) -> None:
         if len(set(columns)) != len(columns) or "t" not in columns:
             raise ValueError(f"columns must be unique and include 't': {columns!r}")
@@ -41,6 +52,7 @@ class Recorder:
         self.columns = tuple(columns)
         self.dir = Path(cfg.dir)
         self.prefix = prefix
+        self.sidecar = sidecar  # opened beside each CSV as <stem>.mcap, written after it
         self._q: deque[tuple[float, ...]] = deque(maxlen=maxlen)
         self._event = threading.Event()
         self._stop = False
@@ -80,6 +92,8 @@ class Recorder:
         self._fh.write(header)
         self._bytes = len(header)
         self.files.append(p)
+        if self.sidecar is not None:
+            self.sidecar.open(p.with_suffix(".mcap"))
         while len(self.files) > self.cfg.keep:
             old = self.files.pop(0)
             try:
@@ -123,6 +137,9 @@ class Recorder:
                 self._write_pending()
                 if self._fh is not None:
                     self._fh.flush()
+                if self.sidecar is not None:
+                    self.sidecar.write_pending()
+                    self.sidecar.flush()
             except OSError as exc:
                 self.errors += 1
                 if self.errors <= 3:
@@ -144,3 +161,5 @@ class Recorder:
             except OSError as exc:
                 log.error("log close failed: %s", exc.strerror)
             self._fh = None
+        if self.sidecar is not None:
+            self.sidecar.close()

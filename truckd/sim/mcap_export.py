@@ -1,0 +1,94 @@
+"""``truckd sim --mcap``: a simulated run as an MCAP file with the daemon's channels
+(``/truckd/<vehicle_id>/state``, ``/health``, ``/plan``; docs/foxglove.md), so the same
+Foxglove layout opens a simulation and a drive.
+
+Log time = simulated time (ns from 0).  The simulation has no supervisor: ``mode`` is
+``ACTIVE`` throughout (the controller always drives), ``ctrl`` the controller's mode.  The
+state holds the plant's truth (``v``, ``gap``, ``v_lead``) and the controller's estimate
+of the gap (``gap_est``); ``gap_ref`` is ``d_0 + h v``.  ``health`` is written every
+0.5 s with the scenario name.  ``plan`` stays empty until the trace carries plans.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator, Mapping
+from pathlib import Path
+from typing import Any
+
+from truckd.errors import InputError, TruckdError
+from truckd.runtime.mcap_log import write_messages
+from truckd.sim.closed_loop import Trace
+
+HEALTH_PERIOD_S = 0.5
+
+
+def _f(x: float) -> float | None:
+    return x if math.isfinite(x) else None
+
+
+def trace_messages(scenario: str, tr: Trace) -> Iterator[tuple[str, int, Mapping[str, Any]]]:
+    """``(kind, log_time_ns, message)`` for every cycle of the trace."""
+    next_health = 0.0
+    for k, t in enumerate(tr.t):
+        ns = round(t * 1e9)
+        yield (
+            "state",
+            ns,
+            {
+                "seq": k,
+                "t": t,
+                "mode": "ACTIVE",
+                "v": _f(tr.v[k]),
+                "gap": _f(tr.gap[k]),
+                "gap_ref": _f(tr.gap_ref[k]),
+                "v_lead": _f(tr.v_lead[k]),
+                "u": tr.u[k],
+                "u_ff": _f(tr.u_ff[k]),
+                "solve_us": None,
+                "enable": True,
+                "ctrl": tr.mode[k],
+                "gap_est": _f(tr.gap_est[k]),
+            },
+        )
+        if t >= next_health - 1e-9:
+            yield "health", ns, {"t": t, "mode": "ACTIVE", "faults": [], "sim": scenario}
+            next_health = t + HEALTH_PERIOD_S
+
+
+def mcap_paths(target: str, scenarios: tuple[str, ...]) -> dict[str, Path]:
+    """Where each scenario's MCAP goes: ``target`` itself when it ends in ``.mcap`` (one
+    scenario only), else ``target/<scenario>.mcap`` (the directory is created).  Raises
+    InputError for a bad target."""
+    p = Path(target)
+    if p.suffix == ".mcap":
+        if len(scenarios) != 1:
+            raise InputError(
+                f"--mcap {target}: one file holds one scenario; give a directory for "
+                f"{len(scenarios)} scenarios"
+            )
+        if p.is_dir():
+            raise InputError(f"--mcap {target}: is a directory; expected a file name")
+        if not p.parent.is_dir():
+            raise InputError(f"--mcap {target}: directory {p.parent} does not exist")
+        return {scenarios[0]: p}
+    if p.exists() and not p.is_dir():
+        raise InputError(f"--mcap {target}: not a directory; expected a directory or *.mcap")
+    try:
+        p.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise TruckdError(f"--mcap {target}: cannot create: {exc.strerror}") from None
+    return {s: p / f"{s}.mcap" for s in scenarios}
+
+
+def write_trace_mcap(path: Path, vehicle_id: str, scenario: str, tr: Trace) -> int:
+    """Write one run (all or nothing); returns the number of messages."""
+    try:
+        return write_messages(
+            path,
+            vehicle_id,
+            trace_messages(scenario, tr),
+            metadata={"source": "truckd sim", "scenario": scenario, "time": "simulated"},
+        )
+    except OSError as exc:
+        raise TruckdError(f"{path}: cannot write: {exc.strerror}") from None
