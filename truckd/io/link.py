@@ -142,9 +142,7 @@ class Link:
         if self._ever_connected:
             self.stats.reconnects += 1
         if self._reported:
-            log.warning(
-                "%s: open again (%s)", self.name, "reconnected" if self._ever_connected else "found"
-            )
+            log.info("%s: open%s", self.name, " again" if self._ever_connected else " (found)")
         self._ever_connected = True
         self._reported = False
         self.last_error = None
