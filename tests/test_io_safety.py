@@ -196,3 +196,71 @@ def test_device_lock_names_the_holder_and_is_released(
         first.release()
     assert list(tmp_path.glob("*.lock")) == []
     claim_device("serial device Y", serial_keys(str(alias))).release()
+
+
+def _pty_config(tmp_path: Path, dev: str, **telemetry: Any) -> Path:
+    return write_config(
+        tmp_path / "truck.yaml",
+        {"link": {"serial_device": dev},
+         "runtime": {"backend": "serial", "realtime": False,
+                     "telemetry": {"enabled": bool(telemetry), **telemetry},
+                     "recorder": {"dir": str(tmp_path / "logs")}}},
+    )  # fmt: skip
+
+
+def test_zenoh_failure_stops_start_before_the_link_opens(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The issue's second daemon failed on the Zenoh port after opening the device and then
+    sent motor-off into it.  Now Zenoh comes first: the device is never opened."""
+    import socket
+
+    from runtime_support import endpoint, free_port
+
+    from truckd.errors import TruckdError
+    from truckd.sim.pty_link import PtyDevice
+
+    monkeypatch.setenv("TRUCKD_LOCK_DIR", str(tmp_path / "locks"))
+    port = free_port()
+    taken = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    taken.bind(("127.0.0.1", port))
+    taken.listen()
+    dev = PtyDevice(str(tmp_path / "ttyT"))
+    try:
+        cfg = load_config(_pty_config(tmp_path, dev.path, listen=[endpoint(port)]))
+        d = Daemon(cfg, duration=1.0, env={})
+        with pytest.raises(TruckdError, match="Zenoh"):
+            d.run()
+        assert d.backend is None and d.port is None  # the link was never opened
+        assert dev.recv(0.2) is None and dev.stats.framing is not None
+        assert dev.stats.framing.frames_ok == 0 and dev.stats.framing.bytes_discarded == 0
+        assert not list((tmp_path / "locks").iterdir())  # the claim was released
+    finally:
+        unfreeze_gc()
+        dev.close()
+        taken.close()
+
+
+def test_device_held_outside_the_lock_fails_start_and_sends_nothing(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Another process (here: another link) holds the tty: the first open finds it busy and
+    start fails (not retried as a missing device), naming the device."""
+    from truckd.sim.pty_link import PtyDevice
+
+    monkeypatch.setenv("TRUCKD_LOCK_DIR", str(tmp_path / "locks"))
+    dev = PtyDevice(str(tmp_path / "ttyT"))
+    holder = SerialLink(dev.path)
+    try:
+        assert holder.connected
+        d = Daemon(load_config(_pty_config(tmp_path, dev.path)), duration=1.0, env={})
+        with pytest.raises(DeviceBusyError, match=rf"serial device {dev.path} is in use"):
+            d.run()
+        assert d.port is None
+        assert dev.recv(0.2) is None and dev.stats.rx_frames == 0
+        assert holder.connected
+        assert not list((tmp_path / "logs").glob("*.csv"))  # no empty log left behind
+    finally:
+        unfreeze_gc()
+        holder.close()
+        dev.close()

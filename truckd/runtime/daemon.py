@@ -176,7 +176,9 @@ class Daemon:
                     break
         if self.backend is not None:
             self.backend.tick(self.period)  # sim: let the firmware apply it
-        if self.recorder is not None:
+        if self.recorder is not None and self.port is None:
+            self.recorder.discard()  # did not start: no empty log left behind
+        elif self.recorder is not None:
             self.recorder.stop()
             log.info("log flushed: %d rows in %s", self.recorder.rows, self.recorder.path)
         if self.telemetry is not None:

@@ -146,6 +146,19 @@ class Recorder:
             if self._stop:
                 return
 
+    def discard(self) -> None:
+        """Stop and delete this recorder's files if no row was written (a daemon that
+        failed to start leaves no header-only log behind)."""
+        self.stop()
+        if self.rows:
+            return
+        for p in self.files:
+            try:
+                p.unlink()
+            except OSError as exc:
+                log.warning("cannot delete empty log %s: %s", p, exc.strerror)
+        self.files.clear()
+
     def stop(self) -> None:
         """Write everything queued, flush and close (idempotent)."""
         self._stop = True
