@@ -22,7 +22,6 @@ import fcntl
 import logging
 import os
 import re
-import tempfile
 from pathlib import Path
 
 from truckd.errors import TruckdError
@@ -38,6 +37,8 @@ class DeviceBusyError(TruckdError):
 
 def lock_dir() -> Path:
     """Where lock files live (see module docstring)."""
+    import tempfile  # only here: keeps `truckd run` import-lean
+
     env = os.environ.get(LOCK_DIR_ENV)
     if env:
         return Path(env)

@@ -20,7 +20,14 @@ from truckd.config.truck import TruckConfig
 from truckd.control.config import ControlConfig
 from truckd.io import open_link
 from truckd.io.config import LinkConfig
-from truckd.io.devlock import DeviceBusyError, DeviceLock, can_keys, pids_holding, serial_keys
+from truckd.io.devlock import (
+    DeviceBusyError,
+    DeviceLock,
+    can_keys,
+    claim_device,
+    pids_holding,
+    serial_keys,
+)
 from truckd.io.link import Link
 from truckd.sim.firmware import FirmwareSimConfig, SimulatedFirmware, simulated_truck
 from truckd.sim.plant import Plant
@@ -60,8 +67,6 @@ def device_name(name: str, link: LinkConfig) -> str:
 def claim_backend(name: str, link: LinkConfig) -> DeviceLock:
     """Lock the device of ``serial``/``can`` (nothing opened, nothing sent); ``sim`` has
     nothing to lock.  DeviceBusyError names the device and the pid holding it."""
-    from truckd.io.devlock import claim_device
-
     if name == "serial":
         keys = serial_keys(link.serial_device)
     elif name == "can":
