@@ -12,7 +12,7 @@ from collections.abc import Callable
 from runtime_support import endpoint, free_port
 
 from truckd.runtime.config import TelemetryConfig
-from truckd.runtime.monitor import MAX_VEHICLES, FleetView
+from truckd.runtime.monitor import MAX_VEHICLES, STALE_S, FleetView
 from truckd.runtime.telemetry import Telemetry
 
 
@@ -128,3 +128,13 @@ def test_monitor_says_when_the_endpoint_is_unreachable() -> None:
     assert r.returncode == 0, r.stderr
     tables = [t for t in r.stdout.split("\n\n") if t.strip()]
     assert tables and all(f"not connected: {endpoint(port)} unreachable" in t for t in tables)
+
+
+def test_online_vehicle_whose_state_stops_is_stale_not_its_last_mode() -> None:
+    v = FleetView()
+    v.on_alive("truckd/a/alive", True)
+    v.on_sample("truckd/a/state", b'{"mode": "ACTIVE", "v": 1.0}', 10.0)
+    assert v.rows(now=10.0 + STALE_S / 2)[0][:4] == ("a", "online", "ACTIVE", "1.00")
+    assert v.rows(now=10.0 + STALE_S * 2)[0][:4] == ("a", "stale", "unknown", "-")
+    v.on_sample("truckd/a/state", b'{"mode": "ACTIVE", "v": 1.0}', 10.0 + STALE_S * 2)
+    assert v.rows(now=10.0 + STALE_S * 2)[0][1] == "online"  # it came back

@@ -3,7 +3,8 @@ r"""``truckd monitor``: a live table of every vehicle reachable over Zenoh.
 :class:`FleetView` is pure (samples in, table out); :func:`run_monitor` wires it to a Zenoh
 session: subscribers on ``truckd/*/state`` and ``truckd/*/health`` and a liveliness
 subscriber (with history) on ``truckd/*/alive``.  A vehicle whose token goes is shown
-``offline`` with its mode ``unknown`` (and no live values) until it comes back.
+``offline`` with its mode ``unknown`` (and no live values) until it comes back; one whose
+token stays but whose state stops for :data:`STALE_S` is shown ``stale`` the same way.
 
 Everything shown comes from the network and is untrusted: :func:`safe_text` escapes
 control and formatting characters (C0, DEL, C1, bidi overrides, zero-width: ``\x1b``
@@ -42,6 +43,10 @@ class VehicleView:
 
 MAX_VEHICLES = 256
 """Vehicles tracked at most (samples from further ids are counted and ignored)."""
+
+STALE_S = 2.0
+"""A vehicle online (token held) whose last state sample is older than this (s) is shown
+``stale``: its session lives but its loop publishes nothing (hung, or stopped)."""
 
 FIELD_MAX = 32
 """Characters shown at most per text field (vehicle id, mode, one fault)."""
@@ -130,15 +135,17 @@ class FleetView:
                 if v is not None:
                     v.online = alive
 
-    def rows(self) -> list[tuple[str, ...]]:
+    def rows(self, now: float | None = None) -> list[tuple[str, ...]]:
         """One row per vehicle, sorted by id; every text field made safe (see
         :func:`safe_text`).  An offline vehicle's mode is ``unknown``, its values ``-``."""
         out: list[tuple[str, ...]] = []
         with self._lock:
             for vid in sorted(self.vehicles):
                 v = self.vehicles[vid]
-                if not v.online:
-                    out.append((safe_text(vid), "offline", "unknown", *["-"] * 7))
+                stale = now is not None and now - v.last_state_t > STALE_S
+                if not v.online or stale:
+                    status = "offline" if not v.online else "stale"
+                    out.append((safe_text(vid), status, "unknown", *["-"] * 7))
                     continue
                 s, h = v.state, v.health
                 gap, ref = s.get("gap"), s.get("gap_ref")
@@ -170,9 +177,9 @@ class FleetView:
                 )
         return out
 
-    def render(self) -> str:
-        """The table as text."""
-        rows = [self.COLUMNS, *self.rows()]
+    def render(self, now: float | None = None) -> str:
+        """The table as text (``now``: local monotonic time, s, to judge staleness)."""
+        rows = [self.COLUMNS, *self.rows(now)]
         widths = [max(len(r[i]) for r in rows) for i in range(len(self.COLUMNS))]
         lines = ["  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)) for r in rows]
         if len(rows) == 1:
@@ -218,7 +225,7 @@ def run_monitor(
             time.sleep(interval if t_end is None else max(0.0, min(interval, t_end - clock())))
             info = session.info
             view.connected = bool(info.peers_zid() or info.routers_zid())
-            text = view.render()
+            text = view.render(clock())
             out.write(("\x1b[H\x1b[2J" if clear else "") + text + "\n\n")
             out.flush()
     finally:
