@@ -12,7 +12,7 @@ from collections.abc import Callable
 from runtime_support import endpoint, free_port
 
 from truckd.runtime.config import TelemetryConfig
-from truckd.runtime.monitor import FleetView
+from truckd.runtime.monitor import MAX_VEHICLES, STALE_S, FleetView
 from truckd.runtime.telemetry import Telemetry
 
 
@@ -27,10 +27,10 @@ def test_fleet_view_rows() -> None:
     v.on_sample("other/b/state", b"{}", 1.0)  # not ours
     rows = v.rows()
     assert rows[0] == ("a", "online", "ACTIVE", "1.23", "1.500", "+0.250", "210", "88", "-", "x")
-    assert rows[1][:4] == ("b", "offline", "SAFE_STOP", "-")
+    assert rows[1][:4] == ("b", "offline", "unknown", "-")  # no token: its mode is not known
     assert len(rows) == 2
     v.on_alive("truckd/a/alive", False)
-    assert v.rows()[0][1] == "offline"
+    assert v.rows()[0][:4] == ("a", "offline", "unknown", "-")  # not its last ACTIVE
     assert "vehicle" in v.render()
 
 
@@ -90,4 +90,51 @@ def test_monitor_cli_sees_vehicle_then_offline() -> None:
     online = [t for t in tables if "mon1" in t and "online" in t and "0.75" in t]
     assert online, out
     last = tables[-1].splitlines()
-    assert last[1].split()[:3] == ["mon1", "offline", "ACTIVE"]
+    assert last[1].split()[:3] == ["mon1", "offline", "unknown"]
+    assert not any("unreachable" in t for t in online)  # connected while it was seen
+    assert "unreachable" in tables[-1]  # the vehicle's session (the only peer) has gone
+
+
+def test_untrusted_text_is_escaped_and_bounded() -> None:
+    v = FleetView()
+    evil = "\x1b[2J\x1b]0;pwned\x07\x9b31m\u202eACTIVE\u200b" + "A" * 500
+    v.on_alive("truckd/\x1b[31mx/alive", True)
+    v.on_sample("truckd/\x1b[31mx/state", json.dumps({"mode": evil, "v": 1.0}).encode(), 1.0)
+    v.on_sample("truckd/\x1b[31mx/health", json.dumps({"faults": [evil] * 50}).encode(), 1.0)
+    text = v.render()
+    bad = [ch for ch in text if ch != "\n" and (ord(ch) < 0x20 or 0x7F <= ord(ch) <= 0x9F)]
+    assert bad == [] and "\u202e" not in text and "\u200b" not in text
+    assert "\\x1b[2J" in text  # shown, visibly, not executed
+    assert max(len(line) for line in text.splitlines()) < 400
+    row = v.rows()[0]
+    assert row[0] == "\\x1b[31mx" and len(row[2]) <= 32 and row[2].endswith("...")
+
+
+def test_vehicles_tracked_are_bounded() -> None:
+    v = FleetView()
+    for k in range(MAX_VEHICLES + 50):
+        v.on_sample(f"truckd/v{k}/state", b'{"mode": "ACTIVE"}', 1.0)
+    assert len(v.rows()) == MAX_VEHICLES and v.ignored == 50
+    assert "ignored" in v.render()
+
+
+def test_monitor_says_when_the_endpoint_is_unreachable() -> None:
+    port = free_port()  # nothing listens there
+    r = subprocess.run(
+        [sys.executable, "-m", "truckd.cli.main", "monitor", "--connect", endpoint(port),
+         "--duration", "1", "--interval", "0.25"],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    tables = [t for t in r.stdout.split("\n\n") if t.strip()]
+    assert tables and all(f"not connected: {endpoint(port)} unreachable" in t for t in tables)
+
+
+def test_online_vehicle_whose_state_stops_is_stale_not_its_last_mode() -> None:
+    v = FleetView()
+    v.on_alive("truckd/a/alive", True)
+    v.on_sample("truckd/a/state", b'{"mode": "ACTIVE", "v": 1.0}', 10.0)
+    assert v.rows(now=10.0 + STALE_S / 2)[0][:4] == ("a", "online", "ACTIVE", "1.00")
+    assert v.rows(now=10.0 + STALE_S * 2)[0][:4] == ("a", "stale", "unknown", "-")
+    v.on_sample("truckd/a/state", b'{"mode": "ACTIVE", "v": 1.0}', 10.0 + STALE_S * 2)
+    assert v.rows(now=10.0 + STALE_S * 2)[0][1] == "online"  # it came back

@@ -88,3 +88,28 @@ def test_rejects_bad_columns() -> None:
         Recorder(RecorderConfig(), ("u", "v"))
     with pytest.raises(ValueError):
         Recorder(RecorderConfig(), ("t", "u", "u"))
+
+
+def test_two_recorders_in_one_directory_in_one_second_never_share_a_file(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Same directory, same UTC second, even the same pid: each gets its own file."""
+    import truckd.runtime.recorder as recorder_mod
+
+    monkeypatch.setattr(recorder_mod.time, "strftime", lambda fmt, t=None: "20260101T000000")
+    cfg = RecorderConfig(dir=str(tmp_path), flush_period_s=0.0)
+    a, b = Recorder(cfg, COLS), Recorder(cfg, COLS)
+    a.start()
+    b.start()
+    ra, rb = rows(30), [(r[0], -1.0, *r[2:]) for r in rows(40)]
+    for r in ra:
+        a.record(r)
+    for r in rb:
+        b.record(r)
+    a.stop()
+    b.stop()
+    assert a.path is not None and b.path is not None and a.path != b.path
+    assert len(list(tmp_path.glob("*.csv"))) == 2
+    la, lb = read_log(a.path), read_log(b.path)
+    assert len(la) == 30 and len(lb) == 40
+    assert np.all(lb["u"] == -1.0) and not np.any(la["u"] == -1.0)

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import yaml
 
+from truckd.config.ids import vehicle_id_problem
 from truckd.config.schema import load_dataclass, spec
 from truckd.control.config import ControlConfig
 from truckd.errors import InputError
@@ -40,6 +41,10 @@ class TruckConfig:
     runtime: RuntimeConfig = spec(
         "the daemon: loop, backend, supervisor, telemetry, recorder", default_factory=RuntimeConfig
     )
+
+    def validate(self) -> str | None:
+        """Cross-field checks after loading (None when fine)."""
+        return vehicle_id_problem(self.vehicle_id)
 
 
 def default_config_path() -> Path:

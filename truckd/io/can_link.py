@@ -4,6 +4,9 @@
 ``bus_errors``; a bus-off error frame (socketcan error class 0x40) also counts as
 ``bus_off``.  An operation error on receive, or a network-down error on send, means
 the bus is gone: the link closes it and reopens it every ``reconnect_interval`` s.
+
+Sends never wait (``timeout=0``): a full transmit queue drops the frame, counted in
+``tx_dropped`` and ``tx_full``.
 """
 
 from __future__ import annotations
@@ -17,7 +20,7 @@ from typing import Any
 import can
 
 from firmware_protocol.codec import Frame
-from truckd.io.link import Link, LinkDownError
+from truckd.io.link import FrameDroppedError, Link, LinkDownError
 
 _CAN_ERR_BUSOFF = 0x40
 _GONE = {errno.ENETDOWN, errno.ENODEV, errno.ENXIO, errno.EBADF}
@@ -38,6 +41,7 @@ class CanLink(Link):
         self.interface = interface
         self.channel = channel
         self.bitrate = bitrate
+        self.name = f"CAN interface {interface} channel {channel}"
         self._bus: Any = None
         self.open()
 
@@ -62,21 +66,12 @@ class CanLink(Link):
     def _write(self, frame: Frame) -> None:
         msg = can.Message(arbitration_id=frame.can_id, data=frame.data, is_extended_id=False)
         try:
-            self._bus.send(msg, timeout=0.01)
+            self._bus.send(msg, timeout=0.0)  # never wait: the loop must not block
         except can.CanOperationError as exc:
             code = getattr(exc, "error_code", None)
             if code in _GONE or getattr(self._bus, "_is_shutdown", False):
                 raise LinkDownError(f"CAN {self.channel}: {exc}") from None
-            self.stats.bus_errors += 1  # e.g. TX buffer full: this frame is lost
-            self.stats.tx_dropped += 1
-            raise _DroppedError from None
-
-    def send(self, frame: Frame) -> bool:
-        """Send one frame; False when dropped (link down or bus refused it)."""
-        try:
-            return super().send(frame)
-        except _DroppedError:
-            return False
+            raise FrameDroppedError(str(exc)) from None  # TX queue full: this frame is lost
 
     def _read(self, timeout: float) -> list[Frame]:
         out: list[Frame] = []
@@ -104,7 +99,3 @@ class CanLink(Link):
             out.append(Frame(msg.arbitration_id, bytes(msg.data)))
             if len(out) >= 64:
                 return out
-
-
-class _DroppedError(Exception):
-    """Internal: the bus refused one frame (not a disconnect)."""

@@ -6,10 +6,17 @@ implements only ``_open``, ``_close``, ``_write`` and ``_read``.  A backend rais
 :class:`LinkDownError` when its device or bus is gone; the link then reports itself
 disconnected and tries ``_open`` again every ``reconnect_interval`` seconds (on the
 next ``send``/``recv``), so it comes back when the device does.
+
+Sends never wait: a backend whose transmit buffer is full raises
+:class:`FrameDroppedError`; the frame is counted in ``tx_dropped`` and ``tx_full`` (not
+in ``tx_frames``) and :meth:`Link.send` returns False.  A device that cannot be opened is
+logged once per outage (ERROR at start-up, WARNING after a disconnect), naming it, and
+retried every ``reconnect_interval`` seconds; its return is logged too.
 """
 
 from __future__ import annotations
 
+import logging
 import time
 from collections import deque
 from collections.abc import Callable
@@ -18,9 +25,19 @@ from dataclasses import asdict, dataclass
 from firmware_protocol.codec import Frame
 from firmware_protocol.framing import FramingStats
 
+log = logging.getLogger("truckd.link")
+
 
 class LinkDownError(Exception):
     """The device or bus is gone (unplugged, closed, interface down)."""
+
+
+class LinkBusyError(LinkDownError):
+    """The device exists but another process holds it (EBUSY, flock taken)."""
+
+
+class FrameDroppedError(Exception):
+    """The backend could not take this frame now (transmit buffer full); nothing waits."""
 
 
 @dataclass
@@ -31,6 +48,8 @@ class LinkStats:
     rx_frames: int = 0
     tx_dropped: int = 0
     """Frames not sent (link down, or the backend refused them)."""
+    tx_full: int = 0
+    """Of ``tx_dropped``: frames dropped because the transmit buffer was full."""
     bus_errors: int = 0
     """Error frames / transport errors reported by the backend."""
     bus_off: int = 0
@@ -67,6 +86,11 @@ class Link:
         self._next_attempt = float("-inf")
         self._ever_connected = False
         self.last_error: str | None = None
+        self.busy = False
+        """The last failed open found the device held by another process."""
+        self.name = type(self).__name__
+        """What the logs call the device (backends set e.g. ``serial device PATH``)."""
+        self._reported = False
         self._closed = False
 
     # -- backend hooks -------------------------------------------------------------
@@ -110,14 +134,31 @@ class Link:
             self._open()
         except LinkDownError as exc:
             self.last_error = str(exc)
+            self.busy = isinstance(exc, LinkBusyError)
+            self._report(exc)
             return False
         self._connected = True
         self._opened()
         if self._ever_connected:
             self.stats.reconnects += 1
+        if self._reported:
+            log.info("%s: open%s", self.name, " again" if self._ever_connected else " (found)")
         self._ever_connected = True
+        self._reported = False
         self.last_error = None
+        self.busy = False
         return True
+
+    def _report(self, exc: BaseException) -> None:
+        """Say once per outage that the device cannot be opened (it is retried)."""
+        if self._reported:
+            return
+        self._reported = True
+        again = f"retrying every {self.reconnect_interval:g} s"
+        if self._ever_connected:
+            log.warning("%s: cannot reopen: %s; %s", self.name, exc, again)
+        else:
+            log.error("%s: cannot open: %s; %s", self.name, exc, again)
 
     def _ensure(self) -> bool:
         if self._connected:
@@ -127,6 +168,8 @@ class Link:
         return self.open()
 
     def _down(self, exc: BaseException) -> None:
+        log.warning("%s: link down: %s", self.name, exc)
+        self._reported = False
         self._connected = False
         self.stats.disconnects += 1
         self.last_error = str(exc) or type(exc).__name__
@@ -141,6 +184,10 @@ class Link:
             return False
         try:
             self._write(frame)
+        except FrameDroppedError:
+            self.stats.tx_full += 1
+            self.stats.tx_dropped += 1
+            return False
         except LinkDownError as exc:
             self._down(exc)
             self.stats.tx_dropped += 1
@@ -218,6 +265,8 @@ class FramedStreamLink(Link):
             return False
         try:
             self._write_bytes(data)
+        except FrameDroppedError:
+            return False
         except LinkDownError as exc:
             self._down(exc)
             return False

@@ -3,20 +3,35 @@
 ``device`` is a path (``/dev/ttyACM0``, a pty) or a pyserial URL (``loop://``).  A
 vanished device (unplugged USB, closed pty) raises inside pyserial; the link reports it
 and reopens the path every ``reconnect_interval`` s until it is back.
+
+Exclusive: the tty is opened with pyserial's ``exclusive=True`` (``flock`` on the device
+node, taken before any setting is changed) and then ``TIOCEXCL`` (later opens of the tty
+fail with EBUSY, except for root); a device held by another process raises
+:class:`~truckd.io.link.LinkBusyError`.  ``TIOCNXCL`` is cleared again before closing.
+
+Never blocking: bytes go out with one ``os.write`` on the non-blocking descriptor.  When
+the kernel's buffer is full the frame is dropped (:class:`FrameDroppedError`, counted as
+dropped, not sent); when only part of a frame fits, the rest is kept and written before
+anything else, so no frame is ever cut in two on the wire.
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
+import fcntl
+import os
+import termios
 import time
 from collections.abc import Callable
 from typing import Any
 
 import serial
 
-from truckd.io.link import FramedStreamLink, LinkDownError
+from truckd.io.link import FrameDroppedError, FramedStreamLink, LinkBusyError, LinkDownError
 
 DEFAULT_BAUDRATE = 115200
+_BUSY = {errno.EBUSY, errno.EAGAIN, errno.EWOULDBLOCK}
 
 
 class SerialLink(FramedStreamLink):
@@ -32,33 +47,73 @@ class SerialLink(FramedStreamLink):
         super().__init__(reconnect_interval, clock)
         self.device = device
         self.baudrate = baudrate
+        self.name = f"serial device {device}"
         self._ser: Any = None
+        self._fd: int | None = None
+        self._tail = b""
         self._timeout: float | None = -1.0
         self.open()
 
     def _open(self) -> None:
+        # a device path is written with os.write (never waits); a URL (loop://, tests and
+        # debugging only) through its pyserial handler
+        wt = None if "://" in self.device else 0
         try:
-            self._ser = serial.serial_for_url(
-                self.device, baudrate=self.baudrate, timeout=0, write_timeout=0.5
+            ser = serial.serial_for_url(
+                self.device, baudrate=self.baudrate, timeout=0, write_timeout=wt, exclusive=True
             )
-            self._timeout = 0.0
         except (serial.SerialException, OSError, ValueError) as exc:
             self._ser = None
+            code = getattr(exc, "errno", None)
+            if code in _BUSY:
+                raise LinkBusyError(f"{self.device}: in use by another process ({exc})") from None
             raise LinkDownError(f"{self.device}: {exc}") from None
+        fd = getattr(ser, "fd", None)
+        self._fd = fd if isinstance(fd, int) else None
+        if self._fd is not None:
+            with contextlib.suppress(OSError):  # not a tty (a plain file): nothing to exclude
+                fcntl.ioctl(self._fd, termios.TIOCEXCL)
+        self._ser = ser
+        self._tail = b""
+        self._timeout = 0.0
 
     def _close(self) -> None:
         ser, self._ser = self._ser, None
+        fd, self._fd = self._fd, None
+        if fd is not None:
+            with contextlib.suppress(OSError):
+                fcntl.ioctl(fd, termios.TIOCNXCL)
         if ser is not None:
             with contextlib.suppress(serial.SerialException, OSError):
                 ser.close()
 
-    def _write_bytes(self, data: bytes) -> None:
+    def _put(self, data: bytes) -> int:
+        """Write what fits now; the number of bytes taken (0 when the buffer is full)."""
+        if self._fd is None:  # a URL without a descriptor (loop://, socket://)
+            try:
+                return int(self._ser.write(data) or 0)
+            except serial.SerialTimeoutException:
+                return 0
+            except (serial.SerialException, OSError) as exc:
+                raise LinkDownError(f"{self.device}: {exc}") from None
         try:
-            self._ser.write(data)
-        except serial.SerialTimeoutException:
-            self.stats.bus_errors += 1  # line stalled: this frame is lost, link stays up
-        except (serial.SerialException, OSError) as exc:
+            return os.write(self._fd, data)
+        except BlockingIOError:
+            return 0
+        except InterruptedError:
+            return 0
+        except OSError as exc:
             raise LinkDownError(f"{self.device}: {exc}") from None
+
+    def _write_bytes(self, data: bytes) -> None:
+        if self._tail:  # finish the frame started earlier before anything else
+            self._tail = self._tail[self._put(self._tail) :]
+            if self._tail:
+                raise FrameDroppedError(f"{self.device}: transmit buffer full")
+        n = self._put(data)
+        if n == 0:
+            raise FrameDroppedError(f"{self.device}: transmit buffer full")
+        self._tail = data[n:]
 
     def _read_bytes(self, timeout: float) -> bytes:
         ser = self._ser

@@ -25,8 +25,9 @@ from truckd.config.truck import TruckConfig
 from truckd.control.controller import Controller, ControlOutput
 from truckd.control.qp import ControlModel
 from truckd.control.supervisor import Decision, Mode, Supervisor, SupervisorInputs
+from truckd.io.devlock import DeviceLock
 from truckd.io.port import Port, companion_port
-from truckd.runtime.backend import Backend, open_backend
+from truckd.runtime.backend import Backend, claim_backend, open_backend
 from truckd.runtime.command import motor_command
 from truckd.runtime.faults import RuntimeFaults, wrap_solver
 from truckd.runtime.mcap_log import McapLog
@@ -93,6 +94,7 @@ class Daemon:
         self.u_max = self.controller.u_max
         self.period = 1.0 / self.control_cfg.rate_hz
         self.ramp_step = self.rt.stop_ramp_v_per_s * self.period
+        self.claim: DeviceLock | None = None
         self.backend: Backend | None = None
         self.port: Port | None = None
         self.telemetry: Telemetry | None = None
@@ -133,11 +135,10 @@ class Daemon:
         }
 
     def start(self) -> None:
-        """Open the link, telemetry and recorder (raises TruckdError/InputError)."""
-        self.backend = open_backend(
-            self.backend_name, self.cfg, self.control_cfg, self.ticks_per_rev, self.clock
-        )
-        self.port = companion_port(self.backend.link, self.clock, self.cfg.link.timeout_periods)
+        """Claim the device, open telemetry and the recorder, then the link (raises
+        TruckdError/InputError).  The device is locked before anything opens it and the
+        link is opened last, so a daemon that fails to start never touched the device."""
+        self.claim = claim_backend(self.backend_name, self.cfg.link)
         if self.rt.telemetry.enabled:
             self.telemetry = Telemetry(self.cfg.vehicle_id, self.rt.telemetry, self.params)
             self.telemetry.start()
@@ -148,6 +149,11 @@ class Daemon:
             self.recorder = Recorder(self.rt.recorder, LOG_COLUMNS, sidecar=self.mcap)
             self.recorder.start()
             log.info("recording to %s", self.recorder.path)
+        self.backend = open_backend(
+            self.backend_name, self.cfg, self.control_cfg, self.ticks_per_rev, self.clock,
+            lock=self.claim,
+        )  # fmt: skip
+        self.port = companion_port(self.backend.link, self.clock, self.cfg.link.timeout_periods)
         log.info(
             "truckd %s: backend %s, %.0f Hz", self.cfg.vehicle_id, self.backend_name,
             self.control_cfg.rate_hz,
@@ -158,7 +164,10 @@ class Daemon:
         self.stop_requested = True
 
     def shutdown(self) -> None:
-        """Motor off, notify, flush the log, close telemetry and the link."""
+        """Motor off, notify, flush the log, close telemetry and the link.
+
+        Motor-off goes out only on a link this daemon opened (``port`` is set only then,
+        under the device lock): a daemon that failed to start sends nothing."""
         self.notifier.stopping("stopping: motor off")
         if self.port is not None:
             for _ in range(3):
@@ -170,7 +179,9 @@ class Daemon:
                     break
         if self.backend is not None:
             self.backend.tick(self.period)  # sim: let the firmware apply it
-        if self.recorder is not None:
+        if self.recorder is not None and self.port is None:
+            self.recorder.discard()  # did not start: no empty log left behind
+        elif self.recorder is not None:
             self.recorder.stop()
             log.info("log flushed: %d rows in %s", self.recorder.rows, self.recorder.path)
         if self.telemetry is not None:
@@ -178,6 +189,8 @@ class Daemon:
             self.telemetry.close()
         if self.backend is not None:
             self.backend.close()
+        if self.claim is not None:
+            self.claim.release()
         self.notifier.close()
         s = self.rk.stats()
         log.info(

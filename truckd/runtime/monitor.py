@@ -1,9 +1,16 @@
-"""``truckd monitor``: a live table of every vehicle reachable over Zenoh.
+r"""``truckd monitor``: a live table of every vehicle reachable over Zenoh.
 
 :class:`FleetView` is pure (samples in, table out); :func:`run_monitor` wires it to a Zenoh
 session: subscribers on ``truckd/*/state`` and ``truckd/*/health`` and a liveliness
 subscriber (with history) on ``truckd/*/alive``.  A vehicle whose token goes is shown
-``offline`` until it comes back.
+``offline`` with its mode ``unknown`` (and no live values) until it comes back; one whose
+token stays but whose state stops for :data:`STALE_S` is shown ``stale`` the same way.
+
+Everything shown comes from the network and is untrusted: :func:`safe_text` escapes
+control and formatting characters (C0, DEL, C1, bidi overrides, zero-width: ``\x1b``
+is shown as the four characters ``\x1b``) and bounds each field's length, and at most
+:data:`MAX_VEHICLES` vehicles are tracked.  The table says when no peer is connected
+(endpoint unreachable; Zenoh keeps retrying).
 """
 
 from __future__ import annotations
@@ -12,6 +19,7 @@ import json
 import math
 import threading
 import time
+import unicodedata
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, TextIO
@@ -33,6 +41,37 @@ class VehicleView:
     last_state_t: float = -math.inf  # local monotonic time of the last state sample
 
 
+MAX_VEHICLES = 256
+"""Vehicles tracked at most (samples from further ids are counted and ignored)."""
+
+STALE_S = 2.0
+"""A vehicle online (token held) whose last state sample is older than this (s) is shown
+``stale``: its session lives but its loop publishes nothing (hung, or stopped)."""
+
+FIELD_MAX = 32
+"""Characters shown at most per text field (vehicle id, mode, one fault)."""
+
+
+def _escape(o: int) -> str:
+    return f"\\x{o:02x}" if o < 0x100 else f"\\u{o:04x}" if o < 0x10000 else f"\\U{o:08x}"
+
+
+def safe_text(x: object, limit: int = FIELD_MAX) -> str:
+    r"""``x`` as printable text for a terminal: control and formatting characters
+    escaped (``\xNN``, ``\uNNNN``), at most ``limit`` characters (``...`` marks a cut)."""
+    text = x if isinstance(x, str) else str(x)
+    text = text[: limit * 4]  # bound the work before escaping
+    out: list[str] = []
+    for ch in text:
+        cat = unicodedata.category(ch)
+        if cat[0] == "C" or cat in ("Zl", "Zp"):
+            out.append(_escape(ord(ch)))
+        else:
+            out.append(ch)
+    s = "".join(out)
+    return s if len(s) <= limit else s[: limit - 3] + "..."
+
+
 def _vid(key: str) -> str | None:
     parts = key.split("/")
     return parts[1] if len(parts) == 3 and parts[0] == "truckd" else None
@@ -52,12 +91,19 @@ class FleetView:
 
     def __init__(self) -> None:
         self.vehicles: dict[str, VehicleView] = {}
+        self.ignored = 0  # samples of vehicles beyond MAX_VEHICLES
+        self.connected: bool | None = None  # None: unknown (no session)
+        self.endpoints: tuple[str, ...] = ()
         self._lock = threading.Lock()
 
-    def _get(self, vid: str) -> VehicleView:
-        if vid not in self.vehicles:
-            self.vehicles[vid] = VehicleView(vid)
-        return self.vehicles[vid]
+    def _get(self, vid: str) -> VehicleView | None:
+        v = self.vehicles.get(vid)
+        if v is None:
+            if len(self.vehicles) >= MAX_VEHICLES:
+                self.ignored += 1
+                return None
+            v = self.vehicles[vid] = VehicleView(vid)
+        return v
 
     def on_sample(self, key: str, payload: bytes, now: float) -> None:
         """A state or health sample arrived."""
@@ -72,6 +118,8 @@ class FleetView:
             return
         with self._lock:
             v = self._get(vid)
+            if v is None:
+                return
             if key.endswith("/state"):
                 v.state, v.last_state_t = msg, now
                 v.state_count += 1
@@ -83,14 +131,22 @@ class FleetView:
         vid = _vid(key)
         if vid is not None:
             with self._lock:
-                self._get(vid).online = alive
+                v = self._get(vid)
+                if v is not None:
+                    v.online = alive
 
-    def rows(self) -> list[tuple[str, ...]]:
-        """One row per vehicle, sorted by id."""
+    def rows(self, now: float | None = None) -> list[tuple[str, ...]]:
+        """One row per vehicle, sorted by id; every text field made safe (see
+        :func:`safe_text`).  An offline vehicle's mode is ``unknown``, its values ``-``."""
         out: list[tuple[str, ...]] = []
         with self._lock:
             for vid in sorted(self.vehicles):
                 v = self.vehicles[vid]
+                stale = now is not None and now - v.last_state_t > STALE_S
+                if not v.online or stale:
+                    status = "offline" if not v.online else "stale"
+                    out.append((safe_text(vid), status, "unknown", *["-"] * 7))
+                    continue
                 s, h = v.state, v.health
                 gap, ref = s.get("gap"), s.get("gap_ref")
                 err = (
@@ -100,29 +156,39 @@ class FleetView:
                 )
                 loop = h.get("loop", {}) if isinstance(h.get("loop"), dict) else {}
                 faults = h.get("faults", s.get("faults", []))
+                fault_text = (
+                    safe_text(",".join(safe_text(f) for f in faults[:8]), 4 * FIELD_MAX)
+                    if isinstance(faults, list) and faults
+                    else "-"
+                )
                 out.append(
                     (
-                        vid,
-                        "online" if v.online else "offline",
-                        str(s.get("mode", "-")),
+                        safe_text(vid),
+                        "online",
+                        safe_text(s.get("mode", "-")),
                         _num(s.get("v"), ".2f"),
                         _num(gap, ".3f"),
                         _num(err, "+.3f"),
                         _num(s.get("solve_us"), ".0f"),
                         _num(loop.get("lateness_us_p99"), ".0f"),
                         _num(h.get("state_rate_hz"), ".1f"),
-                        ",".join(map(str, faults)) if isinstance(faults, list) and faults else "-",
+                        fault_text,
                     )
                 )
         return out
 
-    def render(self) -> str:
-        """The table as text."""
-        rows = [self.COLUMNS, *self.rows()]
+    def render(self, now: float | None = None) -> str:
+        """The table as text (``now``: local monotonic time, s, to judge staleness)."""
+        rows = [self.COLUMNS, *self.rows(now)]
         widths = [max(len(r[i]) for r in rows) for i in range(len(self.COLUMNS))]
         lines = ["  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)) for r in rows]
         if len(rows) == 1:
             lines.append("(no vehicle seen yet)")
+        if self.ignored:
+            lines.append(f"({self.ignored} samples of more than {MAX_VEHICLES} vehicles ignored)")
+        if self.connected is False:
+            where = ", ".join(safe_text(e, 80) for e in self.endpoints) or "any endpoint"
+            lines.append(f"not connected: {where} unreachable (retrying)")
         return "\n".join(lines)
 
 
@@ -152,11 +218,14 @@ def run_monitor(
         session.declare_subscriber("truckd/*/health", on_data),
         session.liveliness().declare_subscriber("truckd/*/alive", on_alive, history=True),
     ]
+    view.endpoints = tuple(connect)
     t_end = None if duration is None else clock() + duration
     try:
         while t_end is None or clock() < t_end:
             time.sleep(interval if t_end is None else max(0.0, min(interval, t_end - clock())))
-            text = view.render()
+            info = session.info
+            view.connected = bool(info.peers_zid() or info.routers_zid())
+            text = view.render(clock())
             out.write(("\x1b[H\x1b[2J" if clear else "") + text + "\n\n")
             out.flush()
     finally:

@@ -7,11 +7,16 @@ flushes every ``flush_period_s`` and starts a new file (with its own header, so 
 file feeds ``identify``/``diagnose`` on its own) once the current one reaches
 ``max_bytes``; beyond ``keep`` files the oldest of this recorder's files are deleted.
 :meth:`stop` writes everything still queued, flushes and closes.
+
+File names are unique even for two daemons started in one directory within the same
+second: ``<prefix>-<UTC stamp>-p<pid>-NNNN.csv``, created exclusively (``O_EXCL``); a name
+that exists already gets a ``-K`` suffix, so no daemon ever appends to another's file.
 """
 
 from __future__ import annotations
 
 import logging
+import os
 import threading
 import time
 from collections import deque
@@ -73,7 +78,7 @@ class Recorder:
             self.dir.mkdir(parents=True, exist_ok=True)
             self._open_next()
         except OSError as exc:
-            raise TruckdError(f"cannot write logs in {self.dir}: {exc.strerror}") from None
+            raise TruckdError(f"cannot write logs in {self.dir}: {exc.strerror or exc}") from None
         self._thread = threading.Thread(target=self._run, name="truckd-recorder", daemon=True)
         self._thread.start()
 
@@ -86,8 +91,9 @@ class Recorder:
         if self._fh is not None:
             self._fh.close()
         self._index += 1
-        p = self.dir / f"{self.prefix}-{self._stamp}-{self._index:04d}.csv"
-        self._fh = open(p, "w", encoding="utf-8", newline="")  # noqa: SIM115 - kept open
+        base = f"{self.prefix}-{self._stamp}-p{os.getpid()}-{self._index:04d}"
+        p, fh = self._create(base)
+        self._fh = fh
         header = ",".join(self.columns) + "\n"
         self._fh.write(header)
         self._bytes = len(header)
@@ -100,6 +106,16 @@ class Recorder:
                 old.unlink()
             except OSError as exc:
                 log.warning("cannot delete old log %s: %s", old, exc.strerror)
+
+    def _create(self, base: str) -> tuple[Path, TextIO]:
+        """A new file ``base.csv`` (``base-K.csv`` when taken), created exclusively."""
+        for k in range(1000):
+            p = self.dir / (f"{base}.csv" if k == 0 else f"{base}-{k}.csv")
+            try:
+                return p, open(p, "x", encoding="utf-8", newline="")
+            except FileExistsError:
+                continue
+        raise FileExistsError(f"{self.dir}: no free name for {base}.csv")
 
     def record(self, values: Sequence[float]) -> None:
         """Queue one row, values in column order (never blocks)."""
@@ -146,6 +162,19 @@ class Recorder:
                     log.error("log write failed: %s", exc.strerror)
             if self._stop:
                 return
+
+    def discard(self) -> None:
+        """Stop and delete this recorder's files if no row was written (a daemon that
+        failed to start leaves no header-only log behind)."""
+        self.stop()
+        if self.rows:
+            return
+        for p in self.files:
+            try:
+                p.unlink()
+            except OSError as exc:
+                log.warning("cannot delete empty log %s: %s", p, exc.strerror)
+        self.files.clear()
 
     def stop(self) -> None:
         """Write everything queued, flush and close (idempotent)."""
