@@ -1,8 +1,8 @@
 """Plot one vehicle's channels of a truckd MCAP file with matplotlib, panel for panel as
-the vehicle's tab in foxglove/truckd-layout.json (a stand-in picture where Foxglove is not
+the vehicle's tab in foxglove-layout/truckd-layout.json (a stand-in picture where Foxglove is not
 at hand; it is NOT a Foxglove screenshot and says so on the figure).
 
-    python foxglove/plot_mcap.py FILE.mcap OUT.png [--vehicle truck1]
+    python foxglove-layout/plot_mcap.py FILE.mcap OUT.png [--vehicle truck1]
 """
 
 from __future__ import annotations
@@ -76,7 +76,7 @@ def main() -> int:
         a.legend(loc="upper right", fontsize=8)
     fig.suptitle(
         f"matplotlib plot of the MCAP channels in {Path(args.mcap).name}\n"
-        "(the panels of foxglove/truckd-layout.json; not a Foxglove screenshot)",
+        "(the panels of foxglove-layout/truckd-layout.json; not a Foxglove screenshot)",
         fontsize=10,
     )
     fig.tight_layout()

@@ -1,6 +1,6 @@
 """Write the Foxglove layout for truckd's channels (docs/foxglove.md).
 
-    python foxglove/make_layout.py [VEHICLE_ID ...] > foxglove/truckd-layout.json
+    python foxglove-layout/make_layout.py [VEHICLE_ID ...] > foxglove-layout/truckd-layout.json
 
 Default vehicles: truck1 truck2 truck3.  One tab per vehicle (gap and its reference,
 speeds, voltage and feedforward, supervisor mode, loop timing) and a ``fleet`` tab (every
