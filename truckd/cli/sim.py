@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+from pathlib import Path
 from typing import Any
 
 from truckd.config.truck import load_config
@@ -14,7 +15,7 @@ from truckd.errors import InputError, TruckdError
 from truckd.modelfile import read_model
 from truckd.sim.closed_loop import SimSetup, run_scenario
 from truckd.sim.mcap_export import mcap_paths, write_trace_mcap
-from truckd.sim.report import json_safe, plot, table
+from truckd.sim.report import json_safe, plot, table, write_trace
 from truckd.sim.scenarios import SCENARIO_NAMES, make_scenario
 
 
@@ -32,6 +33,11 @@ def add_subparser(sub: Any) -> None:
     p.add_argument(
         "--mcap", metavar="FILE|DIR", help="write MCAP (FILE.mcap, or DIR/<scenario>.mcap)"
     )
+    p.add_argument(
+        "--trace",
+        metavar="DIR",
+        help="write each run's time series in the log format to DIR/<scenario>.csv",
+    )
     p.set_defaults(run=run)
 
 
@@ -44,8 +50,15 @@ def run(args: argparse.Namespace) -> int:
         model, source = ControlModel(mf.vehicle, mf.effects), f"model file {args.model}"
     else:
         model, source = ControlModel(cfg.vehicle), "configured vehicle"
+    trace_dir = _trace_dir(args.trace) if args.trace else None
     setup = SimSetup(
-        cfg.vehicle, cfg.plant, cfg.control, model, ticks_per_rev=cfg.link.encoder_ticks_per_rev
+        cfg.vehicle,
+        cfg.plant,
+        cfg.control,
+        model,
+        ticks_per_rev=cfg.link.encoder_ticks_per_rev,
+        supervisor=cfg.runtime.supervisor,
+        stop_ramp_v_per_s=cfg.runtime.stop_ramp_v_per_s,
     )
     names = SCENARIO_NAMES if args.scenario == "all" else (args.scenario,)
     mcaps = mcap_paths(args.mcap, names) if args.mcap else {}
@@ -74,7 +87,20 @@ def run(args: argparse.Namespace) -> int:
         plot(args.plot, traces)
     for name, trace in traces if mcaps else ():
         write_trace_mcap(mcaps[name], cfg.vehicle_id, name, trace)
+    if trace_dir is not None:
+        for name, trace in traces:
+            write_trace(trace_dir / f"{name}.csv", trace)
     crashed = [r["scenario"] for r in results if r["collision"]]
     if crashed:
         raise TruckdError(f"collision in: {', '.join(crashed)}")
     return 0
+
+
+def _trace_dir(arg: str) -> Path:
+    """``--trace DIR``, created if missing (InputError when it cannot be a directory)."""
+    d = Path(arg)
+    try:
+        d.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"--trace {arg}: cannot use as a directory: {exc.strerror}") from None
+    return d

@@ -18,8 +18,8 @@ from truckd.control.config import ControlConfig
 from truckd.errors import InputError
 from truckd.io.config import LinkConfig
 from truckd.model.params import VehicleParams
+from truckd.model.plant_config import PlantConfig, encoder_ticks_per_rev
 from truckd.runtime.config import RuntimeConfig
-from truckd.sim.plant import PlantConfig
 
 
 @dataclass(frozen=True)
@@ -45,6 +45,14 @@ class TruckConfig:
     def validate(self) -> str | None:
         """Cross-field checks after loading (None when fine)."""
         return vehicle_id_problem(self.vehicle_id)
+
+    @property
+    def ticks_per_rev(self) -> int:
+        """Encoder ticks per wheel revolution both sides use (the plant's when it models
+        an encoder, else the link's)."""
+        return encoder_ticks_per_rev(
+            self.plant.encoder_ticks_per_rev, self.link.encoder_ticks_per_rev
+        )
 
 
 def default_config_path() -> Path:

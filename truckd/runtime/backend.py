@@ -12,9 +12,11 @@ simply absent is not an error: the link names it in the log and keeps retrying.
 
 from __future__ import annotations
 
+import importlib
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 from truckd.config.truck import TruckConfig
 from truckd.control.config import ControlConfig
@@ -29,9 +31,13 @@ from truckd.io.devlock import (
     serial_keys,
 )
 from truckd.io.link import Link
-from truckd.sim.firmware import FirmwareSimConfig, SimulatedFirmware, simulated_truck
-from truckd.sim.plant import Plant
-from truckd.sim.scenarios import World, make_scenario
+
+if TYPE_CHECKING:
+    from truckd.sim.firmware import SimulatedFirmware
+
+SIM_BACKEND = "truckd.sim.backend"
+"""The module of the ``sim`` backend, imported only when asked for by name (as python-can
+loads its interfaces): ``truckd run`` on the car never loads the plant or the scenarios."""
 
 
 @dataclass
@@ -90,11 +96,7 @@ def open_backend(
     first open finds the device held by another process the link is closed again without
     a byte sent and DeviceBusyError is raised (``lock`` stays with the caller)."""
     if name == "sim":
-        plant = Plant(cfg.vehicle, cfg.plant)
-        world = World(make_scenario("follow", cfg.vehicle, control))
-        link, fw, _wire = simulated_truck(
-            plant, world.range_fn, "frames", FirmwareSimConfig(ticks_per_rev=ticks_per_rev)
-        )
+        link, fw = importlib.import_module(SIM_BACKEND).open_sim(cfg, control, ticks_per_rev)
         return Backend(name, link, fw)
     link = open_link(name, cfg.link, clock)
     if link.busy:

@@ -56,6 +56,11 @@ class RecorderConfig:
     mcap_compression: str = spec(
         "MCAP chunk compression", choices=("zstd", "lz4", "none"), default="zstd"
     )
+    messages: bool = spec(
+        "also record every received message (JSON lines beside the CSV, not rotated) so "
+        "the run can be replayed through the control cycle",
+        default=False,
+    )
 
 
 @dataclass(frozen=True)

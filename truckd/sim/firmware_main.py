@@ -19,7 +19,8 @@ lead, sensor view and initial ego speed, with t = 0 at process start), or
 
 Faults are switched at run time with JSON datagrams to ``127.0.0.1:control_port`` (UDP):
 any :meth:`SimulatedFirmware.apply_fault` command, ``{"cmd": "lead", "gap": M,
-"speed": M/S}`` (a new constant-speed lead, gap measured from now), ``{"cmd":
+"speed": M/S}`` (a new constant-speed lead, gap measured from now; the reply carries
+``t`` and ``x``, the time and the truck's position it is measured from), ``{"cmd":
 "status"}`` (replies with a JSON status datagram: time, state, speed, position, voltage
 applied, the last valid command, counters) and ``{"cmd": "stop"}``.  Every
 datagram gets a JSON reply: ``{"ok": true, ...}`` or ``{"ok": false, "error": ...}``.
@@ -46,7 +47,6 @@ from truckd.sim.firmware import (
     RangeFn,
     SimulatedFirmware,
     constant_speed_lead,
-    encoder_ticks_per_rev,
 )
 from truckd.sim.plant import Plant
 from truckd.sim.pty_link import PtyDevice
@@ -123,7 +123,7 @@ def _handle(fw: SimulatedFirmware, cmd: Any) -> tuple[dict[str, Any], bool]:
             fw.range_fn = _Shifted(fw.t, fw.plant.x, float(gap), float(speed))
         else:
             return {"ok": False, "error": "lead: gap and speed must be numbers"}, False
-        return {"ok": True}, False
+        return {"ok": True, "t": fw.t, "x": fw.plant.x}, False  # where the lead starts
     try:
         fw.apply_fault(cmd)
     except ValueError as exc:
@@ -172,11 +172,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     plant = Plant(cfg.vehicle, cfg.plant)
     plant.reset(v=v0)
-    fw_cfg = FirmwareSimConfig(
-        ticks_per_rev=encoder_ticks_per_rev(
-            cfg.plant.encoder_ticks_per_rev, cfg.link.encoder_ticks_per_rev
-        )
-    )
+    fw_cfg = FirmwareSimConfig(ticks_per_rev=cfg.ticks_per_rev)
     dev: PtyDevice | SlcanDevice
     if args.link == "slcan":
         dev = SlcanDevice(args.pty, clock=lambda: plant.t)
