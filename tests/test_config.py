@@ -75,7 +75,7 @@ def test_unreadable_and_malformed_files(tmp_path: Path) -> None:
         load_config(tmp_path / "absent.yaml")
     f = tmp_path / "broken.yaml"
     f.write_text("vehicle:\n  R_m: [1,\n")
-    with pytest.raises(InputError, match="broken.yaml:3:1: invalid YAML"):
+    with pytest.raises(InputError, match=r"broken\.yaml:3:1: invalid YAML"):
         load_config(f)
 
 

@@ -41,12 +41,16 @@ def read_model(path: str | Path) -> ModelFile:
     return load_dataclass(ModelFile, data, src)
 
 
-def write_model(path: str | Path, model: ModelFile) -> None:
-    """Write a model file (round-trips through :func:`read_model`)."""
-    text = "# truckd model file (SI units); see truckd/modelfile.py\n" + yaml.safe_dump(
+def model_text(model: ModelFile) -> str:
+    """A model file's text (YAML; round-trips through :func:`read_model`)."""
+    return "# truckd model file (SI units); see truckd/modelfile.py\n" + yaml.safe_dump(
         to_plain(model), sort_keys=False
     )
-    write_text(path, text)
+
+
+def write_model(path: str | Path, model: ModelFile) -> None:
+    """Write a model file, all or nothing (round-trips through :func:`read_model`)."""
+    write_text(path, model_text(model))
 
 
 def load_model_into(cfg: TruckConfig, path: str | Path) -> TruckConfig:

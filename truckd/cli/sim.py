@@ -5,13 +5,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 from typing import Any
 
+from truckd.cli.args import image_file, json_file, sim_duration
 from truckd.config.truck import load_config
 from truckd.control.qp import ControlModel
-from truckd.errors import InputError, TruckdError
+from truckd.errors import TruckdError
 from truckd.modelfile import read_model
+from truckd.outputs import check_distinct, write_text
 from truckd.sim.closed_loop import SimSetup, run_scenario
 from truckd.sim.report import json_safe, plot, table
 from truckd.sim.scenarios import SCENARIO_NAMES, make_scenario
@@ -22,18 +23,21 @@ def add_subparser(sub: Any) -> None:
     p.add_argument(
         "--scenario", default="all", choices=(*SCENARIO_NAMES, "all"), help="default: all"
     )
-    p.add_argument("--duration", type=float, help="seconds (default: the scenario's)")
+    p.add_argument(
+        "--duration", type=sim_duration, help="seconds, at most 24 h (default: the scenario's)"
+    )
     p.add_argument("--realtime", action="store_true", help="pace the loop in wall-clock time")
     p.add_argument("--config", help="configuration file (default: the shipped one)")
     p.add_argument("--model", help="MODEL.yaml: the controller's model (the plant stays)")
-    p.add_argument("--json", help="write the metrics as JSON to this file")
-    p.add_argument("--plot", help="write a PNG of gap, speeds and voltage to this file")
+    p.add_argument("--json", type=json_file, help="write the metrics as JSON to this file")
+    p.add_argument(
+        "--plot", type=image_file, help="write a plot (.png, .svg, .pdf) of gap, speeds, voltage"
+    )
     p.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
-        raise InputError(f"--duration: expected a positive number of seconds, got {args.duration}")
+    check_distinct([("--json", args.json), ("--plot", args.plot)])
     cfg = load_config(args.config)
     if args.model:
         mf = read_model(args.model)
@@ -59,12 +63,7 @@ def run(args: argparse.Namespace) -> int:
     print(table(results))
     if args.json:
         doc: object = results if args.scenario == "all" else results[0]
-        try:
-            with open(args.json, "w", encoding="utf-8") as f:
-                json.dump(doc, f, indent=2, allow_nan=False)
-                f.write("\n")
-        except OSError as exc:
-            raise TruckdError(f"{args.json}: cannot write: {exc.strerror}") from None
+        write_text(args.json, json.dumps(doc, indent=2, allow_nan=False) + "\n")
     if args.plot:
         plot(args.plot, traces)
     crashed = [r["scenario"] for r in results if r["collision"]]

@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 
 from truckd.errors import TruckdError
+from truckd.outputs import atomic_binary
 from truckd.sim.closed_loop import Trace
 
 _COLUMNS: tuple[tuple[str, str, str], ...] = (
@@ -77,8 +78,8 @@ def plot(path: str | Path, runs: Sequence[tuple[str, Trace]]) -> None:
         ax.legend(loc="best", fontsize="small")
     fig.tight_layout()
     try:
-        fig.savefig(path, dpi=80)
-    except OSError as exc:
-        raise TruckdError(f"{path}: cannot write plot: {exc.strerror}") from None
+        fmt = Path(path).suffix.lower().lstrip(".") or "png"
+        with atomic_binary(path) as fh:  # all or nothing
+            fig.savefig(fh, dpi=80, format=fmt)
     finally:
         plt.close(fig)
