@@ -223,14 +223,16 @@ def _fsync_tree(root: Path) -> None:
                 os.fsync(fh.fileno())
 
 
-def write_text_set(files: Iterable[tuple[str | Path, str]]) -> None:
-    """Write several text files as a set: every one complete, or none of them changed.
+def write_set(files: Iterable[tuple[str | Path, str | bytes]]) -> None:
+    """Write several files (text: UTF-8) as a set: every one complete, or none changed.
 
     Each is written to its temporary file first; only when all are written and synced are
     they renamed into place (a failure of the rename itself, rarer, can still leave the
     earlier ones replaced).
     """
     with contextlib.ExitStack() as stack:
-        for path, text in files:
-            fh = stack.enter_context(atomic_text(path))
-            fh.write(text)
+        for path, content in files:
+            if isinstance(content, bytes):
+                stack.enter_context(atomic_binary(path)).write(content)
+            else:
+                stack.enter_context(atomic_text(path)).write(content)

@@ -14,7 +14,7 @@ from truckd.config.truck import load_config
 from truckd.ident.api import diagnose_log, model_of
 from truckd.logfile import read_log
 from truckd.modelfile import model_text
-from truckd.outputs import atomic_dir, check_distinct, write_text_set
+from truckd.outputs import atomic_dir, check_distinct, write_set
 
 
 def add_subparser(sub: Any) -> None:
@@ -44,7 +44,7 @@ def run(args: argparse.Namespace) -> int:
     val = read_log(args.validate, vbat=args.vbat) if args.validate else None
     report_notes(log.notes + (val.notes if val else []))
     diag = diagnose_log(log, cfg.vehicle, val, _progress)
-    files: list[tuple[str, str]] = []
+    files: list[tuple[str, str | bytes]] = []
     if args.out:
         files.append((args.out, model_text(model_of(diag, args.log))))
     if args.json:
@@ -54,7 +54,7 @@ def run(args: argparse.Namespace) -> int:
 
         with atomic_dir(args.report) as tmp:
             index = Path(args.report) / write_report(diag, tmp, args.log).name
-    write_text_set(files)
+    write_set(files)
     if args.report:
         print(f"report: {index}")
     b, x = diag.baseline, diag.extended

@@ -7,14 +7,14 @@ import argparse
 import json
 from typing import Any
 
-from truckd.cli.args import image_file, json_file, sim_duration
+from truckd.cli.args import image_file, json_file, plot_format, sim_duration
 from truckd.config.truck import load_config
 from truckd.control.qp import ControlModel
 from truckd.errors import TruckdError
 from truckd.modelfile import read_model
-from truckd.outputs import check_distinct, write_text
+from truckd.outputs import check_distinct, write_set
 from truckd.sim.closed_loop import SimSetup, run_scenario
-from truckd.sim.report import json_safe, plot, table
+from truckd.sim.report import json_safe, plot_image, table
 from truckd.sim.scenarios import SCENARIO_NAMES, make_scenario
 
 
@@ -61,11 +61,13 @@ def run(args: argparse.Namespace) -> int:
         f"{', '.join(cfg.plant.effects.active()) or 'none'}"
     )
     print(table(results))
+    files: list[tuple[str, str | bytes]] = []
     if args.json:
         doc: object = results if args.scenario == "all" else results[0]
-        write_text(args.json, json.dumps(doc, indent=2, allow_nan=False) + "\n")
+        files.append((args.json, json.dumps(doc, indent=2, allow_nan=False) + "\n"))
     if args.plot:
-        plot(args.plot, traces)
+        files.append((args.plot, plot_image(traces, plot_format(args.plot))))
+    write_set(files)  # all or nothing
     crashed = [r["scenario"] for r in results if r["collision"]]
     if crashed:
         raise TruckdError(f"collision in: {', '.join(crashed)}")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import math
 from collections.abc import Sequence
 from pathlib import Path
@@ -10,7 +11,7 @@ from typing import Any
 import numpy as np
 
 from truckd.errors import TruckdError
-from truckd.outputs import atomic_binary
+from truckd.outputs import write_bytes
 from truckd.sim.closed_loop import Trace
 
 _COLUMNS: tuple[tuple[str, str, str], ...] = (
@@ -47,7 +48,13 @@ def table(rows: Sequence[dict[str, Any]]) -> str:
 
 
 def plot(path: str | Path, runs: Sequence[tuple[str, Trace]]) -> None:
-    """PNG with one column per run: gap and reference gap, speeds, voltage over time."""
+    """Write :func:`plot_image` to ``path`` (format from its suffix), all or nothing."""
+    write_bytes(path, plot_image(runs, Path(path).suffix.lower().lstrip(".") or "png"))
+
+
+def plot_image(runs: Sequence[tuple[str, Trace]], fmt: str = "png") -> bytes:
+    """An image (png, svg, pdf) with one column per run: gap and reference gap, speeds,
+    voltage over time."""
     try:
         import matplotlib
 
@@ -77,9 +84,9 @@ def plot(path: str | Path, runs: Sequence[tuple[str, Trace]]) -> None:
         ax.set_xlabel("t (s)")
         ax.legend(loc="best", fontsize="small")
     fig.tight_layout()
+    buf = io.BytesIO()
     try:
-        fmt = Path(path).suffix.lower().lstrip(".") or "png"
-        with atomic_binary(path) as fh:  # all or nothing
-            fig.savefig(fh, dpi=80, format=fmt)
+        fig.savefig(buf, dpi=80, format=fmt)
     finally:
         plt.close(fig)
+    return buf.getvalue()
