@@ -97,9 +97,16 @@ _Loader.add_implicit_resolver("tag:yaml.org,2002:float", _FLOAT_12, list("-+0123
 
 def load_yaml(text: str, source: str) -> Any:
     """Parse one YAML document from ``text``; ``source`` names it in error messages."""
-    loader = _Loader(text, source)
+    loader: _Loader | None = None
     try:
+        loader = _Loader(text, source)
         return loader.get_single_data()
+    except yaml.reader.ReaderError as exc:
+        line = text.count("\n", 0, exc.position) + 1
+        raise InputError(
+            f"{source}: line {line}: character U+{exc.character:04X} is not allowed in YAML; "
+            "expected printable text"
+        ) from None
     except yaml.MarkedYAMLError as exc:
         mark = exc.problem_mark or exc.context_mark
         where = f"{source}:{mark.line + 1}:{mark.column + 1}" if mark is not None else source
@@ -111,4 +118,5 @@ def load_yaml(text: str, source: str) -> Any:
     except RecursionError:
         raise InputError(f"{source}: nested too deeply; expected a few levels") from None
     finally:
-        loader.dispose()
+        if loader is not None:
+            loader.dispose()
