@@ -122,6 +122,19 @@ def test_rows_of_empty_cells(tmp_path: Path) -> None:
     assert tail.notes == [f"{tmp_path / 'tail.csv'}: skipped 2 empty row(s) at the end (lines 5-6)"]
 
 
+def test_a_log_cut_by_a_crash_is_read_up_to_its_last_full_line(tmp_path: Path) -> None:
+    log = read_log(write(tmp_path, "cut.csv", GOOD + "0.03,1"))
+    assert len(log) == 3
+    assert log.notes == [
+        f"{tmp_path / 'cut.csv'}: line 5: the last line is cut short (2 of 3 cells, no newline "
+        "at the end: a log whose writer stopped); skipped"
+    ]
+    inner = write(tmp_path, "short.csv", "t,u,v\n0,1\n0.01,1,0\n")
+    assert "line 2: 2 cells, header has 3" in log_error(inner)
+    no_newline = read_log(write(tmp_path, "nonl.csv", GOOD + "0.03,1,0.03"))
+    assert len(no_newline) == 4 and no_newline.notes == []
+
+
 def test_u_and_f_together_says_u_is_used(tmp_path: Path) -> None:
     log = read_log(write(tmp_path, "both.csv", "t,u,F,v\n0,1,2,0\n0.01,1,2,0.01\n"))
     assert log.input_kind == "voltage"

@@ -166,8 +166,12 @@ def _parse(text: str, src: str, require: Sequence[str], vbat: float | None) -> L
         nums: dict[str, array[float] | None] = {n: array("d") for n in extra}
         lines: list[int] = []
         empty_rows: list[int] = []
+        cut: tuple[int, int] | None = None  # a short last line without a newline
+        ends_cut = not text.endswith(("\n", "\r"))
         for row in reader:
             lineno = reader.line_num
+            if cut is not None:
+                raise InputError(f"{src}: line {cut[0]}: {cut[1]} cells, header has {len(names)}")
             if not row:
                 continue  # a blank line
             if all(not c.strip() for c in row):
@@ -178,6 +182,9 @@ def _parse(text: str, src: str, require: Sequence[str], vbat: float | None) -> L
                     f"{src}: line {empty_rows[0]}: every cell is empty; expected numbers "
                     "(a lost sample? delete or fill the row)"
                 )
+            if len(row) < len(names) and ends_cut:
+                cut = (lineno, len(row))  # refused above unless it is the last line
+                continue
             if len(row) != len(names):
                 raise InputError(f"{src}: line {lineno}: {len(row)} cells, header has {len(names)}")
             if len(lines) >= MAX_ROWS:
@@ -199,6 +206,11 @@ def _parse(text: str, src: str, require: Sequence[str], vbat: float | None) -> L
         raise InputError(f"{src}: line {reader.line_num}: {_clip(str(exc), 80)}") from None
     if not lines:
         raise InputError(f"{src}: no data rows after the header")
+    if cut is not None:
+        notes.append(
+            f"{src}: line {cut[0]}: the last line is cut short ({cut[1]} of {len(names)} cells, "
+            "no newline at the end: a log whose writer stopped); skipped"
+        )
     if empty_rows:
         span = (
             f"line {empty_rows[0]}"
