@@ -353,3 +353,12 @@ def test_identify_and_simulate_check_out(
     assert "is a directory" in line and "model file" in line
     line = bad_input(["simulate", str(log), "--out", str(tmp_path) + "/"], capsys)
     assert "not a directory" in line
+
+
+@pytest.mark.parametrize("target", ["/dev/zero", "."])
+def test_zenoh_config_must_be_a_regular_file(
+    capsys: pytest.CaptureFixture[str], target: str
+) -> None:
+    """``/dev/zero`` as the Zenoh file hung the monitor (zenoh read it forever)."""
+    line = bad_input(["monitor", "--zenoh-config", target, "--duration", "0"], capsys)
+    assert f"{target}: " in line and "Zenoh configuration file" in line
