@@ -34,6 +34,12 @@ def _float(text: str) -> float:
         raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
 
 
+def _span(s: float) -> str:
+    if s >= 2 * DAY_S:
+        return f" ({s / DAY_S:g} days)"
+    return f" ({s / 3600:g} h)" if s >= 3600 else ""
+
+
 def seconds(lo: float, hi: float, *, lo_open: bool = True) -> Callable[[str], float]:
     """A finite number of seconds in ``(lo, hi]`` (``[lo, hi]`` with ``lo_open=False``)."""
     left = "(" if lo_open else "["
@@ -43,8 +49,7 @@ def seconds(lo: float, hi: float, *, lo_open: bool = True) -> Callable[[str], fl
         ok_lo = val > lo if lo_open else val >= lo
         if not (math.isfinite(val) and ok_lo and val <= hi):
             raise argparse.ArgumentTypeError(
-                f"{text!r}: expected a number of seconds in {left}{lo:g}, {hi:g}]"
-                + (f" ({hi / 3600:g} h)" if hi >= 3600 else "")
+                f"{text!r}: expected a number of seconds in {left}{lo:g}, {hi:.0f}]{_span(hi)}"
             )
         return val
 

@@ -52,11 +52,12 @@ def run(args: argparse.Namespace) -> int:
     if args.report:
         from truckd.ident.report import write_report
 
-        with atomic_dir(args.report) as tmp:
+        with atomic_dir(args.report) as tmp:  # published only if every output is written
             index = Path(args.report) / write_report(diag, tmp, args.log).name
-    write_set(files)
-    if args.report:
+            write_set(files)
         print(f"report: {index}")
+    else:
+        write_set(files)
     b, x = diag.baseline, diag.extended
     print(f"{diag.samples} samples ({diag.input} input)")
     print(f"seed model:     fit {b.fit_percent:7.2f} %  rmse {b.rmse:.4g}")
