@@ -2,33 +2,70 @@
 
 ``t`` (s, strictly increasing), ``u`` (V), ``v`` (m/s); optional ``i``, ``x``, ``gap``,
 ``v_lead``, ``vbat``; force-input logs carry ``F`` (N) instead of ``u`` and may carry
-``x`` instead of ``v``.  Extra columns are kept.  Errors name the file and line.
+``x`` instead of ``v``; a duty-cycle log carries ``duty`` (-1..1) instead of ``u``, with
+``vbat`` or ``--vbat V``: u = duty * vbat.  Columns the reader does not know are kept
+(numeric ones as arrays, text ones as strings) and ignored.  A UTF-8 byte-order mark is
+accepted.  Errors name the file and line; docs/inputs.md lists every rule and limit.
 """
 
 from __future__ import annotations
 
 import csv
 import math
-from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass
+import os
+from array import array
+from collections.abc import Iterable, Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
 
 from truckd.errors import InputError
+from truckd.inputs import decode_utf8, open_regular
+from truckd.outputs import atomic_text
 
-KNOWN_COLUMNS = ("t", "u", "v", "i", "x", "gap", "v_lead", "vbat", "F")
+KNOWN_COLUMNS = ("t", "u", "v", "i", "x", "gap", "v_lead", "vbat", "F", "duty")
 NAN_ALLOWED = ("gap", "v_lead")
 """Optional columns where NaN means "no lead tracked" (the daemon's own logs)."""
+
+MAX_LOG_BYTES = 128 * 1024 * 1024
+"""Largest log read (about 2.5 h at 100 Hz, eight full-precision columns; the daemon
+rotates its logs at 20 MB)."""
+
+MAX_ROWS = 5_000_000
+"""Most data rows read (short rows); past it the reader stops with an error."""
+
+# Largest magnitude accepted per known column, with its unit.  Far beyond a 1:14 truck
+# (a few m/s, 12 V, tens of A) yet small enough that squares and products of them stay
+# finite in float64: a value past these is a unit or export error, not a measurement.
+BOUNDS: dict[str, tuple[float, str]] = {
+    "t": (1e10, "s"),  # Unix time in seconds fits (year 2286)
+    "u": (1e3, "V"),
+    "v": (1e3, "m/s"),
+    "i": (1e4, "A"),
+    "x": (1e8, "m"),
+    "gap": (1e6, "m"),
+    "v_lead": (1e3, "m/s"),
+    "vbat": (1e3, "V"),
+    "F": (1e6, "N"),
+    "duty": (1.0, "(fraction of the supply)"),
+}
 
 
 @dataclass
 class Log:
-    """A log's columns as float arrays keyed by name, in file order."""
+    """A log's columns as float arrays keyed by name, in file order.
+
+    Columns the reader does not know are in ``columns`` too when every cell is a number
+    or empty (NaN); ``text_columns`` names the others (text, ignored).  ``notes`` are
+    one-line remarks for the user (e.g. which of ``u`` and ``F`` is used).
+    """
 
     columns: dict[str, NDArray[np.float64]]
     source: str = "<memory>"
+    text_columns: list[str] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
 
     def __getitem__(self, name: str) -> NDArray[np.float64]:
         return self.columns[name]
@@ -45,87 +82,254 @@ class Log:
         return "voltage" if "u" in self.columns else "force"
 
 
-def read_log(path: str | Path, require: Sequence[str] = ("t",)) -> Log:
+def _number(src: str, lineno: int, name: str, cell: str) -> float:
+    """A known column's cell as a float within :data:`BOUNDS`."""
+    text = cell.strip()
+    bound, unit = BOUNDS[name]
+    if not text:
+        raise InputError(f"{src}: line {lineno}: column '{name}' is empty; expected a number")
+    try:
+        val = float(text)
+    except ValueError:
+        raise InputError(
+            f"{src}: line {lineno}: column '{name}': {_clip(text)!r} is not a number"
+        ) from None
+    if math.isnan(val) and name in NAN_ALLOWED:
+        return val  # no lead tracked in this sample
+    if not math.isfinite(val):
+        raise InputError(
+            f"{src}: line {lineno}: column '{name}': {_clip(text)!r} is not finite; "
+            "expected a measured value"
+        )
+    if abs(val) > bound:
+        raise InputError(
+            f"{src}: line {lineno}: column '{name}' = {val:.6g} is beyond +-{bound:g} {unit}; "
+            "expected a measured value (a unit or export error?)"
+        )
+    return val
+
+
+def _clip(text: str, limit: int = 40) -> str:
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def _extra(cell: str) -> float | None:
+    """An unknown column's cell as a float (empty: NaN), or None if it is text."""
+    c = cell.strip()
+    if not c:
+        return math.nan
+    try:
+        return float(c)
+    except ValueError:
+        return None
+
+
+def read_log(path: str | Path, require: Sequence[str] = ("t",), vbat: float | None = None) -> Log:
     """Read and validate a log.
 
-    Besides ``t``, a log needs an input (``u`` or ``F``) and an output (``v``, or ``x`` for
-    force-input logs) unless ``require`` says otherwise.  Raises :class:`InputError`
-    naming the file and line of the first problem.
+    ``require`` names the columns that must be present (``u`` is satisfied by ``duty``
+    with a supply voltage).  ``vbat`` (V, the ``--vbat`` option) is the supply for a
+    ``duty`` column; it takes precedence over a ``vbat`` column.  Raises
+    :class:`InputError` naming the file and line of the first problem.
     """
-    src = str(path)
+    src = os.fspath(path)
+    fd = open_regular(path, "CSV log", MAX_LOG_BYTES)
     try:
-        fh = open(path, newline="", encoding="utf-8")  # noqa: SIM115 - closed below
+        with os.fdopen(fd, "rb") as fh:
+            data = fh.read(MAX_LOG_BYTES + 1)
     except OSError as exc:
-        raise InputError(f"{src}: cannot read log: {exc.strerror}") from None
-    with fh:
-        reader = csv.reader(fh)
-        try:
-            header = next(reader)
-        except StopIteration:
-            raise InputError(f"{src}: empty file, expected a CSV header row") from None
-        except csv.Error as exc:
-            raise InputError(f"{src}: line 1: {exc}") from None
+        raise InputError(f"{src}: cannot read the log: {exc.strerror}") from None
+    if len(data) > MAX_LOG_BYTES:
+        raise InputError(f"{src}: more than the limit of {MAX_LOG_BYTES >> 20} MiB for a log")
+    text = decode_utf8(data, src, "CSV log")
+    del data
+    return _parse(text, src, require, vbat)
+
+
+def _parse(text: str, src: str, require: Sequence[str], vbat: float | None) -> Log:
+    reader = csv.reader(_lines(text))
+    notes: list[str] = []
+    try:
+        header = next(reader, None)
+        if header is None:
+            raise InputError(f"{src}: empty file, expected a CSV header row")
         names = [h.strip() for h in header]
-        if len(set(names)) != len(names):
-            dup = next(n for n in names if names.count(n) > 1)
-            raise InputError(f"{src}: line 1: column '{dup}' appears twice")
-        for col in require:
-            if col not in names:
-                raise InputError(
-                    f"{src}: line 1: missing column '{col}' (header has: {', '.join(names)})"
-                )
-        rows: list[list[float]] = []
+        if not any(names):
+            raise InputError(f"{src}: line 1: the header row is empty; expected column names")
+        known: dict[str, int] = {}
+        extra: dict[str, int] = {}
+        for k, n in enumerate(names):
+            if n in KNOWN_COLUMNS:
+                if n in known:
+                    raise InputError(f"{src}: line 1: column '{n}' appears twice")
+                known[n] = k
+            elif n and n not in extra:
+                extra[n] = k
+        _check_header(src, names, known, require, vbat)
+        vals = {n: array("d") for n in known}
+        nums: dict[str, array[float] | None] = {n: array("d") for n in extra}
         lines: list[int] = []
-        try:
-            for row in reader:
-                lineno = reader.line_num
-                if not row or all(not c.strip() for c in row):
-                    continue
-                if len(row) != len(names):
-                    raise InputError(
-                        f"{src}: line {lineno}: {len(row)} cells, header has {len(names)}"
-                    )
-                vals = []
-                for name, cell in zip(names, row, strict=True):
-                    try:
-                        val = float(cell)
-                    except ValueError:
-                        raise InputError(
-                            f"{src}: line {lineno}: column '{name}': {cell!r} is not a number"
-                        ) from None
-                    if (
-                        name in KNOWN_COLUMNS
-                        and not math.isfinite(val)
-                        and not (name in NAN_ALLOWED and math.isnan(val))
-                    ):
-                        raise InputError(
-                            f"{src}: line {lineno}: column '{name}': {cell!r} is not finite"
-                        )
-                    vals.append(val)
-                rows.append(vals)
-                lines.append(lineno)
-        except csv.Error as exc:
-            raise InputError(f"{src}: line {reader.line_num}: {exc}") from None
-    if not rows:
+        empty_rows: list[int] = []
+        cut: tuple[int, int] | None = None  # a short last line without a newline
+        ends_cut = not text.endswith(("\n", "\r"))
+        for row in reader:
+            lineno = reader.line_num
+            if cut is not None:
+                raise InputError(f"{src}: line {cut[0]}: {cut[1]} cells, header has {len(names)}")
+            if not row:
+                continue  # a blank line
+            if all(not c.strip() for c in row):
+                empty_rows.append(lineno)
+                continue
+            if empty_rows:
+                raise InputError(
+                    f"{src}: line {empty_rows[0]}: every cell is empty; expected numbers "
+                    "(a lost sample? delete or fill the row)"
+                )
+            if len(row) < len(names) and ends_cut:
+                cut = (lineno, len(row))  # refused above unless it is the last line
+                continue
+            if len(row) != len(names):
+                raise InputError(f"{src}: line {lineno}: {len(row)} cells, header has {len(names)}")
+            if len(lines) >= MAX_ROWS:
+                raise InputError(
+                    f"{src}: line {lineno}: more than {MAX_ROWS} data rows, the limit for a log"
+                )
+            for n, k in known.items():
+                vals[n].append(_number(src, lineno, n, row[k]))
+            for n, k in extra.items():
+                col = nums[n]
+                if col is not None:
+                    x = _extra(row[k])
+                    if x is None:
+                        nums[n] = None  # a text column: ignored from here on
+                    else:
+                        col.append(x)
+            lines.append(lineno)
+    except csv.Error as exc:
+        raise InputError(f"{src}: line {reader.line_num}: {_clip(str(exc), 80)}") from None
+    if not lines:
         raise InputError(f"{src}: no data rows after the header")
-    data = np.array(rows, dtype=float)
-    cols = {n: data[:, k].copy() for k, n in enumerate(names)}
-    if "t" in cols:
-        dt = np.diff(cols["t"])
-        bad = np.flatnonzero(~(dt > 0))
-        if bad.size:
-            k = int(bad[0]) + 1
+    if cut is not None:
+        notes.append(
+            f"{src}: line {cut[0]}: the last line is cut short ({cut[1]} of {len(names)} cells, "
+            "no newline at the end: a log whose writer stopped); skipped"
+        )
+    if empty_rows:
+        span = (
+            f"line {empty_rows[0]}"
+            if len(empty_rows) == 1
+            else (f"lines {empty_rows[0]}-{empty_rows[-1]}")
+        )
+        notes.append(f"{src}: skipped {len(empty_rows)} empty row(s) at the end ({span})")
+    cols: dict[str, NDArray[np.float64]] = {}
+    texts: list[str] = []
+    for n in names:
+        if n in known:
+            cols[n] = np.frombuffer(vals[n], dtype=float).copy()
+        elif n in extra and n not in cols and n not in texts:
+            col = nums[n]
+            if col is None:
+                texts.append(n)
+            else:
+                cols[n] = np.frombuffer(col, dtype=float).copy()
+    _check_time(src, cols, lines)
+    _derive_u(src, cols, lines, vbat, notes)
+    if "u" in cols and "F" in cols:
+        notes.append(f"{src}: both 'u' and 'F' present; using 'u' (voltage input), 'F' ignored")
+    return Log(cols, src, texts, notes)
+
+
+def _lines(text: str) -> Iterator[str]:
+    """The lines of ``text`` with their endings, one at a time (no copy of the whole)."""
+    start, n = 0, len(text)
+    while start < n:
+        end = text.find("\n", start)
+        if end < 0:
+            yield text[start:]
+            return
+        yield text[start : end + 1]
+        start = end + 1
+
+
+def _check_header(
+    src: str,
+    names: list[str],
+    known: Mapping[str, int],
+    require: Sequence[str],
+    vbat: float | None,
+) -> None:
+    for col in require:
+        if col in known:
+            continue
+        if col == "u" and "duty" in known and ("vbat" in known or vbat is not None):
+            continue
+        if col == "u" and "duty" in known:
             raise InputError(
-                f"{src}: line {lines[k]}: time t={float(cols['t'][k])!r} does not increase "
-                f"(previous {float(cols['t'][k - 1])!r}); t must be strictly increasing"
+                f"{src}: line 1: column 'duty' needs the supply voltage: a 'vbat' column "
+                "or --vbat V"
             )
-    return Log(cols, src)
+        listed = _clip(", ".join(names), 80)
+        raise InputError(f"{src}: line 1: missing column '{col}' (header has: {listed})")
+
+
+def _check_time(src: str, cols: Mapping[str, NDArray[np.float64]], lines: list[int]) -> None:
+    if "t" not in cols:
+        return
+    t = cols["t"]
+    bad = np.flatnonzero(~(np.diff(t) > 0))
+    if bad.size:
+        k = int(bad[0]) + 1
+        raise InputError(
+            f"{src}: line {lines[k]}: time t={float(t[k])!r} does not increase "
+            f"(previous {float(t[k - 1])!r}); t must be strictly increasing"
+        )
+
+
+def _derive_u(
+    src: str,
+    cols: dict[str, NDArray[np.float64]],
+    lines: list[int],
+    vbat: float | None,
+    notes: list[str],
+) -> None:
+    """u = duty * vbat for a duty-cycle log (CONTRACTS.md section 3)."""
+    if vbat is not None and not (math.isfinite(vbat) and 0 < vbat <= BOUNDS["vbat"][0]):
+        raise InputError(f"--vbat {vbat!r}: expected a supply voltage in (0, 1000] V")
+    if "duty" not in cols:
+        if vbat is not None:
+            notes.append(f"{src}: the log has no 'duty' column; --vbat is not used")
+        return
+    if "u" in cols:
+        notes.append(f"{src}: both 'u' and 'duty' present; using 'u', 'duty' ignored")
+        return
+    if vbat is not None:
+        supply = np.full_like(cols["duty"], vbat)
+        if "vbat" in cols:
+            notes.append(f"{src}: u = duty * {vbat:g} V from --vbat; the 'vbat' column is not used")
+    elif "vbat" in cols:
+        supply = cols["vbat"]
+        bad = np.flatnonzero(~(supply > 0))
+        if bad.size:
+            k = int(bad[0])
+            raise InputError(
+                f"{src}: line {lines[k]}: column 'vbat' = {float(supply[k]):g}; expected a "
+                "supply voltage > 0 V to convert 'duty' (or give --vbat V)"
+            )
+    else:
+        raise InputError(
+            f"{src}: line 1: column 'duty' needs the supply voltage: a 'vbat' column or --vbat V"
+        )
+    cols["u"] = cols["duty"] * supply
 
 
 def require_io(log: Log) -> None:
     """Check the log has an input and an output column (the contract's minimum)."""
     if "u" not in log and "F" not in log:
-        raise InputError(f"{log.source}: line 1: missing column 'u' (or 'F' for force input)")
+        raise InputError(
+            f"{log.source}: line 1: missing column 'u' (or 'F' for force input, or 'duty' "
+            "with 'vbat')"
+        )
     if "u" in log and "v" not in log:
         raise InputError(f"{log.source}: line 1: missing column 'v' (measured speed, m/s)")
     if "F" in log and "u" not in log and "v" not in log and "x" not in log:
@@ -133,7 +337,7 @@ def require_io(log: Log) -> None:
 
 
 def write_log(path: str | Path, columns: Mapping[str, Iterable[float]]) -> None:
-    """Write columns (equal length) as CSV with full float precision."""
+    """Write columns (equal length) as CSV with full float precision, all or nothing."""
     names = list(columns)
     arrays = [
         np.asarray(
@@ -144,7 +348,7 @@ def write_log(path: str | Path, columns: Mapping[str, Iterable[float]]) -> None:
     n = len(arrays[0]) if arrays else 0
     if any(len(a) != n for a in arrays):
         raise ValueError("columns must have equal length")
-    with open(path, "w", newline="", encoding="utf-8") as fh:
+    with atomic_text(path) as fh:
         w = csv.writer(fh)
         w.writerow(names)
         for k in range(n):

@@ -18,9 +18,11 @@ import yaml
 
 from truckd.config.schema import load_dataclass, spec, to_plain
 from truckd.config.truck import TruckConfig
-from truckd.errors import InputError
+from truckd.config.yamlsafe import MAX_BYTES, load_yaml
+from truckd.inputs import read_text
 from truckd.model.effects import Effects
 from truckd.model.params import VehicleParams
+from truckd.outputs import write_text
 
 
 @dataclass(frozen=True)
@@ -34,22 +36,21 @@ class ModelFile:
 
 def read_model(path: str | Path) -> ModelFile:
     """Load and validate a model file."""
-    p = Path(path)
-    try:
-        data = yaml.safe_load(p.read_text(encoding="utf-8"))
-    except OSError as exc:
-        raise InputError(f"{p}: cannot read model: {exc.strerror}") from None
-    except yaml.YAMLError as exc:
-        raise InputError(f"{p}: is not valid YAML: {exc}") from None
-    return load_dataclass(ModelFile, data, str(p))
+    src = str(path)
+    data = load_yaml(read_text(path, "model file (YAML)", MAX_BYTES), src)
+    return load_dataclass(ModelFile, data, src)
+
+
+def model_text(model: ModelFile) -> str:
+    """A model file's text (YAML; round-trips through :func:`read_model`)."""
+    return "# truckd model file (SI units); see truckd/modelfile.py\n" + yaml.safe_dump(
+        to_plain(model), sort_keys=False
+    )
 
 
 def write_model(path: str | Path, model: ModelFile) -> None:
-    """Write a model file (round-trips through :func:`read_model`)."""
-    text = "# truckd model file (SI units); see truckd/modelfile.py\n" + yaml.safe_dump(
-        to_plain(model), sort_keys=False
-    )
-    Path(path).write_text(text, encoding="utf-8")
+    """Write a model file, all or nothing (round-trips through :func:`read_model`)."""
+    write_text(path, model_text(model))
 
 
 def load_model_into(cfg: TruckConfig, path: str | Path) -> TruckConfig:

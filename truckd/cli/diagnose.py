@@ -9,10 +9,12 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from truckd.cli.args import json_file, model_file, report_dir, report_notes, volts
 from truckd.config.truck import load_config
 from truckd.ident.api import diagnose_log, model_of
 from truckd.logfile import read_log
-from truckd.modelfile import write_model
+from truckd.modelfile import model_text
+from truckd.outputs import atomic_dir, check_distinct, write_set
 
 
 def add_subparser(sub: Any) -> None:
@@ -20,9 +22,14 @@ def add_subparser(sub: Any) -> None:
     p.add_argument("log", metavar="LOG.csv", help="log (t, u, v [, i]) or force log (t, F, x|v)")
     p.add_argument("--validate", metavar="LOG2.csv", help="validation log (same kind)")
     p.add_argument("--config", help="configuration file (starting values and bounds)")
-    p.add_argument("--json", metavar="FILE", help="write the result (CONTRACTS.md section 4)")
-    p.add_argument("--report", metavar="DIR", help="write index.html with plots here")
-    p.add_argument("--out", metavar="MODEL.yaml", help="write the extended model")
+    p.add_argument(
+        "--json", type=json_file, metavar="FILE", help="write the result (CONTRACTS.md section 4)"
+    )
+    p.add_argument(
+        "--report", type=report_dir, metavar="DIR", help="write index.html with plots here"
+    )
+    p.add_argument("--out", type=model_file, metavar="MODEL.yaml", help="write the extended model")
+    p.add_argument("--vbat", type=volts, metavar="V", help="supply voltage for a 'duty' log")
     p.set_defaults(run=run)
 
 
@@ -31,19 +38,26 @@ def _progress(msg: str) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    check_distinct([("--out", args.out), ("--json", args.json)])
     cfg = load_config(args.config)
-    log = read_log(args.log)
-    val = read_log(args.validate) if args.validate else None
+    log = read_log(args.log, vbat=args.vbat)
+    val = read_log(args.validate, vbat=args.vbat) if args.validate else None
+    report_notes(log.notes + (val.notes if val else []))
     diag = diagnose_log(log, cfg.vehicle, val, _progress)
+    files: list[tuple[str, str | bytes]] = []
     if args.out:
-        write_model(args.out, model_of(diag, args.log))
+        files.append((args.out, model_text(model_of(diag, args.log))))
     if args.json:
-        Path(args.json).write_text(json.dumps(diag.to_json(), indent=2) + "\n", encoding="utf-8")
+        files.append((args.json, json.dumps(diag.to_json(), indent=2) + "\n"))
     if args.report:
         from truckd.ident.report import write_report
 
-        index = write_report(diag, args.report, args.log)
+        with atomic_dir(args.report) as tmp:  # published only if every output is written
+            index = Path(args.report) / write_report(diag, tmp, args.log).name
+            write_set(files)
         print(f"report: {index}")
+    else:
+        write_set(files)
     b, x = diag.baseline, diag.extended
     print(f"{diag.samples} samples ({diag.input} input)")
     print(f"seed model:     fit {b.fit_percent:7.2f} %  rmse {b.rmse:.4g}")

@@ -6,6 +6,7 @@ import argparse
 import sys
 from typing import Any
 
+from truckd.cli.args import model_file, report_notes, volts
 from truckd.config.truck import load_config
 from truckd.ident.api import identify_log
 from truckd.logfile import read_log
@@ -16,7 +17,10 @@ def add_subparser(sub: Any) -> None:
     p = sub.add_parser("identify", help="fit the seed model to a measured log")
     p.add_argument("log", metavar="LOG.csv", help="log with columns t, u, v (optional i)")
     p.add_argument("--config", help="configuration file (starting values and bounds)")
-    p.add_argument("--out", required=True, metavar="MODEL.yaml", help="model file to write")
+    p.add_argument(
+        "--out", required=True, type=model_file, metavar="MODEL.yaml", help="model file to write"
+    )
+    p.add_argument("--vbat", type=volts, metavar="V", help="supply voltage for a 'duty' log")
     p.set_defaults(run=run)
 
 
@@ -26,7 +30,9 @@ def _progress(msg: str) -> None:
 
 def run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
-    model = identify_log(read_log(args.log), cfg.vehicle, _progress)
+    log = read_log(args.log, vbat=args.vbat)
+    report_notes(log.notes)
+    model = identify_log(log, cfg.vehicle, _progress)
     write_model(args.out, model)
     v = model.vehicle
     print(

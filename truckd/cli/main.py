@@ -27,8 +27,8 @@ SUBCOMMANDS: dict[str, str] = {
 
 class _Parser(argparse.ArgumentParser):
     def error(self, message: str) -> None:  # type: ignore[override]
-        self.print_usage(sys.stderr)
-        print(f"truckd: error: {message}", file=sys.stderr)
+        # One line (CONTRACTS.md section 1); the usage is one --help away.
+        print(f"{self.prog}: error: {message} (see {self.prog} --help)", file=sys.stderr)
         raise SystemExit(2)
 
 
@@ -44,7 +44,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # bad usage (one line printed) or --help: a code, not a raise
+        return exc.code if isinstance(exc.code, int) else 2
     try:
         code = int(args.run(args))
     except InputError as exc:

@@ -7,6 +7,7 @@ import argparse
 import sys
 from typing import Any
 
+from truckd.cli.args import interval, monitor_duration
 from truckd.errors import InputError
 from truckd.runtime.monitor import run_monitor
 
@@ -20,8 +21,8 @@ def add_subparser(sub: Any) -> None:
         help="Zenoh endpoint of a vehicle (repeatable; default tcp/127.0.0.1:7447)",
     )
     p.add_argument("--zenoh-config", default="", metavar="FILE", help="Zenoh JSON5 file")
-    p.add_argument("--interval", type=float, default=0.5, metavar="S", help="refresh period")
-    p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
+    p.add_argument("--interval", type=interval, default=0.5, metavar="S", help="refresh period")
+    p.add_argument("--duration", type=monitor_duration, metavar="S", help="stop after S s")
     p.add_argument(
         "--foxglove",
         nargs="?",
@@ -41,10 +42,6 @@ def add_subparser(sub: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    if not args.interval > 0:
-        raise InputError(f"--interval {args.interval}: expected a positive number of seconds")
-    if args.duration is not None and not args.duration >= 0:
-        raise InputError(f"--duration {args.duration}: expected a non-negative number of seconds")
     connect = args.connect or ["tcp/127.0.0.1:7447"]
     if args.foxglove is not None:
         if not 0 <= args.foxglove <= 65535:

@@ -7,9 +7,9 @@ import logging
 import sys
 from typing import Any
 
+from truckd.cli.args import run_duration
 from truckd.config.truck import load_config
 from truckd.control.qp import ControlModel
-from truckd.errors import InputError
 from truckd.modelfile import read_model
 from truckd.runtime.daemon import Daemon
 
@@ -18,7 +18,9 @@ def add_subparser(sub: Any) -> None:
     p = sub.add_parser("run", help="the daemon (as systemd starts it on the car)")
     p.add_argument("--config", required=True, help="configuration file (truck.yaml)")
     p.add_argument("--backend", choices=("sim", "serial", "can"), help="override runtime.backend")
-    p.add_argument("--duration", type=float, metavar="S", help="stop cleanly after S seconds")
+    p.add_argument(
+        "--duration", type=run_duration, metavar="S", help="stop cleanly after S seconds"
+    )
     p.add_argument(
         "--model", metavar="MODEL.yaml", help="the controller's model (identify/diagnose output)"
     )
@@ -27,8 +29,6 @@ def add_subparser(sub: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.duration is not None and not args.duration > 0:
-        raise InputError(f"--duration {args.duration}: expected a positive number of seconds")
     logging.basicConfig(
         level=args.log_level,
         stream=sys.stderr,

@@ -5,17 +5,18 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 from pathlib import Path
 from typing import Any
 
+from truckd.cli.args import image_file, json_file, output_dir, plot_format, sim_duration
 from truckd.config.truck import load_config
 from truckd.control.qp import ControlModel
 from truckd.errors import InputError, TruckdError
 from truckd.modelfile import read_model
+from truckd.outputs import check_distinct, write_set
 from truckd.sim.closed_loop import SimSetup, run_scenario
 from truckd.sim.mcap_export import mcap_paths, write_trace_mcap
-from truckd.sim.report import json_safe, plot, table, write_trace
+from truckd.sim.report import json_safe, plot_image, table, write_trace
 from truckd.sim.scenarios import SCENARIO_NAMES, make_scenario
 
 
@@ -24,26 +25,30 @@ def add_subparser(sub: Any) -> None:
     p.add_argument(
         "--scenario", default="all", choices=(*SCENARIO_NAMES, "all"), help="default: all"
     )
-    p.add_argument("--duration", type=float, help="seconds (default: the scenario's)")
+    p.add_argument(
+        "--duration", type=sim_duration, help="seconds, at most 24 h (default: the scenario's)"
+    )
     p.add_argument("--realtime", action="store_true", help="pace the loop in wall-clock time")
     p.add_argument("--config", help="configuration file (default: the shipped one)")
     p.add_argument("--model", help="MODEL.yaml: the controller's model (the plant stays)")
-    p.add_argument("--json", help="write the metrics as JSON to this file")
-    p.add_argument("--plot", help="write a PNG of gap, speeds and voltage to this file")
+    p.add_argument("--json", type=json_file, help="write the metrics as JSON to this file")
+    p.add_argument(
+        "--plot", type=image_file, help="write a plot (.png, .svg, .pdf) of gap, speeds, voltage"
+    )
     p.add_argument(
         "--mcap", metavar="FILE|DIR", help="write MCAP (FILE.mcap, or DIR/<scenario>.mcap)"
     )
     p.add_argument(
         "--trace",
         metavar="DIR",
+        type=output_dir("trace directory"),
         help="write each run's time series in the log format to DIR/<scenario>.csv",
     )
     p.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
-        raise InputError(f"--duration: expected a positive number of seconds, got {args.duration}")
+    check_distinct([("--json", args.json), ("--plot", args.plot)])
     cfg = load_config(args.config)
     if args.model:
         mf = read_model(args.model)
@@ -75,16 +80,13 @@ def run(args: argparse.Namespace) -> int:
         f"{', '.join(cfg.plant.effects.active()) or 'none'}"
     )
     print(table(results))
+    files: list[tuple[str, str | bytes]] = []
     if args.json:
         doc: object = results if args.scenario == "all" else results[0]
-        try:
-            with open(args.json, "w", encoding="utf-8") as f:
-                json.dump(doc, f, indent=2, allow_nan=False)
-                f.write("\n")
-        except OSError as exc:
-            raise TruckdError(f"{args.json}: cannot write: {exc.strerror}") from None
+        files.append((args.json, json.dumps(doc, indent=2, allow_nan=False) + "\n"))
     if args.plot:
-        plot(args.plot, traces)
+        files.append((args.plot, plot_image(traces, plot_format(args.plot))))
+    write_set(files)  # all or nothing
     for name, trace in traces if mcaps else ():
         write_trace_mcap(mcaps[name], cfg.vehicle_id, name, trace)
     if trace_dir is not None:

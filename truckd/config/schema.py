@@ -16,6 +16,7 @@ import typing
 from collections.abc import Mapping
 from typing import Any, TypeVar, get_args, get_origin, get_type_hints
 
+from truckd.config.yamlsafe import short
 from truckd.errors import InputError
 
 T = TypeVar("T")
@@ -46,7 +47,7 @@ def spec(
 
 
 def _fail(source: str, key: str, value: Any, expected: str) -> InputError:
-    return InputError(f"{source}: key '{key}' = {value!r}: expected {expected}")
+    return InputError(f"{source}: key '{key}' = {short(value)}: expected {expected}")
 
 
 def _allowed(meta: Mapping[str, Any]) -> str:
@@ -65,7 +66,10 @@ def _allowed(meta: Mapping[str, Any]) -> str:
 
 def _check_number(source: str, key: str, value: Any, meta: Mapping[str, Any], is_int: bool) -> Any:
     if isinstance(value, bool) or not isinstance(value, int | float):
-        raise _fail(source, key, value, "an integer" if is_int else _allowed(meta))
+        expected = "an integer" if is_int else _allowed(meta)
+        if isinstance(value, str) and _looks_numeric(value):
+            expected += " (this value was read as text: remove the quotes)"
+        raise _fail(source, key, value, expected)
     if is_int and not isinstance(value, int):
         raise _fail(source, key, value, "an integer")
     if not math.isfinite(float(value)):
@@ -76,6 +80,14 @@ def _check_number(source: str, key: str, value: Any, meta: Mapping[str, Any], is
     if bad_lo or bad_hi:
         raise _fail(source, key, value, _allowed(meta))
     return int(value) if is_int else float(value)
+
+
+def _looks_numeric(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
 
 
 def _convert(source: str, key: str, value: Any, tp: Any, meta: Mapping[str, Any]) -> Any:
@@ -126,7 +138,7 @@ def load_dataclass(cls: type[T], data: Any, source: str, prefix: str = "") -> T:
     for k in data:
         if k not in fields:
             known = ", ".join(sorted(fields))
-            name = f"{prefix}.{k}" if prefix else str(k)
+            name = short(f"{prefix}.{k}" if prefix else str(k))[1:-1]
             raise InputError(f"{source}: unknown key '{name}'; allowed here: {known}")
     hints = get_type_hints(cls)
     kwargs: dict[str, Any] = {}

@@ -10,12 +10,11 @@ from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 
-import yaml
-
 from truckd.config.ids import vehicle_id_problem
 from truckd.config.schema import load_dataclass, spec
+from truckd.config.yamlsafe import MAX_BYTES, load_yaml
 from truckd.control.config import ControlConfig
-from truckd.errors import InputError
+from truckd.inputs import read_text
 from truckd.io.config import LinkConfig
 from truckd.model.params import VehicleParams
 from truckd.model.plant_config import PlantConfig, encoder_ticks_per_rev
@@ -62,20 +61,10 @@ def default_config_path() -> Path:
 
 def parse_config(text: str, source: str) -> TruckConfig:
     """Validate YAML text; ``source`` names it in error messages."""
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        line = f" line {mark.line + 1}" if mark is not None else ""
-        raise InputError(f"{source}:{line} is not valid YAML: {exc}") from None
-    return load_dataclass(TruckConfig, data, source)
+    return load_dataclass(TruckConfig, load_yaml(text, source), source)
 
 
 def load_config(path: str | Path | None = None) -> TruckConfig:
     """Load and validate a configuration file (the shipped default when path is None)."""
     p = Path(path) if path is not None else default_config_path()
-    try:
-        text = p.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise InputError(f"{p}: cannot read configuration: {exc.strerror}") from None
-    return parse_config(text, str(p))
+    return parse_config(read_text(p, "configuration file", MAX_BYTES), str(p))

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import threading
 from collections import deque
 from collections.abc import Callable, Sequence
@@ -22,6 +23,7 @@ from typing import Any
 import zenoh
 
 from truckd.errors import InputError, TruckdError
+from truckd.inputs import open_regular
 from truckd.runtime.config import TelemetryConfig
 
 log = logging.getLogger("truckd.telemetry")
@@ -68,6 +70,7 @@ def zenoh_config(
     A bad file or endpoint raises InputError; ``names`` are what the error calls the
     listen and connect settings (a config key, a command-line option)."""
     p = Path(path) if path else default_zenoh_config_path()
+    os.close(open_regular(p, "Zenoh configuration file (JSON5)", 1024 * 1024))  # not /dev/zero
     try:
         conf = zenoh.Config.from_file(str(p))
     except Exception as exc:  # zenoh raises its own ZError for bad files

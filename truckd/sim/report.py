@@ -3,8 +3,8 @@ traces in the log format."""
 
 from __future__ import annotations
 
+import io
 import math
-import os
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 
 from truckd.errors import TruckdError
+from truckd.outputs import atomic_text, write_bytes
 from truckd.runtime.cycle import LOG_COLUMNS
 from truckd.sim.closed_loop import TRUTH_COLUMNS, Trace
 
@@ -49,7 +50,13 @@ def table(rows: Sequence[dict[str, Any]]) -> str:
 
 
 def plot(path: str | Path, runs: Sequence[tuple[str, Trace]]) -> None:
-    """PNG with one column per run: gap and reference gap, speeds, voltage over time."""
+    """Write :func:`plot_image` to ``path`` (format from its suffix), all or nothing."""
+    write_bytes(path, plot_image(runs, Path(path).suffix.lower().lstrip(".") or "png"))
+
+
+def plot_image(runs: Sequence[tuple[str, Trace]], fmt: str = "png") -> bytes:
+    """An image (png, svg, pdf) with one column per run: gap and reference gap, speeds,
+    voltage over time."""
     try:
         import matplotlib
 
@@ -79,12 +86,12 @@ def plot(path: str | Path, runs: Sequence[tuple[str, Trace]]) -> None:
         ax.set_xlabel("t (s)")
         ax.legend(loc="best", fontsize="small")
     fig.tight_layout()
+    buf = io.BytesIO()
     try:
-        fig.savefig(path, dpi=80)
-    except OSError as exc:
-        raise TruckdError(f"{path}: cannot write plot: {exc.strerror}") from None
+        fig.savefig(buf, dpi=80, format=fmt)
     finally:
         plt.close(fig)
+    return buf.getvalue()
 
 
 def trace_columns() -> tuple[str, ...]:
@@ -95,17 +102,10 @@ def trace_columns() -> tuple[str, ...]:
 def write_trace(path: str | Path, tr: Trace) -> None:
     """A run's time series in the log format (CONTRACTS.md section 3, the daemon's own
     columns plus the truth), written whole or not at all (TruckdError when impossible)."""
-    p = Path(path)
     names = trace_columns()
-    tmp = p.with_name(f".{p.name}.{os.getpid()}.tmp")
-    try:
-        with open(tmp, "w", newline="", encoding="utf-8") as fh:
-            fh.write(",".join(names) + "\n")
-            for row in tr.rows:
-                if len(row) != len(names):
-                    raise ValueError(f"trace row of {len(row)} values, expected {len(names)}")
-                fh.write(",".join(repr(float(x)) for x in row) + "\n")
-        os.replace(tmp, p)
-    except OSError as exc:
-        tmp.unlink(missing_ok=True)
-        raise TruckdError(f"{p}: cannot write: {exc.strerror}") from None
+    with atomic_text(path) as fh:
+        fh.write(",".join(names) + "\n")
+        for row in tr.rows:
+            if len(row) != len(names):
+                raise ValueError(f"trace row of {len(row)} values, expected {len(names)}")
+            fh.write(",".join(repr(float(x)) for x in row) + "\n")

@@ -1,0 +1,107 @@
+"""Issue 9, outputs all or nothing: a write that fails leaves no half-written file, no
+temporary file, and an existing target untouched."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from cli_support import assert_one_line, run_limited
+
+from truckd.errors import TruckdError
+from truckd.logfile import write_log
+from truckd.outputs import atomic_dir, atomic_text, write_set, write_text
+
+
+def listing(d: Path) -> list[str]:
+    return sorted(p.name for p in d.iterdir())
+
+
+def test_exception_while_writing_keeps_the_old_file(tmp_path: Path) -> None:
+    target = tmp_path / "out.json"
+    target.write_text("old\n")
+    with pytest.raises(RuntimeError), atomic_text(target) as fh:
+        fh.write("partial")
+        raise RuntimeError("fit failed")
+    assert target.read_text() == "old\n"
+    assert listing(tmp_path) == ["out.json"]
+
+
+def test_success_replaces_in_one_step(tmp_path: Path) -> None:
+    target = tmp_path / "out.json"
+    target.write_text("old\n")
+    write_text(target, "new\n")
+    assert target.read_text() == "new\n"
+    assert listing(tmp_path) == ["out.json"]
+
+
+def test_directory_target_is_an_error_and_nothing_is_left(tmp_path: Path) -> None:
+    d = tmp_path / "m.yaml"
+    d.mkdir()
+    with pytest.raises(TruckdError, match="is a directory"):
+        write_text(d, "x")
+    assert listing(tmp_path) == ["m.yaml"] and listing(d) == []
+
+
+def test_a_set_is_written_whole_or_not_at_all(tmp_path: Path) -> None:
+    first, second = tmp_path / "m.yaml", tmp_path / "d.json"
+    second.mkdir()
+    with pytest.raises(TruckdError):
+        write_set([(first, "model\n"), (second, "{}\n")])
+    assert not first.exists()
+    assert listing(tmp_path) == ["d.json"]
+    second.rmdir()
+    write_set([(first, "model\n"), (second, "{}\n")])
+    assert first.read_text() == "model\n" and second.read_text() == "{}\n"
+
+
+def test_report_directory_appears_only_when_complete(tmp_path: Path) -> None:
+    rep = tmp_path / "report"
+    with pytest.raises(RuntimeError), atomic_dir(rep) as tmp:
+        (tmp / "index.html").write_text("<html>")
+        raise RuntimeError("plot failed")
+    assert listing(tmp_path) == []
+    with atomic_dir(rep) as tmp:
+        (tmp / "index.html").write_text("<html>")
+    assert listing(rep) == ["index.html"] and listing(tmp_path) == ["report"]
+    with atomic_dir(rep) as tmp:  # an existing, non-empty report is updated file by file
+        (tmp / "index.html").write_text("<html>2")
+        (tmp / "fit.png").write_bytes(b"png")
+    assert listing(rep) == ["fit.png", "index.html"]
+    assert (rep / "index.html").read_text() == "<html>2"
+    assert listing(tmp_path) == ["report"]
+
+
+def test_file_size_limit_leaves_nothing_half_written(tmp_path: Path) -> None:
+    """RLIMIT_FSIZE in a child (SIGXFSZ ignored): the write fails with EFBIG part-way."""
+    t = np.arange(2000) * 0.01
+    write_log(tmp_path / "in.csv", {"t": t, "u": np.where(t > 1, 6.0, 0.0)})
+    size_in = (tmp_path / "in.csv").stat().st_size
+    limit = 16 * 1024
+    assert size_in > limit  # the output (more columns) is larger still
+    out = tmp_path / "out.csv"
+    r = run_limited(["simulate", "in.csv", "--out", "out.csv"], tmp_path, fsize=limit)
+    line = assert_one_line(r.stderr)
+    assert r.returncode == 1, r.stderr
+    assert "out.csv: cannot write: File too large" in line
+    assert listing(tmp_path) == ["in.csv"]
+    out.write_text("old\n")
+    r = run_limited(["simulate", "in.csv", "--out", "out.csv"], tmp_path, fsize=limit)
+    assert r.returncode == 1 and "File too large" in assert_one_line(r.stderr)
+    assert out.read_text() == "old\n"
+    assert listing(tmp_path) == ["in.csv", "out.csv"]
+
+
+def test_sim_json_and_plot_are_written_as_a_set(tmp_path: Path) -> None:
+    """A sim whose plot cannot be written under the size limit writes neither file."""
+    (tmp_path / "s.json").write_text("old\n")
+    r = run_limited(
+        ["sim", "--scenario", "cruise", "--duration", "1", "--json", "s.json", "--plot", "s.png"],
+        tmp_path,
+        fsize=4096,
+    )
+    line = assert_one_line(r.stderr)
+    assert r.returncode == 1 and "s.png: cannot write: File too large" in line
+    assert (tmp_path / "s.json").read_text() == "old\n"
+    assert listing(tmp_path) == ["s.json"]
