@@ -110,7 +110,8 @@ def test_follow_over_slcan(rig: Rig) -> None:
         time.sleep(0.1)
     rig.safe_window(t0)
     assert min(gaps) > 0.0
-    msgs = [s.msg for s in rig.watch.since(end - 4.0)]
+    # ACTIVE most of the 8 s once following (as the serial follow test judges its run)
+    msgs = [s.msg for s in rig.watch.since(end - 8.0)]
     assert np.mean([m["mode"] == "ACTIVE" for m in msgs]) > 0.9
     c = rig.cfg.control
     err = np.array(gaps[-10:]) - (c.d_0 + c.time_headway * np.array(speeds[-10:]))
