@@ -98,6 +98,13 @@ class ControlConfig:
         "control rate; the MPC step is its period", unit="Hz", lo=1.0, hi=2000.0, default=100.0
     )
     horizon: int = spec("MPC horizon (steps)", lo=2, hi=500, default=40)
+    move_blocks: int = spec(
+        "inputs held over this many blocks of the horizon (1, 1, 2, 4, .. steps) and the QP "
+        "condensed to them; 0 = one input per step, the sparse QP (see docs/controller.md)",
+        lo=0,
+        hi=500,
+        default=8,
+    )
     d_0: float = spec(
         "standstill gap of the spacing policy", unit="m", lo=0.0, hi=10.0, default=0.4
     )

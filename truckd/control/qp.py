@@ -351,14 +351,19 @@ class QpBuilder:
         hi[lay.r_dyn : lay.r_u] = dyn
         lo[lay.r_u : lay.r_du] = inp.u_lo
         hi[lay.r_u : lay.r_du] = inp.u_hi
-        du = cfg.du_max * cfg.period
-        lo0 = max(inp.u_prev - du, inp.u_lo)
-        hi0 = min(inp.u_prev + du, inp.u_hi)
-        if lo0 > hi0:  # the previous command lies outside the new bounds: nearest bound
-            lo0 = hi0 = min(max(inp.u_prev, inp.u_lo), inp.u_hi)
-        lo[lay.r_u], hi[lay.r_u] = lo0, hi0
+        lo[lay.r_u], hi[lay.r_u] = self.first_move_bounds(inp)
         lo[lay.r_gap : lay.r_vhi] = cfg.d_min if inp.lead else -INF
         hi[lay.r_vhi : lay.r_vlo] = inp.v_cap
+
+    def first_move_bounds(self, inp: QpInputs) -> tuple[float, float]:
+        """Bounds of ``u_0`` (V): the voltage bounds and the rate limit from ``u_prev``;
+        when ``u_prev`` lies outside the new bounds, the nearest bound."""
+        du = self.cfg.du_max * self.cfg.period
+        lo0 = max(inp.u_prev - du, inp.u_lo)
+        hi0 = min(inp.u_prev + du, inp.u_hi)
+        if lo0 > hi0:
+            lo0 = hi0 = min(max(inp.u_prev, inp.u_lo), inp.u_hi)
+        return lo0, hi0
 
     def first_move(self, z: Vec) -> float:
         """``u_0`` (V) from a solution vector."""
