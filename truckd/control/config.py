@@ -36,7 +36,7 @@ class EstimatorConfig:
         lo=0.0,
         lo_open=True,
         hi=1e3,
-        default=3.0,
+        default=2.0,
     )
     encoder_timeout_s: float = spec(
         "own speed is stale after this long without a new encoder sample",
@@ -148,7 +148,7 @@ class ControlConfig:
         default=20.0,
     )
     r_du: float = spec(
-        "weight on (u[k] - u[k-1])^2", unit="1/V^2", lo=0.0, lo_open=True, hi=1e9, default=0.3
+        "weight on (u[k] - u[k-1])^2", unit="1/V^2", lo=0.0, lo_open=True, hi=1e9, default=5.0
     )
     slack_linear: float = spec(
         "linear penalty on constraint slack (exact penalty)", lo=0.0, hi=1e12, default=1e2
