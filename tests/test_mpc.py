@@ -106,7 +106,7 @@ def test_first_move_equals_clarabel_on_random_instances(
 
 
 def test_default_tolerance_first_move_is_close_to_clarabel(params: VehicleParams) -> None:
-    """At the shipped eps (1e-5), cold started, the first move is within 10 mV of the
+    """At the shipped eps (5e-5), cold started, the first move is within 10 mV of the
     optimum."""
     cfg = dataclasses.replace(ControlConfig(), time_budget_s=1.0, max_iter=10_000)
     solver = MpcSolver(ControlModel(params), cfg)

@@ -176,7 +176,7 @@ class ControlConfig:
     )
     max_iter: int = spec("OSQP iteration limit per solve", lo=1, hi=100_000, default=400)
     eps: float = spec(
-        "OSQP absolute and relative tolerance", lo=0.0, lo_open=True, hi=1.0, default=1e-5
+        "OSQP absolute and relative tolerance", lo=0.0, lo_open=True, hi=1.0, default=5e-5
     )
     plan_hold_steps: int = spec(
         "fallback: follow the shifted previous plan for at most this many cycles",
