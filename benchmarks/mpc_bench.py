@@ -5,7 +5,8 @@ The controller is timed in both formulations back to back (replays alternating):
 move-blocked condensed QP (``blocked``, the default ``move_blocks``, 8 if the
 configuration has 0) and the sparse QP (``sparse``, ``move_blocks: 0``).  Cold OSQP and
 cvxpy solve the sparse QP (the full problem); ``max_abs_diff_u`` of ``blocked`` is thus
-the first-move change that blocking makes against the full QP's optimum.
+the first-move change that blocking makes against the full QP's optimum.  ``previous``
+is the sparse QP at the tolerance shipped before (eps 1e-5, :data:`PREVIOUS_EPS`).
 
 What each time covers (wall clock, ``time.perf_counter`` around the call):
 
@@ -57,6 +58,9 @@ from truckd.control.qp import ControlModel, QpInputs
 from truckd.sim.closed_loop import SimSetup, run_scenario
 from truckd.sim.plant import Plant
 from truckd.sim.scenarios import World, make_scenario
+
+PREVIOUS_EPS = 1e-5
+"""The OSQP tolerance shipped with the sparse QP before issue 11 (``previous`` rows)."""
 
 CVXPY_NOTE = (
     "warm: MpcSolver.solve whole (q/l/u, update, shifted warm start, solve, checks); "
@@ -226,6 +230,7 @@ def main(argv: list[str] | None = None) -> int:
         cfgs = {
             "blocked": dataclasses.replace(cfg, move_blocks=cfg.move_blocks or 8),
             "sparse": dataclasses.replace(cfg, move_blocks=0),
+            "previous": dataclasses.replace(cfg, move_blocks=0, eps=PREVIOUS_EPS),
         }
         runs: dict[str, list[WarmRun]] = {f: [] for f in cfgs}
         for _ in range(args.repeats):
@@ -269,14 +274,14 @@ def main(argv: list[str] | None = None) -> int:
     print(f"QP sequence: {args.sequence} (stop-and-go, {args.cycles} cycles)")
     print(f"load average (1, 5, 15 min): {os.getloadavg()}")
     print(
-        f"{'N':>4} {'form':>8} {'warm p50 us':>12} {'warm p99 us':>12} "
+        f"{'N':>4} {'form':>9} {'warm p50 us':>12} {'warm p99 us':>12} "
         f"{'best p99':>9} {'cpu p99':>8} "
         f"{'cold p50 us':>12} {'cvxpy p50 us':>13} {'speedup':>8} {'max|du0| V':>11} "
         f"{'iters':>6} {'it p99':>6} {'fails':>6}"
     )
     for r in rows:
         print(
-            f"{r['horizon']:>4} {r['formulation']:>8} {r['warm_us_p50']:>12.0f} "
+            f"{r['horizon']:>4} {r['formulation']:>9} {r['warm_us_p50']:>12.0f} "
             f"{r['warm_us_p99']:>12.0f} "
             f"{r['warm_us_p99_best_replay']:>9.0f} {r['warm_cpu_us_p99']:>8.0f} "
             f"{r['cold_us_p50']:>12.0f} {r['cvxpy_us_p50']:>13.0f} "
