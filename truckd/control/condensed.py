@@ -146,12 +146,27 @@ class CondensedQp:
         )
         self._lo_state = lo_t[lay.r_gap :].copy()
         self._hi_state = hi_t[lay.r_gap :].copy()
-        self._gap = slice(2 * nb - 1, 2 * nb - 1 + n)  # rows of the minimum gap
-        self._vhi = slice(2 * nb - 1 + n, 2 * nb - 1 + 2 * n)  # rows of the speed limit
         self._du = cfg.du_max * cfg.period
-        self._ac = np.empty(a_state.shape[0])
-        self._ac2 = np.empty(a_state.shape[0])
-        self._t = np.empty(self.nw)
+        # Everything per cycle in one matrix-vector product: G [x0; v_lead; u_prev; v_ref; 1]
+        # = [q; -A_s c] (each numpy call costs 5-10x its hot time in the loop: cold caches).
+        ns = a_state.shape[0]
+        self._s = np.zeros(NX + n + 3)
+        self._s[-1] = 1.0
+        self._out = np.empty(self.nw + ns)
+        self._G: dict[str, Vec] = {}
+        for mode in qp.P:
+            g = np.zeros((self.nw + ns, NX + n + 3))
+            g[: self.nw, :NX] = self._hx[mode]
+            g[: self.nw, NX : NX + n] = self._hl[mode]
+            g[: self.nw, NX + n] = self._g_u
+            g[: self.nw, NX + n + 1] = self._g_ref[mode] if mode != "follow" else 0.0
+            g[: self.nw, NX + n + 2] = self._g0[mode]
+            g[self.nw :, :NX] = -self._a_c0
+            g[self.nw :, NX : NX + n] = -self._a_cl
+            self._G[mode] = g
+        # Block rows' bounds: the first set per cycle, the others' voltage bounds too.
+        self._lo_blocks = np.concatenate([np.zeros(nb), np.full(nb - 1, -self._du)])
+        self._hi_blocks = np.concatenate([np.zeros(nb), np.full(nb - 1, self._du)])
 
     def p_triu(self, mode: str) -> sp.csc_matrix:
         """The upper triangle of the condensed cost matrix (OSQP's form)."""
@@ -160,29 +175,28 @@ class CondensedQp:
     def vectors_into(self, mode: str, inp: QpInputs, q: Vec, lo: Vec, hi: Vec) -> None:
         """This cycle's condensed ``q``, ``l``, ``u`` written into the given arrays (equal
         to condensing :meth:`QpBuilder.vectors_into`'s, without building those)."""
-        nb = self.nb
-        x0, vl = inp.x0, inp.v_lead
-        np.dot(self._hx[mode], x0, out=q)
-        q += np.dot(self._hl[mode], vl, out=self._t)
-        q += self._g0[mode]
-        q += inp.u_prev * self._g_u
-        if mode != "follow":
-            q += inp.v_ref * self._g_ref[mode]
+        nb, n, nw = self.nb, self.qp.lay.N, self.nw
+        sv = self._s
+        sv[:NX] = inp.x0
+        sv[NX : NX + n] = inp.v_lead
+        sv[NX + n] = inp.u_prev
+        sv[NX + n + 1] = inp.v_ref
+        out = np.dot(self._G[mode], sv, out=self._out)
+        q[:] = out[:nw]
+        nac = out[nw:]  # -A_s c
+        r = 2 * nb - 1
+        lo[:r] = self._lo_blocks
+        hi[:r] = self._hi_blocks
         # Block inputs: the first with the sparse QP's first-move bounds (rate-limited),
         # the others with the plain voltage bounds; block changes: the rate limit.
         lo[0], hi[0] = self.qp.first_move_bounds(inp)
         lo[1:nb] = inp.u_lo
         hi[1:nb] = inp.u_hi
-        lo[nb : 2 * nb - 1] = -self._du
-        hi[nb : 2 * nb - 1] = self._du
-        ac = np.dot(self._a_c0, x0, out=self._ac)
-        ac += np.dot(self._a_cl, vl, out=self._ac2)
-        r = 2 * nb - 1
-        np.subtract(self._lo_state, ac, out=lo[r:])
-        np.subtract(self._hi_state, ac, out=hi[r:])
+        np.add(self._lo_state, nac, out=lo[r:])
+        np.add(self._hi_state, nac, out=hi[r:])
         if inp.lead:
-            lo[self._gap] = self.qp.cfg.d_min - ac[: self.qp.lay.N]
-        hi[self._vhi] = inp.v_cap - ac[self.qp.lay.N : 2 * self.qp.lay.N]
+            np.add(nac[:n], self.qp.cfg.d_min, out=lo[r : r + n])
+        np.add(nac[n : 2 * n], inp.v_cap, out=hi[r + n : r + 2 * n])
 
     def expand(self, w: Vec, inp: QpInputs) -> Vec:
         """The sparse QP's decision vector ``z = M E w + C0 x0 + Cl v_lead``."""
