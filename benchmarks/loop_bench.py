@@ -143,6 +143,7 @@ def run(duration: float, backend: str) -> dict[str, Any]:
             "kernel": platform.release(),
             "python": platform.python_version(),
             "processor": platform.processor() or platform.machine(),
+            "loadavg_1_5_15": list(os.getloadavg()),
         },
     }
 

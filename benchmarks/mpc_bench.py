@@ -1,6 +1,13 @@
 """MPC solve time: warm-started OSQP (the controller) vs a cold OSQP setup per cycle vs
 cvxpy (CLARABEL) per cycle, on the same sequence of QPs, for horizons 20, 40, 80.
 
+The controller is timed in both formulations back to back (replays alternating): the
+move-blocked condensed QP (``blocked``, the default ``move_blocks``, 8 if the
+configuration has 0) and the sparse QP (``sparse``, ``move_blocks: 0``).  Cold OSQP and
+cvxpy solve the sparse QP (the full problem); ``max_abs_diff_u`` of ``blocked`` is thus
+the first-move change that blocking makes against the full QP's optimum.  ``previous``
+is the sparse QP at the tolerance shipped before (eps 1e-5, :data:`PREVIOUS_EPS`).
+
 What each time covers (wall clock, ``time.perf_counter`` around the call):
 
 * warm: ``MpcSolver.solve`` whole, as the controller calls it every cycle: input check,
@@ -51,6 +58,9 @@ from truckd.control.qp import ControlModel, QpInputs
 from truckd.sim.closed_loop import SimSetup, run_scenario
 from truckd.sim.plant import Plant
 from truckd.sim.scenarios import World, make_scenario
+
+PREVIOUS_EPS = 1e-5
+"""The OSQP tolerance shipped with the sparse QP before issue 11 (``previous`` rows)."""
 
 CVXPY_NOTE = (
     "warm: MpcSolver.solve whole (q/l/u, update, shifted warm start, solve, checks); "
@@ -213,55 +223,70 @@ def main(argv: list[str] | None = None) -> int:
             seq = record_sim_sequence(tc, cfg, args.cycles)
         else:
             seq = record_sequence(model, cfg, args.cycles)
-        # Replays with fresh solvers: the pooled percentiles are reported, the best
-        # replay's p99 and the CPU-time p99 beside them (other jobs on a shared machine
-        # preempt at random, and the wall clock counts it).
-        runs = [time_warm(model, cfg, seq) for _ in range(args.repeats)]
-        u_warm = runs[0].u0
-        pooled = [x for r in runs for x in r.wall]
-        pooled_cpu = [x for r in runs for x in r.cpu]
-        cold = time_cold(model, cfg, seq[: args.cvxpy_cycles * 2])
+        # Both formulations on the same sequence, replays alternating between them (so
+        # both see the same load on a shared machine), with fresh solvers: the pooled
+        # percentiles are reported, the best replay's p99 and the CPU-time p99 beside them
+        # (other jobs preempt at random, and the wall clock counts it).
+        cfgs = {
+            "blocked": dataclasses.replace(cfg, move_blocks=cfg.move_blocks or 8),
+            "sparse": dataclasses.replace(cfg, move_blocks=0),
+            "previous": dataclasses.replace(cfg, move_blocks=0, eps=PREVIOUS_EPS),
+        }
+        runs: dict[str, list[WarmRun]] = {f: [] for f in cfgs}
+        for _ in range(args.repeats):
+            for form, c in cfgs.items():
+                runs[form].append(time_warm(model, c, seq))
+        sparse_cfg = cfgs["sparse"]
+        cold = time_cold(model, sparse_cfg, seq[: args.cvxpy_cycles * 2])
         # cvxpy on a stride through the sequence (it is slow); compare first moves there.
         stride = max(1, len(seq) // args.cvxpy_cycles)
         idx = list(range(0, len(seq), stride))[: args.cvxpy_cycles]
-        cvx, u_cvx = time_cvxpy(model, cfg, [seq[k] for k in idx])
-        diffs = [abs(u_warm[k] - u) for k, u in zip(idx, u_cvx, strict=True)]
-        diffs = [d for d in diffs if np.isfinite(d)]
+        cvx, u_cvx = time_cvxpy(model, sparse_cfg, [seq[k] for k in idx])
         us = lambda xs, q: float(np.percentile(np.array(xs) * 1e6, q))  # noqa: E731
-        rows.append(
-            {
-                "horizon": n,
-                "warm_us_p50": us(pooled, 50),
-                "warm_us_p99": us(pooled, 99),
-                "warm_us_p99_best_replay": min(us(r.wall, 99) for r in runs),
-                "warm_cpu_us_p50": us(pooled_cpu, 50),
-                "warm_cpu_us_p99": us(pooled_cpu, 99),
-                "replays": args.repeats,
-                "cold_us_p50": us(cold, 50),
-                "cvxpy_us_p50": us(cvx, 50),
-                "max_abs_diff_u": max(diffs) if diffs else None,
-                "warm_iters_p50": float(np.median(runs[0].iters)),
-                "warm_iters_p99": float(np.percentile(runs[0].iters, 99)),
-                "warm_failures": sum(r.fails for r in runs),
-                "qps": len(seq),
-                "cvxpy_qps": len(idx),
-            }
-        )
+        for form, form_runs in runs.items():
+            u_warm = form_runs[0].u0
+            diffs = [abs(u_warm[k] - u) for k, u in zip(idx, u_cvx, strict=True)]
+            diffs = [d for d in diffs if np.isfinite(d)]
+            pooled = [x for r in form_runs for x in r.wall]
+            pooled_cpu = [x for r in form_runs for x in r.cpu]
+            rows.append(
+                {
+                    "horizon": n,
+                    "formulation": form,
+                    "move_blocks": cfgs[form].move_blocks,
+                    "warm_us_p50": us(pooled, 50),
+                    "warm_us_p99": us(pooled, 99),
+                    "warm_us_p99_best_replay": min(us(r.wall, 99) for r in form_runs),
+                    "warm_cpu_us_p50": us(pooled_cpu, 50),
+                    "warm_cpu_us_p99": us(pooled_cpu, 99),
+                    "replays": args.repeats,
+                    "cold_us_p50": us(cold, 50),
+                    "cvxpy_us_p50": us(cvx, 50),
+                    "max_abs_diff_u": max(diffs) if diffs else None,
+                    "warm_iters_p50": float(np.median(form_runs[0].iters)),
+                    "warm_iters_p99": float(np.percentile(form_runs[0].iters, 99)),
+                    "warm_failures": sum(r.fails for r in form_runs),
+                    "qps": len(seq),
+                    "cvxpy_qps": len(idx),
+                }
+            )
     print(CVXPY_NOTE)
     print(f"QP sequence: {args.sequence} (stop-and-go, {args.cycles} cycles)")
     print(f"load average (1, 5, 15 min): {os.getloadavg()}")
     print(
-        f"{'N':>4} {'warm p50 us':>12} {'warm p99 us':>12} {'best p99':>9} {'cpu p99':>8} "
+        f"{'N':>4} {'form':>9} {'warm p50 us':>12} {'warm p99 us':>12} "
+        f"{'best p99':>9} {'cpu p99':>8} "
         f"{'cold p50 us':>12} {'cvxpy p50 us':>13} {'speedup':>8} {'max|du0| V':>11} "
-        f"{'iters':>6} {'fails':>6}"
+        f"{'iters':>6} {'it p99':>6} {'fails':>6}"
     )
     for r in rows:
         print(
-            f"{r['horizon']:>4} {r['warm_us_p50']:>12.0f} {r['warm_us_p99']:>12.0f} "
+            f"{r['horizon']:>4} {r['formulation']:>9} {r['warm_us_p50']:>12.0f} "
+            f"{r['warm_us_p99']:>12.0f} "
             f"{r['warm_us_p99_best_replay']:>9.0f} {r['warm_cpu_us_p99']:>8.0f} "
             f"{r['cold_us_p50']:>12.0f} {r['cvxpy_us_p50']:>13.0f} "
             f"{r['cvxpy_us_p50'] / r['warm_us_p50']:>7.0f}x {r['max_abs_diff_u']:>11.2e} "
-            f"{r['warm_iters_p50']:>6.0f} {r['warm_failures']:>6}"
+            f"{r['warm_iters_p50']:>6.0f} {r['warm_iters_p99']:>6.0f} {r['warm_failures']:>6}"
         )
     if args.json:
         doc = {

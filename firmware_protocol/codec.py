@@ -1,8 +1,14 @@
-"""Encode typed messages to CAN frames and back, through ``cantools`` and truck.dbc.
+"""Encode typed messages to CAN frames and back, with the layout of truck.dbc.
 
 Physical values are scaled with the DBC's factors here (round to nearest, clamped to the
-signal's raw range; non-finite values are refused) and packed by cantools as raw
-integers, so the bit layout has exactly one definition: ``truck.dbc``.  Every message
+signal's raw range; non-finite values are refused) and packed as raw integers.  The bit
+layout has exactly one definition, ``truck.dbc``: ``cantools`` loads it, and at load time
+each message's signals (start bit, length, signedness, raw range) are compiled into a
+:class:`Layout` that packs and unpacks with integer shifts and masks over the payload as
+one little-endian integer (every signal of truck.dbc is Intel byte order; a Motorola
+signal is refused at load).  This is what runs on the control loop (cantools' own
+encode/decode cost about 30 us per frame there); tests prove it byte-identical with
+cantools for every message.  Every message
 ends with ``CHECKSUM`` (see :mod:`firmware_protocol.crc`) and carries a 4-bit
 ``COUNTER`` the caller supplies.
 
@@ -68,6 +74,62 @@ class Decoded:
     counter: int
 
 
+class EncodeError(ValueError):
+    """Raw values a message cannot carry (missing, unknown, or outside the DBC's range)."""
+
+
+@dataclass(frozen=True, slots=True)
+class Field:
+    """One signal's place in the payload integer: bits ``start .. start+length-1``."""
+
+    name: str
+    start: int
+    mask: int
+    sign_bit: int
+    """``1 << (length - 1)`` for a signed signal, 0 for an unsigned one."""
+    lo: int
+    hi: int
+    """Raw range (the bit range narrowed by the DBC's physical limits)."""
+
+
+class Layout:
+    """Packs and unpacks one message's raw signal values (compiled from the DBC)."""
+
+    __slots__ = ("checksum", "fields", "length")
+
+    def __init__(self, fields: tuple[Field, ...], length: int) -> None:
+        self.fields = fields
+        self.length = length
+        self.checksum = next(f for f in fields if f.name == "CHECKSUM")
+
+    def pack_int(self, raw: Mapping[str, int]) -> int:
+        """The payload as an integer; every signal must be given, within its range."""
+        if len(raw) != len(self.fields):
+            names = {f.name for f in self.fields}
+            raise EncodeError(f"signals {sorted(raw)} do not match the message's {sorted(names)}")
+        x = 0
+        try:
+            for f in self.fields:
+                v = raw[f.name]
+                if not f.lo <= v <= f.hi:
+                    raise EncodeError(f"{f.name}: raw {v} outside [{f.lo}, {f.hi}]")
+                x |= (v & f.mask) << f.start
+        except KeyError as exc:
+            raise EncodeError(f"signal {exc} missing") from None
+        return x
+
+    def unpack(self, data: bytes) -> dict[str, int]:
+        """Raw signal values of a payload of the message's length."""
+        x = int.from_bytes(data, "little")
+        out = {}
+        for f in self.fields:
+            v = (x >> f.start) & f.mask
+            if v & f.sign_bit:
+                v -= f.sign_bit << 1
+            out[f.name] = v
+        return out
+
+
 @dataclass(frozen=True)
 class MessageSpec:
     """What the codec knows about one DBC message."""
@@ -80,6 +142,8 @@ class MessageSpec:
     scale: Mapping[str, float]
     raw_range: Mapping[str, tuple[int, int]]
     dbc: Any
+    """The cantools message (the reference the fast :attr:`layout` is tested against)."""
+    layout: Layout
 
 
 @cache
@@ -103,6 +167,20 @@ def _spec(m: Any) -> MessageSpec:
         if s.maximum is not None:
             hi = min(hi, round((s.maximum - s.offset) / s.scale))
         rng[s.name] = (lo, hi)
+    fields = []
+    for s in m.signals:
+        if s.byte_order != "little_endian" or s.offset != 0 or s.is_float:
+            raise ValueError(f"{m.name}.{s.name}: only Intel-order integer signals supported")
+        fields.append(
+            Field(
+                name=s.name,
+                start=s.start,
+                mask=(1 << s.length) - 1,
+                sign_bit=(1 << (s.length - 1)) if s.is_signed else 0,
+                lo=rng[s.name][0],
+                hi=rng[s.name][1],
+            )
+        )
     return MessageSpec(
         name=m.name,
         can_id=m.frame_id,
@@ -111,6 +189,7 @@ def _spec(m: Any) -> MessageSpec:
         scale=scale,
         raw_range=rng,
         dbc=m,
+        layout=Layout(tuple(fields), m.length),
     )
 
 
@@ -189,16 +268,20 @@ def _signals(msg: Message) -> tuple[str, dict[str, int]]:
 
 
 def encode_raw(name: str, raw: Mapping[str, int], counter: int) -> Frame:
-    """Pack raw signal values (COUNTER given, CHECKSUM computed) with cantools."""
+    """Pack raw signal values (COUNTER given, CHECKSUM computed).
+
+    Raises :class:`EncodeError` for a missing or unknown signal or a raw value outside the
+    DBC's range (as cantools' strict encoding does)."""
     spec = specs()[name]
+    lay = spec.layout
     values = dict(raw)
     values["COUNTER"] = counter & 0xF
     values["CHECKSUM"] = 0
-    data = spec.dbc.encode(values, scaling=False, strict=True)
-    values["CHECKSUM"] = message_checksum(spec.can_id, data[:-1])
-    # only CHECKSUM changed (0..255, in range by construction): skip the range checks
-    data = spec.dbc.encode(values, scaling=False, strict=False)
-    return Frame(spec.can_id, bytes(data))
+    x = lay.pack_int(values)
+    n = lay.length
+    cs = message_checksum(spec.can_id, x.to_bytes(n, "little")[:-1])
+    x |= cs << lay.checksum.start
+    return Frame(spec.can_id, x.to_bytes(n, "little"))
 
 
 def encode(msg: Message, counter: int) -> Frame:
@@ -224,15 +307,11 @@ def decode_raw(frame: Frame) -> tuple[MessageSpec, dict[str, int]]:
         raise DecodeError("length", f"{spec.name}: {len(data)} bytes, expected {spec.length}")
     if message_checksum(spec.can_id, data[:-1]) != data[-1]:
         raise DecodeError("checksum", f"{spec.name}: CRC-8 mismatch")
-    try:
-        raw = spec.dbc.decode(data, decode_choices=False, scaling=False)
-    except Exception as exc:  # cantools raises several types; all mean "bad payload"
-        raise DecodeError("payload", f"{spec.name}: {exc}") from None
-    values = {k: int(v) for k, v in raw.items()}
-    for k, v in values.items():
-        lo, hi = spec.raw_range[k]
-        if not lo <= v <= hi:
-            raise DecodeError("payload", f"{spec.name}.{k}: raw {v} outside [{lo}, {hi}]")
+    values = spec.layout.unpack(data)
+    for f in spec.layout.fields:
+        v = values[f.name]
+        if not f.lo <= v <= f.hi:
+            raise DecodeError("payload", f"{spec.name}.{f.name}: raw {v} outside [{f.lo}, {f.hi}]")
     return spec, values
 
 

@@ -75,10 +75,18 @@ def test_speed_from_ticks_across_the_counter_wrap(v: float) -> None:
 
 
 def test_speed_uses_the_healthy_wheel_when_one_encoder_fails() -> None:
+    """The failed wheel's garbage counts are ignored: over 3 s after settling the speed is
+    unbiased and within one sample's quantisation (0.052 m/s) at every sample (a single
+    sample's error is up to 0.02-0.03 m/s, so one sample checked to 0.01 passed by luck)."""
     est = Estimator(EstimatorConfig(), R_W, TICKS)
-    _, t = drive(est, 1.0, 200, right_ok=False, right_garbage=True)
-    speed, _ = est.speed(t)
-    assert speed == pytest.approx(1.0, abs=0.01)
+    x, t = drive(est, 1.0, 200, right_ok=False, right_garbage=True)
+    errors = []
+    for _ in range(300):
+        x, t = drive(est, 1.0, 1, x0=x, t0=t, right_ok=False, right_garbage=True)
+        errors.append(est.speed(t)[0] - 1.0)
+    assert abs(sum(errors) / len(errors)) < 0.005
+    assert sum(abs(e) for e in errors) / len(errors) < 0.015
+    assert max(abs(e) for e in errors) < TICK_LEN / DT
 
 
 def test_speed_goes_stale_without_encoder_samples() -> None:

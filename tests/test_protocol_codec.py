@@ -20,7 +20,7 @@ from firmware_protocol.codec import (
     message_name,
     specs,
 )
-from firmware_protocol.crc import crc8_j1850, crc16_ccitt
+from firmware_protocol.crc import crc8_j1850, crc16_ccitt, crc16_ccitt_table
 from firmware_protocol.messages import (
     CompanionHeartbeat,
     CompanionState,
@@ -51,6 +51,11 @@ def test_crc_catalogue_check_values() -> None:
     # reveng catalogue "check" values for the input "123456789"
     assert crc8_j1850(b"123456789") == 0x4B
     assert crc16_ccitt(b"123456789") == 0x29B1
+
+
+@given(st.binary(max_size=40))
+def test_crc16_matches_the_python_table(data: bytes) -> None:
+    assert crc16_ccitt(data) == crc16_ccitt_table(data)
 
 
 @given(st.binary(max_size=20))

@@ -1,5 +1,9 @@
 """``truckd`` entry point: dispatches to one module per subcommand.
 
+Only the chosen subcommand's module is imported (``truckd run`` on the car does not load
+the offline tools' scipy, matplotlib or the diagnosis stack); ``truckd --help`` and a
+missing or unknown command import them all to list them.
+
 Exit codes (CONTRACTS.md section 1): 0 success, 2 bad usage or input (one line naming
 the file, line or key and what was expected), 1 other failures.
 """
@@ -32,20 +36,24 @@ class _Parser(argparse.ArgumentParser):
         raise SystemExit(2)
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The parser with ``command``'s subparser only (its module alone is imported), or with
+    every subcommand when ``command`` is None or not one of them."""
     parser = _Parser(prog="truckd", description="Model-scale truck controller and tools.")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     sub.required = True
-    for name, module in SUBCOMMANDS.items():
+    chosen = {command: SUBCOMMANDS[command]} if command in SUBCOMMANDS else SUBCOMMANDS
+    for name, module in chosen.items():
         importlib.import_module(module).add_subparser(sub)
         assert name in sub.choices, f"{module} must register '{name}'"
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
+    args_list = list(sys.argv[1:] if argv is None else argv)
+    parser = build_parser(args_list[0] if args_list else None)
     try:
-        args = parser.parse_args(argv)
+        args = parser.parse_args(args_list)
     except SystemExit as exc:  # bad usage (one line printed) or --help: a code, not a raise
         return exc.code if isinstance(exc.code, int) else 2
     try:

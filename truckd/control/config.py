@@ -38,7 +38,7 @@ class EstimatorConfig:
         lo=0.0,
         lo_open=True,
         hi=1e3,
-        default=3.0,
+        default=2.0,
     )
     encoder_timeout_s: float = spec(
         "own speed is stale after this long without a new encoder sample",
@@ -100,6 +100,13 @@ class ControlConfig:
         "control rate; the MPC step is its period", unit="Hz", lo=1.0, hi=2000.0, default=100.0
     )
     horizon: int = spec("MPC horizon (steps)", lo=2, hi=500, default=40)
+    move_blocks: int = spec(
+        "inputs held over this many blocks of the horizon (1, 1, 2, 4, .. steps) and the QP "
+        "condensed to them; 0 = one input per step, the sparse QP (see docs/controller.md)",
+        lo=0,
+        hi=500,
+        default=8,
+    )
     d_0: float = spec(
         "standstill gap of the spacing policy", unit="m", lo=0.0, hi=10.0, default=0.4
     )
@@ -143,7 +150,7 @@ class ControlConfig:
         default=20.0,
     )
     r_du: float = spec(
-        "weight on (u[k] - u[k-1])^2", unit="1/V^2", lo=0.0, lo_open=True, hi=1e9, default=0.3
+        "weight on (u[k] - u[k-1])^2", unit="1/V^2", lo=0.0, lo_open=True, hi=1e9, default=5.0
     )
     slack_linear: float = spec(
         "linear penalty on constraint slack (exact penalty)", lo=0.0, hi=1e12, default=1e2
@@ -171,7 +178,7 @@ class ControlConfig:
     )
     max_iter: int = spec("OSQP iteration limit per solve", lo=1, hi=100_000, default=400)
     eps: float = spec(
-        "OSQP absolute and relative tolerance", lo=0.0, lo_open=True, hi=1.0, default=1e-5
+        "OSQP absolute and relative tolerance", lo=0.0, lo_open=True, hi=1.0, default=5e-5
     )
     plan_hold_steps: int = spec(
         "fallback: follow the shifted previous plan for at most this many cycles",

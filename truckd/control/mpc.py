@@ -2,10 +2,14 @@
 
 One OSQP instance per cost mode (``follow``, ``cruise``) is set up at construction;
 each cycle only ``q``, ``l``, ``u`` are updated and the solver is warm started from the
-previous solution shifted one step.  The status is checked every cycle: anything but
-``solved`` (or ``solved inaccurate``, counted) within the time budget (OSQP's
-``time_limit``; the solver's own run time is checked as well) is a failure the caller
-must handle (see
+previous solution (shifted one step in the sparse form).  With ``move_blocks`` > 0 the QP
+solved is the move-blocked, condensed one of :mod:`truckd.control.condensed` (10
+variables instead of 165 at N = 40); its solution is mapped back to the sparse layout, so
+:class:`MpcResult` and the plan look the same either way.
+
+The status is checked every cycle: anything but ``solved`` (or ``solved inaccurate``,
+counted) within the time budget (OSQP's ``time_limit``; the solver's own run time is
+checked as well) is a failure the caller must handle (see
 :class:`truckd.control.controller.Controller`).  No clock here: times come from OSQP.
 """
 
@@ -18,6 +22,7 @@ import numpy as np
 import osqp
 import scipy.sparse as sp
 
+from truckd.control.condensed import CondensedQp, block_lengths
 from truckd.control.config import ControlConfig
 from truckd.control.qp import MODES, ControlModel, QpBuilder, QpInputs, Vec
 
@@ -53,6 +58,11 @@ lead-brake 25/130 (45/165), cut-in 30/45 (25/85).  A fixed rho 0.01 was as fast 
 sequences but slower at rest (p99 270) and left some cold starts at eps 1e-6 past 50,000
 iterations; adapting every 25 iterations made rho oscillate (see docs/controller.md)."""
 
+RHO_BLOCKED = 1.0
+"""The initial rho of the move-blocked, condensed QP.  On the stop-and-go sequence at N = 40
+(8 blocks), iterations p50/p99: rho 1.0 30/50; 0.3 30/200; 0.1 30/178; 0.03 30/210 (the
+long tail is braking to rest with the minimum-gap and rate rows active)."""
+
 
 def osqp_settings(cfg: ControlConfig) -> dict[str, float | int | bool]:
     """The OSQP settings of the controller (the benchmark's cold solver uses them too)."""
@@ -65,7 +75,7 @@ def osqp_settings(cfg: ControlConfig) -> dict[str, float | int | bool]:
         "warm_starting": True,
         "polishing": False,
         "check_termination": 5,
-        "rho": RHO,
+        "rho": RHO if cfg.move_blocks == 0 else RHO_BLOCKED,
         "adaptive_rho_interval": 50,
         "adaptive_rho_tolerance": 2.0,
     }
@@ -79,14 +89,21 @@ class MpcSolver:
         self.qp = QpBuilder(model, cfg)
         self._solvers: dict[str, osqp.OSQP] = {}
         lay = self.qp.lay
+        self.condensed: CondensedQp | None = None
+        """The move-blocked QP actually solved (None: the sparse one)."""
+        if cfg.move_blocks > 0:
+            self.condensed = CondensedQp(self.qp, block_lengths(lay.N, cfg.move_blocks))
+            nv, nc = self.condensed.nw, self.condensed.m
+        else:
+            nv, nc = lay.nz, lay.m
         # Per-cycle work arrays (the vectors are copied into OSQP by its update).
-        self._q = np.empty(lay.nz)
-        self._lo = np.empty(lay.m)
-        self._hi = np.empty(lay.m)
-        self._xw = np.empty(lay.nz)
-        self._yw = np.empty(lay.m)
-        self._x_cold = np.zeros(lay.nz)
-        self._y_cold = np.zeros(lay.m)
+        self._q = np.empty(nv)
+        self._lo = np.empty(nc)
+        self._hi = np.empty(nc)
+        self._xw = np.empty(nv)
+        self._yw = np.empty(nc)
+        self._x_cold = np.zeros(nv)
+        self._y_cold = np.zeros(nc)
         zero_inp = QpInputs(
             x0=np.zeros(3),
             u_prev=0.0,
@@ -97,12 +114,15 @@ class MpcSolver:
             u_lo=-cfg.u_max,
             u_hi=cfg.u_max,
         )
+        cq = self.condensed
         for mode in MODES:
-            q, lo, hi = self.qp.vectors(mode, zero_inp)
+            self._vectors_into(mode, zero_inp)
             s = osqp.OSQP()
-            s.setup(
-                sp.triu(self.qp.P[mode], format="csc"), q, self.qp.A, lo, hi, **osqp_settings(cfg)
-            )
+            if cq is None:
+                p_triu, a = sp.triu(self.qp.P[mode], format="csc"), self.qp.A
+            else:
+                p_triu, a = cq.p_triu(mode), cq.A
+            s.setup(p_triu, self._q, a, self._lo, self._hi, **osqp_settings(cfg))
             self._solvers[mode] = s
         self._last_z: Vec | None = None
         self._warm: tuple[Vec, Vec] | None = None
@@ -124,6 +144,12 @@ class MpcSolver:
         """Whether the next solve is warm started (else it starts from zero)."""
         return self._warm is not None
 
+    def _vectors_into(self, mode: str, inp: QpInputs) -> None:
+        if self.condensed is None:
+            self.qp.vectors_into(mode, inp, self._q, self._lo, self._hi)
+        else:
+            self.condensed.vectors_into(mode, inp, self._q, self._lo, self._hi)
+
     def reset(self) -> None:
         """Forget the previous solution (no warm start next time)."""
         self._last_z = None
@@ -140,20 +166,23 @@ class MpcSolver:
             + inp.v_cap
             + inp.u_lo
             + inp.u_hi
-            + float(np.sum(inp.x0))
-            + float(np.sum(inp.v_lead))
+            + float(inp.x0.sum())
+            + float(inp.v_lead.sum())
         )
         if not math.isfinite(total):
             return MpcResult(False, math.nan, "non-finite-input", 0, 0.0, None)
-        qp = self.qp
-        qp.vectors_into(mode, inp, self._q, self._lo, self._hi)
+        qp, cq = self.qp, self.condensed
+        self._vectors_into(mode, inp)
         # The binding directly (osqp.OSQP.update and .solve wrap it with copies, clipping
         # and a namespace of every info field: a quarter of the cycle's Python time).  Our
         # infinity (qp.INF) is OSQP's, so nothing needs clipping.
         ext = s._solver
         try:
             ext.update_data_vec(q=self._q, l=self._lo, u=self._hi)
-            if warm and self._warm is not None:
+            if warm and self._warm is not None and cq is not None:
+                # Blocks do not shift by one step: the previous solution as it is.
+                ext.warm_start(self._warm[0], self._warm[1])
+            elif warm and self._warm is not None:
                 ext.warm_start(
                     qp.shift(self._warm[0], self._xw), qp.shift_dual(self._warm[1], self._yw)
                 )
@@ -170,7 +199,7 @@ class MpcSolver:
         sol = ext.solution
         z = np.array(sol.x, dtype=float)
         y = np.array(sol.y, dtype=float)
-        finite = math.isfinite(float(np.sum(z)) + float(np.sum(y)))
+        finite = math.isfinite(float(z.sum()) + float(y.sum()))
         if status_val not in _USABLE or not finite:
             status = str(info.status)
             # Out of time: the unfinished iterate still warm starts the next cycle (a cold
@@ -184,6 +213,8 @@ class MpcSolver:
                 False, math.nan, status if finite else "non-finite", iters, run_time, None
             )
         self._warm = (z, y)
+        if cq is not None:
+            z = cq.expand(z, inp)
         if run_time > self.cfg.time_budget_s:
             return MpcResult(False, math.nan, "overrun", iters, run_time, z)
         self._last_z = z

@@ -9,7 +9,10 @@ m/s; gap m), inputs the armature voltage u
     dv/dt     = rho (K_T i - b v / rho) / J_S          (rho = r_w / (n_g n_fd))
     dd/dt     = v_lead - v
 
-discretised exactly (zero-order hold over the control period, :func:`truckd.model.linear.zoh`).
+derived from the model's own state space (:func:`truckd.model.linear.state_space`, one
+source of the physics: only the change of coordinates ``[i, omega_m] -> [R_m i, v]`` and
+the gap row are added here) and discretised exactly (zero-order hold over the control
+period, :func:`truckd.model.linear.zoh`).
 The electrical pole (``L_m/R_m`` about 0.5 ms) is kept: the exact ZOH handles the
 stiffness, and the current state costs three variables per step, so no reduction is needed.
 
@@ -37,13 +40,13 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.linalg
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
 from truckd.control.config import ControlConfig
+from truckd.control.riccati import solve_dare
 from truckd.model.effects import Effects
-from truckd.model.linear import zoh
+from truckd.model.linear import state_space, zoh
 from truckd.model.params import VehicleParams
 
 Vec = NDArray[np.float64]
@@ -73,21 +76,27 @@ class Prediction:
     dt: float
 
 
+def coordinates(p: VehicleParams) -> Vec:
+    """``T`` with ``[e, v] = T [i, omega_m]``: the model's states as the MPC's
+    (``e = R_m i`` in V, ``v = rho omega_m`` in m/s)."""
+    return np.diag([p.R_m, p.ratio])
+
+
 def prediction_model(model: ControlModel, dt: float) -> Prediction:
-    """Exact ZOH of the friction-free model (with the known viscous friction)."""
+    """Exact ZOH of the model's linear part (with the known viscous friction), in the MPC's
+    coordinates, with the gap ``dd/dt = v_lead - v`` appended."""
     p = model.params
-    rho = p.ratio
-    b = model.effects.viscous_friction
+    ss = state_space(p, model.effects.viscous_friction)
     # States [e = R_m i (V), v, d]: the current as its resistive voltage drop, so that
     # every state and the input are O(1) in their units (OSQP converges 3x faster).
-    a = np.array(
-        [
-            [-p.R_m / p.L_m, -p.R_m * p.K_v / (p.L_m * rho), 0.0],
-            [rho * p.K_T / (p.J_S * p.R_m), -b / p.J_S, 0.0],
-            [0.0, -1.0, 0.0],
-        ]
-    )
-    bmat = np.array([[p.R_m / p.L_m, 0.0], [0.0, 0.0], [0.0, 1.0]])
+    t = coordinates(p)
+    t_inv = np.diag(1.0 / np.diag(t))
+    a = np.zeros((NX, NX))
+    a[:2, :2] = t @ ss.A @ t_inv
+    a[I_D, :2] = -(ss.C @ t_inv)[0]
+    bmat = np.zeros((NX, 2))
+    bmat[:2, 0] = (t @ ss.B)[:, 0]
+    bmat[I_D, 1] = 1.0
     ad, bd = zoh(a, bmat, dt)
     return Prediction(Ad=ad, bu=bd[:, 0].copy(), bl=bd[:, 1].copy(), dt=dt)
 
@@ -131,7 +140,7 @@ def terminal_weight(pred: Prediction, q: Vec, r_du: float) -> Vec:
     qa[:NX, :NX] = q
     keep = [I_CUR, I_V, NX] if q[I_D, I_D] == 0.0 else [I_CUR, I_V, I_D, NX]
     ix = np.ix_(keep, keep)
-    sub = scipy.linalg.solve_discrete_are(a[ix], b[keep], qa[ix], np.array([[r_du]]))
+    sub = solve_dare(a[ix], b[keep], qa[ix], np.array([[r_du]]))
     out = np.zeros((NX + 1, NX + 1))
     out[ix] = 0.5 * (sub + sub.T)
     return out
@@ -342,14 +351,19 @@ class QpBuilder:
         hi[lay.r_dyn : lay.r_u] = dyn
         lo[lay.r_u : lay.r_du] = inp.u_lo
         hi[lay.r_u : lay.r_du] = inp.u_hi
-        du = cfg.du_max * cfg.period
-        lo0 = max(inp.u_prev - du, inp.u_lo)
-        hi0 = min(inp.u_prev + du, inp.u_hi)
-        if lo0 > hi0:  # the previous command lies outside the new bounds: nearest bound
-            lo0 = hi0 = min(max(inp.u_prev, inp.u_lo), inp.u_hi)
-        lo[lay.r_u], hi[lay.r_u] = lo0, hi0
+        lo[lay.r_u], hi[lay.r_u] = self.first_move_bounds(inp)
         lo[lay.r_gap : lay.r_vhi] = cfg.d_min if inp.lead else -INF
         hi[lay.r_vhi : lay.r_vlo] = inp.v_cap
+
+    def first_move_bounds(self, inp: QpInputs) -> tuple[float, float]:
+        """Bounds of ``u_0`` (V): the voltage bounds and the rate limit from ``u_prev``;
+        when ``u_prev`` lies outside the new bounds, the nearest bound."""
+        du = self.cfg.du_max * self.cfg.period
+        lo0 = max(inp.u_prev - du, inp.u_lo)
+        hi0 = min(inp.u_prev + du, inp.u_hi)
+        if lo0 > hi0:
+            lo0 = hi0 = min(max(inp.u_prev, inp.u_lo), inp.u_hi)
+        return lo0, hi0
 
     def first_move(self, z: Vec) -> float:
         """``u_0`` (V) from a solution vector."""

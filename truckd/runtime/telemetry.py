@@ -28,6 +28,10 @@ from truckd.runtime.config import TelemetryConfig
 
 log = logging.getLogger("truckd.telemetry")
 
+_encode = json.JSONEncoder(allow_nan=True, check_circular=False, separators=(",", ":")).encode
+"""One encoder for every message (``json.dumps`` builds one per call with these options);
+compact separators, the messages are plain dicts without cycles."""
+
 Extra = Callable[[], dict[str, Any]] | None
 """Computed on the publisher thread and merged into the message (costly statistics)."""
 
@@ -193,7 +197,7 @@ class Telemetry:
                 try:
                     if extra is not None:
                         msg.update(extra())
-                    self._pubs[kind].put(json.dumps(msg, allow_nan=True))
+                    self._pubs[kind].put(_encode(msg))
                     self.sent += 1
                 except Exception as exc:
                     self.errors += 1

@@ -1,0 +1,125 @@
+"""The move-blocked, condensed QP is the sparse QP restricted to blocked inputs: its
+vectors equal the sparse ones condensed, its solution satisfies the sparse QP's dynamics
+and bounds, and one step per block gives the sparse QP's optimum."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from truckd.control.condensed import CondensedQp, block_lengths
+from truckd.control.config import ControlConfig
+from truckd.control.mpc import MpcSolver
+from truckd.control.qp import ControlModel, QpBuilder, QpInputs
+from truckd.model.params import VehicleParams
+
+
+def _inputs(rng: np.random.Generator, cfg: ControlConfig, lead: bool) -> QpInputs:
+    n = cfg.horizon
+    return QpInputs(
+        x0=np.array([rng.uniform(-2, 2), rng.uniform(0, 2.3), rng.uniform(0.1, 3)]),
+        u_prev=rng.uniform(-3, 6),
+        v_lead=rng.uniform(0, 2, n),
+        lead=lead,
+        v_ref=rng.uniform(0, 2),
+        v_cap=rng.uniform(1, 2.4),
+        u_lo=-cfg.u_max,
+        u_hi=cfg.u_max,
+    )
+
+
+@pytest.mark.parametrize(
+    ("horizon", "blocks", "expected"),
+    [
+        (40, 8, (1, 1, 2, 4, 8, 8, 8, 8)),
+        (20, 8, (1, 1, 2, 3, 3, 3, 3, 4)),
+        (80, 8, (1, 1, 2, 4, 8, 16, 24, 24)),
+        (5, 8, (1, 1, 1, 1, 1)),
+        (40, 1, (40,)),
+    ],
+)
+def test_block_lengths(horizon: int, blocks: int, expected: tuple[int, ...]) -> None:
+    got = block_lengths(horizon, blocks)
+    assert got == expected and sum(got) == horizon
+
+
+@pytest.mark.parametrize("mode", ["follow", "cruise"])
+@pytest.mark.parametrize("lead", [True, False])
+def test_condensed_vectors_equal_the_sparse_ones_condensed(
+    params: VehicleParams, mode: str, lead: bool
+) -> None:
+    cfg = ControlConfig()
+    qp = QpBuilder(ControlModel(params), cfg)
+    cq = CondensedQp(qp, block_lengths(cfg.horizon, 8))
+    rng = np.random.default_rng(11)
+    a_sparse = qp.A.toarray()
+    for _ in range(5):
+        inp = _inputs(rng, cfg, lead)
+        q, lo, hi = np.empty(cq.nw), np.empty(cq.m), np.empty(cq.m)
+        cq.vectors_into(mode, inp, q, lo, hi)
+        qs, ls, hs = qp.vectors(mode, inp)
+        c = cq.C0 @ inp.x0 + cq.Cl @ inp.v_lead
+        np.testing.assert_allclose(q, cq.ME.T @ (qs + qp.P[mode] @ c), rtol=1e-10, atol=1e-9)
+        r = qp.lay.r_gap
+        ac = a_sparse[r:] @ c
+        rows = slice(2 * cq.nb - 1, cq.m)
+        finite = ls[r:] > -1e20
+        np.testing.assert_allclose(lo[rows][finite], (ls[r:] - ac)[finite], rtol=1e-12, atol=1e-12)
+        assert np.all(lo[rows][~finite] < -1e20)
+        finite = hs[r:] < 1e20
+        np.testing.assert_allclose(hi[rows][finite], (hs[r:] - ac)[finite], rtol=1e-12, atol=1e-12)
+        assert np.all(hi[rows][~finite] > 1e20)
+        assert (lo[0], hi[0]) == (ls[qp.lay.r_u], hs[qp.lay.r_u])
+        # The cost of a blocked input sequence is the sparse cost of its expansion (up to
+        # a constant): compare differences between two random sequences.
+        w1, w2 = rng.normal(size=cq.nw), rng.normal(size=cq.nw)
+        p = cq.P[mode].toarray()
+        costs_c = [float(0.5 * w @ p @ w + q @ w) for w in (w1, w2)]
+        zs = [cq.expand(w, inp) for w in (w1, w2)]
+        costs_s = [float(0.5 * z @ (qp.P[mode] @ z) + qs @ z) for z in zs]
+        assert costs_c[0] - costs_c[1] == pytest.approx(costs_s[0] - costs_s[1], rel=1e-9)
+
+
+def test_blocked_solution_satisfies_the_sparse_qp(params: VehicleParams) -> None:
+    """The expanded solution meets the sparse QP's dynamics exactly, holds the inputs
+    over the blocks, and is within the sparse bounds (to the solver's tolerance)."""
+    cfg = dataclasses.replace(ControlConfig(), eps=1e-7, max_iter=50_000, time_budget_s=1.0)
+    s = MpcSolver(ControlModel(params), cfg)
+    assert s.condensed is not None
+    qp = s.qp
+    rng = np.random.default_rng(4)
+    for k in range(10):
+        inp = _inputs(rng, cfg, lead=k % 2 == 0)
+        res = s.solve("follow" if k % 3 else "cruise", inp)
+        assert res.ok and res.z is not None
+        z = res.z
+        _, lo, hi = qp.vectors("follow", inp)
+        az = qp.A @ z
+        dyn = slice(0, qp.lay.r_u)
+        np.testing.assert_allclose(az[dyn], lo[dyn], atol=1e-9)
+        assert np.all(az >= lo - 1e-4) and np.all(az <= hi + 1e-4)
+        u = z[qp.lay.u0 : qp.lay.u0 + qp.lay.N]
+        k0 = 0
+        for length in s.condensed.blocks:
+            assert np.ptp(u[k0 : k0 + length]) == 0.0
+            k0 += length
+        assert res.u0 == u[0]
+
+
+def test_one_step_per_block_is_the_sparse_optimum(params: VehicleParams) -> None:
+    """Condensing alone changes nothing: the same optimum as the sparse QP."""
+    base = dataclasses.replace(ControlConfig(), eps=1e-7, max_iter=50_000, time_budget_s=1.0)
+    sparse = MpcSolver(ControlModel(params), dataclasses.replace(base, move_blocks=0))
+    dense = MpcSolver(ControlModel(params), dataclasses.replace(base, move_blocks=base.horizon))
+    rng = np.random.default_rng(9)
+    for k in range(8):
+        inp = _inputs(rng, base, lead=True)
+        mode = "follow" if k % 2 else "cruise"
+        a, b = sparse.solve(mode, inp), dense.solve(mode, inp)
+        assert a.ok and b.ok and a.z is not None and b.z is not None
+        assert a.u0 == pytest.approx(b.u0, abs=1e-4)
+        np.testing.assert_allclose(
+            a.z[: 3 * (base.horizon + 1)], b.z[: 3 * (base.horizon + 1)], atol=1e-3
+        )

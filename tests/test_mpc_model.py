@@ -1,0 +1,95 @@
+"""The MPC's prediction model is the vehicle model's discretisation (one source of the
+physics), and the numpy Riccati solver the daemon uses agrees with scipy's."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import scipy.linalg
+
+from truckd.control.config import ControlConfig
+from truckd.control.qp import (
+    ControlModel,
+    coordinates,
+    prediction_model,
+    stage_weight,
+    terminal_weight,
+)
+from truckd.control.riccati import solve_dare
+from truckd.model.effects import Effects
+from truckd.model.linear import discretize
+from truckd.model.params import VehicleParams
+
+
+@pytest.mark.parametrize("viscous", [0.0, 2e-5])
+@pytest.mark.parametrize("dt", [0.01, 0.02])
+def test_prediction_matrices_are_the_models_discretisation(
+    params: VehicleParams, viscous: float, dt: float
+) -> None:
+    """``Ad``/``bu`` of the MPC, restricted to [R_m i, v], equal ``T Ad T^-1`` / ``T Bd`` of
+    :func:`truckd.model.linear.discretize` (the model's own exact ZOH in [i, omega_m])."""
+    model = ControlModel(params, Effects(viscous_friction=viscous))
+    pred = prediction_model(model, dt)
+    ad, bd, _ = discretize(params, dt, viscous)
+    t = coordinates(params)
+    t_inv = np.linalg.inv(t)
+    np.testing.assert_allclose(pred.Ad[:2, :2], t @ ad @ t_inv, rtol=1e-10, atol=1e-13)
+    np.testing.assert_allclose(pred.bu[:2], (t @ bd)[:, 0], rtol=1e-10, atol=1e-13)
+    # The gap integrates the lead's speed minus the truck's: no feedback into the motor.
+    np.testing.assert_allclose(pred.Ad[:2, 2], 0.0, atol=0.0)
+    assert pred.Ad[2, 2] == 1.0 and pred.bl[2] == pytest.approx(dt, rel=1e-12)
+    assert pred.bl[:2] == pytest.approx([0.0, 0.0], abs=0.0)
+    # A changed parameter changes the prediction (the model is not a private copy).
+    other = prediction_model(ControlModel(params.replace(K_T=params.K_T * 1.1)), dt)
+    assert not np.allclose(other.Ad[:2, :2], prediction_model(ControlModel(params), dt).Ad[:2, :2])
+
+
+@pytest.mark.parametrize("mode", ["follow", "cruise"])
+def test_numpy_riccati_equals_scipy(params: VehicleParams, mode: str) -> None:
+    cfg = ControlConfig()
+    pred = prediction_model(ControlModel(params), cfg.period)
+    q = stage_weight(cfg, mode)
+    ours = terminal_weight(pred, q, cfg.r_du)
+    # The same augmented system, through scipy.
+    nx = 3
+    a = np.zeros((nx + 1, nx + 1))
+    a[:nx, :nx] = pred.Ad
+    a[:nx, nx] = pred.bu
+    a[nx, nx] = 1.0
+    b = np.zeros((nx + 1, 1))
+    b[:nx, 0] = pred.bu
+    b[nx, 0] = 1.0
+    qa = np.zeros((nx + 1, nx + 1))
+    qa[:nx, :nx] = q
+    keep = [0, 1, 3] if q[2, 2] == 0.0 else [0, 1, 2, 3]
+    ix = np.ix_(keep, keep)
+    ref = scipy.linalg.solve_discrete_are(a[ix], b[keep], qa[ix], np.array([[cfg.r_du]]))
+    np.testing.assert_allclose(ours[ix], ref, rtol=1e-7, atol=1e-9 * np.max(np.abs(ref)))
+
+
+def test_riccati_on_random_stabilisable_systems() -> None:
+    rng = np.random.default_rng(5)
+    for _ in range(20):
+        n, m = int(rng.integers(2, 6)), int(rng.integers(1, 3))
+        a = rng.normal(size=(n, n))
+        b = rng.normal(size=(n, m))
+        q = np.eye(n) * rng.uniform(0.1, 10.0)
+        r = np.eye(m) * rng.uniform(0.1, 10.0)
+        x = solve_dare(a, b, q, r)
+        ref = scipy.linalg.solve_discrete_are(a, b, q, r)
+        np.testing.assert_allclose(x, ref, rtol=1e-6, atol=1e-8 * np.max(np.abs(ref)))
+
+
+def test_riccati_refuses_an_unstabilisable_pair() -> None:
+    a = np.diag([2.0, 0.5])  # the unstable mode gets no input
+    b = np.array([[0.0], [1.0]])
+    with pytest.raises(ValueError):
+        solve_dare(a, b, np.eye(2), np.eye(1))
+
+
+def test_control_config_replace_still_builds(params: VehicleParams) -> None:
+    """Horizons and periods other than the shipped ones build a model too."""
+    cfg = dataclasses.replace(ControlConfig(), horizon=10)
+    assert prediction_model(ControlModel(params), cfg.period).Ad.shape == (3, 3)

@@ -1,0 +1,206 @@
+"""The MPC's QP condensed and move-blocked: the states eliminated, the inputs held over
+blocks of steps (pure numerics).
+
+The sparse QP of :mod:`truckd.control.qp` (decision vector ``z = [x_0..x_N, u, sg, sv]``,
+``1/2 z'Pz + q'z`` subject to ``l <= A z <= u``) has the initial state and the dynamics
+as equality rows.  Every ``z`` that satisfies them is
+
+    z = M u_s + C0 x_0 + Cl v_lead          (u_s = [u_0..u_{N-1}, sg, sv])
+
+and with the inputs held constant over blocks of ``L_0, L_1, ..`` steps (move blocking,
+``u_s = E w``, ``w = [w_0..w_{B-1}, sg, sv]``) the QP over ``w`` alone is
+
+    min 1/2 w'(E'M'PME)w + (E'M'(q + P c))'w    s.t.  the rows below,  c = C0 x_0 + Cl v_lead
+
+with rows: each block's input within the voltage bounds (the first also within the rate
+limit of the previous command), the change between consecutive blocks within the rate
+limit (it happens in one step), and every step's state rows of the sparse QP (minimum gap,
+speed limits; ``A_s M E w`` between ``l - A_s c`` and ``u - A_s c``) and the slacks.  The
+solution mapped back (``z = M E w + c``) has the sparse layout, so the plan, the first move
+and the checks downstream are unchanged.
+
+With one step per block this is the sparse QP itself, condensed (measured slower: its
+dense rows cost more per OSQP iteration than the sparse KKT system).  With 8 blocks at
+N = 40 (1, 1, 2, 4, 8, 8, 8, 8 steps) it has 10 variables and 129 rows instead of 165 and
+324: see docs/controller.md for the time and the closed-loop effect.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+
+from truckd.control.qp import NX, QpBuilder, QpInputs, Vec
+
+
+def block_lengths(horizon: int, blocks: int) -> tuple[int, ...]:
+    """Steps per block: 1, 1, then doubling while the rest of the horizon still spreads
+    evenly over the remaining blocks, the rest evenly (the last takes what is left).
+
+    ``blocks >= horizon`` gives one step per block.  E.g. (40, 8): 1, 1, 2, 4, 8, 8, 8, 8.
+    """
+    if horizon < 1 or blocks < 1:
+        raise ValueError(f"horizon {horizon} and blocks {blocks} must be positive")
+    if blocks >= horizon:
+        return (1,) * horizon
+    out: list[int] = []
+    rest = horizon
+    for i in range(blocks):
+        left = blocks - i
+        if left == 1:
+            out.append(rest)
+            break
+        want = 1 if i < 2 else 2 * out[-1]
+        n = max(1, min(want, rest // left))
+        out.append(n)
+        rest -= n
+    return tuple(out)
+
+
+class CondensedQp:
+    """The move-blocked, condensed form of a :class:`QpBuilder`'s QP (see module doc)."""
+
+    def __init__(self, qp: QpBuilder, blocks: tuple[int, ...]) -> None:
+        lay, n, pred = qp.lay, qp.lay.N, qp.pred
+        if sum(blocks) != n or min(blocks) < 1:
+            raise ValueError(f"blocks {blocks} must be positive and sum to the horizon {n}")
+        self.qp = qp
+        self.blocks = blocks
+        nb = len(blocks)
+        self.nb = nb
+        self.nw = nb + 2
+        # z = M u_s + C0 x0 + Cl vl, column by column by simulating the prediction model.
+        m = np.zeros((lay.nz, n + 2))
+        c0 = np.zeros((lay.nz, NX))
+        cl = np.zeros((lay.nz, n))
+        for j in range(n):  # input u_j (and lead speed over step j): from step j+1 on
+            xu, xl = pred.bu.copy(), pred.bl.copy()
+            for k in range(j + 1, n + 1):
+                m[lay.x(k) : lay.x(k) + NX, j] = xu
+                cl[lay.x(k) : lay.x(k) + NX, j] = xl
+                xu, xl = pred.Ad @ xu, pred.Ad @ xl
+            m[lay.u0 + j, j] = 1.0
+        m[lay.sg0, n] = 1.0
+        m[lay.sv0, n + 1] = 1.0
+        x = np.eye(NX)
+        for k in range(n + 1):
+            c0[lay.x(k) : lay.x(k) + NX, :] = x
+            x = pred.Ad @ x
+        e = np.zeros((n + 2, self.nw))
+        k = 0
+        for b, length in enumerate(blocks):
+            e[k : k + length, b] = 1.0
+            k += length
+        e[n, nb] = e[n + 1, nb + 1] = 1.0
+        me = m @ e
+        self.ME, self.C0, self.Cl = me, c0, cl
+        # Rows: block inputs (nb), block changes (nb - 1), the sparse QP's state and slack
+        # rows (from its minimum-gap block to the end).
+        self._r_state = lay.r_gap
+        a_state = qp.A.tocsr()[lay.r_gap :].toarray()
+        self.m = 2 * nb - 1 + a_state.shape[0]
+        a = np.zeros((self.m, self.nw))
+        a[np.arange(nb), np.arange(nb)] = 1.0
+        for b in range(1, nb):
+            a[nb + b - 1, b] = 1.0
+            a[nb + b - 1, b - 1] = -1.0
+        a_me = a_state @ me
+        a_me[np.abs(a_me) < 1e-15 * np.max(np.abs(a_me))] = 0.0
+        a[2 * nb - 1 :] = a_me
+        self.A = sp.csc_matrix(a)
+        self._a_c0 = a_state @ c0
+        self._a_cl = a_state @ cl
+        self.P: dict[str, sp.csc_matrix] = {}
+        # q_c = E'M'(q_s + P c) with the sparse q_s affine in the inputs (qp.vectors_into):
+        # q_s = q0 + (follow) -2 q_rel v_lead[1:N] | (cruise) -2 q_cruise v_ref, at the
+        # speeds of steps 1..N-1; - 2 r_du u_prev at u_0; v_end times the terminal slope
+        # (v_end = v_lead[N-1] following, v_ref cruising).  So q_c = g0 + Hx x0 + Hl v_lead
+        # + g_u u_prev + g_ref v_ref, all built here.
+        met = me.T
+        cfg = qp.cfg
+        self._g0: dict[str, Vec] = {}
+        self._hx: dict[str, Vec] = {}
+        self._hl: dict[str, Vec] = {}
+        self._g_ref: dict[str, Vec] = {}
+        self._g_u = -2.0 * cfg.r_du * met[:, lay.u0]
+        speeds = met[:, qp._ks_v]  # columns of the speeds of steps 1..N-1
+        for mode, p in qp.P.items():
+            pd = p.toarray()
+            pc = met @ pd @ me
+            self.P[mode] = sp.csc_matrix(0.5 * (pc + pc.T))
+            term = met[:, qp._term_idx] @ qp._term_slope[mode]
+            self._g0[mode] = met @ qp._q0[mode]
+            self._hx[mode] = met @ pd @ c0
+            hl = met @ pd @ cl
+            if mode == "follow":
+                hl[:, 1:n] += -2.0 * cfg.q_rel_speed * speeds
+                hl[:, n - 1] += term
+                self._g_ref[mode] = np.zeros(self.nw)
+            else:
+                self._g_ref[mode] = -2.0 * cfg.q_cruise * speeds.sum(axis=1) + term
+            self._hl[mode] = hl
+        # Bounds of the state and slack rows without the lead/limit-dependent parts.
+        _, lo_t, hi_t = qp.vectors(
+            "cruise",
+            QpInputs(np.zeros(NX), 0.0, np.zeros(n), False, 0.0, 0.0, -1.0, 1.0),
+        )
+        self._lo_state = lo_t[lay.r_gap :].copy()
+        self._hi_state = hi_t[lay.r_gap :].copy()
+        self._du = cfg.du_max * cfg.period
+        # Everything per cycle in one matrix-vector product: G [x0; v_lead; u_prev; v_ref; 1]
+        # = [q; -A_s c] (each numpy call costs 5-10x its hot time in the loop: cold caches).
+        ns = a_state.shape[0]
+        self._s = np.zeros(NX + n + 3)
+        self._s[-1] = 1.0
+        self._out = np.empty(self.nw + ns)
+        self._G: dict[str, Vec] = {}
+        for mode in qp.P:
+            g = np.zeros((self.nw + ns, NX + n + 3))
+            g[: self.nw, :NX] = self._hx[mode]
+            g[: self.nw, NX : NX + n] = self._hl[mode]
+            g[: self.nw, NX + n] = self._g_u
+            g[: self.nw, NX + n + 1] = self._g_ref[mode] if mode != "follow" else 0.0
+            g[: self.nw, NX + n + 2] = self._g0[mode]
+            g[self.nw :, :NX] = -self._a_c0
+            g[self.nw :, NX : NX + n] = -self._a_cl
+            self._G[mode] = g
+        # Block rows' bounds: the first set per cycle, the others' voltage bounds too.
+        self._lo_blocks = np.concatenate([np.zeros(nb), np.full(nb - 1, -self._du)])
+        self._hi_blocks = np.concatenate([np.zeros(nb), np.full(nb - 1, self._du)])
+
+    def p_triu(self, mode: str) -> sp.csc_matrix:
+        """The upper triangle of the condensed cost matrix (OSQP's form)."""
+        return sp.triu(self.P[mode], format="csc")
+
+    def vectors_into(self, mode: str, inp: QpInputs, q: Vec, lo: Vec, hi: Vec) -> None:
+        """This cycle's condensed ``q``, ``l``, ``u`` written into the given arrays (equal
+        to condensing :meth:`QpBuilder.vectors_into`'s, without building those)."""
+        nb, n, nw = self.nb, self.qp.lay.N, self.nw
+        sv = self._s
+        sv[:NX] = inp.x0
+        sv[NX : NX + n] = inp.v_lead
+        sv[NX + n] = inp.u_prev
+        sv[NX + n + 1] = inp.v_ref
+        out = np.dot(self._G[mode], sv, out=self._out)
+        q[:] = out[:nw]
+        nac = out[nw:]  # -A_s c
+        r = 2 * nb - 1
+        lo[:r] = self._lo_blocks
+        hi[:r] = self._hi_blocks
+        # Block inputs: the first with the sparse QP's first-move bounds (rate-limited),
+        # the others with the plain voltage bounds; block changes: the rate limit.
+        lo[0], hi[0] = self.qp.first_move_bounds(inp)
+        lo[1:nb] = inp.u_lo
+        hi[1:nb] = inp.u_hi
+        np.add(self._lo_state, nac, out=lo[r:])
+        np.add(self._hi_state, nac, out=hi[r:])
+        if inp.lead:
+            np.add(nac[:n], self.qp.cfg.d_min, out=lo[r : r + n])
+        np.add(nac[n : 2 * n], inp.v_cap, out=hi[r + n : r + 2 * n])
+
+    def expand(self, w: Vec, inp: QpInputs) -> Vec:
+        """The sparse QP's decision vector ``z = M E w + C0 x0 + Cl v_lead``."""
+        z: Vec = self.ME @ w
+        z += self.C0 @ inp.x0
+        z += self.Cl @ inp.v_lead
+        return z
