@@ -8,11 +8,13 @@ import json
 import math
 from typing import Any
 
+from truckd.cli.sim_platoon import add_platoon_arguments, run_platoon_cli
 from truckd.config.truck import load_config
 from truckd.control.qp import ControlModel
 from truckd.errors import InputError, TruckdError
 from truckd.modelfile import read_model
 from truckd.sim.closed_loop import SimSetup, run_scenario
+from truckd.sim.platoon import PLATOON_SCENARIOS
 from truckd.sim.report import json_safe, plot, table
 from truckd.sim.scenarios import SCENARIO_NAMES, make_scenario
 
@@ -20,8 +22,12 @@ from truckd.sim.scenarios import SCENARIO_NAMES, make_scenario
 def add_subparser(sub: Any) -> None:
     p = sub.add_parser("sim", help="closed-loop simulation: controller + simulated firmware")
     p.add_argument(
-        "--scenario", default="all", choices=(*SCENARIO_NAMES, "all"), help="default: all"
+        "--scenario",
+        default="all",
+        choices=(*SCENARIO_NAMES, *PLATOON_SCENARIOS, "all"),
+        help="default: all (with --platoon: every platoon scenario)",
     )
+    add_platoon_arguments(p)
     p.add_argument("--duration", type=float, help="seconds (default: the scenario's)")
     p.add_argument("--realtime", action="store_true", help="pace the loop in wall-clock time")
     p.add_argument("--config", help="configuration file (default: the shipped one)")
@@ -32,6 +38,8 @@ def add_subparser(sub: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.platoon is not None or args.scenario in PLATOON_SCENARIOS:
+        return run_platoon_cli(args)
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
         raise InputError(f"--duration: expected a positive number of seconds, got {args.duration}")
     cfg = load_config(args.config)

@@ -1,0 +1,112 @@
+"""``truckd sim --platoon N``: the platoon scenarios (CONTRACTS.md section 1)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import tempfile
+from typing import Any
+
+from truckd.config.truck import load_config
+from truckd.control.qp import ControlModel
+from truckd.errors import InputError, TruckdError
+from truckd.modelfile import read_model
+from truckd.sim.closed_loop import SimSetup
+from truckd.sim.platoon import MAX_TRUCKS, PLATOON_SCENARIOS, make_platoon_scenario, run_platoon
+from truckd.sim.report import json_safe
+
+
+def add_platoon_arguments(p: argparse.ArgumentParser) -> None:
+    """The platoon options of ``truckd sim``."""
+    p.add_argument(
+        "--platoon", type=int, metavar="N", help=f"N trucks (2..{MAX_TRUCKS}), truck 0 leads"
+    )
+    p.add_argument(
+        "--plan-delay", type=float, default=0.02, metavar="S", help="plan delivery delay (s)"
+    )
+    p.add_argument(
+        "--plan-loss", type=float, default=0.0, metavar="P", help="share of plans lost (0..1)"
+    )
+    p.add_argument("--seed", type=int, default=0, help="random seed of the plan loss")
+
+
+def _check(args: argparse.Namespace) -> None:
+    if args.platoon is None:
+        raise InputError(f"--scenario {args.scenario}: a platoon scenario needs --platoon N")
+    if not 2 <= args.platoon <= MAX_TRUCKS:
+        raise InputError(f"--platoon: expected 2 to {MAX_TRUCKS} trucks, got {args.platoon}")
+    if args.scenario not in (*PLATOON_SCENARIOS, "all"):
+        raise InputError(
+            f"--scenario {args.scenario}: with --platoon expected one of "
+            f"{', '.join(PLATOON_SCENARIOS)}"
+        )
+    if not (math.isfinite(args.plan_delay) and 0.0 <= args.plan_delay <= 10.0):
+        raise InputError(f"--plan-delay: expected 0 to 10 s, got {args.plan_delay}")
+    if not (math.isfinite(args.plan_loss) and 0.0 <= args.plan_loss <= 1.0):
+        raise InputError(f"--plan-loss: expected a share from 0 to 1, got {args.plan_loss}")
+    if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
+        raise InputError(f"--duration: expected a positive number of seconds, got {args.duration}")
+    for opt in ("realtime", "plot", "trace"):
+        if getattr(args, opt, None):
+            raise InputError(f"--{opt}: not available with --platoon")
+
+
+def _fmt(xs: list[float]) -> str:
+    return " ".join(f"{x:.2f}" for x in xs)
+
+
+def run_platoon_cli(args: argparse.Namespace) -> int:
+    _check(args)
+    cfg = load_config(args.config)
+    model = ControlModel(cfg.vehicle)
+    if args.model:
+        mf = read_model(args.model)
+        model = ControlModel(mf.vehicle, mf.effects)
+    setup = SimSetup(
+        cfg.vehicle, cfg.plant, cfg.control, model, ticks_per_rev=cfg.link.encoder_ticks_per_rev
+    )
+    names = PLATOON_SCENARIOS if args.scenario == "all" else (args.scenario,)
+    results: list[dict[str, Any]] = []
+    for name in names:
+        m, _ = run_platoon(
+            make_platoon_scenario(name),
+            setup,
+            cfg.platoon,
+            args.platoon,
+            delay_s=args.plan_delay,
+            loss=args.plan_loss,
+            seed=args.seed,
+            duration=args.duration,
+        )
+        results.append(json_safe(m))
+        print(
+            f"{name}: {args.platoon} trucks, collision {m['collision']}, "
+            f"min gap {m['min_gap_m']:.3f} m, string ratio l2 [{_fmt(m['string_ratio_l2'])}] "
+            f"max [{_fmt(m['string_ratio_max'])}], CACC share [{_fmt(m['cacc_fraction'])}]"
+        )
+    if args.json:
+        doc: object = results if args.scenario == "all" else results[0]
+        _write_json(args.json, doc)
+    crashed = [r["scenario"] for r in results if r["collision"]]
+    if crashed:
+        raise TruckdError(f"collision in: {', '.join(crashed)}")
+    return 0
+
+
+def _write_json(path: str, doc: object) -> None:
+    """All or nothing: a temporary file beside the target, renamed over it."""
+    d = os.path.dirname(os.path.abspath(path))
+    try:
+        fd, tmp = tempfile.mkstemp(dir=d, prefix=".truckd-", suffix=".json")
+    except OSError as exc:
+        raise TruckdError(f"{path}: cannot write: {exc.strerror}") from None
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            json.dump(doc, f, indent=2, allow_nan=False)
+            f.write("\n")
+        os.replace(tmp, path)
+    except OSError as exc:
+        os.unlink(tmp)
+        raise TruckdError(f"{path}: cannot write: {exc.strerror}") from None
