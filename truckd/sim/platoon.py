@@ -13,10 +13,13 @@ Scenarios (all start as a platoon in steady CACC at the lead's speed):
 
 ===================== =====================================================================
 ``platoon-brake``      the lead brakes at 2 m/s^2 from 1.5 to 0.5 m/s and drives on
-``platoon-sine``       the lead's speed oscillates: 1.2 + 0.4 sin(2 pi t / 3 s) m/s
+``platoon-sine``       from 3 s the lead's speed oscillates: 1.2 + 0.4 sin(2 pi t / 3 s) m/s
 ``platoon-comm-loss``  steady at 1.2 m/s with a lead speed dip; every plan is lost for
                        2 s, then 30 % of the plans are lost: ACC, then CACC again
 ===================== =====================================================================
+
+Every truck has a dead time of :data:`ACTUATION_DELAY_S` between command and actuation
+(known to its controller).
 
 Metrics (CONTRACTS.md section 1): the spacing error ``e_i = gap_i - (d_0 + h_i v_i)``
 with the true gap and speed and the headway ``h_i`` the follower drives at that time;
@@ -62,8 +65,15 @@ from truckd.sim.plant import Plant
 
 PLATOON_SCENARIOS: tuple[str, ...] = ("platoon-brake", "platoon-sine", "platoon-comm-loss")
 MAX_TRUCKS = 10
-SETTLE_S = 1.0
-"""The spacing errors are taken from this time on (the start is steady by construction)."""
+ACTUATION_DELAY_S = 0.15
+"""Dead time (s) between command and actuation in the platoon scenarios' trucks, known to
+their controllers (as ``diagnose`` identifies it): a delay is what makes ACC need a
+larger headway than CACC (see docs/platoon.md); without it the MPC's ACC is string
+stable at these headways already."""
+SETTLE_S = 3.0
+"""The spacing errors are taken from this time on: every truck starts at the lead's speed
+and gap, but its dead time holds the first commands at 0 V, a transient of its own (not
+passed down the platoon); every scenario's disturbance starts later."""
 
 
 @dataclass(frozen=True)
@@ -78,6 +88,7 @@ class PlatoonScenario:
     lead_v: Callable[[float], float]
     lead_a: Callable[[float], float]
     loss_windows: tuple[tuple[float, float, float], ...] = ()
+    input_delay: float = ACTUATION_DELAY_S
 
 
 def _brake_v(t: float) -> float:
@@ -92,11 +103,11 @@ _W = 2.0 * math.pi / 3.0
 
 
 def _sine_v(t: float) -> float:
-    return 1.2 + 0.4 * math.sin(_W * t)
+    return 1.2 + 0.4 * math.sin(_W * (t - 3.0)) if t >= 3.0 else 1.2
 
 
 def _sine_a(t: float) -> float:
-    return 0.4 * _W * math.cos(_W * t)
+    return 0.4 * _W * math.cos(_W * (t - 3.0)) if t >= 3.0 else 0.0
 
 
 def _dip_v(t: float) -> float:
@@ -124,7 +135,7 @@ def make_platoon_scenario(name: str) -> PlatoonScenario:
         )
     if name == "platoon-sine":
         return PlatoonScenario(
-            name, "lead speed 1.2 + 0.4 sin(2 pi t / 3 s)", 15.0, 1.2, _sine_v, _sine_a
+            name, "lead speed 1.2 + 0.4 sin(2 pi (t - 3 s) / 3 s)", 15.0, 1.2, _sine_v, _sine_a
         )
     if name == "platoon-comm-loss":
         return PlatoonScenario(
@@ -296,11 +307,20 @@ def run_platoon(
     """Run one platoon scenario; returns the contract metrics and a trace.
 
     The controllers' configured headway is the CACC headway (their QP is built for it;
-    the ACC headway is driven by the gap shift, see :meth:`Controller.control`)."""
+    the ACC headway is driven by the gap shift, see :meth:`Controller.control`).  The
+    trucks' dead time is the scenario's ``input_delay`` unless the plant's is larger; the
+    controllers' model knows it."""
     if not 2 <= n_trucks <= MAX_TRUCKS:
         raise ValueError(f"a platoon has 2 to {MAX_TRUCKS} trucks, got {n_trucks}")
     cfg = replace(setup.control, time_headway=pcfg.cacc_headway)
-    setup = replace(setup, control=cfg)
+    pc, model = setup.plant_config, setup.model
+    delay = max(pc.effects.input_delay, sc.input_delay)
+    setup = replace(
+        setup,
+        control=cfg,
+        plant_config=replace(pc, effects=replace(pc.effects, input_delay=delay)),
+        model=replace(model, effects=replace(model.effects, input_delay=delay)),
+    )
     dt = cfg.period
     n = cfg.horizon
     dur = sc.duration if duration is None else duration
@@ -397,7 +417,7 @@ def platoon_metrics(
     t = np.asarray(tr.t)
     gaps = np.asarray(tr.gap, dtype=float)[:, 1:]
     err = gaps - np.asarray(tr.gap_ref, dtype=float)[:, 1:]
-    keep = t >= SETTLE_S
+    keep = t >= SETTLE_S if len(t) and t[-1] >= 2.0 * SETTLE_S else np.ones(len(t), dtype=bool)
     l2, mx = string_ratios(err[keep])
     modes = np.asarray(tr.mode)[:, 1:]
     v = np.asarray(tr.v, dtype=float)
