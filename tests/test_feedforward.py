@@ -80,8 +80,7 @@ def test_dead_zone_command_sends_the_nearest_voltage_the_driver_applies(
 
 def _run(name: str, feedforward: bool, duration: float) -> tuple[dict[str, Any], Trace]:
     tc = load_config()
-    # A budget no solve reaches: the result does not depend on the machine's load.
-    cfg = dataclasses.replace(ControlConfig(), feedforward=feedforward, time_budget_s=1.0)
+    cfg = dataclasses.replace(ControlConfig(), feedforward=feedforward)
     setup = SimSetup(tc.vehicle, tc.plant, cfg, ControlModel(tc.vehicle))
     return run_scenario(make_scenario(name, tc.vehicle, cfg), setup, duration)
 
@@ -121,7 +120,7 @@ def test_offset_free_action_removes_the_error_of_an_unknown_load() -> None:
     plant = dataclasses.replace(tc.plant, effects=Effects(load_force=3.0))
     errors = {}
     for gain in (0.0, 0.01):
-        cfg = dataclasses.replace(tc.control, time_budget_s=1.0, disturbance_gain=gain)
+        cfg = dataclasses.replace(tc.control, disturbance_gain=gain)
         setup = SimSetup(tc.vehicle, plant, cfg, ControlModel(tc.vehicle))
         m, _ = run_scenario(make_scenario("follow", tc.vehicle, cfg), setup, 12.0)
         errors[gain] = abs(m["final_gap_error_m"])
@@ -133,7 +132,7 @@ def test_known_dead_zone_helps_instead_of_hurting() -> None:
     """Plant with a 1.2 V driver dead zone: the controller that knows it keeps a smaller gap
     error in stop-and-go than the seed model (it used to add the zone as an offset and lose)."""
     tc = load_config()
-    cfg = dataclasses.replace(ControlConfig(), time_budget_s=1.0)
+    cfg = ControlConfig()
     plant = dataclasses.replace(tc.plant, effects=Effects(dead_zone=1.2))
     rms = {}
     for label, eff in (("seed", Effects()), ("known", Effects(dead_zone=1.2))):

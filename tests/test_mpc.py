@@ -26,9 +26,9 @@ worst of these seeded instances is 0.1 mV (rho 0.03), so this is 10x margin."""
 
 
 def tight(cfg: ControlConfig | None = None, **kw: float | int) -> ControlConfig:
-    """A configuration that solves to high accuracy with a generous budget (no timing)."""
+    """A configuration that solves to high accuracy, in simulated time (no wall-clock budget)."""
     base = cfg or ControlConfig()
-    return dataclasses.replace(base, eps=1e-6, max_iter=50_000, time_budget_s=1.0, **kw)
+    return dataclasses.replace(base, eps=1e-6, max_iter=50_000, **kw).in_simulated_time()
 
 
 def clarabel_first_move(b: QpBuilder, mode: str, inp: QpInputs) -> float:
@@ -98,7 +98,7 @@ def test_first_move_equals_clarabel_on_random_instances(params: VehicleParams, m
 def test_default_tolerance_first_move_is_close_to_clarabel(params: VehicleParams) -> None:
     """At the shipped eps (1e-5), cold started, the first move is within 10 mV of the
     optimum."""
-    cfg = dataclasses.replace(ControlConfig(), time_budget_s=1.0, max_iter=10_000)
+    cfg = dataclasses.replace(ControlConfig(), max_iter=10_000).in_simulated_time()
     solver = MpcSolver(ControlModel(params), cfg)
     rng = np.random.default_rng(3)
     for _ in range(8):
@@ -174,7 +174,7 @@ def _estimate(v: float, gap: float, v_lead: float, lead: bool = True) -> Estimat
 
 
 def test_solver_failure_holds_the_plan_then_brakes(params: VehicleParams) -> None:
-    cfg = dataclasses.replace(ControlConfig(), time_budget_s=1.0, plan_hold_steps=3)
+    cfg = dataclasses.replace(ControlConfig(), plan_hold_steps=3).in_simulated_time()
     ctrl = Controller(ControlModel(params), cfg)
     est = _estimate(1.2, 1.12, 1.2)
     for _ in range(5):
@@ -222,7 +222,7 @@ def test_lead_lost_stop_policy_brakes_and_cruise_policy_holds(params: VehiclePar
     v = 1.5
     u_hold = params.K_v * params.omega(v)
     for policy in ("stop", "cruise"):
-        cfg = dataclasses.replace(ControlConfig(), time_budget_s=1.0, on_lead_lost=policy)
+        cfg = dataclasses.replace(ControlConfig(), on_lead_lost=policy).in_simulated_time()
         ctrl = Controller(ControlModel(params), cfg)
         ctrl.u_prev = u_hold
         out = ctrl.control(_estimate(v, math.nan, math.nan, lead=False))
@@ -235,7 +235,7 @@ def test_lead_lost_stop_policy_brakes_and_cruise_policy_holds(params: VehiclePar
 
 def test_lead_forecast_hook_changes_the_plan(params: VehicleParams) -> None:
     """A lead forecast to stop makes the plan stop; the constant-speed default holds speed."""
-    cfg = dataclasses.replace(ControlConfig(), time_budget_s=1.0)
+    cfg = ControlConfig().in_simulated_time()
     est = _estimate(1.2, 1.12, 1.2)
     end_speeds = []
     for forecast in (None, list(np.linspace(1.2, 0.0, cfg.horizon))):
@@ -276,7 +276,7 @@ def test_time_limit_keeps_the_iterate_as_warm_start_other_failures_restart_cold(
     res = s.solve("follow", _inputs(cfg))
     assert not res.ok and "time limit" in res.status
     assert s.has_warm_start and s.last_solution is None
-    cfg = dataclasses.replace(ControlConfig(), time_budget_s=1.0, max_iter=5)
+    cfg = dataclasses.replace(ControlConfig(), max_iter=5).in_simulated_time()
     s = MpcSolver(ControlModel(params), cfg)
     res = s.solve("follow", _inputs(cfg))
     assert not res.ok and "maximum iterations" in res.status
@@ -286,7 +286,7 @@ def test_time_limit_keeps_the_iterate_as_warm_start_other_failures_restart_cold(
 def test_without_any_plan_a_failure_holds_the_last_command_then_brakes(
     params: VehicleParams,
 ) -> None:
-    cfg = dataclasses.replace(ControlConfig(), time_budget_s=1.0, max_iter=1, plan_hold_steps=2)
+    cfg = dataclasses.replace(ControlConfig(), max_iter=1, plan_hold_steps=2).in_simulated_time()
     ctrl = Controller(ControlModel(params), cfg)
     ctrl.u_prev = 2.5
     outs = [ctrl.control(_estimate(1.2, 1.12, 1.2)) for _ in range(4)]
@@ -300,7 +300,7 @@ def test_without_any_plan_a_failure_holds_the_last_command_then_brakes(
 def test_a_non_finite_speed_marked_valid_is_no_speed(params: VehicleParams, bad: float) -> None:
     """Taking it as 0 m/s would plan for a truck at rest (breakaway kick, no braking)
     while it may be moving: the fallback runs instead, and the command stays in limits."""
-    cfg = dataclasses.replace(ControlConfig(), time_budget_s=1.0)
+    cfg = ControlConfig().in_simulated_time()
     ctrl = Controller(ControlModel(params), cfg)
     ctrl.u_prev = 3.0
     out = ctrl.control(_estimate(bad, 0.5, 1.0))
@@ -314,7 +314,7 @@ def test_standstill_hold_enters_at_rest_and_releases_with_hysteresis(
     """At rest behind a stopped lead within d_0 + hold_gap_tol: 0 V, mode hold, no solve.
     Noise between the entry and release thresholds keeps the hold; a release condition must
     last hold_release_cycles; then the MPC starts the truck with the breakaway feedforward."""
-    cfg = dataclasses.replace(ControlConfig(), time_budget_s=1.0)
+    cfg = ControlConfig().in_simulated_time()
     ctrl = Controller(ControlModel(params), cfg)
     ctrl.u_prev = 0.4  # the creep's last command
     gap = cfg.d_0 + 0.8 * cfg.hold_gap_tol
@@ -347,7 +347,7 @@ def test_standstill_hold_enters_at_rest_and_releases_with_hysteresis(
 def test_standstill_hold_not_entered_when_moving_far_or_lead_moving(
     params: VehicleParams,
 ) -> None:
-    cfg = dataclasses.replace(ControlConfig(), time_budget_s=1.0)
+    cfg = ControlConfig().in_simulated_time()
     near = cfg.d_0 + 0.5 * cfg.hold_gap_tol
     for est in (
         _estimate(2.0 * cfg.moving_speed, near, 0.0),  # still moving

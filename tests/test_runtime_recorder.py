@@ -13,7 +13,7 @@ from truckd.logfile import read_log
 from truckd.runtime.config import RecorderConfig
 from truckd.runtime.recorder import Recorder
 
-COLS = ("t", "u", "v", "i", "gap_m", "mode")
+COLS = ("t", "u", "v", "i", "gap", "mode")
 
 
 def rows(n: int) -> list[tuple[float, ...]]:
@@ -42,7 +42,7 @@ def test_rotates_by_size_every_file_is_a_contract_log(tmp_path: Path) -> None:
         log = read_log(f, require=("t", "u", "v"))
         assert log.input_kind == "voltage"
         ts.append(log["t"])
-        gaps.append(log["gap_m"])
+        gaps.append(log["gap"])
     t = np.concatenate(ts)
     np.testing.assert_allclose(t, [r[0] for r in data], rtol=0, atol=1e-12)
     # extra columns round-trip, NaN included (an invalid range reading)

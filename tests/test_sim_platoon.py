@@ -20,9 +20,7 @@ from truckd.sim.platoon import make_platoon_scenario, run_platoon, string_ratios
 
 def _setup() -> SimSetup:
     cfg = load_config()
-    # The OSQP time limit is wall-clock time: generous here so that a loaded test machine
-    # does not change a run in simulated time (the car keeps the configured budget).
-    control = replace(cfg.control, time_budget_s=1.0)
+    control = cfg.control
     return SimSetup(cfg.vehicle, cfg.plant, control, ControlModel(cfg.vehicle), ticks_per_rev=512)
 
 

@@ -19,6 +19,8 @@ from numpy.typing import NDArray
 from truckd.errors import InputError
 
 KNOWN_COLUMNS = ("t", "u", "v", "i", "x", "gap", "v_lead", "vbat", "F")
+NAN_ALLOWED = ("gap", "v_lead")
+"""Optional columns where NaN means "no lead tracked" (the daemon's own logs)."""
 
 
 @dataclass
@@ -91,7 +93,11 @@ def read_log(path: str | Path, require: Sequence[str] = ("t",)) -> Log:
                         raise InputError(
                             f"{src}: line {lineno}: column '{name}': {cell!r} is not a number"
                         ) from None
-                    if name in KNOWN_COLUMNS and not math.isfinite(val):
+                    if (
+                        name in KNOWN_COLUMNS
+                        and not math.isfinite(val)
+                        and not (name in NAN_ALLOWED and math.isnan(val))
+                    ):
                         raise InputError(
                             f"{src}: line {lineno}: column '{name}': {cell!r} is not finite"
                         )

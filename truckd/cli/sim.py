@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+from pathlib import Path
 from typing import Any
 
 from truckd.cli.sim_platoon import add_platoon_arguments, run_platoon_cli
@@ -15,7 +16,7 @@ from truckd.errors import InputError, TruckdError
 from truckd.modelfile import read_model
 from truckd.sim.closed_loop import SimSetup, run_scenario
 from truckd.sim.platoon import PLATOON_SCENARIOS
-from truckd.sim.report import json_safe, plot, table
+from truckd.sim.report import json_safe, plot, table, write_trace
 from truckd.sim.scenarios import SCENARIO_NAMES, make_scenario
 
 
@@ -34,6 +35,11 @@ def add_subparser(sub: Any) -> None:
     p.add_argument("--model", help="MODEL.yaml: the controller's model (the plant stays)")
     p.add_argument("--json", help="write the metrics as JSON to this file")
     p.add_argument("--plot", help="write a PNG of gap, speeds and voltage to this file")
+    p.add_argument(
+        "--trace",
+        metavar="DIR",
+        help="write each run's time series in the log format to DIR/<scenario>.csv",
+    )
     p.set_defaults(run=run)
 
 
@@ -48,8 +54,15 @@ def run(args: argparse.Namespace) -> int:
         model, source = ControlModel(mf.vehicle, mf.effects), f"model file {args.model}"
     else:
         model, source = ControlModel(cfg.vehicle), "configured vehicle"
+    trace_dir = _trace_dir(args.trace) if args.trace else None
     setup = SimSetup(
-        cfg.vehicle, cfg.plant, cfg.control, model, ticks_per_rev=cfg.link.encoder_ticks_per_rev
+        cfg.vehicle,
+        cfg.plant,
+        cfg.control,
+        model,
+        ticks_per_rev=cfg.link.encoder_ticks_per_rev,
+        supervisor=cfg.runtime.supervisor,
+        stop_ramp_v_per_s=cfg.runtime.stop_ramp_v_per_s,
     )
     names = SCENARIO_NAMES if args.scenario == "all" else (args.scenario,)
     results, traces = [], []
@@ -75,7 +88,20 @@ def run(args: argparse.Namespace) -> int:
             raise TruckdError(f"{args.json}: cannot write: {exc.strerror}") from None
     if args.plot:
         plot(args.plot, traces)
+    if trace_dir is not None:
+        for name, trace in traces:
+            write_trace(trace_dir / f"{name}.csv", trace)
     crashed = [r["scenario"] for r in results if r["collision"]]
     if crashed:
         raise TruckdError(f"collision in: {', '.join(crashed)}")
     return 0
+
+
+def _trace_dir(arg: str) -> Path:
+    """``--trace DIR``, created if missing (InputError when it cannot be a directory)."""
+    d = Path(arg)
+    try:
+        d.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"--trace {arg}: cannot use as a directory: {exc.strerror}") from None
+    return d

@@ -18,8 +18,8 @@ from truckd.control.platoon import PlatoonConfig
 from truckd.errors import InputError
 from truckd.io.config import LinkConfig
 from truckd.model.params import VehicleParams
+from truckd.model.plant_config import PlantConfig, encoder_ticks_per_rev
 from truckd.runtime.config import RuntimeConfig
-from truckd.sim.plant import PlantConfig
 
 
 @dataclass(frozen=True)
@@ -44,6 +44,14 @@ class TruckConfig:
     runtime: RuntimeConfig = spec(
         "the daemon: loop, backend, supervisor, telemetry, recorder", default_factory=RuntimeConfig
     )
+
+    @property
+    def ticks_per_rev(self) -> int:
+        """Encoder ticks per wheel revolution both sides use (the plant's when it models
+        an encoder, else the link's)."""
+        return encoder_ticks_per_rev(
+            self.plant.encoder_ticks_per_rev, self.link.encoder_ticks_per_rev
+        )
 
 
 def default_config_path() -> Path:

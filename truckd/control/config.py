@@ -7,6 +7,8 @@ checks the time stamps it is given, not a clock).
 
 from __future__ import annotations
 
+import dataclasses
+import math
 from dataclasses import dataclass
 
 from truckd.config.schema import spec
@@ -258,6 +260,13 @@ class ControlConfig:
     def period(self) -> float:
         """Control period and MPC step (s)."""
         return 1.0 / self.rate_hz
+
+    def in_simulated_time(self) -> ControlConfig:
+        """This configuration for simulated time: no wall-clock budget (OSQP's time limit
+        and the run-time check off); a solve is judged by what it did (status, iterations
+        up to ``max_iter``), so the result does not depend on the machine's load.  On the
+        car the budget stays."""
+        return dataclasses.replace(self, time_budget_s=math.inf)
 
     def validate(self) -> str | None:
         """Cross-field checks."""

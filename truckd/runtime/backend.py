@@ -7,17 +7,23 @@ by one control period per cycle, in real time (the lead drives the ``follow`` sc
 
 from __future__ import annotations
 
+import importlib
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 from truckd.config.truck import TruckConfig
 from truckd.control.config import ControlConfig
 from truckd.io import open_link
 from truckd.io.link import Link
-from truckd.sim.firmware import FirmwareSimConfig, SimulatedFirmware, simulated_truck
-from truckd.sim.plant import Plant
-from truckd.sim.scenarios import World, make_scenario
+
+if TYPE_CHECKING:
+    from truckd.sim.firmware import SimulatedFirmware
+
+SIM_BACKEND = "truckd.sim.backend"
+"""The module of the ``sim`` backend, imported only when asked for by name (as python-can
+loads its interfaces): ``truckd run`` on the car never loads the plant or the scenarios."""
 
 
 @dataclass
@@ -46,10 +52,6 @@ def open_backend(
 ) -> Backend:
     """Open ``sim``, ``serial`` or ``can`` (ValueError for another name)."""
     if name == "sim":
-        plant = Plant(cfg.vehicle, cfg.plant)
-        world = World(make_scenario("follow", cfg.vehicle, control))
-        link, fw, _wire = simulated_truck(
-            plant, world.range_fn, "frames", FirmwareSimConfig(ticks_per_rev=ticks_per_rev)
-        )
+        link, fw = importlib.import_module(SIM_BACKEND).open_sim(cfg, control, ticks_per_rev)
         return Backend(name, link, fw)
     return Backend(name, open_link(name, cfg.link, clock))

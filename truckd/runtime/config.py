@@ -43,6 +43,11 @@ class RecorderConfig:
     )
     keep: int = spec("rotated files kept (oldest deleted)", lo=1, default=20)
     flush_period_s: float = spec("flush to disk at least this often", unit="s", lo=0.0, default=1.0)
+    messages: bool = spec(
+        "also record every received message (JSON lines beside the CSV, not rotated) so "
+        "the run can be replayed through the control cycle",
+        default=False,
+    )
 
 
 @dataclass(frozen=True)

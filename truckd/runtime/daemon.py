@@ -22,33 +22,27 @@ from typing import Any
 from firmware_protocol.messages import CompanionHeartbeat, CompanionState, MotorCommand
 from truckd.config.schema import to_plain
 from truckd.config.truck import TruckConfig
-from truckd.control.controller import Controller, ControlOutput
+from truckd.control.controller import ControlOutput
 from truckd.control.qp import ControlModel
-from truckd.control.supervisor import Decision, Mode, Supervisor, SupervisorInputs
+from truckd.control.supervisor import Decision, Mode
 from truckd.io.port import Port, companion_port
 from truckd.runtime.backend import Backend, open_backend
-from truckd.runtime.command import motor_command
+from truckd.runtime.cycle import LOG_COLUMNS as STEP_COLUMNS
+from truckd.runtime.cycle import MODE_CODE as MODE_CODE
+from truckd.runtime.cycle import CompanionCycle, CycleInputs, CycleOutputs
 from truckd.runtime.faults import RuntimeFaults, wrap_solver
 from truckd.runtime.notify import Notifier
 from truckd.runtime.ratekeeper import RateKeeper
 from truckd.runtime.realtime import RealtimeReport, setup_realtime
 from truckd.runtime.recorder import Recorder
-from truckd.runtime.sensors import SensorState
+from truckd.runtime.rxlog import RxLog
 from truckd.runtime.telemetry import Telemetry
-from truckd.sim.firmware import encoder_ticks_per_rev
 
 log = logging.getLogger("truckd.daemon")
 
-MODE_CODE = {Mode.INIT: 0, Mode.ACTIVE: 1, Mode.DEGRADED: 2, Mode.SAFE_STOP: 3, Mode.FAULT: 4}
-"""Numeric mode in the CSV log (the log format is all numbers)."""
-
-LOG_COLUMNS = (
-    "t", "u", "v", "i", "vbat", "x",  # contract columns (always finite)
-    "gap_m", "v_lead_m_s", "gap_ref", "u_ff", "u_fw", "solve_us", "mode", "enable",
-    "lead_valid", "range_raw", "seq", "lateness_us", "compute_us",
-)  # fmt: skip
-"""Recorded columns: the contract's first (CONTRACTS.md section 3), then extras; the
-gap and lead speed are extras because they are NaN while no lead is tracked."""
+LOG_COLUMNS = (*STEP_COLUMNS, "lateness_us", "compute_us")
+"""Recorded columns: the step's (contract names first, CONTRACTS.md section 3), then the
+loop's timing (the rate keeper's lateness and compute time of the previous cycle, us)."""
 
 
 def _j(x: float) -> float | None:
@@ -75,27 +69,33 @@ class Daemon:
         self.backend_name = backend or self.rt.backend
         self.duration = duration
         self.clock = clock
-        self.ticks_per_rev = encoder_ticks_per_rev(
-            cfg.plant.encoder_ticks_per_rev, cfg.link.encoder_ticks_per_rev
-        )
+        self.ticks_per_rev = cfg.ticks_per_rev
         self.model = model if model is not None else ControlModel(cfg.vehicle)
-        self.controller = Controller(self.model, self.control_cfg, self.ticks_per_rev)
+        self.companion = CompanionCycle(
+            self.model,
+            self.control_cfg,
+            self.rt.supervisor,
+            self.ticks_per_rev,
+            self.rt.stop_ramp_v_per_s,
+            time_budget=True,  # on the car a late solve is a failure
+        )
+        self.controller = self.companion.controller
+        self.supervisor = self.companion.supervisor
+        self.sensors = self.companion.sensors
         self.faults = RuntimeFaults()
         if self.rt.fault_injection:
             self.controller.mpc.solve = wrap_solver(  # type: ignore[method-assign]
                 self.controller.mpc.solve, self.faults
             )
-        self.supervisor = Supervisor(self.rt.supervisor, self.control_cfg.on_lead_lost)
         self.rk = RateKeeper(self.control_cfg.rate_hz, clock=clock)
         self.notifier = Notifier(env)
-        self.sensors = SensorState(tick_len=self.controller.estimator.tick_len)
-        self.u_max = self.controller.u_max
+        self.u_max = self.companion.u_max
         self.period = 1.0 / self.control_cfg.rate_hz
-        self.ramp_step = self.rt.stop_ramp_v_per_s * self.period
         self.backend: Backend | None = None
         self.port: Port | None = None
         self.telemetry: Telemetry | None = None
         self.recorder: Recorder | None = None
+        self.rxlog: RxLog | None = None
         self.realtime = RealtimeReport()
         self.stop_requested = False
         self.t0 = 0.0
@@ -104,7 +104,6 @@ class Daemon:
         self.enable = False
         self.decision = Decision(Mode.INIT, ())
         self.out: ControlOutput | None = None
-        self.controller_errors = 0
         self.ready_sent = False
         self._last_watchdog = -math.inf
         self._next_health = 0.0
@@ -145,6 +144,10 @@ class Daemon:
             self.recorder = Recorder(self.rt.recorder, LOG_COLUMNS)
             self.recorder.start()
             log.info("recording to %s", self.recorder.path)
+            if self.rt.recorder.messages and self.recorder.path is not None:
+                self.rxlog = RxLog(self.recorder.path.with_suffix(".rx.jsonl"), self.params())
+                self.rxlog.start()
+                log.info("recording received messages to %s", self.rxlog.path)
         log.info(
             "truckd %s: backend %s, %.0f Hz", self.cfg.vehicle_id, self.backend_name,
             self.control_cfg.rate_hz,
@@ -167,6 +170,8 @@ class Daemon:
                     break
         if self.backend is not None:
             self.backend.tick(self.period)  # sim: let the firmware apply it
+        if self.rxlog is not None:
+            self.rxlog.stop()
         if self.recorder is not None:
             self.recorder.stop()
             log.info("log flushed: %d rows in %s", self.recorder.rows, self.recorder.path)
@@ -198,7 +203,9 @@ class Daemon:
     def loop(self) -> None:
         """Cycles until stopped."""
         self.rk.start()
-        self.t0 = self.rk.cycle_start
+        self.t0 = self.companion.t0 = self.rk.cycle_start
+        if self.rxlog is not None:
+            self.rxlog.t0 = self.t0
         while not self.stop_requested:
             if self.duration is not None and self.clock() - self.t0 >= self.duration:
                 break
@@ -210,65 +217,37 @@ class Daemon:
 
     # -- one cycle -----------------------------------------------------------------
     def cycle(self) -> None:
-        """read -> estimate/control -> supervise -> command -> publish -> record."""
+        """read -> the companion step (sensors, control, supervise, command) -> send ->
+        publish -> record -> watchdog."""
         assert self.port is not None and self.backend is not None
         now = self.clock()
-        t = now - self.t0
         try:
             received = self.port.poll()
         except Exception as exc:  # a link bug must not stop the loop: treat as silence
             log.warning("link read failed: %s", exc)
             received = []
-        self.sensors.update(now, received)
-        out = self.control(t)
-        dec = self.supervise(now, t, out)
-        u_ctrl = out.u if out is not None else None
-        self.u, self.enable = motor_command(dec.mode, u_ctrl, self.u, self.ramp_step, self.u_max)
-        self.controller.u_prev = self.u  # the controller's rate limit starts from what we sent
-        self.send_command(dec.mode)
+        inp = CycleInputs(now, received, self.backend.link.connected, self.rk.last_missed)
+        if self.rxlog is not None:
+            self.rxlog.record(inp)
+        out = self.companion.step(inp)
+        self.after_step(out)
+        self.send_command(out)
         self.backend.tick(self.period)
-        self.publish(t, out)
-        self.record(t, out)
+        self.publish(out)
+        self.record(out)
         self.feed_watchdog(now)
-        self.seq += 1
 
-    def control(self, t: float) -> ControlOutput | None:
-        s = self.sensors
-        try:
-            self.out = self.controller.step(t, s.encoders, s.ranges)
-        except Exception as exc:  # counted as a solver failure by the supervisor
-            self.controller_errors += 1
-            if self.controller_errors <= 3:
-                log.exception("controller failed: %s", exc)
-            self.out = None
-        return self.out
-
-    def supervise(self, now: float, t: float, out: ControlOutput | None) -> Decision:
-        s = self.sensors
-        ages = self._ages = s.ages(now)
-        reason = out.fallback_reason if out is not None else "exception"
-        solver_ok = out is not None and not (reason or "").startswith("solver_")
-        est = out.estimate if out is not None else None
-        dec = self.supervisor.update(
-            SupervisorInputs(
-                t=t,
-                link_up=self.backend.link.connected if self.backend else False,
-                link_age=ages["link"],
-                encoder_age=ages["encoder"],
-                range_age=ages["range"],
-                range_value=s.range_raw,
-                range_fault=s.range_fault,
-                speed=est.v if est is not None and est.speed_valid else 0.0,
-                lead_valid=est.lead_valid if est is not None else False,
-                solver_ok=solver_ok,
-                loop_missed=self.rk.last_missed,
-            )
-        )
-        self.decision = dec
-        if dec.transition is not None:
-            tr = dec.transition
+    def after_step(self, out: CycleOutputs) -> None:
+        """The daemon's view of the step: log errors and mode changes, notify systemd."""
+        self.out, self.decision = out.control, out.decision
+        self.u, self.enable, self.seq = out.command.voltage, out.command.enable, out.seq + 1
+        self._ages = out.ages
+        if out.error is not None and self.companion.controller_errors <= 3:
+            log.error("controller failed: %s", out.error)
+        tr = out.decision.transition
+        if tr is not None:
             log.warning(
-                "mode %s -> %s at t=%.3f s (%s)", tr.old.value, tr.new.value, t,
+                "mode %s -> %s at t=%.3f s (%s)", tr.old.value, tr.new.value, out.t,
                 ", ".join(tr.causes) or "all clear",
             )  # fmt: skip
             self._transitions = [*self._transitions[-9:], tr.as_dict()]
@@ -277,14 +256,17 @@ class Daemon:
                 self.ready_sent = True
             self.notifier.status(f"{tr.new.value}: {', '.join(tr.causes) or 'ok'}")
             self._next_health = 0.0  # publish health now
-        return dec
 
-    def send_command(self, mode: Mode) -> None:
+    @property
+    def controller_errors(self) -> int:
+        return self.companion.controller_errors
+
+    def send_command(self, out: CycleOutputs) -> None:
         assert self.port is not None
         try:
-            self.port.send(MotorCommand(self.u, self.enable))
-            if self.seq % 10 == 0:  # 100 ms heartbeat at 100 Hz
-                self.port.send(CompanionHeartbeat(CompanionState[mode.value], 0))
+            self.port.send(out.command)
+            if out.heartbeat is not None:  # 100 ms
+                self.port.send(out.heartbeat)
         except Exception as exc:  # a vanished device is the supervisor's business
             log.debug("send failed: %s", exc)
 
@@ -299,38 +281,16 @@ class Daemon:
             self._last_watchdog = now
 
     # -- outputs -------------------------------------------------------------------
-    def publish(self, t: float, out: ControlOutput | None) -> None:
+    def publish(self, out: CycleOutputs) -> None:
         tel = self.telemetry
         if tel is None:
             return
-        if self.seq % self.rt.telemetry.state_every == 0:
-            est = out.estimate if out is not None else None
-            nan = math.nan
-            tel.publish_state(
-                {
-                    "seq": self.seq,
-                    "t": t,
-                    "mode": self.decision.mode.value,
-                    "v": _j(est.v if est is not None else nan),
-                    "gap": _j(est.gap if est is not None else nan),
-                    "gap_ref": _j(out.gap_ref if out is not None else nan),
-                    "v_lead": _j(est.v_lead if est is not None else nan),
-                    "u": self.u,
-                    "u_ff": _j(out.u_ff if out is not None else nan),
-                    "solve_us": _j(out.solve_time_s * 1e6 if out is not None else nan),
-                    "enable": self.enable,
-                    "ctrl": out.mode if out is not None else None,
-                    "fallback": out.fallback_reason if out is not None else "exception",
-                    "lead_valid": bool(est.lead_valid) if est is not None else False,
-                    "lateness_us": self.rk.last_lateness * 1e6,
-                    "faults": list(self.decision.causes),
-                    "ages_ms": {k: _j(a * 1e3) for k, a in self._ages.items()},
-                }
-            )
+        if out.seq % self.rt.telemetry.state_every == 0:
+            tel.publish_state(self.companion.state_message(out, self.rk.last_lateness))
             self._states_sent += 1
-        if t >= self._next_health:
-            self.publish_health(t)
-            self._next_health = t + self.rt.telemetry.health_period_s
+        if out.t >= self._next_health:
+            self.publish_health(out.t)
+            self._next_health = out.t + self.rt.telemetry.health_period_s
 
     def publish_health(self, t: float) -> None:
         tel, port = self.telemetry, self.port
@@ -378,29 +338,9 @@ class Daemon:
             return None
         return {"rows": r.rows, "dropped": r.dropped, "errors": r.errors, "file": str(r.path)}
 
-    def record(self, t: float, out: ControlOutput | None) -> None:
+    def record(self, out: CycleOutputs) -> None:
         rec = self.recorder
         if rec is None:
             return
-        s = self.sensors
-        nan = math.nan
-        est = out.estimate if out is not None else None
-        v = est.v if est is not None and math.isfinite(est.v) else 0.0
-        rec.record(
-            (
-                t, self.u, v, s.current, s.vbat, s.x,
-                est.gap if est is not None else nan,
-                est.v_lead if est is not None else nan,
-                out.gap_ref if out is not None else nan,
-                out.u_ff if out is not None else nan,
-                s.u_fw,
-                out.solve_time_s * 1e6 if out is not None else nan,
-                float(MODE_CODE[self.decision.mode]),
-                float(self.enable),
-                float(est.lead_valid) if est is not None else 0.0,
-                s.range_raw if s.range_raw is not None else nan,
-                float(self.seq),
-                self.rk.last_lateness * 1e6,
-                self.rk.last_compute * 1e6,
-            )
-        )  # fmt: skip
+        rk = self.rk
+        rec.record((*self.companion.log_row(out), rk.last_lateness * 1e6, rk.last_compute * 1e6))

@@ -1,13 +1,19 @@
-"""Closed-loop runner: the controller drives the simulated truck through the simulated
-firmware and the real protocol on an in-process link.
+"""Closed-loop runner: the daemon's own companion cycle drives the simulated truck
+through the simulated firmware and the real protocol on an in-process link.
 
-Each cycle (period ``1 / control.rate_hz``): poll the checked messages, run the
-:class:`~truckd.control.controller.Controller`, send ``MOTOR_CMD`` (and the heartbeat
-every 100 ms), then let the simulated firmware advance the plant by one period.  In
-simulated time by default (as fast as the machine goes); ``realtime=True`` paces each
-cycle on absolute wall-clock deadlines.  The runner owns the clocks: the step time
-(poll + estimate + solve + command) is measured with ``time.perf_counter``; the solve
-time is OSQP's own.
+Each cycle (period ``1 / control.rate_hz``): poll the checked messages, run
+:class:`~truckd.runtime.cycle.CompanionCycle` (sensors -> controller -> supervisor ->
+motor command, exactly as ``truckd run`` on the car), send ``MOTOR_CMD`` (with its
+``enable``) and the heartbeat the cycle asks for, then let the simulated firmware advance
+the plant by one period.
+
+In simulated time (the default, as fast as the machine goes) the run is deterministic:
+the solver is judged by what it did (status, iterations), not against the wall clock, and
+the loop never misses a deadline; so the same command gives the same result on an idle and
+on a loaded machine.  The wall time is still measured and reported (``solve_us_*``:
+OSQP's own time; ``step_us_p99``: poll + step + send, ``time.perf_counter``;
+``deadline_misses``: steps slower than the period).  ``realtime=True`` paces each cycle
+on absolute wall-clock deadlines (the results then still do not depend on the load).
 """
 
 from __future__ import annotations
@@ -19,26 +25,23 @@ from typing import Any
 
 import numpy as np
 
-from firmware_protocol.messages import (
-    CompanionHeartbeat,
-    CompanionState,
-    MotorCommand,
-    RangeReading,
-    RangeStatus,
-    WheelEncoders,
-)
 from truckd.control.config import ControlConfig
 from truckd.control.controller import Controller
-from truckd.control.estimator import EncoderSample, RangeSample
 from truckd.control.qp import ControlModel
+from truckd.control.supervisor import Mode, SupervisorConfig
 from truckd.io.port import companion_port
 from truckd.model.params import VehicleParams
-from truckd.sim.firmware import FirmwareSimConfig, encoder_ticks_per_rev, simulated_truck
+from truckd.model.plant_config import encoder_ticks_per_rev
+from truckd.runtime.cycle import CompanionCycle, CycleInputs
+from truckd.sim.firmware import FirmwareSimConfig, simulated_truck
 from truckd.sim.plant import Plant, PlantConfig
 from truckd.sim.scenarios import Scenario, World
 
 STEADY_AFTER_S = 5.0
 """``gap_error_rms_m`` is taken after this time (CONTRACTS.md section 1)."""
+
+TRUTH_COLUMNS = ("v_true", "gap_true", "v_lead_true", "x_true", "i_true")
+"""The plant's truth, appended to each log row of a trace (m/s, m, m/s, m, A)."""
 
 
 @dataclass
@@ -54,6 +57,11 @@ class Trace:
     u_ff: list[float] = field(default_factory=list)
     mode: list[str] = field(default_factory=list)
     gap_est: list[float] = field(default_factory=list)
+    supervisor: list[str] = field(default_factory=list)
+    """The supervisor's mode each cycle (``mode`` is the controller's)."""
+    rows: list[tuple[float, ...]] = field(default_factory=list)
+    """The daemon's log row each cycle (:data:`~truckd.runtime.cycle.LOG_COLUMNS`) with
+    the truth appended (:data:`TRUTH_COLUMNS`)."""
 
 
 @dataclass(frozen=True)
@@ -66,6 +74,9 @@ class SimSetup:
     model: ControlModel
     ticks_per_rev: int = 512
     firmware: FirmwareSimConfig | None = None
+    supervisor: SupervisorConfig = field(default_factory=SupervisorConfig)
+    stop_ramp_v_per_s: float = 60.0
+    """The SAFE_STOP ramp (``runtime.stop_ramp_v_per_s``)."""
 
 
 def _percentile(xs: list[float], q: float) -> float:
@@ -88,61 +99,61 @@ def run_scenario(
     plant.reset(v=sc.v0)
     link, fw, _wire = simulated_truck(plant, world.range_fn, mode="frames", config=fw_cfg)
     port = companion_port(link, clock=lambda: plant.t)
-    ctrl = Controller(setup.model, cfg, ticks_per_rev=fw_cfg.ticks_per_rev)
+    cyc = CompanionCycle(
+        setup.model,
+        cfg,
+        setup.supervisor,
+        fw_cfg.ticks_per_rev,
+        setup.stop_ramp_v_per_s,
+        time_budget=False,  # simulated time: judged by what the solver did
+    )
     tr = Trace()
     solve_us: list[float] = []
     step_us: list[float] = []
     deadline_misses = 0
     n_cycles = max(1, round(dur / dt))
-    hb_every = max(1, round(0.1 / dt))
     wall0 = time.monotonic()
     for k in range(n_cycles):
         t = plant.t
         t0 = time.perf_counter()
-        encs: list[EncoderSample] = []
-        rngs: list[RangeSample] = []
-        for r in port.poll():
-            m = r.msg
-            if isinstance(m, WheelEncoders):
-                encs.append(
-                    EncoderSample(
-                        m.ticks_left,
-                        m.ticks_right,
-                        m.sample_time,
-                        left_ok=not m.status & 1,
-                        right_ok=not m.status & 2,
-                    )
-                )
-            elif isinstance(m, RangeReading) and m.status != RangeStatus.SENSOR_FAULT:
-                # A faulty sensor is not "no target": no sample (as the daemon does), so the
-                # lead times out instead of the truck cruising blind.
-                rngs.append(RangeSample(m.gap, m.sample_time))
-        out = ctrl.step(t, encs, rngs)
-        port.send(MotorCommand(voltage=out.u, enable=True))
-        if k % hb_every == 0:
-            port.send(CompanionHeartbeat(CompanionState.ACTIVE, faults=0))
+        out = cyc.step(CycleInputs(t, port.poll(), link.connected))
+        port.send(out.command)
+        if out.heartbeat is not None:
+            port.send(out.heartbeat)
         elapsed = time.perf_counter() - t0
         step_us.append(elapsed * 1e6)
-        if out.solve_iterations > 0:
-            solve_us.append(out.solve_time_s * 1e6)
+        c = out.control
+        if c is not None and c.solve_iterations > 0:
+            solve_us.append(c.solve_time_s * 1e6)
         deadline_misses += elapsed > dt
         gap = world.gap(t, plant.x)
+        vl = world.v_lead(t)
         tr.t.append(t)
         tr.gap.append(math.nan if gap is None else gap)
         tr.gap_ref.append(cfg.d_0 + cfg.time_headway * plant.v)
         tr.v.append(plant.v)
-        vl = world.v_lead(t)
         tr.v_lead.append(math.nan if vl is None else vl)
-        tr.u.append(out.u)
-        tr.u_ff.append(out.u_ff)
-        tr.mode.append(out.mode)
-        tr.gap_est.append(out.estimate.gap)
+        tr.u.append(out.command.voltage)
+        tr.u_ff.append(c.u_ff if c is not None else math.nan)
+        tr.mode.append(c.mode if c is not None else "exception")
+        tr.gap_est.append(c.estimate.gap if c is not None else math.nan)
+        tr.supervisor.append(out.mode.value)
+        tr.rows.append(
+            (*cyc.log_row(out), plant.v, tr.gap[-1], tr.v_lead[-1], plant.x, plant.motor.i)
+        )
         fw.step(dt)
         if realtime:
             delay = wall0 + (k + 1) * dt - time.monotonic()
             if delay > 0.0:
                 time.sleep(delay)
-    return _metrics(sc, cfg, tr, solve_us, step_us, deadline_misses, ctrl), tr
+    metrics = _metrics(sc, cfg, tr, solve_us, step_us, deadline_misses, cyc.controller)
+    modes = tr.supervisor
+    return {
+        **metrics,
+        # s in each supervisor mode (every mode named) and the count of mode changes
+        "mode_time_s": {m.value: round(modes.count(m.value) * dt, 9) for m in Mode},
+        "transitions": len(cyc.supervisor.transitions),
+    }, tr
 
 
 def _metrics(

@@ -44,6 +44,7 @@ from truckd.config.schema import spec
 from truckd.io.inproc import Wire, inproc_pair
 from truckd.io.link import FramedStreamLink, Link
 from truckd.io.port import firmware_port
+from truckd.model.plant_config import encoder_ticks_per_rev as encoder_ticks_per_rev
 from truckd.sim.plant import Plant
 
 RangeFn = Callable[[float, float], float | None]
@@ -415,9 +416,3 @@ def simulated_truck(
     companion, mcu, wire = inproc_pair(mode)
     fw = SimulatedFirmware(plant, range_fn, mcu, config, wire.disconnect, wire.reconnect)
     return companion, fw, wire
-
-
-def encoder_ticks_per_rev(plant_ticks: int, link_ticks: int) -> int:
-    """Ticks per wheel revolution both sides use: the plant's encoder when it models one
-    (``plant.encoder_ticks_per_rev`` > 0), else the link configuration's."""
-    return plant_ticks if plant_ticks > 0 else link_ticks

@@ -43,7 +43,6 @@ from truckd.sim.firmware import (
     RangeFn,
     SimulatedFirmware,
     constant_speed_lead,
-    encoder_ticks_per_rev,
 )
 from truckd.sim.plant import Plant
 from truckd.sim.pty_link import PtyDevice
@@ -162,11 +161,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     plant = Plant(cfg.vehicle, cfg.plant)
     plant.reset(v=v0)
-    fw_cfg = FirmwareSimConfig(
-        ticks_per_rev=encoder_ticks_per_rev(
-            cfg.plant.encoder_ticks_per_rev, cfg.link.encoder_ticks_per_rev
-        )
-    )
+    fw_cfg = FirmwareSimConfig(ticks_per_rev=cfg.ticks_per_rev)
     dev = PtyDevice(args.pty, clock=lambda: plant.t)
     fw = SimulatedFirmware(plant, range_fn, dev, fw_cfg, dev.unplug, dev.replug)
     ctl = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)

@@ -14,28 +14,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from truckd.config.schema import spec
-from truckd.model.effects import Effects, drag_linearisation, driver_output, load_torque
+from truckd.model.effects import drag_linearisation, driver_output, load_torque
 from truckd.model.motor import MotorState, SegmentInputs, advance
 from truckd.model.params import VehicleParams
-
-
-@dataclass(frozen=True)
-class PlantConfig:
-    """The simulated truck's effects and sensor imperfections."""
-
-    effects: Effects = spec("effects the seed model lacks", default_factory=Effects)
-    noise_v: float = spec("speed measurement noise (std)", unit="m/s", lo=0.0, hi=10.0, default=0.0)
-    noise_i: float = spec(
-        "current measurement noise (std)", unit="A", lo=0.0, hi=100.0, default=0.0
-    )
-    encoder_ticks_per_rev: int = spec(
-        "encoder ticks per wheel revolution, 0 = ideal speed sensor",
-        lo=0,
-        hi=1_000_000,
-        default=0,
-    )
-    seed: int = spec("random seed of the sensor noise", lo=0, default=0)
+from truckd.model.plant_config import PlantConfig as PlantConfig  # the plant: section
 
 
 @dataclass(frozen=True)

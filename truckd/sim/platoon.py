@@ -3,9 +3,11 @@
 The lead (truck 0) drives the scenario's speed profile (its driver) and publishes a
 constant-acceleration plan from its speed and acceleration.  Every follower is a full
 simulated truck (plant + simulated firmware + the real protocol on an in-process link)
-driven by its own :class:`~truckd.control.controller.Controller` through
-:func:`follower_cycle` (the cycle's platoon part: plan in, CACC/ACC decision, control,
-plan out); its range sensor sees the truck ahead.  Plans pass through a
+driven by the daemon's own companion cycle (:class:`~truckd.runtime.cycle.CompanionCycle`:
+sensors, controller, supervisor, motor command) with the platoon's part around it
+(:func:`follower_inputs`: the CACC/ACC decision, forecast and headway from the latest
+plan received; :func:`cycle_plan`: the plan to publish); its range sensor sees the truck
+ahead.  Plans pass through a
 :class:`PlanChannel` as they would over Zenoh: a delay, random loss (seeded) and loss
 windows.
 
@@ -38,16 +40,6 @@ from typing import Any
 
 import numpy as np
 
-from firmware_protocol.messages import (
-    CompanionHeartbeat,
-    CompanionState,
-    MotorCommand,
-    RangeReading,
-    RangeStatus,
-    WheelEncoders,
-)
-from truckd.control.controller import Controller, ControlOutput
-from truckd.control.estimator import EncoderSample, RangeSample
 from truckd.control.platoon import (
     ACC,
     CACC,
@@ -58,9 +50,11 @@ from truckd.control.platoon import (
     kinematic_plan,
     make_plan,
 )
-from truckd.io.port import Port, companion_port
+from truckd.io.port import companion_port
+from truckd.model.plant_config import encoder_ticks_per_rev
+from truckd.runtime.cycle import CompanionCycle, CycleInputs, CycleOutputs
 from truckd.sim.closed_loop import SimSetup
-from truckd.sim.firmware import FirmwareSimConfig, encoder_ticks_per_rev, simulated_truck
+from truckd.sim.firmware import FirmwareSimConfig, simulated_truck
 from truckd.sim.plant import Plant
 
 PLATOON_SCENARIOS: tuple[str, ...] = ("platoon-brake", "platoon-sine", "platoon-comm-loss")
@@ -198,62 +192,36 @@ class PlanChannel:
         return self.latest
 
 
-def controller_plan(
-    ctrl: Controller, out: ControlOutput, t: float, seq: int, vehicle_id: str = ""
-) -> Plan | None:
-    """This cycle's plan from the controller: the MPC's predicted speeds when it solved,
-    standstill when holding, None when the cycle ran a fallback (no plan to promise)."""
-    dt, n = ctrl.cfg.period, ctrl.mpc.horizon
-    if out.mode == "hold":
-        return make_plan(t, seq, dt, [0.0] * (n + 1), vehicle_id)
-    z = ctrl.mpc.last_solution
-    if out.fallback_reason is not None or z is None:
-        return None
-    _, v, _ = ctrl.mpc.qp.plan(z)
-    return make_plan(t, seq, dt, [float(x) for x in v], vehicle_id)
+def cycle_plan(cyc: CompanionCycle, out: CycleOutputs, vehicle_id: str = "") -> Plan | None:
+    """The plan to publish after the cycle ``out``, stamped with its time: the MPC's
+    predicted speeds when it solved, standstill when the controller holds the truck at
+    rest, None otherwise (a fallback has no plan to promise: the follower's plan goes
+    stale and it falls back to ACC)."""
+    p = cyc.plan(out)
+    if p is not None:
+        return make_plan(out.t + cyc.t0, out.seq, p.dt, p.v, vehicle_id)
+    c = out.control
+    if c is not None and c.mode == "hold":
+        n = cyc.controller.mpc.horizon
+        return make_plan(out.t + cyc.t0, out.seq, cyc.period, [0.0] * (n + 1), vehicle_id)
+    return None
 
 
-def follower_cycle(
-    ctrl: Controller,
-    mode: PlatoonMode,
-    t: float,
-    plan: Plan | None,
-    encoders: list[EncoderSample],
-    ranges: list[RangeSample],
-    last: ControlOutput | None,
-) -> tuple[ControlOutput, PlatoonDecision]:
-    """The platoon part of one follower's cycle: CACC/ACC decision from the latest plan
-    received, then the control step with the lead forecast and headway it chose."""
-    est = last.estimate if last is not None else None
-    dec = mode.update(
-        t,
+def follower_inputs(
+    mode: PlatoonMode, now: float, plan: Plan | None, last: CycleOutputs | None, d_0: float
+) -> PlatoonDecision:
+    """The platoon part of a follower's cycle, before the step: the CACC/ACC decision
+    from the latest plan received (``now`` on the platoon's shared clock, s), with the
+    previous cycle's estimate (``last``) for the time gap actually driven (``d_0`` the
+    standstill gap, m)."""
+    est = last.control.estimate if last is not None and last.control is not None else None
+    return mode.update(
+        now,
         plan,
-        est.v if est is not None else math.nan,
+        est.v if est is not None and est.speed_valid else math.nan,
         est.gap if est is not None and est.lead_valid else math.nan,
-        ctrl.cfg.d_0,
+        d_0,
     )
-    out = ctrl.step(t, encoders, ranges, dec.forecast, dec.headway)
-    return out, dec
-
-
-def _samples(port: Port) -> tuple[list[EncoderSample], list[RangeSample]]:
-    encs: list[EncoderSample] = []
-    rngs: list[RangeSample] = []
-    for r in port.poll():
-        m = r.msg
-        if isinstance(m, WheelEncoders):
-            encs.append(
-                EncoderSample(
-                    m.ticks_left,
-                    m.ticks_right,
-                    m.sample_time,
-                    left_ok=not m.status & 1,
-                    right_ok=not m.status & 2,
-                )
-            )
-        elif isinstance(m, RangeReading) and m.status != RangeStatus.SENSOR_FAULT:
-            rngs.append(RangeSample(m.gap, m.sample_time))
-    return encs, rngs
 
 
 @dataclass
@@ -271,6 +239,7 @@ class PlatoonTrace:
     mode: list[list[str]] = field(default_factory=list)
     u: list[list[float]] = field(default_factory=list)
     accel: list[list[float]] = field(default_factory=list)
+    supervisor: list[list[str]] = field(default_factory=list)
 
 
 class _Follower:
@@ -285,12 +254,36 @@ class _Follower:
         self.plant = Plant(setup.plant_params, setup.plant_config)
         self.plant.reset(v=v0)
         self.plant.x = x0
-        link, self.fw, _ = simulated_truck(self.plant, range_fn, mode="frames", config=fw_cfg)
-        self.port = companion_port(link, clock=lambda: self.plant.t)
-        self.ctrl = Controller(setup.model, cfg, ticks_per_rev=fw_cfg.ticks_per_rev)
-        self.mode = PlatoonMode(pcfg, cfg.period, self.ctrl.mpc.horizon, initial=CACC)
-        self.out: ControlOutput | None = None
+        self.link, self.fw, _ = simulated_truck(self.plant, range_fn, mode="frames", config=fw_cfg)
+        self.port = companion_port(self.link, clock=lambda: self.plant.t)
+        self.cyc = CompanionCycle(
+            setup.model,
+            cfg,
+            setup.supervisor,
+            fw_cfg.ticks_per_rev,
+            setup.stop_ramp_v_per_s,
+            time_budget=False,  # simulated time: judged by what the solver did
+        )
+        self.mode = PlatoonMode(pcfg, cfg.period, self.cyc.controller.mpc.horizon, initial=CACC)
+        self.out: CycleOutputs | None = None
         self.dec: PlatoonDecision | None = None
+
+    def cycle(self, t: float, plan: Plan | None) -> None:
+        """One cycle at simulated time t (s): the daemon's companion cycle with the
+        platoon's forecast and headway; the command goes to the simulated firmware."""
+        self.dec = follower_inputs(self.mode, t, plan, self.out, self.cyc.control_cfg.d_0)
+        self.out = self.cyc.step(
+            CycleInputs(
+                t,
+                self.port.poll(),
+                self.link.connected,
+                lead_forecast=self.dec.forecast,
+                headway=self.dec.headway,
+            )
+        )
+        self.port.send(self.out.command)
+        if self.out.heartbeat is not None:
+            self.port.send(self.out.heartbeat)
 
 
 def run_platoon(
@@ -343,14 +336,10 @@ def run_platoon(
         v_lead, a_lead = sc.lead_v(t), sc.lead_a(t)
         channels[0].send(t, kinematic_plan(t, k, dt, v_lead, a_lead, n, "truck0"))
         for i, f in enumerate(followers, start=1):
-            encs, rngs = _samples(f.port)
-            plan = channels[i - 1].receive(t)
-            f.out, f.dec = follower_cycle(f.ctrl, f.mode, t, plan, encs, rngs, f.out)
-            f.port.send(MotorCommand(voltage=f.out.u, enable=True))
-            if k % 10 == 0:
-                f.port.send(CompanionHeartbeat(CompanionState.ACTIVE, faults=0))
+            f.cycle(t, channels[i - 1].receive(t))
             if i < n_trucks - 1:
-                own = controller_plan(f.ctrl, f.out, t, k, f"truck{i}")
+                assert f.out is not None
+                own = cycle_plan(f.cyc, f.out, f"truck{i}")
                 if own is not None:
                     channels[i].send(t, own)
         _record(tr, t, xs[0], v_lead, a_lead, followers, cfg.d_0)
@@ -382,7 +371,7 @@ def _record(
         refs.append(d_0 + f.dec.headway * f.plant.v)
         hs.append(f.dec.headway)
         modes.append(f.dec.mode)
-        us.append(f.out.u)
+        us.append(f.out.command.voltage)
         acc.append(math.nan)
     tr.x.append(xs)
     tr.v.append(vs)
@@ -392,6 +381,7 @@ def _record(
     tr.mode.append(modes)
     tr.u.append(us)
     tr.accel.append(acc)
+    tr.supervisor.append([f.out.mode.value for f in followers if f.out is not None])
 
 
 def string_ratios(err: np.ndarray) -> tuple[list[float], list[float]]:
@@ -446,6 +436,7 @@ def platoon_metrics(
         "acc_headway_s": pcfg.acc_headway,
         "plans_sent": sum(c.sent for c in channels),
         "plans_lost": sum(c.lost for c in channels),
-        "solver_failures": [f.ctrl.solver_failures for f in followers],
+        "solver_failures": [f.cyc.controller.solver_failures for f in followers],
+        "supervisor_modes": [sorted(set(m)) for m in zip(*tr.supervisor, strict=True)],
         "duration_s": round(float(t[-1] + dt), 6),
     }

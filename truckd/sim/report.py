@@ -1,8 +1,10 @@
-"""Summaries of closed-loop runs: a text table, JSON-safe metrics, and a PNG plot."""
+"""Summaries of closed-loop runs: a text table, JSON-safe metrics, a PNG plot and the
+traces in the log format."""
 
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -10,7 +12,8 @@ from typing import Any
 import numpy as np
 
 from truckd.errors import TruckdError
-from truckd.sim.closed_loop import Trace
+from truckd.runtime.cycle import LOG_COLUMNS
+from truckd.sim.closed_loop import TRUTH_COLUMNS, Trace
 
 _COLUMNS: tuple[tuple[str, str, str], ...] = (
     ("scenario", "scenario", "{}"),
@@ -82,3 +85,27 @@ def plot(path: str | Path, runs: Sequence[tuple[str, Trace]]) -> None:
         raise TruckdError(f"{path}: cannot write plot: {exc.strerror}") from None
     finally:
         plt.close(fig)
+
+
+def trace_columns() -> tuple[str, ...]:
+    """Columns of a trace file: the daemon's log row, then the plant's truth."""
+    return (*LOG_COLUMNS, *TRUTH_COLUMNS)
+
+
+def write_trace(path: str | Path, tr: Trace) -> None:
+    """A run's time series in the log format (CONTRACTS.md section 3, the daemon's own
+    columns plus the truth), written whole or not at all (TruckdError when impossible)."""
+    p = Path(path)
+    names = trace_columns()
+    tmp = p.with_name(f".{p.name}.{os.getpid()}.tmp")
+    try:
+        with open(tmp, "w", newline="", encoding="utf-8") as fh:
+            fh.write(",".join(names) + "\n")
+            for row in tr.rows:
+                if len(row) != len(names):
+                    raise ValueError(f"trace row of {len(row)} values, expected {len(names)}")
+                fh.write(",".join(repr(float(x)) for x in row) + "\n")
+        os.replace(tmp, p)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        raise TruckdError(f"{p}: cannot write: {exc.strerror}") from None

@@ -1,0 +1,258 @@
+"""One companion cycle, pure: time and the checked messages in; sensor state -> controller
+-> supervisor -> motor command out, plus what is published and what is recorded.
+
+The same step runs everywhere the controller drives: the daemon on the car (``truckd run``
+is only the I/O around it: poll, send, publish, record, keep rate), ``truckd sim`` in
+simulated time, the replay of a recorded log and the benchmarks.  No I/O and no clock in
+here: the caller passes its time; the solver's own run time comes back as data.
+
+Extension points (platooning adds the predecessor's plan in and the own plan out):
+:class:`CycleInputs` has ``lead_forecast`` (the lead's speed over the MPC horizon, e.g.
+from the truck ahead's plan) and :meth:`CompanionCycle.plan` gives the controller's
+predicted trajectory of this cycle.
+
+Time budget: on the car (``time_budget=True``) a solve slower than
+``control.time_budget_s`` is a failure (the controller falls back); in simulated time
+(``time_budget=False``) the solver is judged only by what it did (status, iterations,
+``control.max_iter``), so the result does not depend on how loaded the machine is; its
+wall time is still measured and reported.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from firmware_protocol.messages import CompanionHeartbeat, CompanionState, MotorCommand
+from truckd.control.config import ControlConfig
+from truckd.control.controller import Controller, ControlOutput
+from truckd.control.qp import ControlModel
+from truckd.control.supervisor import (
+    Decision,
+    Mode,
+    Supervisor,
+    SupervisorConfig,
+    SupervisorInputs,
+)
+from truckd.io.port import Received
+from truckd.runtime.command import motor_command
+from truckd.runtime.sensors import SensorState
+
+MODE_CODE = {Mode.INIT: 0, Mode.ACTIVE: 1, Mode.DEGRADED: 2, Mode.SAFE_STOP: 3, Mode.FAULT: 4}
+"""Numeric mode in the CSV log (the log format is all numbers)."""
+
+LOG_COLUMNS = (
+    "t", "u", "v", "i", "vbat", "x", "gap", "v_lead",  # the contract's (CONTRACTS.md 3)
+    "gap_ref", "u_ff", "u_fw", "solve_us", "mode", "enable",
+    "lead_valid", "range_raw", "seq",
+)  # fmt: skip
+"""Columns of :meth:`CompanionCycle.log_row`: the contract's names first, then extras.
+``gap`` and ``v_lead`` are the estimates, NaN while no lead is tracked; ``solve_us`` is
+OSQP's own run time of this cycle's solve (NaN when the controller raised)."""
+
+HEARTBEAT_PERIOD_S = 0.1
+"""The companion heartbeat's period (firmware protocol: 100 ms)."""
+
+
+@dataclass(frozen=True, slots=True)
+class CycleInputs:
+    """What one cycle takes.
+
+    ``now``: the caller's time (s), the clock that stamped ``received``; ``received``: the
+    checked messages since the last cycle, oldest first; ``link_up``: the transport is
+    connected; ``loop_missed``: the previous cycle missed its deadline (the rate keeper's
+    verdict on the car; always False in simulated time); ``lead_forecast``: optional
+    lead speed over the MPC horizon (m/s per step), replacing the constant-speed
+    prediction (the predecessor's plan in a platoon); ``headway``: optional time headway
+    (s) replacing the configured one (the platoon's CACC/ACC headway).
+    """
+
+    now: float
+    received: Sequence[Received] = ()
+    link_up: bool = True
+    loop_missed: bool = False
+    lead_forecast: Sequence[float] | None = None
+    headway: float | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class Plan:
+    """The controller's predicted trajectory: step ``dt`` (s), speed ``v`` (m/s, N+1
+    points from now) and acceleration ``a`` (m/s^2, N steps)."""
+
+    dt: float
+    v: tuple[float, ...]
+    a: tuple[float, ...]
+
+
+@dataclass(frozen=True, slots=True)
+class CycleOutputs:
+    """What one cycle produces.
+
+    ``seq`` cycle number from 0; ``t`` s since the start; ``command`` the motor command
+    to send (always finite, within limits); ``heartbeat`` the companion heartbeat to send
+    this cycle (every 100 ms) or None; ``decision`` the supervisor's mode and causes;
+    ``control`` the controller's output (None when it raised: ``error`` says why);
+    ``ages`` seconds since the last valid message of each kind.
+    """
+
+    seq: int
+    t: float
+    command: MotorCommand
+    heartbeat: CompanionHeartbeat | None
+    decision: Decision
+    control: ControlOutput | None
+    ages: dict[str, float]
+    error: str | None = None
+
+    @property
+    def mode(self) -> Mode:
+        return self.decision.mode
+
+
+def _j(x: float) -> float | None:
+    """JSON-safe number (None for NaN/inf)."""
+    return x if math.isfinite(x) else None
+
+
+class CompanionCycle:
+    """The companion's state across cycles and the step between them (module docstring).
+
+    ``t0`` (s, the caller's clock) is the start: ``t = now - t0``.  ``stop_ramp_v_per_s``
+    is the SAFE_STOP ramp towards 0 V.
+    """
+
+    def __init__(
+        self,
+        model: ControlModel,
+        control: ControlConfig,
+        supervisor: SupervisorConfig,
+        ticks_per_rev: int,
+        stop_ramp_v_per_s: float,
+        *,
+        time_budget: bool = True,
+        t0: float = 0.0,
+    ) -> None:
+        if not time_budget:
+            control = control.in_simulated_time()
+        self.control_cfg = control
+        self.time_budget = time_budget
+        self.controller = Controller(model, control, ticks_per_rev)
+        self.supervisor = Supervisor(supervisor, control.on_lead_lost)
+        self.sensors = SensorState(tick_len=self.controller.estimator.tick_len)
+        self.u_max = self.controller.u_max
+        self.period = control.period
+        self.ramp_step = stop_ramp_v_per_s * self.period
+        self.hb_every = max(1, round(HEARTBEAT_PERIOD_S / self.period))
+        self.t0 = t0
+        self.seq = 0
+        self.u = 0.0
+        self.enable = False
+        self.controller_errors = 0
+
+    def step(self, inp: CycleInputs) -> CycleOutputs:
+        """One cycle: sensors -> controller -> supervisor -> motor command."""
+        now = inp.now
+        t = now - self.t0
+        s = self.sensors
+        s.update(now, inp.received)
+        error = None
+        out: ControlOutput | None
+        try:
+            out = self.controller.step(t, s.encoders, s.ranges, inp.lead_forecast, inp.headway)
+        except Exception as exc:  # counted as a solver failure by the supervisor
+            self.controller_errors += 1
+            out, error = None, f"{type(exc).__name__}: {exc}"
+        ages = s.ages(now)
+        reason = out.fallback_reason if out is not None else "exception"
+        est = out.estimate if out is not None else None
+        dec = self.supervisor.update(
+            SupervisorInputs(
+                t=t,
+                link_up=inp.link_up,
+                link_age=ages["link"],
+                encoder_age=ages["encoder"],
+                range_age=ages["range"],
+                range_value=s.range_raw,
+                range_fault=s.range_fault,
+                speed=est.v if est is not None and est.speed_valid else 0.0,
+                lead_valid=est.lead_valid if est is not None else False,
+                solver_ok=out is not None and not (reason or "").startswith("solver_"),
+                loop_missed=inp.loop_missed,
+            )
+        )
+        u_ctrl = out.u if out is not None else None
+        self.u, self.enable = motor_command(dec.mode, u_ctrl, self.u, self.ramp_step, self.u_max)
+        self.controller.u_prev = self.u  # the rate limit starts from what is sent
+        hb = (
+            CompanionHeartbeat(CompanionState[dec.mode.value], 0)
+            if self.seq % self.hb_every == 0
+            else None
+        )
+        res = CycleOutputs(
+            self.seq, t, MotorCommand(self.u, self.enable), hb, dec, out, ages, error
+        )
+        self.seq += 1
+        return res
+
+    def plan(self, out: CycleOutputs) -> Plan | None:
+        """The controller's predicted trajectory of the cycle ``out`` (call it before the
+        next step); None when that cycle's MPC did not solve (hold, fallback)."""
+        c = out.control
+        z = self.controller.mpc.last_solution
+        if c is None or c.fallback_reason is not None or c.solve_iterations == 0 or z is None:
+            return None
+        _u, v, _d = self.controller.mpc.qp.plan(z)
+        dt = self.period
+        vs = tuple(float(x) for x in v)
+        return Plan(dt, vs, tuple((b - a) / dt for a, b in itertools.pairwise(vs)))
+
+    def state_message(self, out: CycleOutputs, lateness_s: float = 0.0) -> dict[str, Any]:
+        """The published state (CONTRACTS.md section 5); ``lateness_s`` the loop's."""
+        c = out.control
+        est = c.estimate if c is not None else None
+        nan = math.nan
+        return {
+            "seq": out.seq,
+            "t": out.t,
+            "mode": out.decision.mode.value,
+            "v": _j(est.v if est is not None else nan),
+            "gap": _j(est.gap if est is not None else nan),
+            "gap_ref": _j(c.gap_ref if c is not None else nan),
+            "v_lead": _j(est.v_lead if est is not None else nan),
+            "u": out.command.voltage,
+            "u_ff": _j(c.u_ff if c is not None else nan),
+            "solve_us": _j(c.solve_time_s * 1e6 if c is not None else nan),
+            "enable": out.command.enable,
+            "ctrl": c.mode if c is not None else None,
+            "fallback": c.fallback_reason if c is not None else "exception",
+            "lead_valid": bool(est.lead_valid) if est is not None else False,
+            "lateness_us": lateness_s * 1e6,
+            "faults": list(out.decision.causes),
+            "ages_ms": {k: _j(a * 1e3) for k, a in out.ages.items()},
+        }
+
+    def log_row(self, out: CycleOutputs) -> tuple[float, ...]:
+        """The recorded row, in :data:`LOG_COLUMNS` order (sensor values as of this cycle)."""
+        s = self.sensors
+        c = out.control
+        nan = math.nan
+        est = c.estimate if c is not None else None
+        v = est.v if est is not None and math.isfinite(est.v) else 0.0
+        return (
+            out.t, out.command.voltage, v, s.current, s.vbat, s.x,
+            est.gap if est is not None else nan,
+            est.v_lead if est is not None else nan,
+            c.gap_ref if c is not None else nan,
+            c.u_ff if c is not None else nan,
+            s.u_fw,
+            c.solve_time_s * 1e6 if c is not None else nan,
+            float(MODE_CODE[out.decision.mode]),
+            float(out.command.enable),
+            float(est.lead_valid) if est is not None else 0.0,
+            s.range_raw if s.range_raw is not None else nan,
+            float(out.seq),
+        )  # fmt: skip
