@@ -4,7 +4,6 @@ time with plans passed as over Zenoh (20 ms delay)."""
 from __future__ import annotations
 
 import json
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np

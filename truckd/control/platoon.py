@@ -21,10 +21,11 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 from truckd.config.schema import spec
+from truckd.control.config import ControlConfig
 
 CACC = "CACC"
 ACC = "ACC"
@@ -87,6 +88,15 @@ class PlatoonConfig:
                 f"({self.cacc_headway})"
             )
         return None
+
+
+def platoon_control(control: ControlConfig, cfg: PlatoonConfig) -> ControlConfig:
+    """The controller configuration of a truck in a platoon: a follower's MPC is built
+    for the CACC headway (the ACC headway is driven by the controller's gap shift, see
+    :meth:`~truckd.control.controller.Controller.control`); others keep theirs."""
+    if not cfg.predecessor:
+        return control
+    return replace(control, time_headway=cfg.cacc_headway)
 
 
 @dataclass(frozen=True)

@@ -48,11 +48,11 @@ from truckd.control.platoon import (
     PlatoonDecision,
     PlatoonMode,
     kinematic_plan,
-    make_plan,
 )
 from truckd.io.port import companion_port
 from truckd.model.plant_config import encoder_ticks_per_rev
 from truckd.runtime.cycle import CompanionCycle, CycleInputs, CycleOutputs
+from truckd.runtime.platoon_link import cycle_plan, follower_inputs
 from truckd.sim.closed_loop import SimSetup
 from truckd.sim.firmware import FirmwareSimConfig, simulated_truck
 from truckd.sim.plant import Plant
@@ -192,38 +192,6 @@ class PlanChannel:
         return self.latest
 
 
-def cycle_plan(cyc: CompanionCycle, out: CycleOutputs, vehicle_id: str = "") -> Plan | None:
-    """The plan to publish after the cycle ``out``, stamped with its time: the MPC's
-    predicted speeds when it solved, standstill when the controller holds the truck at
-    rest, None otherwise (a fallback has no plan to promise: the follower's plan goes
-    stale and it falls back to ACC)."""
-    p = cyc.plan(out)
-    if p is not None:
-        return make_plan(out.t + cyc.t0, out.seq, p.dt, p.v, vehicle_id)
-    c = out.control
-    if c is not None and c.mode == "hold":
-        n = cyc.controller.mpc.horizon
-        return make_plan(out.t + cyc.t0, out.seq, cyc.period, [0.0] * (n + 1), vehicle_id)
-    return None
-
-
-def follower_inputs(
-    mode: PlatoonMode, now: float, plan: Plan | None, last: CycleOutputs | None, d_0: float
-) -> PlatoonDecision:
-    """The platoon part of a follower's cycle, before the step: the CACC/ACC decision
-    from the latest plan received (``now`` on the platoon's shared clock, s), with the
-    previous cycle's estimate (``last``) for the time gap actually driven (``d_0`` the
-    standstill gap, m)."""
-    est = last.control.estimate if last is not None and last.control is not None else None
-    return mode.update(
-        now,
-        plan,
-        est.v if est is not None and est.speed_valid else math.nan,
-        est.gap if est is not None and est.lead_valid else math.nan,
-        d_0,
-    )
-
-
 @dataclass
 class PlatoonTrace:
     """Per-truck time series (SI): position, speed, true gap to the truck ahead, the
@@ -339,7 +307,7 @@ def run_platoon(
             f.cycle(t, channels[i - 1].receive(t))
             if i < n_trucks - 1:
                 assert f.out is not None
-                own = cycle_plan(f.cyc, f.out, f"truck{i}")
+                own = cycle_plan(f.cyc, f.out, t, f"truck{i}")
                 if own is not None:
                     channels[i].send(t, own)
         _record(tr, t, xs[0], v_lead, a_lead, followers, cfg.d_0)
