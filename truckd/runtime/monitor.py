@@ -18,6 +18,7 @@ from typing import Any, TextIO
 
 import zenoh
 
+from truckd.runtime.platoon_view import platoon_lines
 from truckd.runtime.telemetry import open_session, zenoh_config
 
 
@@ -123,6 +124,8 @@ class FleetView:
         lines = ["  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)) for r in rows]
         if len(rows) == 1:
             lines.append("(no vehicle seen yet)")
+        with self._lock:
+            lines += platoon_lines({k: (v.state, v.health) for k, v in self.vehicles.items()})
         return "\n".join(lines)
 
 
