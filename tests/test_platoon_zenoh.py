@@ -148,3 +148,26 @@ def test_daemon_follows_its_predecessors_plan_then_falls_back_to_acc(tmp_path: P
     entries = [h["platoon"] for h in health if "platoon" in h]
     assert entries and entries[-1]["predecessor"] == "lead"
     assert entries[-1]["plans_accepted"] > 10 and entries[-1]["switches"] >= 2
+
+
+def test_router_config_relays_truckd_keys_between_clients_only() -> None:
+    defaults = Path(__file__).resolve().parent.parent / "truckd" / "defaults"
+    port = free_port()
+    router = zenoh.open(zenoh_config(defaults / "zenoh-router.json5", listen=[endpoint(port)]))
+    client_file = defaults / "zenoh-client.json5"
+    assert json.loads(zenoh_config(client_file).get_json("mode")) == "client"
+    a = zenoh.open(zenoh_config(client_file, connect=[endpoint(port)]))
+    b = zenoh.open(zenoh_config(client_file, connect=[endpoint(port)]))
+    got: list[str] = []
+    try:
+        b.declare_subscriber("truckd/**", lambda s: got.append(str(s.key_expr)))
+        b.declare_subscriber("other/**", lambda s: got.append(str(s.key_expr)))
+        assert _wait(lambda: a.put("truckd/v1/plan", "{}") or "truckd/v1/plan" in got)
+        a.put("other/secret", "1")
+        a.put("truckd/v1/state", "marker")
+        assert _wait(lambda: "truckd/v1/state" in got)
+        assert "other/secret" not in got
+    finally:
+        a.close()
+        b.close()
+        router.close()
