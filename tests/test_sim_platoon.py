@@ -13,6 +13,7 @@ from truckd.cli.main import main
 from truckd.config.truck import load_config
 from truckd.control.platoon import ACC, CACC
 from truckd.control.qp import ControlModel
+from truckd.logfile import read_log
 from truckd.sim.closed_loop import SimSetup
 from truckd.sim.platoon import make_platoon_scenario, run_platoon, string_ratios
 
@@ -75,13 +76,18 @@ def test_comm_loss_falls_back_to_acc_and_returns_to_cacc() -> None:
 def test_cli_json_keys(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "p.json"
     args = ["sim", "--platoon", "3", "--scenario", "platoon-sine", "--duration", "2"]
-    assert main([*args, "--json", str(out)]) == 0
+    assert main([*args, "--json", str(out), "--trace", str(tmp_path / "tr")]) == 0
     doc = json.loads(out.read_text())
     for key in ("scenario", "trucks", "collision", "min_gap_m", "string_ratio_l2",
                 "string_ratio_max", "cacc_fraction"):  # fmt: skip
         assert key in doc
     assert doc["trucks"] == 3 and len(doc["cacc_fraction"]) == 2
     assert "platoon-sine: 3 trucks" in capsys.readouterr().out
+    # one log per follower, in the log format (diagnose reads it)
+    for i in (1, 2):
+        log = read_log(tmp_path / "tr" / f"platoon-sine-truck{i}.csv", require=("t", "u", "v"))
+        assert len(log) == 200 and np.all(np.diff(log["t"]) > 0)
+        assert np.all(log["v_true"][-50:] > 0.5)  # the truth is appended: it drives
 
 
 @pytest.mark.parametrize(

@@ -7,15 +7,16 @@ import json
 import math
 import os
 import tempfile
+from pathlib import Path
 from typing import Any
 
 from truckd.config.truck import load_config
 from truckd.control.qp import ControlModel
 from truckd.errors import InputError, TruckdError
 from truckd.modelfile import read_model
-from truckd.sim.closed_loop import SimSetup
+from truckd.sim.closed_loop import SimSetup, Trace
 from truckd.sim.platoon import MAX_TRUCKS, PLATOON_SCENARIOS, make_platoon_scenario, run_platoon
-from truckd.sim.report import json_safe
+from truckd.sim.report import json_safe, write_trace
 
 
 def add_platoon_arguments(p: argparse.ArgumentParser) -> None:
@@ -48,7 +49,7 @@ def _check(args: argparse.Namespace) -> None:
         raise InputError(f"--plan-loss: expected a share from 0 to 1, got {args.plan_loss}")
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
         raise InputError(f"--duration: expected a positive number of seconds, got {args.duration}")
-    for opt in ("realtime", "plot", "trace"):
+    for opt in ("realtime", "plot"):
         if getattr(args, opt, None):
             raise InputError(f"--{opt}: not available with --platoon")
 
@@ -65,12 +66,19 @@ def run_platoon_cli(args: argparse.Namespace) -> int:
         mf = read_model(args.model)
         model = ControlModel(mf.vehicle, mf.effects)
     setup = SimSetup(
-        cfg.vehicle, cfg.plant, cfg.control, model, ticks_per_rev=cfg.link.encoder_ticks_per_rev
+        cfg.vehicle,
+        cfg.plant,
+        cfg.control,
+        model,
+        ticks_per_rev=cfg.link.encoder_ticks_per_rev,
+        supervisor=cfg.runtime.supervisor,
+        stop_ramp_v_per_s=cfg.runtime.stop_ramp_v_per_s,
     )
     names = PLATOON_SCENARIOS if args.scenario == "all" else (args.scenario,)
+    trace_dir = _trace_dir(args.trace) if getattr(args, "trace", None) else None
     results: list[dict[str, Any]] = []
     for name in names:
-        m, _ = run_platoon(
+        m, tr = run_platoon(
             make_platoon_scenario(name),
             setup,
             cfg.platoon,
@@ -81,6 +89,9 @@ def run_platoon_cli(args: argparse.Namespace) -> int:
             duration=args.duration,
         )
         results.append(json_safe(m))
+        if trace_dir is not None:  # one log per follower (truck 0, the lead, is scripted)
+            for i, rows in enumerate(tr.rows, start=1):
+                write_trace(trace_dir / f"{name}-truck{i}.csv", Trace(rows=rows))
         print(
             f"{name}: {args.platoon} trucks, collision {m['collision']}, "
             f"min gap {m['min_gap_m']:.3f} m, string ratio l2 [{_fmt(m['string_ratio_l2'])}] "
@@ -93,6 +104,16 @@ def run_platoon_cli(args: argparse.Namespace) -> int:
     if crashed:
         raise TruckdError(f"collision in: {', '.join(crashed)}")
     return 0
+
+
+def _trace_dir(arg: str) -> Path:
+    """``--trace DIR``, created if missing (InputError when it cannot be a directory)."""
+    d = Path(arg)
+    try:
+        d.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"--trace {arg}: cannot use as a directory: {exc.strerror}") from None
+    return d
 
 
 def _write_json(path: str, doc: object) -> None:

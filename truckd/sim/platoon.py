@@ -208,6 +208,9 @@ class PlatoonTrace:
     u: list[list[float]] = field(default_factory=list)
     accel: list[list[float]] = field(default_factory=list)
     supervisor: list[list[str]] = field(default_factory=list)
+    rows: list[list[tuple[float, ...]]] = field(default_factory=list)
+    """Per follower (truck 1 first): the daemon's log row each cycle with the truth
+    appended, as :class:`~truckd.sim.closed_loop.Trace` rows (``--trace``)."""
 
 
 class _Follower:
@@ -350,6 +353,13 @@ def _record(
     tr.u.append(us)
     tr.accel.append(acc)
     tr.supervisor.append([f.out.mode.value for f in followers if f.out is not None])
+    if not tr.rows:
+        tr.rows = [[] for _ in followers]
+    for j, f in enumerate(followers):
+        assert f.out is not None
+        tr.rows[j].append(
+            (*f.cyc.log_row(f.out), f.plant.v, gaps[j + 1], vs[j], f.plant.x, f.plant.motor.i)
+        )
 
 
 def string_ratios(err: np.ndarray) -> tuple[list[float], list[float]]:
