@@ -71,7 +71,9 @@ def vehicles(port: int, n: int, duration: float, rate: float) -> int:
             return 1
         time.sleep(0.01)
     period = 1.0 / rate
-    v = [1.2] * (HORIZON + 1)
+    # full-precision floats, as the MPC's plan has them (about 1.7 kB of JSON)
+    v = [1.2 - 0.0123456789 * k / 7.0 for k in range(HORIZON + 1)]
+    a = [-0.0123456789 / 7.0 / 0.01 * (1.0 + 1e-9 * k) for k in range(HORIZON + 1)]
     sent = 0
     late = 0
     t0 = time.monotonic()
@@ -96,8 +98,7 @@ def vehicles(port: int, n: int, duration: float, rate: float) -> int:
                     "ages_ms": {"link": 1.0, "encoder": 1.0, "range": 8.0},
                 }  # fmt: skip
             else:
-                msg = {"t": ts, "seq": k, "dt": 0.01, "v": v, "a": [0.0] * (HORIZON + 1),
-                       "vehicle_id": f"v{i}"}  # fmt: skip
+                msg = {"t": ts, "seq": k, "dt": 0.01, "v": v, "a": a, "vehicle_id": f"v{i}"}
             p.put(json.dumps(msg))
             sent += 1
         k += 1
