@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 
 import pytest
 
@@ -130,3 +131,30 @@ def test_config_rejects_acc_headway_below_cacc() -> None:
     assert PlatoonConfig(cacc_headway=0.5, acc_headway=0.4).validate() is not None
     assert PlatoonConfig().validate() is None
     assert math.isfinite(PlatoonConfig().acc_headway)
+
+
+def test_controller_headway_hook_sets_the_spacing_it_drives() -> None:
+    """At the gap of a 1.1 s headway, a controller told to drive 1.1 s holds its speed;
+    the same controller on its configured 0.5 s closes the gap (plans to go faster)."""
+    from truckd.config.truck import load_config
+    from truckd.control.controller import Controller
+    from truckd.control.estimator import Estimate
+    from truckd.control.qp import ControlModel
+
+    cfg = load_config()
+    control = replace(cfg.control, time_headway=0.5).in_simulated_time()
+    v = 1.2
+    gap = control.d_0 + 1.1 * v
+    est = Estimate(v, True, gap, v, True, "tracking", 0.01, 0, 0, 10, 10)
+    ends = {}
+    for h in (1.1, None):
+        ctrl = Controller(ControlModel(cfg.vehicle), control)
+        ctrl.u_prev = cfg.vehicle.K_v * cfg.vehicle.omega(v)
+        out = ctrl.control(est, None, h)
+        assert out.fallback_reason is None
+        assert out.gap_ref == pytest.approx(control.d_0 + (h or 0.5) * v)
+        z = ctrl.mpc.last_solution
+        assert z is not None
+        ends[h] = float(max(ctrl.mpc.qp.plan(z)[1]))
+    assert ends[1.1] == pytest.approx(v, abs=0.03)
+    assert ends[None] > v + 0.1
