@@ -2,7 +2,10 @@
 
 python tests/hil_subscriber.py --connect ENDPOINT --vehicle ID --out FILE --duration S
 
-Writes one JSON line per state sample: {"rx": local monotonic time, "msg": state}.
+Writes one JSON line per state sample: {"rx": local monotonic time, "msg": state}, and at
+the end {"stalls": [[start, end], ...]}: this process's own scheduling stalls (monotonic s,
+see stall_probe.py), so the test can tell samples lost to a starved subscriber from
+samples the daemon did not publish.
 Prints "ready" once subscribed and "receiving" when the first sample arrives (so the
 caller knows the subscription reached the publisher).  Exits after S seconds.
 """
@@ -15,6 +18,7 @@ import threading
 import time
 
 import zenoh
+from stall_probe import StallProbe
 
 
 def main() -> int:
@@ -32,6 +36,7 @@ def main() -> int:
     conf.insert_json5("scouting/gossip/enabled", "false")
     lock = threading.Lock()
     first = True
+    probe = StallProbe()
     with open(args.out, "w", encoding="utf-8") as fh, zenoh.open(conf) as session:
 
         def on_state(sample: zenoh.Sample) -> None:
@@ -49,6 +54,9 @@ def main() -> int:
         print("ready", flush=True)
         time.sleep(args.duration)
         sub.undeclare()
+        probe.stop()
+        with lock:
+            fh.write(json.dumps({"stalls": probe.stalls}) + "\n")
     return 0
 
 

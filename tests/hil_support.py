@@ -17,6 +17,7 @@ from typing import Any
 
 import zenoh
 from runtime_support import endpoint, free_port, write_config
+from stall_probe import StallProbe as StallProbe
 
 from truckd.runtime.telemetry import zenoh_config
 from truckd.sim.firmware_proc import FirmwareProcess

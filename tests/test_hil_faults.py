@@ -155,7 +155,7 @@ def test_range_silence(rig: Rig) -> None:
     stop = rig.wait_mode(("SAFE_STOP",), t0)
     assert "range_stale" in stop.msg["faults"]
     stop_detected_in_time(stop, "range", rig.cfg.runtime.supervisor.range_timeout_s, rig.period)
-    time.sleep(0.8)
+    rig.wait_fw(0.8)  # observed over 0.8 s of the plant's clock
     ramps_to_zero(rig.check_window(t0))
     rig.fw.cmd({"fault": "drop", "message": "RANGE", "count": 0})
     rig.recover(time.monotonic())
@@ -167,7 +167,7 @@ def test_frozen_range_value(rig: Rig) -> None:
     stop = rig.wait_mode(("SAFE_STOP",), t0)
     assert "range_stale" in stop.msg["faults"]  # the same sample again is not fresh data
     stop_detected_in_time(stop, "range", rig.cfg.runtime.supervisor.range_timeout_s, rig.period)
-    time.sleep(0.8)
+    rig.wait_fw(0.8)  # observed over 0.8 s of the plant's clock
     rig.check_window(t0)
     assert rig.watch.last_health()["firmware"]["repeated_samples"] > 0
     rig.fw.cmd({"fault": "freeze", "message": "RANGE", "on": False})
@@ -181,7 +181,7 @@ def test_nan_and_out_of_range_values(rig: Rig) -> None:
     stop = rig.wait_mode(("SAFE_STOP",), t0)
     assert "lead_lost" in stop.msg["faults"]  # control.on_lead_lost: stop
     rig.fw.cmd({"cmd": "lead", "gap": 99.0, "speed": LEAD_SPEED})
-    time.sleep(0.8)
+    rig.wait_fw(0.8)  # observed over 0.8 s of the plant's clock
     msgs = rig.check_window(t0)
     assert all(m["gap"] is None or math.isfinite(m["gap"]) for m in msgs)
     assert rig.watch.wait_state(lambda m: m["mode"] == "SAFE_STOP", 1.0, time.monotonic())
@@ -195,7 +195,7 @@ def test_checksum_errors(rig: Rig) -> None:
     stop = rig.wait_mode(("SAFE_STOP",), t0)
     assert "encoder_stale" in stop.msg["faults"]  # a bad frame is never data
     stop_detected_in_time(stop, "encoder", rig.cfg.runtime.supervisor.encoder_timeout_s, rig.period)
-    time.sleep(0.8)
+    rig.wait_fw(0.8)  # observed over 0.8 s of the plant's clock
     rig.check_window(t0)
     assert rig.watch.last_health()["link"]["rx_checksum_errors"] > before + 10
     rig.fw.cmd({"fault": "checksum", "message": "WHEEL_ENCODERS", "on": False})
@@ -208,7 +208,7 @@ def test_counter_errors(rig: Rig) -> None:
     rig.fw.cmd({"fault": "counter", "message": "RANGE", "on": True})
     stop = rig.wait_mode(("SAFE_STOP",), t0)
     assert "range_stale" in stop.msg["faults"]
-    time.sleep(0.8)
+    rig.wait_fw(0.8)  # observed over 0.8 s of the plant's clock
     rig.check_window(t0)
     assert rig.watch.last_health()["link"]["rx_counter_errors"] > before
     rig.fw.cmd({"fault": "counter", "message": "RANGE", "on": False})
@@ -220,8 +220,8 @@ def test_garbage_bytes(rig: Rig) -> None:
     before = rig.watch.last_health()["link"]
     for _ in range(5):
         rig.fw.cmd({"fault": "garbage", "bytes": 2000})
-        time.sleep(0.2)
-    time.sleep(0.5)
+        rig.wait_fw(0.2)
+    rig.wait_fw(0.5)
     msgs = rig.check_window(t0)
     # resynchronised on the next delimiter: the sensors never went stale
     assert not any(m["mode"] in STOPPED for m in msgs)
@@ -259,7 +259,7 @@ def test_solver_failure_injected(rig: Rig) -> None:
     got = {s.msg["seq"] for s in rig.watch.since(t0)}
     if set(range(deg.msg["seq"] - 1, stop.msg["seq"] + 1)) <= got:
         assert seq_gap == sup.solver_fail_limit - sup.solver_degrade_after
-    time.sleep(0.5)
+    rig.wait_fw(0.5)
     rig.check_window(t0)
     rig.watch.inject({"fault": "solver", "on": False})
     rig.recover(time.monotonic())
@@ -271,7 +271,7 @@ def test_loop_overrun_injected(rig: Rig) -> None:
     rig.watch.inject({"fault": "overrun", "on": True, "extra_s": 1.5 * rig.period})
     stop = rig.wait_mode(("SAFE_STOP",), t0)
     assert "loop_overrun" in stop.msg["faults"]
-    time.sleep(0.5)
+    rig.wait_fw(0.5)
     rig.check_window(t0)
     rig.watch.inject({"fault": "overrun", "on": False})
     rig.recover(time.monotonic())

@@ -35,16 +35,19 @@ from truckd.runtime.faults import RuntimeFaults, wrap_solver
 from truckd.runtime.notify import Notifier
 from truckd.runtime.platoon_link import DaemonPlatoon
 from truckd.runtime.ratekeeper import RateKeeper
-from truckd.runtime.realtime import RealtimeReport, setup_realtime
+from truckd.runtime.realtime import RealtimeReport, promote_helpers, setup_realtime
 from truckd.runtime.recorder import Recorder
 from truckd.runtime.rxlog import RxLog
 from truckd.runtime.telemetry import Telemetry
 
 log = logging.getLogger("truckd.daemon")
 
-LOG_COLUMNS = (*STEP_COLUMNS, "lateness_us", "compute_us")
+LOG_COLUMNS = (*STEP_COLUMNS, "lateness_us", "compute_us", "cpu_us")
 """Recorded columns: the step's (contract names first, CONTRACTS.md section 3), then the
-loop's timing (the rate keeper's lateness and compute time of the previous cycle, us)."""
+loop's timing (us): this cycle's wake-up lateness, the previous cycle's wall-clock compute
+time and the CPU time the loop thread used in it (``time.thread_time``).  Compute minus
+CPU is time the loop waited for the host (descheduled, the GIL, blocking I/O): the host's
+stall as the OS accounts it, as opposed to the code's own work."""
 
 
 def _j(x: float) -> float | None:
@@ -103,6 +106,7 @@ class Daemon:
         self.realtime = RealtimeReport()
         self.stop_requested = False
         self.t0 = 0.0
+        self.last_cpu = 0.0  # s of CPU the loop thread used in the last cycle
         self.seq = 0
         self.u = 0.0
         self.enable = False
@@ -198,6 +202,8 @@ class Daemon:
         try:
             self.start()
             self.realtime = setup_realtime(self.rt.realtime, self.rt.rt_priority)
+            if self.realtime.sched_fifo:
+                promote_helpers(max(1, self.rt.rt_priority - 1), self.realtime)
             self.loop()
         finally:
             self.shutdown()
@@ -215,9 +221,11 @@ class Daemon:
             if self.duration is not None and self.clock() - self.t0 >= self.duration:
                 break
             self.rk.begin_cycle()
+            cpu0 = time.thread_time()
             self.cycle()
             if self.faults.overrun_s > 0:
                 time.sleep(self.faults.overrun_s)
+            self.last_cpu = time.thread_time() - cpu0
             self.rk.keep_time()
 
     # -- one cycle -----------------------------------------------------------------
@@ -362,4 +370,11 @@ class Daemon:
         if rec is None:
             return
         rk = self.rk
-        rec.record((*self.companion.log_row(out), rk.last_lateness * 1e6, rk.last_compute * 1e6))
+        rec.record(
+            (
+                *self.companion.log_row(out),
+                rk.last_lateness * 1e6,
+                rk.last_compute * 1e6,
+                self.last_cpu * 1e6,
+            )
+        )

@@ -16,7 +16,8 @@ imported from MODULE (any other hook).
 
 Faults are switched at run time with JSON datagrams to ``127.0.0.1:control_port`` (UDP):
 any :meth:`SimulatedFirmware.apply_fault` command, ``{"cmd": "lead", "gap": M,
-"speed": M/S}`` (a new constant-speed lead, gap measured from now), ``{"cmd":
+"speed": M/S}`` (a new constant-speed lead, gap measured from now; the reply carries
+``t`` and ``x``, the time and the truck's position it is measured from), ``{"cmd":
 "status"}`` (replies with a JSON status datagram: time, state, speed, position, voltage
 applied, the last valid command, counters) and ``{"cmd": "stop"}``.  Every
 datagram gets a JSON reply: ``{"ok": true, ...}`` or ``{"ok": false, "error": ...}``.
@@ -118,7 +119,7 @@ def _handle(fw: SimulatedFirmware, cmd: Any) -> tuple[dict[str, Any], bool]:
             fw.range_fn = _Shifted(fw.t, fw.plant.x, float(gap), float(speed))
         else:
             return {"ok": False, "error": "lead: gap and speed must be numbers"}, False
-        return {"ok": True}, False
+        return {"ok": True, "t": fw.t, "x": fw.plant.x}, False  # where the lead starts
     try:
         fw.apply_fault(cmd)
     except ValueError as exc:
