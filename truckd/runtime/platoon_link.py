@@ -9,6 +9,7 @@ predecessor's ``truckd/<predecessor>/plan``, and refuses plans that name another
 
 from __future__ import annotations
 
+import json
 import math
 import threading
 import time
@@ -79,8 +80,14 @@ class PlanReceiver:
         self.accepted = 0
         self.refused = 0
         self.last_error = ""
+        self.blocked = False
+        """Injected link loss (HIL runs): every plan is dropped while set."""
+        self.dropped = 0
 
     def on_payload(self, payload: bytes) -> None:
+        if self.blocked:
+            self.dropped += 1
+            return
         try:
             plan = decode_plan(payload)
         except ValueError as exc:
@@ -125,10 +132,31 @@ class DaemonPlatoon:
         self.decision: PlatoonDecision | None = None
         self._now = math.nan
 
-    def subscribe(self, subscribe_key: Callable[[str, Callable[[bytes], None]], None]) -> None:
-        """Subscribe to the predecessor's plan key only (nothing for a leading truck)."""
+    def subscribe(
+        self,
+        subscribe_key: Callable[[str, Callable[[bytes], None]], None],
+        fault_injection: bool = False,
+    ) -> None:
+        """Subscribe to the predecessor's plan key only (nothing for a leading truck);
+        with ``fault_injection`` also to ``truckd/<vehicle_id>/platoon_fault`` (HIL runs:
+        ``{"link": "down"}`` drops every plan received until ``{"link": "up"}``)."""
         if self.receiver is not None:
             subscribe_key(self.receiver.key, self.receiver.on_payload)
+            if fault_injection:
+                subscribe_key(f"truckd/{self.vehicle_id}/platoon_fault", self.apply_fault)
+
+    def apply_fault(self, payload: bytes) -> None:
+        """An injected link fault (see :meth:`subscribe`); anything else is ignored."""
+        try:
+            cmd = json.loads(payload)
+        except ValueError:
+            return
+        if (
+            self.receiver is not None
+            and isinstance(cmd, dict)
+            and cmd.get("link") in ("down", "up")
+        ):
+            self.receiver.blocked = cmd["link"] == "down"
 
     def decide(self, last: CycleOutputs | None) -> PlatoonDecision | None:
         """Before the cycle: the forecast and headway (None for a leading truck)."""
@@ -166,5 +194,6 @@ class DaemonPlatoon:
             "plan_age_s": age if math.isfinite(age) else None,
             "plans_accepted": r.accepted if r is not None else 0,
             "plans_refused": r.refused if r is not None else 0,
+            "plans_dropped": r.dropped if r is not None else 0,
             "switches": m.switches if m is not None else 0,
         }
