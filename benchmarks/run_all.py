@@ -2,7 +2,8 @@
 
 ``python benchmarks/run_all.py [NAME ...]``: all of them (about 15 minutes on 2 cores), or
 only the named ones (``plant_bench``, ``protocol_bench``, ``mpc_bench``, ``loop_bench``,
-``diagnose_bench``, ``closed_loop_gain``).  Run them on a quiet machine: every figure is a
+``diagnose_bench``, ``closed_loop_gain``, ``platoon_figures``, ``router_bench``,
+``platoon_hil``).  Run them on a quiet machine: every figure is a
 wall-clock measurement.
 """
 
@@ -20,6 +21,9 @@ ORDER = (
     "loop_bench",
     "diagnose_bench",
     "closed_loop_gain",
+    "platoon_figures",
+    "router_bench",
+    "platoon_hil",
 )
 
 
