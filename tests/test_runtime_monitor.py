@@ -138,3 +138,24 @@ def test_online_vehicle_whose_state_stops_is_stale_not_its_last_mode() -> None:
     assert v.rows(now=10.0 + STALE_S * 2)[0][:4] == ("a", "stale", "unknown", "-")
     v.on_sample("truckd/a/state", b'{"mode": "ACTIVE", "v": 1.0}', 10.0 + STALE_S * 2)
     assert v.rows(now=10.0 + STALE_S * 2)[0][1] == "online"  # it came back
+
+
+def test_platoon_lines_from_the_network_are_escaped() -> None:
+    v = FleetView()
+    evil = "\x1b]0;pwned\x07lead"
+    v.on_sample("truckd/f1/state", json.dumps({"mode": "ACTIVE", "gap": 1.0}).encode(), 1.0)
+    v.on_sample(
+        "truckd/f1/health",
+        json.dumps({"platoon": {"predecessor": evil}, "faults": []}).encode(),
+        1.0,
+    )
+    v.on_sample(
+        "truckd/f1/state",
+        json.dumps({"mode": "ACTIVE", "gap": 1.0, "platoon": "\x1b[2JCACC"}).encode(),
+        1.0,
+    )
+    text = v.render()
+    platoon = [line for line in text.splitlines() if line.startswith("platoon:")]
+    assert platoon, text  # the chain is listed
+    bad = [ch for ch in text if ch != "\n" and (ord(ch) < 0x20 or 0x7F <= ord(ch) <= 0x9F)]
+    assert bad == [] and "\\x1b]0;pwned" in platoon[0]

@@ -236,3 +236,14 @@ def write_set(files: Iterable[tuple[str | Path, str | bytes]]) -> None:
                 stack.enter_context(atomic_binary(path)).write(content)
             else:
                 stack.enter_context(atomic_text(path)).write(content)
+
+
+def ensure_dir(path: str | Path, what: str = "output directory") -> Path:
+    """``path`` as a directory, created with its parents if missing (InputError naming
+    ``what`` when it cannot be one)."""
+    d = check_output_dir(path, what)
+    try:
+        d.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"{path}: cannot use as the {what}: {_strerror(exc)}") from None
+    return d

@@ -5,17 +5,18 @@ from __future__ import annotations
 
 import argparse
 import json
-from pathlib import Path
 from typing import Any
 
 from truckd.cli.args import image_file, json_file, output_dir, plot_format, sim_duration
+from truckd.cli.sim_platoon import add_platoon_arguments, run_platoon_cli
 from truckd.config.truck import load_config
 from truckd.control.qp import ControlModel
-from truckd.errors import InputError, TruckdError
+from truckd.errors import TruckdError
 from truckd.modelfile import read_model
-from truckd.outputs import check_distinct, write_set
+from truckd.outputs import check_distinct, ensure_dir, write_set
 from truckd.sim.closed_loop import SimSetup, run_scenario
 from truckd.sim.mcap_export import mcap_paths, write_trace_mcap
+from truckd.sim.platoon import PLATOON_SCENARIOS
 from truckd.sim.report import json_safe, plot_image, table, write_trace
 from truckd.sim.scenarios import SCENARIO_NAMES, make_scenario
 
@@ -23,8 +24,12 @@ from truckd.sim.scenarios import SCENARIO_NAMES, make_scenario
 def add_subparser(sub: Any) -> None:
     p = sub.add_parser("sim", help="closed-loop simulation: controller + simulated firmware")
     p.add_argument(
-        "--scenario", default="all", choices=(*SCENARIO_NAMES, "all"), help="default: all"
+        "--scenario",
+        default="all",
+        choices=(*SCENARIO_NAMES, *PLATOON_SCENARIOS, "all"),
+        help="default: all (with --platoon: every platoon scenario)",
     )
+    add_platoon_arguments(p)
     p.add_argument(
         "--duration", type=sim_duration, help="seconds, at most 24 h (default: the scenario's)"
     )
@@ -48,6 +53,8 @@ def add_subparser(sub: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.platoon is not None or args.scenario in PLATOON_SCENARIOS:
+        return run_platoon_cli(args)
     check_distinct([("--json", args.json), ("--plot", args.plot)])
     cfg = load_config(args.config)
     if args.model:
@@ -55,7 +62,7 @@ def run(args: argparse.Namespace) -> int:
         model, source = ControlModel(mf.vehicle, mf.effects), f"model file {args.model}"
     else:
         model, source = ControlModel(cfg.vehicle), "configured vehicle"
-    trace_dir = _trace_dir(args.trace) if args.trace else None
+    trace_dir = ensure_dir(args.trace, "trace directory") if args.trace else None
     setup = SimSetup(
         cfg.vehicle,
         cfg.plant,
@@ -96,13 +103,3 @@ def run(args: argparse.Namespace) -> int:
     if crashed:
         raise TruckdError(f"collision in: {', '.join(crashed)}")
     return 0
-
-
-def _trace_dir(arg: str) -> Path:
-    """``--trace DIR``, created if missing (InputError when it cannot be a directory)."""
-    d = Path(arg)
-    try:
-        d.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise InputError(f"--trace {arg}: cannot use as a directory: {exc.strerror}") from None
-    return d

@@ -14,6 +14,7 @@ from truckd.config.ids import vehicle_id_problem
 from truckd.config.schema import load_dataclass, spec
 from truckd.config.yamlsafe import MAX_BYTES, load_yaml
 from truckd.control.config import ControlConfig
+from truckd.control.platoon import PlatoonConfig
 from truckd.inputs import read_text
 from truckd.io.config import LinkConfig
 from truckd.model.params import VehicleParams
@@ -36,6 +37,9 @@ class TruckConfig:
     control: ControlConfig = spec(
         "the adaptive cruise controller: MPC, limits, feedforward, estimator",
         default_factory=ControlConfig,
+    )
+    platoon: PlatoonConfig = spec(
+        "platooning: the truck ahead and the CACC/ACC headways", default_factory=PlatoonConfig
     )
     runtime: RuntimeConfig = spec(
         "the daemon: loop, backend, supervisor, telemetry, recorder", default_factory=RuntimeConfig

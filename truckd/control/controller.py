@@ -94,19 +94,22 @@ class Controller:
         encoders: Sequence[EncoderSample] = (),
         ranges: Sequence[RangeSample] = (),
         v_lead_forecast: Sequence[float] | None = None,
+        headway: float | None = None,
     ) -> ControlOutput:
         """One cycle at caller time t (s) with the samples received since the last one
         (oldest first).
 
         ``v_lead_forecast`` (m/s per MPC step, optional) replaces the constant-speed
-        prediction of the lead, e.g. a plan received from the truck ahead.
+        prediction of the lead, e.g. a plan received from the truck ahead.  ``headway``
+        (s, optional) replaces the configured time headway (platooning, see
+        :meth:`control`).
         """
         for e in encoders:
             self.estimator.update_encoders(t, e)
         for r in ranges:
             v_now, _ = self.estimator.speed(t)
             self.estimator.update_range(t, r, v_now)
-        return self.control(self.estimator.estimate(t), v_lead_forecast)
+        return self.control(self.estimator.estimate(t), v_lead_forecast, headway)
 
     def _lead_horizon(self, est: Estimate, forecast: Sequence[float] | None) -> Vec:
         """Lead speed over the horizon: the forecast when given and finite, else constant."""
@@ -120,8 +123,19 @@ class Controller:
                 return out
         return np.full(n, max(est.v_lead, 0.0))
 
-    def control(self, est: Estimate, forecast: Sequence[float] | None = None) -> ControlOutput:
-        """The control law on a given estimate (the estimator bypassed, for tests)."""
+    def control(
+        self,
+        est: Estimate,
+        forecast: Sequence[float] | None = None,
+        headway: float | None = None,
+    ) -> ControlOutput:
+        """The control law on a given estimate (the estimator bypassed, for tests).
+
+        ``headway`` h (s) other than the configured one (the platoon's CACC/ACC headway,
+        ramped between them): the reference gap is ``d_0 + h v``; the QP, whose cost is
+        built with the configured headway, sees the gap less ``(h - time_headway) v``, so
+        it drives the same spacing error without a new factorisation.
+        """
         cfg, p = self.cfg, self.model.params
         v = est.v if math.isfinite(est.v) else 0.0
         if not (est.speed_valid and math.isfinite(est.v)):
@@ -129,7 +143,8 @@ class Controller:
             # in its place would take a moving truck for one at rest.
             return self._fallback(est, v, "speed_stale", "fallback", math.nan, "not-run", 0, 0.0)
         lead = est.lead_valid and math.isfinite(est.gap) and math.isfinite(est.v_lead)
-        gap_ref = cfg.d_0 + cfg.time_headway * v if lead else math.nan
+        h = cfg.time_headway if headway is None else headway
+        gap_ref = cfg.d_0 + h * v if lead else math.nan
         if self._update_hold(est, v, lead):
             return self._hold(est, v, gap_ref)
         # Follow a lead that is near and either slower than the set speed or too close;
@@ -160,7 +175,11 @@ class Controller:
             v_lead_h = np.minimum(v_lead_h, cfg.v_set)
         inp = QpInputs(
             x0=self._initial_state(
-                v, est.gap if lead else 0.0, ff, float(v_lead_h[0]), held=u_prev_mpc == 0.0
+                v,
+                est.gap - (h - cfg.time_headway) * v if lead else 0.0,
+                ff,
+                float(v_lead_h[0]),
+                held=u_prev_mpc == 0.0,
             ),
             u_prev=u_prev_mpc,
             v_lead=v_lead_h,

@@ -66,7 +66,8 @@ class CycleInputs:
     connected; ``loop_missed``: the previous cycle missed its deadline (the rate keeper's
     verdict on the car; always False in simulated time); ``lead_forecast``: optional
     lead speed over the MPC horizon (m/s per step), replacing the constant-speed
-    prediction (the predecessor's plan in a platoon).
+    prediction (the predecessor's plan in a platoon); ``headway``: optional time headway
+    (s) replacing the configured one (the platoon's CACC/ACC headway).
     """
 
     now: float
@@ -74,6 +75,7 @@ class CycleInputs:
     link_up: bool = True
     loop_missed: bool = False
     lead_forecast: Sequence[float] | None = None
+    headway: float | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -160,7 +162,7 @@ class CompanionCycle:
         error = None
         out: ControlOutput | None
         try:
-            out = self.controller.step(t, s.encoders, s.ranges, inp.lead_forecast)
+            out = self.controller.step(t, s.encoders, s.ranges, inp.lead_forecast, inp.headway)
         except Exception as exc:  # counted as a solver failure by the supervisor
             self.controller_errors += 1
             out, error = None, f"{type(exc).__name__}: {exc}"

@@ -23,6 +23,7 @@ from firmware_protocol.messages import CompanionHeartbeat, CompanionState, Motor
 from truckd.config.schema import to_plain
 from truckd.config.truck import TruckConfig
 from truckd.control.controller import ControlOutput
+from truckd.control.platoon import platoon_control
 from truckd.control.qp import ControlModel
 from truckd.control.supervisor import Decision, Mode
 from truckd.io.devlock import DeviceLock
@@ -34,6 +35,7 @@ from truckd.runtime.cycle import CompanionCycle, CycleInputs, CycleOutputs
 from truckd.runtime.faults import RuntimeFaults, wrap_solver
 from truckd.runtime.mcap_log import McapLog
 from truckd.runtime.notify import Notifier
+from truckd.runtime.platoon_link import DaemonPlatoon
 from truckd.runtime.ratekeeper import RateKeeper
 from truckd.runtime.realtime import RealtimeReport, promote_helpers, setup_realtime
 from truckd.runtime.recorder import Recorder
@@ -70,7 +72,7 @@ class Daemon:
     ) -> None:
         self.cfg = cfg
         self.rt = cfg.runtime
-        self.control_cfg = cfg.control
+        self.control_cfg = platoon_control(cfg.control, cfg.platoon)
         self.backend_name = backend or self.rt.backend
         self.duration = duration
         self.clock = clock
@@ -85,6 +87,8 @@ class Daemon:
             time_budget=True,  # on the car a late solve is a failure
         )
         self.controller = self.companion.controller
+        self.platoon = DaemonPlatoon(cfg.vehicle_id, cfg.platoon, self.companion)
+        self._last_cycle: CycleOutputs | None = None
         self.supervisor = self.companion.supervisor
         self.sensors = self.companion.sensors
         self.faults = RuntimeFaults()
@@ -145,6 +149,7 @@ class Daemon:
         if self.rt.telemetry.enabled:
             self.telemetry = Telemetry(self.cfg.vehicle_id, self.rt.telemetry, self.params)
             self.telemetry.start()
+            self.platoon.subscribe(self.telemetry.subscribe_key, self.rt.fault_injection)
             if self.rt.fault_injection:
                 self.telemetry.subscribe("inject", self.faults.apply)
         if self.rt.recorder.enabled:
@@ -251,7 +256,15 @@ class Daemon:
         except Exception as exc:  # a link bug must not stop the loop: treat as silence
             log.warning("link read failed: %s", exc)
             received = []
-        inp = CycleInputs(now, received, self.backend.link.connected, self.rk.last_missed)
+        pl = self.platoon.decide(self._last_cycle)
+        inp = CycleInputs(
+            now,
+            received,
+            self.backend.link.connected,
+            self.rk.last_missed,
+            lead_forecast=pl.forecast if pl is not None else None,
+            headway=pl.headway if pl is not None else None,
+        )
         if self.rxlog is not None:
             self.rxlog.record(inp)
         out = self.companion.step(inp)
@@ -265,6 +278,7 @@ class Daemon:
     def after_step(self, out: CycleOutputs) -> None:
         """The daemon's view of the step: log errors and mode changes, notify systemd."""
         self.out, self.decision = out.control, out.decision
+        self._last_cycle = out
         self.u, self.enable, self.seq = out.command.voltage, out.command.enable, out.seq + 1
         self._ages = out.ages
         if out.error is not None and self.companion.controller_errors <= 3:
@@ -308,16 +322,27 @@ class Daemon:
     # -- outputs -------------------------------------------------------------------
     def publish(self, out: CycleOutputs) -> None:
         tel, mc = self.telemetry, self.mcap
+        if tel is None and mc is None:
+            return
         to_tel = tel is not None and out.seq % self.rt.telemetry.state_every == 0
         to_mcap = mc is not None and mc.wants_state(out.seq)
         if to_tel or to_mcap:
-            msg = self.companion.state_message(out, self.rk.last_lateness)
+            msg = {
+                **self.companion.state_message(out, self.rk.last_lateness),
+                **self.platoon.state_fields(),
+            }
             if mc is not None and to_mcap:
                 mc.record_state(out.t, msg)
             if tel is not None and to_tel:
                 tel.publish_state(msg)
                 self._states_sent += 1
-        if (tel is not None or mc is not None) and out.t >= self._next_health:
+        plan = self.platoon.plan_message(out)
+        if plan is not None:
+            if tel is not None:
+                tel.publish_plan(plan)
+            if mc is not None:
+                mc.record_plan(out.t, plan)
+        if out.t >= self._next_health:
             self.publish_health(out.t)
             self._next_health = out.t + self.rt.telemetry.health_period_s
 
@@ -360,6 +385,7 @@ class Daemon:
             "state_rate_hz": rate,
             "injected": {"solver": self.faults.solver_fail, "overrun_s": self.faults.overrun_s},
             "pid": os.getpid(),
+            "platoon": self.platoon.health(),
         }
         extra = lambda: {"loop": rk.stats().as_dict()}  # noqa: E731
         if self.mcap is not None:

@@ -26,6 +26,7 @@ from typing import Any, TextIO
 
 import zenoh
 
+from truckd.runtime.platoon_view import platoon_lines
 from truckd.runtime.telemetry import open_session, zenoh_config
 
 
@@ -184,6 +185,9 @@ class FleetView:
         lines = ["  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)) for r in rows]
         if len(rows) == 1:
             lines.append("(no vehicle seen yet)")
+        with self._lock:
+            chains = platoon_lines({k: (v.state, v.health) for k, v in self.vehicles.items()})
+        lines += [safe_text(c, 400) for c in chains]  # ids and modes come from the network
         if self.ignored:
             lines.append(f"({self.ignored} samples of more than {MAX_VEHICLES} vehicles ignored)")
         if self.connected is False:

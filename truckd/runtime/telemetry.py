@@ -97,7 +97,7 @@ def open_session(conf: zenoh.Config, what: str) -> zenoh.Session:
 def keys(vehicle_id: str) -> dict[str, str]:
     """The Zenoh key expressions of one vehicle."""
     base = f"truckd/{vehicle_id}"
-    return {k: f"{base}/{k}" for k in ("state", "health", "alive", "params")}
+    return {k: f"{base}/{k}" for k in ("state", "health", "alive", "params", "plan")}
 
 
 class Telemetry:
@@ -136,7 +136,7 @@ class Telemetry:
             names=("runtime.telemetry.listen", "runtime.telemetry.connect"),
         )
         self._session = s = open_session(conf, self.keys["state"])
-        for k in ("state", "health"):
+        for k in ("state", "health", "plan"):
             self._pubs[k] = s.declare_publisher(
                 self.keys[k],
                 encoding=zenoh.Encoding.APPLICATION_JSON,
@@ -151,9 +151,13 @@ class Telemetry:
     def subscribe(self, suffix: str, callback: Callable[[bytes], None]) -> None:
         """Call ``callback(payload)`` for each sample on ``truckd/<vehicle_id>/<suffix>``
         (on Zenoh's thread).  Only after :meth:`start`."""
+        self.subscribe_key(self.keys["state"].rsplit("/", 1)[0] + "/" + suffix, callback)
+
+    def subscribe_key(self, key: str, callback: Callable[[bytes], None]) -> None:
+        """Call ``callback(payload)`` for each sample on ``key`` (on Zenoh's thread), e.g.
+        the predecessor's plan in a platoon.  Only after :meth:`start`."""
         if self._session is None:
             raise RuntimeError("Telemetry.subscribe before start")
-        key = self.keys["state"].rsplit("/", 1)[0] + "/" + suffix
 
         def on_sample(sample: zenoh.Sample) -> None:
             try:
@@ -179,6 +183,10 @@ class Telemetry:
     def publish_state(self, msg: dict[str, Any]) -> None:
         """Queue one state message (never blocks)."""
         self._enqueue("state", msg)
+
+    def publish_plan(self, msg: dict[str, Any]) -> None:
+        """Queue this cycle's plan (``truckd/<vehicle_id>/plan``; never blocks)."""
+        self._enqueue("plan", msg)
 
     def publish_health(self, msg: dict[str, Any], extra: Extra = None) -> None:
         """Queue one health message (never blocks); ``extra()`` is merged into it on the

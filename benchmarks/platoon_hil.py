@@ -1,0 +1,226 @@
+"""Platoon HIL run with separate processes, in real time: one world process simulating 3
+trucks with their firmware on 3 ptys (each range sensor sees the truck ahead, truck 0's a
+virtual lead), 3 ``truckd run`` daemons on the serial backend talking Zenoh on loopback
+(each listens on its own port and connects to the others), and this process watching.
+
+Phases: the lead drives off (1.0 m/s) until both followers are in CACC; the lead brakes
+(to 0.3 m/s at 1.5 m/s^2); it drives on (1.0 m/s) until CACC again; the link to truck 2
+is cut (every plan dropped by its receiver) for 3 s, then restored.  Reported: collision
+and minimum true gaps (from the world), when each switch to ACC and back happened, each
+daemon's mode.  Every process is ended by its pid.
+
+    python benchmarks/platoon_hil.py --json benchmarks/platoon_hil.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import yaml
+import zenoh
+
+from truckd.config.truck import default_config_path
+from truckd.runtime.telemetry import zenoh_config
+
+PY = sys.executable
+N = 3
+
+
+def _free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _ep(port: int) -> str:
+    return f"tcp/127.0.0.1:{port}"
+
+
+def _config(tmp: Path, i: int, ports: list[int]) -> Path:
+    cfg = yaml.safe_load(default_config_path().read_text())
+    cfg["vehicle_id"] = f"p{i}"
+    cfg["link"].update({"serial_device": str(tmp / f"tty{i}"), "reconnect_interval": 0.1})
+    cfg["control"]["on_lead_lost"] = "stop"
+    cfg["platoon"]["predecessor"] = f"p{i - 1}" if i > 0 else ""
+    rt = cfg["runtime"]
+    rt.update({"backend": "serial", "realtime": False, "fault_injection": True})
+    rt["telemetry"].update(
+        {"listen": [_ep(ports[i])], "connect": [_ep(p) for j, p in enumerate(ports) if j < i]}
+    )
+    rt["recorder"]["dir"] = str(tmp / f"logs{i}")
+    path = tmp / f"p{i}.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    return path
+
+
+class World:
+    def __init__(self, tmp: Path) -> None:
+        self.proc = subprocess.Popen(
+            [PY, "-m", "truckd.sim.platoon_world", "--pty-dir", str(tmp), "--trucks", str(N)],
+            stdout=subprocess.PIPE, text=True,
+        )  # fmt: skip
+        assert self.proc.stdout is not None
+        ready = json.loads(self.proc.stdout.readline())
+        self.port = int(ready["control_port"])
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.settimeout(2.0)
+        self.lock = threading.Lock()
+
+    def cmd(self, c: dict[str, Any]) -> dict[str, Any]:
+        with self.lock:
+            self.sock.sendto(json.dumps(c).encode(), ("127.0.0.1", self.port))
+            reply: dict[str, Any] = json.loads(self.sock.recv(65536))
+        return reply
+
+    def stop(self) -> None:
+        with contextlib.suppress(OSError, ValueError):
+            self.cmd({"cmd": "stop"})
+        _end(self.proc)
+        self.sock.close()
+
+
+def _end(p: subprocess.Popen[Any], timeout: float = 10.0) -> int | None:
+    for sig in (signal.SIGTERM, signal.SIGKILL):
+        if p.poll() is None:
+            os.kill(p.pid, sig)
+        try:
+            return p.wait(timeout)
+        except subprocess.TimeoutExpired:
+            continue
+    return p.poll()
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--json", help="write the results here")
+    args = ap.parse_args()
+
+    def _term(signum: int, frame: object) -> None:
+        raise KeyboardInterrupt  # run the finally below: every child ended by its pid
+
+    signal.signal(signal.SIGTERM, _term)
+    tmp = Path(tempfile.mkdtemp(prefix="truckd-platoon-hil-"))
+    ports = [_free_port() for _ in range(N)]
+    world = World(tmp)
+    daemons: list[subprocess.Popen[Any]] = []
+    states: dict[str, dict[str, Any]] = {}
+    events: list[tuple[float, str, str | None, str]] = []  # (t, vehicle, platoon, mode)
+    gaps: list[list[float]] = []
+    stop_poll = threading.Event()
+    t0 = time.monotonic()
+    result: dict[str, Any] = {"load_average_start": os.getloadavg()}
+    session = None
+    try:
+        for i in range(N):
+            log = open(tmp / f"p{i}.stderr", "w")  # noqa: SIM115 - closed with the process
+            daemons.append(
+                subprocess.Popen(
+                    [PY, "-m", "truckd.cli.main", "run", "--config", str(_config(tmp, i, ports))],
+                    stderr=log,
+                )
+            )
+        session = zenoh.open(zenoh_config(listen=[], connect=[_ep(p) for p in ports]))
+
+        def on_state(s: zenoh.Sample) -> None:
+            vid = str(s.key_expr).split("/")[1]
+            m = json.loads(s.payload.to_bytes())
+            old = states.get(vid, {})
+            if (old.get("platoon"), old.get("mode")) != (m.get("platoon"), m.get("mode")):
+                events.append((time.monotonic() - t0, vid, m.get("platoon"), m.get("mode")))
+            states[vid] = m
+
+        session.declare_subscriber("truckd/*/state", on_state)
+
+        def poll() -> None:
+            while not stop_poll.is_set():
+                st = world.cmd({"cmd": "status"})
+                xs = [st["lead_x"], *st["x"]]
+                gaps.append([time.monotonic() - t0] + [xs[k] - xs[k + 1] for k in range(N)])
+                time.sleep(0.05)
+
+        threading.Thread(target=poll, daemon=True).start()
+
+        def wait(pred: Callable[[], bool], timeout: float, what: str) -> float:
+            t_end = time.monotonic() + timeout
+            while time.monotonic() < t_end:
+                if pred():
+                    return time.monotonic() - t0
+                if any(d.poll() is not None for d in daemons):
+                    raise RuntimeError(f"a daemon exited while waiting for {what}")
+                time.sleep(0.02)
+            raise RuntimeError(f"timeout waiting for {what}")
+
+        def plat(vid: str) -> str | None:
+            return states.get(vid, {}).get("platoon")
+
+        def active() -> bool:
+            return all(states.get(f"p{i}", {}).get("mode") == "ACTIVE" for i in range(N))
+
+        result["all_active_s"] = wait(active, 90.0, "every daemon ACTIVE")
+        world.cmd({"cmd": "lead", "speed": 1.0, "accel": 0.5})
+        result["lead_go_s"] = time.monotonic() - t0
+        result["cacc_s"] = wait(
+            lambda: plat("p1") == "CACC" and plat("p2") == "CACC", 30.0, "both followers CACC"
+        )
+        time.sleep(3.0)  # drive in CACC
+        result["brake_s"] = time.monotonic() - t0
+        world.cmd({"cmd": "lead", "speed": 0.3, "accel": 1.5})
+        time.sleep(5.0)
+        world.cmd({"cmd": "lead", "speed": 1.0, "accel": 0.5})
+        time.sleep(2.0)
+        wait(lambda: plat("p2") == "CACC", 20.0, "p2 CACC after the brake")
+        session.put("truckd/p2/platoon_fault", json.dumps({"link": "down"}))
+        result["link_down_s"] = time.monotonic() - t0
+        result["acc_after_s"] = (
+            wait(lambda: plat("p2") == "ACC", 10.0, "p2 ACC after the link loss")
+            - result["link_down_s"]
+        )
+        time.sleep(3.0)
+        session.put("truckd/p2/platoon_fault", json.dumps({"link": "up"}))
+        result["link_up_s"] = time.monotonic() - t0
+        result["cacc_again_after_s"] = (
+            wait(lambda: plat("p2") == "CACC", 15.0, "p2 CACC after the link returns")
+            - result["link_up_s"]
+        )
+        time.sleep(1.0)
+        result["ok"] = True
+    except (RuntimeError, KeyboardInterrupt) as exc:
+        result["ok"] = False
+        result["error"] = str(exc) or type(exc).__name__
+    finally:
+        stop_poll.set()
+        result["exit_codes"] = [_end(d, 20.0) for d in daemons]
+        if session is not None:
+            session.close()  # type: ignore[no-untyped-call]
+        world.stop()
+    g = [row[1:] for row in gaps]
+    result["min_true_gap_m"] = [min(r[k] for r in g) for k in range(N)] if g else None
+    result["collision"] = bool(g) and min(min(r) for r in g) <= 0.0
+    result["events"] = events
+    result["load_average_end"] = os.getloadavg()
+    result["daemon_stderr_tail"] = {
+        f"p{i}": (tmp / f"p{i}.stderr").read_text()[-600:] for i in range(N)
+    }
+    print(json.dumps({k: v for k, v in result.items() if k != "daemon_stderr_tail"}, indent=1))
+    if args.json:
+        with open(args.json, "w", encoding="utf-8") as f:
+            json.dump(result, f, indent=2)
+            f.write("\n")
+    return 0 if result.get("ok") and not result["collision"] else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,104 @@
+"""``truckd sim --platoon N``: the platoon scenarios (CONTRACTS.md section 1)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from typing import Any
+
+from truckd.config.truck import load_config
+from truckd.control.qp import ControlModel
+from truckd.errors import InputError, TruckdError
+from truckd.modelfile import read_model
+from truckd.outputs import ensure_dir, write_text
+from truckd.sim.closed_loop import SimSetup, Trace
+from truckd.sim.platoon import MAX_TRUCKS, PLATOON_SCENARIOS, make_platoon_scenario, run_platoon
+from truckd.sim.report import json_safe, write_trace
+
+
+def add_platoon_arguments(p: argparse.ArgumentParser) -> None:
+    """The platoon options of ``truckd sim``."""
+    p.add_argument(
+        "--platoon", type=int, metavar="N", help=f"N trucks (2..{MAX_TRUCKS}), truck 0 leads"
+    )
+    p.add_argument(
+        "--plan-delay", type=float, default=0.02, metavar="S", help="plan delivery delay (s)"
+    )
+    p.add_argument(
+        "--plan-loss", type=float, default=0.0, metavar="P", help="share of plans lost (0..1)"
+    )
+    p.add_argument("--seed", type=int, default=0, help="random seed of the plan loss")
+
+
+def _check(args: argparse.Namespace) -> None:
+    if args.platoon is None:
+        raise InputError(f"--scenario {args.scenario}: a platoon scenario needs --platoon N")
+    if not 2 <= args.platoon <= MAX_TRUCKS:
+        raise InputError(f"--platoon: expected 2 to {MAX_TRUCKS} trucks, got {args.platoon}")
+    if args.scenario not in (*PLATOON_SCENARIOS, "all"):
+        raise InputError(
+            f"--scenario {args.scenario}: with --platoon expected one of "
+            f"{', '.join(PLATOON_SCENARIOS)}"
+        )
+    if not (math.isfinite(args.plan_delay) and 0.0 <= args.plan_delay <= 10.0):
+        raise InputError(f"--plan-delay: expected 0 to 10 s, got {args.plan_delay}")
+    if not (math.isfinite(args.plan_loss) and 0.0 <= args.plan_loss <= 1.0):
+        raise InputError(f"--plan-loss: expected a share from 0 to 1, got {args.plan_loss}")
+    if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
+        raise InputError(f"--duration: expected a positive number of seconds, got {args.duration}")
+    for opt in ("realtime", "plot"):
+        if getattr(args, opt, None):
+            raise InputError(f"--{opt}: not available with --platoon")
+
+
+def _fmt(xs: list[float]) -> str:
+    return " ".join(f"{x:.2f}" for x in xs)
+
+
+def run_platoon_cli(args: argparse.Namespace) -> int:
+    _check(args)
+    cfg = load_config(args.config)
+    model = ControlModel(cfg.vehicle)
+    if args.model:
+        mf = read_model(args.model)
+        model = ControlModel(mf.vehicle, mf.effects)
+    setup = SimSetup(
+        cfg.vehicle,
+        cfg.plant,
+        cfg.control,
+        model,
+        ticks_per_rev=cfg.link.encoder_ticks_per_rev,
+        supervisor=cfg.runtime.supervisor,
+        stop_ramp_v_per_s=cfg.runtime.stop_ramp_v_per_s,
+    )
+    names = PLATOON_SCENARIOS if args.scenario == "all" else (args.scenario,)
+    trace_dir = ensure_dir(args.trace, "trace directory") if getattr(args, "trace", None) else None
+    results: list[dict[str, Any]] = []
+    for name in names:
+        m, tr = run_platoon(
+            make_platoon_scenario(name),
+            setup,
+            cfg.platoon,
+            args.platoon,
+            delay_s=args.plan_delay,
+            loss=args.plan_loss,
+            seed=args.seed,
+            duration=args.duration,
+        )
+        results.append(json_safe(m))
+        if trace_dir is not None:  # one log per follower (truck 0, the lead, is scripted)
+            for i, rows in enumerate(tr.rows, start=1):
+                write_trace(trace_dir / f"{name}-truck{i}.csv", Trace(rows=rows))
+        print(
+            f"{name}: {args.platoon} trucks, collision {m['collision']}, "
+            f"min gap {m['min_gap_m']:.3f} m, string ratio l2 [{_fmt(m['string_ratio_l2'])}] "
+            f"max [{_fmt(m['string_ratio_max'])}], CACC share [{_fmt(m['cacc_fraction'])}]"
+        )
+    if args.json:
+        doc: object = results if args.scenario == "all" else results[0]
+        write_text(args.json, json.dumps(doc, indent=2, allow_nan=False) + "\n")
+    crashed = [r["scenario"] for r in results if r["collision"]]
+    if crashed:
+        raise TruckdError(f"collision in: {', '.join(crashed)}")
+    return 0

@@ -1,0 +1,302 @@
+"""Platooning (cooperative adaptive cruise), pure numerics: no I/O, no clock.
+
+Each truck publishes its plan every cycle (CONTRACTS.md section 5, ``truckd/<id>/plan``):
+the speeds its MPC predicts over the horizon, sampled every ``dt`` from the sender's time
+``t``.  A follower turns its predecessor's latest plan into the lead-speed forecast of its
+own MPC (:func:`lead_forecast`: shifted by the plan's age, the last speed held past the
+plan's end, a braking plan extrapolated to standstill) and drives the CACC headway while
+the plan is fresh; when the plan is older than ``plan_timeout_s`` or missing it falls back
+to ACC on the range sensor alone, ramping the headway up to the ACC headway (the gap opens
+smoothly, no hard braking), and back to CACC once plans have been fresh for
+``cacc_return_s`` (:class:`PlatoonMode`).
+
+Clocks: a plan's ``t`` is the sender's time on a clock shared by the platoon (simulated
+time in ``truckd sim``; the system clock, seconds since the Unix epoch, in ``truckd run``,
+which assumes the trucks' clocks are synchronised, e.g. by NTP/PTP or GNSS time).  A plan
+stamped in the receiver's future by more than ``max_clock_skew_s`` is refused.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from typing import Any
+
+from truckd.config.schema import spec
+from truckd.control.config import ControlConfig
+
+CACC = "CACC"
+ACC = "ACC"
+
+
+@dataclass(frozen=True)
+class PlatoonConfig:
+    """The ``platoon:`` section: which truck is ahead and the CACC/ACC spacing policies."""
+
+    predecessor: str = spec(
+        "vehicle_id of the truck ahead, whose plan this truck follows; empty: no platoon "
+        "(leading truck or single truck)",
+        default="",
+    )
+    cacc_headway: float = spec(
+        "time headway while the predecessor's plan is fresh (CACC)",
+        unit="s",
+        lo=0.05,
+        hi=5.0,
+        default=0.5,
+    )
+    acc_headway: float = spec(
+        "time headway on the range sensor alone (ACC fallback)",
+        unit="s",
+        lo=0.05,
+        hi=5.0,
+        default=1.1,
+    )
+    plan_timeout_s: float = spec(
+        "a plan older than this is stale: ACC", unit="s", lo=0.0, lo_open=True, hi=10.0, default=0.1
+    )
+    cacc_return_s: float = spec(
+        "plans fresh this long before CACC again (hysteresis)",
+        unit="s",
+        lo=0.0,
+        hi=60.0,
+        default=0.5,
+    )
+    headway_rate: float = spec(
+        "headway ramp rate between the two policies (gap opens/closes smoothly)",
+        unit="s/s",
+        lo=0.0,
+        lo_open=True,
+        hi=100.0,
+        default=0.15,
+    )
+    max_clock_skew_s: float = spec(
+        "plans stamped this far in the receiver's future are refused",
+        unit="s",
+        lo=0.0,
+        hi=10.0,
+        default=0.05,
+    )
+
+    def validate(self) -> str | None:
+        """Cross-field check (called by the config loader)."""
+        if self.acc_headway < self.cacc_headway:
+            return (
+                f"acc_headway ({self.acc_headway}) must be at least cacc_headway "
+                f"({self.cacc_headway})"
+            )
+        return None
+
+
+def platoon_control(control: ControlConfig, cfg: PlatoonConfig) -> ControlConfig:
+    """The controller configuration of a truck in a platoon: a follower's MPC is built
+    for the CACC headway (the ACC headway is driven by the controller's gap shift, see
+    :meth:`~truckd.control.controller.Controller.control`); others keep theirs."""
+    if not cfg.predecessor:
+        return control
+    return replace(control, time_headway=cfg.cacc_headway)
+
+
+@dataclass(frozen=True)
+class Plan:
+    """A truck's plan: ``v[k]`` (m/s) the predicted speed at ``t + k dt`` (s) and ``a[k]``
+    (m/s^2) the acceleration over step k (the last one repeated, so both have the same
+    length); ``seq`` the sender's cycle counter; ``vehicle_id`` the sender."""
+
+    t: float
+    seq: int
+    dt: float
+    v: tuple[float, ...]
+    a: tuple[float, ...]
+    vehicle_id: str = ""
+
+    @property
+    def t_end(self) -> float:
+        """Time of the plan's last speed (s)."""
+        return self.t + (len(self.v) - 1) * self.dt
+
+    def as_dict(self) -> dict[str, Any]:
+        """The JSON object of the contract (CONTRACTS.md section 5)."""
+        return {
+            "t": self.t,
+            "seq": self.seq,
+            "dt": self.dt,
+            "v": list(self.v),
+            "a": list(self.a),
+            "vehicle_id": self.vehicle_id,
+        }
+
+
+def make_plan(t: float, seq: int, dt: float, speeds: Sequence[float], vehicle_id: str = "") -> Plan:
+    """A plan from predicted speeds (m/s) at ``t + k dt``; accelerations by differences.
+    Negative speeds (a reversing prediction) are clipped to 0."""
+    v = tuple(max(float(x), 0.0) for x in speeds)
+    if not v:
+        raise ValueError("a plan needs at least one speed")
+    a = [(v[k + 1] - v[k]) / dt for k in range(len(v) - 1)]
+    a.append(a[-1] if a else 0.0)
+    return Plan(t, seq, dt, v, tuple(a), vehicle_id)
+
+
+def kinematic_plan(
+    t: float, seq: int, dt: float, v: float, a: float, n: int, vehicle_id: str = ""
+) -> Plan:
+    """The plan of a truck without an MPC plan (a driven lead, a fallback): constant
+    acceleration ``a`` (m/s^2) from speed ``v`` (m/s) over ``n`` steps, never below 0."""
+    return make_plan(t, seq, dt, [max(v + a * k * dt, 0.0) for k in range(n + 1)], vehicle_id)
+
+
+def encode_plan(plan: Plan) -> bytes:
+    """The plan as JSON bytes (NaN never appears: speeds are checked when built)."""
+    return json.dumps(plan.as_dict(), allow_nan=False).encode()
+
+
+def _floats(x: Any, name: str) -> tuple[float, ...]:
+    if not isinstance(x, list) or not x:
+        raise ValueError(f"'{name}' must be a non-empty list")
+    out = []
+    for e in x:
+        if isinstance(e, bool) or not isinstance(e, int | float) or not math.isfinite(e):
+            raise ValueError(f"'{name}' must hold finite numbers")
+        out.append(float(e))
+    return tuple(out)
+
+
+def decode_plan(payload: bytes | str) -> Plan:
+    """Parse and check a plan message; ValueError naming what is wrong."""
+    try:
+        d = json.loads(payload)
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise ValueError(f"not JSON: {exc}") from None
+    if not isinstance(d, dict):
+        raise ValueError("a plan is a JSON object")
+    t, seq, dt = d.get("t"), d.get("seq"), d.get("dt")
+    if isinstance(t, bool) or not isinstance(t, int | float) or not math.isfinite(t):
+        raise ValueError("'t' must be a finite number")
+    if isinstance(seq, bool) or not isinstance(seq, int):
+        raise ValueError("'seq' must be an integer")
+    if isinstance(dt, bool) or not isinstance(dt, int | float) or not (0.0 < dt < 10.0):
+        raise ValueError("'dt' must be a number in (0, 10) s")
+    v, a = _floats(d.get("v"), "v"), _floats(d.get("a"), "a")
+    if len(a) != len(v):
+        raise ValueError("'v' and 'a' must have the same length")
+    if min(v) < 0.0:
+        raise ValueError("'v' must not be negative")
+    vid = d.get("vehicle_id", "")
+    return Plan(float(t), seq, float(dt), v, a, vid if isinstance(vid, str) else "")
+
+
+def plan_speed(plan: Plan, t: float) -> float:
+    """The plan's speed (m/s) at time t (s): linear between samples; before the plan its
+    first speed; after its end the last speed held, or, when the plan ends braking,
+    extrapolated with that deceleration down to standstill (conservative)."""
+    if t <= plan.t:
+        return plan.v[0]
+    x = (t - plan.t) / plan.dt
+    k = int(x)
+    if k >= len(plan.v) - 1:
+        last, a_end = plan.v[-1], plan.a[-1]
+        if a_end < 0.0:
+            return max(last + a_end * (t - plan.t_end), 0.0)
+        return last
+    f = x - k
+    return plan.v[k] + f * (plan.v[k + 1] - plan.v[k])
+
+
+def lead_forecast(plan: Plan, t: float, dt: float, n: int) -> list[float]:
+    """The lead speed over the follower's horizon: ``n`` values at ``t + k dt`` (s), taken
+    from the predecessor's plan aligned in time (see :func:`plan_speed`)."""
+    return [plan_speed(plan, t + k * dt) for k in range(n)]
+
+
+def plan_age(plan: Plan, t: float) -> float:
+    """Age (s) of a plan at the receiver's time t (negative: stamped in the future)."""
+    return t - plan.t
+
+
+@dataclass(frozen=True)
+class PlatoonDecision:
+    """One cycle's decision: ``mode`` CACC or ACC; ``headway`` (s) to drive now;
+    ``forecast`` the lead speed over the horizon (m/s) in CACC, None in ACC;
+    ``plan_age_s`` age of the plan in use (NaN when none)."""
+
+    mode: str
+    headway: float
+    forecast: list[float] | None
+    plan_age_s: float
+
+
+class PlatoonMode:
+    """CACC/ACC switching and the headway ramp of one follower (see module docstring).
+
+    ``update(t, plan, ...)`` once per cycle with the latest plan received from the
+    predecessor (None when none yet).  Starts in ACC at the ACC headway by default: a
+    follower joins with the larger gap and closes it once its predecessor's plans arrive;
+    ``initial=CACC`` starts in CACC at the CACC headway (a platoon already formed).
+    """
+
+    def __init__(self, cfg: PlatoonConfig, period: float, horizon: int, initial: str = ACC) -> None:
+        if initial not in (ACC, CACC):
+            raise ValueError(f"initial mode must be {ACC} or {CACC}, got {initial!r}")
+        self.cfg = cfg
+        self.period = period
+        self.horizon = horizon
+        self.mode = initial
+        self.headway = cfg.acc_headway if initial == ACC else cfg.cacc_headway
+        self._fresh_since = math.inf
+        self._t_start = math.nan
+        self.switches = 0
+
+    def fresh(self, plan: Plan | None, t: float) -> bool:
+        """Whether ``plan`` is usable at time t (s): not older than the timeout, not from
+        the future beyond the allowed clock skew."""
+        if plan is None:
+            return False
+        age = plan_age(plan, t)
+        return -self.cfg.max_clock_skew_s <= age <= self.cfg.plan_timeout_s
+
+    def update(
+        self,
+        t: float,
+        plan: Plan | None,
+        v: float = math.nan,
+        gap: float = math.nan,
+        d_0: float = 0.0,
+    ) -> PlatoonDecision:
+        """Decide this cycle's mode, headway and forecast at time t (s).
+
+        ``v`` own speed (m/s), ``gap`` measured gap (m) and ``d_0`` the standstill gap (m):
+        when falling back to ACC the ramp starts from the time gap actually driven
+        (``(gap - d_0) / v``, within the two headways), so the reference does not jump.
+        """
+        cfg = self.cfg
+        if math.isnan(self._t_start):
+            self._t_start = t
+        fresh = self.fresh(plan, t)
+        if plan is None and t - self._t_start <= cfg.plan_timeout_s:
+            # Just started: the first plan may still be on its way (no forecast yet).
+            fresh = self.mode == CACC
+        if fresh:
+            if self._fresh_since == math.inf:
+                self._fresh_since = t
+        else:
+            self._fresh_since = math.inf
+        if self.mode == CACC and not fresh:
+            self.mode = ACC
+            self.switches += 1
+            if math.isfinite(gap) and math.isfinite(v) and v > 0.1:
+                actual = (gap - d_0) / v
+                self.headway = min(max(actual, self.headway), cfg.acc_headway)
+        elif self.mode == ACC and fresh and t - self._fresh_since >= cfg.cacc_return_s:
+            self.mode = CACC
+            self.switches += 1
+        target = cfg.cacc_headway if self.mode == CACC else cfg.acc_headway
+        step = cfg.headway_rate * self.period
+        self.headway = min(max(target, self.headway - step), self.headway + step)
+        if self.mode == CACC and plan is not None:
+            forecast = lead_forecast(plan, t, self.period, self.horizon)
+            return PlatoonDecision(CACC, self.headway, forecast, plan_age(plan, t))
+        age = plan_age(plan, t) if plan is not None else math.nan
+        return PlatoonDecision(self.mode, self.headway, None, age)

@@ -1,0 +1,199 @@
+"""The platoon around the companion cycle: plans in from the predecessor, plan out.
+
+Used by ``truckd run`` (over Zenoh, :class:`DaemonPlatoon`) and by ``truckd sim
+--platoon`` (plans passed in simulated time): :func:`follower_inputs` makes the CACC/ACC
+decision before a cycle, :func:`cycle_plan` turns the cycle's MPC solution into the plan
+to publish after it.  A follower subscribes to exactly one key, its configured
+predecessor's ``truckd/<predecessor>/plan``, and refuses plans that name another sender.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+from truckd.control.platoon import (
+    Plan,
+    PlatoonConfig,
+    PlatoonDecision,
+    PlatoonMode,
+    decode_plan,
+    make_plan,
+)
+from truckd.runtime.cycle import CompanionCycle, CycleOutputs
+
+
+def plan_key(vehicle_id: str) -> str:
+    """The Zenoh key of a vehicle's plan (CONTRACTS.md section 5)."""
+    return f"truckd/{vehicle_id}/plan"
+
+
+def cycle_plan(
+    cyc: CompanionCycle, out: CycleOutputs, t: float, vehicle_id: str = ""
+) -> Plan | None:
+    """The plan to publish after the cycle ``out``, stamped ``t`` (s, the platoon's shared
+    clock): the MPC's predicted speeds when it solved, standstill while the controller
+    holds the truck at rest, None otherwise (a fallback has no plan to promise: the
+    follower's plan goes stale and it falls back to ACC)."""
+    p = cyc.plan(out)
+    if p is not None:
+        return make_plan(t, out.seq, p.dt, p.v, vehicle_id)
+    c = out.control
+    if c is not None and c.mode == "hold":
+        n = cyc.controller.mpc.horizon
+        return make_plan(t, out.seq, cyc.period, [0.0] * (n + 1), vehicle_id)
+    return None
+
+
+def follower_inputs(
+    mode: PlatoonMode, now: float, plan: Plan | None, last: CycleOutputs | None, d_0: float
+) -> PlatoonDecision:
+    """The platoon part of a follower's cycle, before the step: the CACC/ACC decision
+    from the latest plan received (``now`` on the platoon's shared clock, s), with the
+    previous cycle's estimate (``last``) for the time gap actually driven (``d_0`` the
+    standstill gap, m)."""
+    est = last.control.estimate if last is not None and last.control is not None else None
+    return mode.update(
+        now,
+        plan,
+        est.v if est is not None and est.speed_valid else math.nan,
+        est.gap if est is not None and est.lead_valid else math.nan,
+        d_0,
+    )
+
+
+class PlanReceiver:
+    """The newest valid plan from one predecessor (fed on Zenoh's thread, read by the
+    loop; thread-safe).  Refused and counted: payloads that do not parse, plans naming
+    another sender, plans older (by ``seq``) than the one held unless the sender
+    restarted (its clock moved on by more than a second)."""
+
+    def __init__(self, predecessor: str) -> None:
+        self.predecessor = predecessor
+        self.key = plan_key(predecessor)
+        self._lock = threading.Lock()
+        self._latest: Plan | None = None
+        self.accepted = 0
+        self.refused = 0
+        self.last_error = ""
+        self.blocked = False
+        """Injected link loss (HIL runs): every plan is dropped while set."""
+        self.dropped = 0
+
+    def on_payload(self, payload: bytes) -> None:
+        if self.blocked:
+            self.dropped += 1
+            return
+        try:
+            plan = decode_plan(payload)
+        except ValueError as exc:
+            self.refused += 1
+            self.last_error = str(exc)
+            return
+        if plan.vehicle_id and plan.vehicle_id != self.predecessor:
+            self.refused += 1
+            self.last_error = f"plan from {plan.vehicle_id!r}, expected {self.predecessor!r}"
+            return
+        with self._lock:
+            old = self._latest
+            if old is None or plan.seq > old.seq or plan.t > old.t + 1.0:
+                self._latest = plan
+                self.accepted += 1
+
+    def latest(self) -> Plan | None:
+        with self._lock:
+            return self._latest
+
+
+class DaemonPlatoon:
+    """``truckd run``'s platoon part.  Every truck publishes its plan each cycle; a truck
+    with ``platoon.predecessor`` set also follows that truck's plan (CACC/ACC).  Plans are
+    stamped with ``wall()`` (the system clock: the trucks' clocks must be synchronised)."""
+
+    def __init__(
+        self,
+        vehicle_id: str,
+        cfg: PlatoonConfig,
+        cyc: CompanionCycle,
+        wall: Callable[[], float] = time.time,
+    ) -> None:
+        self.vehicle_id = vehicle_id
+        self.cfg = cfg
+        self.cyc = cyc
+        self.wall = wall
+        self.receiver = PlanReceiver(cfg.predecessor) if cfg.predecessor else None
+        self.mode = (
+            PlatoonMode(cfg, cyc.period, cyc.controller.mpc.horizon) if cfg.predecessor else None
+        )
+        self.decision: PlatoonDecision | None = None
+        self._now = math.nan
+
+    def subscribe(
+        self,
+        subscribe_key: Callable[[str, Callable[[bytes], None]], None],
+        fault_injection: bool = False,
+    ) -> None:
+        """Subscribe to the predecessor's plan key only (nothing for a leading truck);
+        with ``fault_injection`` also to ``truckd/<vehicle_id>/platoon_fault`` (HIL runs:
+        ``{"link": "down"}`` drops every plan received until ``{"link": "up"}``)."""
+        if self.receiver is not None:
+            subscribe_key(self.receiver.key, self.receiver.on_payload)
+            if fault_injection:
+                subscribe_key(f"truckd/{self.vehicle_id}/platoon_fault", self.apply_fault)
+
+    def apply_fault(self, payload: bytes) -> None:
+        """An injected link fault (see :meth:`subscribe`); anything else is ignored."""
+        try:
+            cmd = json.loads(payload)
+        except ValueError:
+            return
+        if (
+            self.receiver is not None
+            and isinstance(cmd, dict)
+            and cmd.get("link") in ("down", "up")
+        ):
+            self.receiver.blocked = cmd["link"] == "down"
+
+    def decide(self, last: CycleOutputs | None) -> PlatoonDecision | None:
+        """Before the cycle: the forecast and headway (None for a leading truck)."""
+        self._now = self.wall()
+        if self.mode is None or self.receiver is None:
+            return None
+        self.decision = follower_inputs(
+            self.mode, self._now, self.receiver.latest(), last, self.cyc.control_cfg.d_0
+        )
+        return self.decision
+
+    def plan_message(self, out: CycleOutputs) -> dict[str, Any] | None:
+        """After the cycle: the plan to publish (None when there is none this cycle)."""
+        t = self._now if math.isfinite(self._now) else self.wall()
+        p = cycle_plan(self.cyc, out, t, self.vehicle_id)
+        return p.as_dict() if p is not None else None
+
+    def state_fields(self) -> dict[str, Any]:
+        """Merged into the state message: ``platoon`` CACC/ACC (None: not following) and
+        the headway driven (s)."""
+        d = self.decision
+        return {
+            "platoon": d.mode if d is not None else None,
+            "headway": d.headway if d is not None else None,
+        }
+
+    def health(self) -> dict[str, Any]:
+        """The ``platoon`` entry of the health message."""
+        d, r, m = self.decision, self.receiver, self.mode
+        age = d.plan_age_s if d is not None else math.nan
+        return {
+            "predecessor": self.cfg.predecessor or None,
+            "mode": d.mode if d is not None else None,
+            "headway_s": d.headway if d is not None else None,
+            "plan_age_s": age if math.isfinite(age) else None,
+            "plans_accepted": r.accepted if r is not None else 0,
+            "plans_refused": r.refused if r is not None else 0,
+            "plans_dropped": r.dropped if r is not None else 0,
+            "switches": m.switches if m is not None else 0,
+        }
