@@ -101,7 +101,10 @@ def test_step_lead_forecast_is_an_input() -> None:
         msgs = sensor_messages(k, 0.6)
         ua = a.step(CycleInputs(k * 0.01, msgs)).command.voltage
         ub = b.step(CycleInputs(k * 0.01, msgs, lead_forecast=[1.5] * n)).command.voltage
-    assert ub > ua + 1.0  # a lead said to drive away at 1.5 m/s lets the truck go harder
+    # A lead said to drive away at 1.5 m/s lets the truck go harder.  With the issue-11
+    # tuning (rate weight r_du 5, blocked moves) the steady first move is 0.64 V higher
+    # (was > 1 V at r_du 0.3); the forecast must move it by far more than solver noise.
+    assert ub > ua + 0.3
 
 
 def test_rx_log_line_round_trips_exactly() -> None:
