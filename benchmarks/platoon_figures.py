@@ -24,7 +24,7 @@ from truckd.control.qp import ControlModel
 from truckd.sim.closed_loop import SimSetup
 from truckd.sim.platoon import make_platoon_scenario, run_platoon
 
-HEADWAYS = (0.3, 0.4, 0.5)
+HEADWAYS = (0.3, 0.4, 0.5, 0.6)
 DELAYS = (0.0, 0.15)
 
 
