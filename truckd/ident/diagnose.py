@@ -40,6 +40,7 @@ from truckd.ident.result import (
     Rejected,
     Traces,
 )
+from truckd.ident.selection import close, delta_bic, passes, structured, white
 from truckd.ident.voltage import (
     FitResult,
     Param,
@@ -68,19 +69,6 @@ FINAL_NFEV = 80
 """Evaluations of the final joint refit (R_m and battery sag correlate: they need room)."""
 VAL_BUDGET = 12000
 """Samples of the validation data used to select candidates."""
-BIC_MIN = 10.0
-"""Decrease of the information criterion a candidate must bring (strong evidence)."""
-REL_MIN = 0.05
-"""Relative decrease of the validation cost a candidate must bring."""
-AMBIGUOUS = 0.05
-"""Two candidates whose validation costs alone differ by less than this fraction (the
-cost is in units of the noise variance, so this compares what each leaves unexplained
-plus the noise), and that do not combine, are ambiguous."""
-ACF_MAX = 0.2
-"""Residual is called structured when more than this fraction of lags is outside the band."""
-STRUCT_MIN = 0.5
-"""... and its RMS beyond the noise exceeds this multiple of the noise level."""
-
 MAX_EXTRA_ROUNDS = 2
 """Rounds of trying the remaining candidates on top of the accepted ones."""
 
@@ -161,8 +149,7 @@ def _val_cost(m: FitResult, val: Sequence[Series], w: Weights) -> float:
 
 
 def _delta_bic(new: FitResult, old: FitResult, extra: int) -> float:
-    n = old.n
-    return n * float(np.log(max(new.sse, 1e-300) / max(old.sse, 1e-300))) + extra * float(np.log(n))
+    return delta_bic(new.sse, old.sse, old.n, extra)
 
 
 def _fit_candidate(
@@ -257,13 +244,12 @@ def _whiteness_of(r: np.ndarray, runs: Sequence[Series]) -> tuple[Whiteness, boo
     noise = float(np.mean([noise_std(x.v) for x in runs]))
     h = float(np.median(np.diff(whole.t)))
     wt = whiteness(r, whole.inp, noise, max_lag=max(10, round(1.0 / h)))
-    floor = max(STRUCT_MIN * noise, 2e-3 * float(np.std(whole.v)))
-    return wt, bool(wt.acf_outside > ACF_MAX and wt.structure > floor)
+    return wt, structured(wt, noise, 2e-3 * float(np.std(whole.v)))
 
 
 def _close(a: float, b: float) -> bool:
-    """Two validation costs the data cannot tell apart (see :data:`AMBIGUOUS`)."""
-    return abs(a - b) < max(2.0 * BIC_MIN, AMBIGUOUS * min(a, b))
+    """Two validation costs the data cannot tell apart (:func:`selection.close`)."""
+    return close(a, b)
 
 
 def _rival(
@@ -299,7 +285,7 @@ def _rival(
 
 def _passes(new: _Model, old: _Model, extra: int) -> tuple[bool, float]:
     dbic = _delta_bic(new.fit, old.fit, extra)
-    ok = dbic < -BIC_MIN and new.val_cost < (1.0 - REL_MIN) * old.val_cost
+    ok = passes(dbic, new.val_cost, old.val_cost)
     return ok, dbic
 
 
@@ -553,7 +539,7 @@ def diagnose_voltage(
         rejected=rejected,
         linear=None if ff is None else ff.to_json(),
         runs=len(runs),
-        explains=not unexplained and wt.acf_outside <= ACF_MAX,
+        explains=not unexplained and white(wt),
     )
 
 
