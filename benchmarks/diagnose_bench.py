@@ -8,7 +8,16 @@ unexplained), two effects at once (hit = both named), a periodic disturbance out
 the candidates (hit = unexplained and nothing named).  Speed: diagnose on a 10-minute
 log at 100 Hz (60 000 samples).
 
-    .venv/bin/python benchmarks/diagnose_bench.py [--seeds N] [--json FILE]
+``--trucks drawn``: the wider draw.  Every log comes from a different truck with 0.1x..10x
+the default motor constant and inertia (log-uniform), logged at 50-200 Hz with jittered
+timing, dropped rows and coarse speed steps, without current (with current for
+viscous friction, which needs it) (:func:`truckd.ident.synth.draw_truck`); the effect
+magnitudes scale with the motor constant (:func:`truckd.ident.synth.scaled_effect`).
+Diagnosis is always started from the *default* configuration.  Also reported: false
+causes per 100 logs (named effects that were not hidden, over every log of the run).
+
+    nice .venv/bin/python benchmarks/diagnose_bench.py [--seeds N] [--trucks default|drawn]
+        [--json FILE]
 """
 
 from __future__ import annotations
@@ -25,7 +34,14 @@ import numpy as np
 
 from truckd.config.truck import load_config
 from truckd.ident.api import diagnose_log
-from truckd.ident.synth import plant_log, random_effect, with_effect
+from truckd.ident.synth import (
+    draw_truck,
+    drawn_log,
+    plant_log,
+    random_effect,
+    scaled_effect,
+    with_effect,
+)
 from truckd.logfile import Log
 from truckd.model.effects import EFFECT_NAMES, Effects
 
@@ -67,6 +83,71 @@ def _one_effect(p: Any, name: str, seed: int) -> dict[str, Any]:
         "gain": gain,
         "time_s": dt,
     }
+
+
+def _drawn(p: Any, name: str, seed: int) -> dict[str, Any]:
+    """One log of a drawn truck with ``name`` hidden ("none": clean)."""
+    rng = np.random.default_rng(seed)
+    truck = draw_truck(p, rng)
+    value = 0.0
+    eff = Effects()
+    if name != "none":
+        value = scaled_effect(name, random_effect(name, rng), truck.k_scale)
+        eff = with_effect(name, value)
+    log = drawn_log(truck, eff, int(rng.integers(1 << 30)), with_current=name == "viscous_friction")
+    t0 = time.perf_counter()
+    d = diagnose_log(log, p)
+    dt = time.perf_counter() - t0
+    names = [f.name for f in d.effects]
+    kv_rel = float(d.vehicle.K_v / truck.params.K_v - 1.0) if d.vehicle is not None else 1.0
+    row: dict[str, Any] = {
+        "case": name,
+        "seed": seed,
+        "k_scale": truck.k_scale,
+        "j_scale": truck.j_scale,
+        "rate_hz": truck.rate_hz,
+        "value": value,
+        "named": names,
+        "false_causes": len([n for n in names if n != name]),
+        "unexplained": d.unexplained,
+        "K_v_relerr": kv_rel,
+        "baseline_fit": d.baseline.fit_percent,
+        "extended_fit": d.extended.fit_percent,
+        "rejected": [r.name for r in d.rejected],
+        "time_s": dt,
+    }
+    if name == "none":
+        row["hit"] = not names and abs(kv_rel) < 0.1
+        return row
+    found = next(iter(d.effects[0].params.values())) if d.effects else float("nan")
+    rel, ab = TOLERANCE[name]
+    if name == "load_force":
+        ab *= truck.k_scale
+    row["found"] = found
+    row["name_hit"] = name in names
+    row["hit"] = bool(
+        names == [name]
+        and abs(found - value) <= max(rel * abs(value), ab)
+        and d.extended.fit_percent > d.baseline.fit_percent
+    )
+    return row
+
+
+def _run_drawn(p: Any, seeds: list[int]) -> list[dict[str, Any]]:
+    """Every effect once per seed, and clean logs twice per seed (other seeds)."""
+    jobs = [(name, s) for name in EFFECT_NAMES for s in seeds]
+    jobs += [("none", s + k) for s in seeds for k in (1, 2)]
+    rows = []
+    for name, s in jobs:
+        rows.append(_drawn(p, name, s))
+        r = rows[-1]
+        print(
+            f"  {name} seed {s} k={r['k_scale']:.3g} J={r['j_scale']:.3g}: "
+            f"{r['named']} hit={r['hit']} ({r['time_s']:.1f} s)",
+            file=sys.stderr,
+            flush=True,
+        )
+    return rows
 
 
 def _none(p: Any, seed: int) -> dict[str, Any]:
@@ -117,34 +198,46 @@ def main() -> int:
     ap.add_argument("--seeds", type=int, default=10, help="seeds per case")
     ap.add_argument("--json", metavar="FILE", help="write the results as JSON")
     ap.add_argument("--no-speed", action="store_true", help="skip the 60 000-sample run")
+    ap.add_argument(
+        "--trucks", choices=("default", "drawn"), default="default", help="which trucks"
+    )
     args = ap.parse_args()
     p = load_config().vehicle
+    load_before = os.getloadavg()
     seeds = [int(s) for s in np.random.SeedSequence(20261122).generate_state(args.seeds)]
     rows: list[dict[str, Any]] = []
-    for name in EFFECT_NAMES:
+    if args.trucks == "drawn":
+        rows = _run_drawn(p, seeds)
+        cases = [*EFFECT_NAMES, "none"]
+    else:
+        cases = [*EFFECT_NAMES, "none", "two", "unexplained"]
+        for name in EFFECT_NAMES:
+            for s in seeds:
+                rows.append(_one_effect(p, name, s))
+                print(
+                    f"  {name} seed {s}: {rows[-1]['named']} hit={rows[-1]['hit']}",
+                    file=sys.stderr,
+                    flush=True,
+                )
         for s in seeds:
-            rows.append(_one_effect(p, name, s))
+            rows.append(_none(p, s))
+            rows.append(_two(p, s))
+            rows.append(_wobble(p, s))
             print(
-                f"  {name} seed {s}: {rows[-1]['named']} hit={rows[-1]['hit']}",
+                f"  none/two/unexplained seed {s}: {[r['hit'] for r in rows[-3:]]}",
                 file=sys.stderr,
                 flush=True,
             )
-    for s in seeds:
-        rows.append(_none(p, s))
-        rows.append(_two(p, s))
-        rows.append(_wobble(p, s))
-        print(
-            f"  none/two/unexplained seed {s}: {[r['hit'] for r in rows[-3:]]}",
-            file=sys.stderr,
-            flush=True,
-        )
     table: dict[str, dict[str, float]] = {}
-    for case in [*EFFECT_NAMES, "none", "two", "unexplained"]:
+    for case in cases:
         rs = [r for r in rows if r["case"] == case]
         table[case] = {"runs": len(rs), "hit_rate": float(np.mean([r["hit"] for r in rs]))}
         if case in EFFECT_NAMES:
             table[case]["named_rate"] = float(np.mean([r["name_hit"] for r in rs]))
             table[case]["median_time_s"] = float(np.median([r["time_s"] for r in rs]))
+    false_per_100 = None
+    if args.trucks == "drawn":
+        false_per_100 = 100.0 * sum(r["false_causes"] for r in rows) / len(rows)
     speed: dict[str, float] = {}
     if not args.no_speed:
         log = plant_log(p, with_effect("sensor_lag", 0.06), seed=3, n=60000)
@@ -160,6 +253,8 @@ def main() -> int:
         named = f"{r['named_rate']:.2f}" if "named_rate" in r else ""
         med = f"{r['median_time_s']:.1f}" if "median_time_s" in r else ""
         print(f"{case:20s} {r['runs']:5d} {r['hit_rate']:9.2f} {named:>7s} {med:>9s}")
+    if false_per_100 is not None:
+        print(f"\nfalse causes per 100 logs: {false_per_100:.1f} ({len(rows)} logs)")
     if speed:
         print(
             f"\ndiagnose on {speed['samples']} samples (10 min at 100 Hz): {speed['seconds']:.1f} s"
@@ -168,12 +263,21 @@ def main() -> int:
         "platform": platform.platform(),
         "python": platform.python_version(),
         "cpus": os.cpu_count(),
+        "loadavg_before": load_before,
+        "loadavg_after": os.getloadavg(),
     }
     print(f"machine: {machine}")
     if args.json:
         with open(args.json, "w", encoding="utf-8") as fh:
             json.dump(
-                {"table": table, "speed": speed, "machine": machine, "runs": rows},
+                {
+                    "trucks": args.trucks,
+                    "table": table,
+                    "false_causes_per_100_logs": false_per_100,
+                    "speed": speed,
+                    "machine": machine,
+                    "runs": rows,
+                },
                 fh,
                 indent=1,
                 default=str,

@@ -124,12 +124,14 @@ def test_missing_speed_column_is_exit_2(tmp_path: Path, capsys: pytest.CaptureFi
     assert "bad.csv" in line and "'v'" in line
 
 
-def test_constant_input_is_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_log_that_determines_nothing_is_exit_2(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     t = np.arange(500) * 0.01
-    write_log(tmp_path / "flat.csv", {"t": t, "u": np.full_like(t, 2.0), "v": t * 0.1})
+    write_log(tmp_path / "flat.csv", {"t": t, "u": np.zeros_like(t), "v": t * 0.1})
     assert main(["identify", str(tmp_path / "flat.csv"), "--out", str(tmp_path / "m.yaml")]) == 2
     line = _one_line_error(capsys)
-    assert "flat.csv" in line and "constant" in line
+    assert "flat.csv" in line and "0 throughout" in line
     assert not (tmp_path / "m.yaml").exists()
 
 

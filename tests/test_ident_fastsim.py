@@ -138,3 +138,11 @@ def test_log_starting_mid_motion_under_a_delay(params: VehicleParams, with_curre
     pred = predict(params, eff, second)
     err = float(np.sqrt(np.mean((pred.v - ref.v[n:]) ** 2)))
     assert err < 5e-4, f"rms {err:.2e} m/s"
+
+
+def test_fast_simulator_refuses_effects_it_does_not_model(params: VehicleParams) -> None:
+    """Terrain (position-dependent load) is not modelled: refused, never silently ignored."""
+    t = np.arange(100) * 0.01
+    eff = Effects(load_force_amplitude=2.0, load_force_wavelength=5.0)
+    with pytest.raises(ValueError, match="load_force_amplitude"):
+        simulate_voltage(params, eff, t, np.full(100, 3.0))

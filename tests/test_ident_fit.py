@@ -66,22 +66,16 @@ def _log(**cols: np.ndarray) -> Log:
 
 
 def test_too_short_log_is_refused(params: VehicleParams) -> None:
-    t = np.arange(50) * 0.01
-    with pytest.raises(InputError, match=r"bad.csv: only 50 samples"):
+    t = np.arange(30) * 0.01
+    with pytest.raises(InputError, match=r"bad.csv: only 30 samples"):
         identify_log(_log(t=t, u=np.sin(t), v=np.sin(t)), params)
 
 
-def test_constant_input_is_refused(params: VehicleParams) -> None:
+def test_zero_input_is_refused(params: VehicleParams) -> None:
+    """Motion with 0 V throughout (pushed by hand) determines nothing of the drive."""
     t = np.arange(1000) * 0.01
-    with pytest.raises(InputError, match=r"bad.csv: column 'u' is constant"):
-        identify_log(_log(t=t, u=np.full_like(t, 3.0), v=np.linspace(0, 1, 1000)), params)
-
-
-def test_two_level_input_is_refused(params: VehicleParams) -> None:
-    t = np.arange(1000) * 0.01
-    u = np.where(t < 5, 0.0, 3.0)
-    with pytest.raises(InputError, match=r"only 2 values"):
-        identify_log(_log(t=t, u=u, v=np.linspace(0, 1, 1000)), params)
+    with pytest.raises(InputError, match=r"bad.csv: column 'u' is 0 throughout"):
+        identify_log(_log(t=t, u=np.zeros_like(t), v=np.linspace(0, 1, 1000)), params)
 
 
 def test_no_motion_is_refused(params: VehicleParams) -> None:

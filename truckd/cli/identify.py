@@ -1,4 +1,5 @@
-"""``truckd identify LOG.csv [--config FILE] --out MODEL.yaml``: fit the seed model."""
+"""``truckd identify LOG.csv [LOG.csv ...] [--gap S] [--config FILE] --out MODEL.yaml``:
+fit the seed model to one or more logs (CSV, or WPILib SysId ``.json``)."""
 
 from __future__ import annotations
 
@@ -6,22 +7,44 @@ import argparse
 import sys
 from typing import Any
 
-from truckd.cli.args import model_file, report_notes, volts
+from truckd.cli.args import model_file, report_notes, seconds, volts
 from truckd.config.truck import load_config
-from truckd.ident.api import identify_log
-from truckd.logfile import read_log
+from truckd.errors import InputError
+from truckd.ident.api import identify_log, read_logs
 from truckd.modelfile import write_model
 
 
 def add_subparser(sub: Any) -> None:
-    p = sub.add_parser("identify", help="fit the seed model to a measured log")
-    p.add_argument("log", metavar="LOG.csv", help="log with columns t, u, v (optional i)")
+    p = sub.add_parser("identify", help="fit the seed model to measured logs")
+    p.add_argument(
+        "logs",
+        nargs="+",
+        metavar="LOG.csv",
+        help="logs with columns t, u, v (optional i), or SysId FILE.json[:test,...]",
+    )
     p.add_argument("--config", help="configuration file (starting values and bounds)")
     p.add_argument(
         "--out", required=True, type=model_file, metavar="MODEL.yaml", help="model file to write"
     )
     p.add_argument("--vbat", type=volts, metavar="V", help="supply voltage for a 'duty' log")
+    add_gap_option(p)
     p.set_defaults(run=run)
+
+
+def add_gap_option(p: Any) -> None:
+    """``--gap S``: a time step longer than S seconds splits a log into runs."""
+    p.add_argument(
+        "--gap",
+        type=seconds(0.0, 86400.0),
+        metavar="S",
+        help="a time step above S seconds is a pause between runs (default: 10 median steps)",
+    )
+
+
+def check_gap(gap: float | None) -> None:
+    """Exit-2 error for a non-positive ``--gap``."""
+    if gap is not None and not gap > 0.0:
+        raise InputError(f"--gap: {gap!r}; expected a positive number of seconds")
 
 
 def _progress(msg: str) -> None:
@@ -29,15 +52,22 @@ def _progress(msg: str) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    check_gap(args.gap)
     cfg = load_config(args.config)
-    log = read_log(args.log, vbat=args.vbat)
-    report_notes(log.notes)
-    model = identify_log(log, cfg.vehicle, _progress)
+    logs = read_logs(args.logs, args.vbat)
+    report_notes([n for lg in logs for n in lg.notes])
+    model = identify_log(logs, cfg.vehicle, _progress, args.gap)
     write_model(args.out, model)
     v = model.vehicle
+    from truckd.ident.linear import feedforward_of
+
+    ff = feedforward_of(v)
     print(
-        f"identified {args.log}: K_v={v.K_v:.5g} V s/rad, J_S={v.J_S:.4g} kg m^2, "
+        f"identified {' '.join(args.logs)}: K_v={v.K_v:.5g} V s/rad, J_S={v.J_S:.4g} kg m^2, "
         f"K_coulomb={v.K_coulomb:.4g} N m, K_stiction={v.K_stiction:.4g} N m, "
         f"R_m={v.R_m:.4g} ohm -> {args.out}"
+    )
+    print(
+        f"feedforward (SysId form): kS={ff.kS:.4g} V, kV={ff.kV:.4g} V s/m, kA={ff.kA:.4g} V s^2/m"
     )
     return 0

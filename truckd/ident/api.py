@@ -1,11 +1,11 @@
-"""Entry points the CLI calls: identify and diagnose a log, build the model file."""
+"""Entry points the CLI calls: identify and diagnose logs, build the model file."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 from truckd.errors import InputError
-from truckd.ident.data import series_from_log
+from truckd.ident.data import runs_from_logs, series_from_log
 from truckd.ident.diagnose import diagnose_voltage, identify_voltage
 from truckd.ident.force import diagnose_force
 from truckd.ident.result import Diagnosis
@@ -19,38 +19,74 @@ def _quiet(_: str) -> None:
     return None
 
 
+def _as_list(logs: Log | Sequence[Log]) -> list[Log]:
+    return [logs] if isinstance(logs, Log) else list(logs)
+
+
+def read_logs(paths: Sequence[str], vbat: float | None = None) -> list[Log]:
+    """Logs from CSV files and WPILib SysId ``.json`` files (one log per SysId test);
+    ``vbat`` (V) is the supply for a CSV's ``duty`` column (the ``--vbat`` option)."""
+    from truckd.ident.sysid import is_sysid_path, read_sysid
+    from truckd.logfile import read_log
+
+    out: list[Log] = []
+    for path in paths:
+        out.extend(read_sysid(path) if is_sysid_path(path) else [read_log(path, vbat=vbat)])
+    return out
+
+
 def diagnose_log(
-    log: Log,
+    log: Log | Sequence[Log],
     p0: VehicleParams,
-    validate: Log | None = None,
+    validate: Log | Sequence[Log] | None = None,
     progress: Callable[[str], None] = _quiet,
+    gap: float | None = None,
 ) -> Diagnosis:
-    """Diagnose a log (voltage or force input) against the configured vehicle ``p0``."""
-    data = series_from_log(log)
-    val = None
-    if validate is not None:
-        if validate.input_kind != log.input_kind:
+    """Diagnose logs (voltage or force input) against the configured vehicle ``p0``.
+
+    Several logs, and the pauses inside one (time steps above ``gap`` s, default 10
+    median steps), are separate runs, each simulated from its own measured start.
+    """
+    logs = _as_list(log)
+    vals = [] if validate is None else _as_list(validate)
+    kind = logs[0].input_kind if logs else "voltage"
+    for v in vals:
+        if v.input_kind != kind:
             raise InputError(
-                f"{validate.source}: line 1: a {validate.input_kind}-input log cannot validate "
-                f"a {log.input_kind}-input log ({log.source})"
+                f"{v.source}: line 1: a {v.input_kind}-input log cannot validate "
+                f"a {kind}-input log ({logs[0].source})"
             )
-        val = series_from_log(validate)
-    if log.input_kind == "force":
+    if kind == "force":
+        if len(logs) > 1 or len(vals) > 1:
+            raise InputError(
+                f"{logs[-1].source}: force-input diagnosis takes one log (and one "
+                "validation log); join the runs into one file"
+            )
+        data = series_from_log(logs[0])
+        val = series_from_log(vals[0]) if vals else None
         return diagnose_force(data, val, progress)
-    return diagnose_voltage(p0, data, val, progress)
+    runs = runs_from_logs(logs, gap)
+    val_runs = runs_from_logs(vals, gap) if vals else None
+    return diagnose_voltage(p0, runs, val_runs, progress)
 
 
 def identify_log(
-    log: Log, p0: VehicleParams, progress: Callable[[str], None] = _quiet
+    log: Log | Sequence[Log],
+    p0: VehicleParams,
+    progress: Callable[[str], None] = _quiet,
+    gap: float | None = None,
 ) -> ModelFile:
-    """The seed model fitted to a voltage-input log, as a model file."""
-    if log.input_kind != "voltage":
-        raise InputError(
-            f"{log.source}: line 1: identify fits the truck's voltage-driven model and needs "
-            "column 'u'; for a force-input log use 'truckd diagnose'"
-        )
-    fit = identify_voltage(p0, series_from_log(log), progress)
-    return ModelFile(vehicle=fit.params, effects=Effects(), source=f"identify {log.source}")
+    """The seed model fitted to voltage-input logs (all their runs), as a model file."""
+    logs = _as_list(log)
+    for one in logs:
+        if one.input_kind != "voltage":
+            raise InputError(
+                f"{one.source}: line 1: identify fits the truck's voltage-driven model and "
+                "needs column 'u'; for a force-input log use 'truckd diagnose'"
+            )
+    fit = identify_voltage(p0, runs_from_logs(logs, gap), progress)
+    names = " ".join(one.source for one in logs)
+    return ModelFile(vehicle=fit.params, effects=Effects(), source=f"identify {names}")
 
 
 def model_of(diag: Diagnosis, source: str) -> ModelFile:

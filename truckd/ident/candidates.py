@@ -17,6 +17,10 @@ from truckd.ident.data import Series
 from truckd.ident.voltage import Param
 from truckd.model.params import VehicleParams
 
+MAX_LEVELS = 120
+"""Most command levels a threshold (dead zone) is located between; a log whose input
+varies continuously (ramps, a sine) would otherwise give one grid point per sample."""
+
 
 @dataclass(frozen=True)
 class Candidate:
@@ -41,6 +45,8 @@ def voltage_candidates(p0: VehicleParams, data: Series) -> list[Candidate]:
     h = float(np.median(np.diff(data.t)))
     levels = np.unique(np.round(u_abs[u_abs > 0], 6))
     levels = levels[levels < 0.8 * u_max]
+    if len(levels) > MAX_LEVELS:  # a continuously varying input: quantiles stand in
+        levels = np.unique(np.quantile(levels, np.linspace(0.0, 1.0, MAX_LEVELS)))
     mids = tuple(float(x) for x in 0.5 * (levels[1:] + levels[:-1]))
     sat_hi = min(u_max, p0.V_batt)
     out = [

@@ -7,6 +7,9 @@ short, constant input, no motion) raises :class:`truckd.errors.InputError` namin
 
 from __future__ import annotations
 
+import dataclasses
+import itertools
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -20,8 +23,8 @@ Array = NDArray[np.float64]
 HISTORY_S = 0.6
 """Seconds of inputs kept before a chunk: covers the largest input delay fitted."""
 
-MIN_SAMPLES = 200
-"""Fewer samples than this cannot determine the seed model's parameters."""
+MIN_SAMPLES = 50
+"""Fewer samples (over all runs) than this cannot determine the seed model's parameters."""
 
 
 @dataclass(frozen=True)
@@ -72,8 +75,21 @@ def speed_from_position(t: Array, x: Array) -> Array:
     return np.asarray(np.gradient(xf, t), float)
 
 
+GAP_FACTOR = 10.0
+"""A time step more than this many median steps long is a pause: the log splits there."""
+
+MIN_RUN = 10
+"""Runs shorter than this (samples) between pauses are dropped (nothing to simulate)."""
+
+
 def series_from_log(log: Log) -> Series:
-    """The log's input/output columns as a :class:`Series`, checked for a fit."""
+    """The log's input/output columns as one :class:`Series`, checked for a fit."""
+    s = _series(log)
+    check_excitation([s], log.source, log.input_kind)
+    return s
+
+
+def _series(log: Log) -> Series:
     require_io(log)
     t = log["t"]
     if log.input_kind == "voltage":
@@ -82,44 +98,128 @@ def series_from_log(log: Log) -> Series:
     else:
         inp = log["F"]
         v = log["v"] if "v" in log else speed_from_position(t, log["x"])
-    s = Series(
-        t=t,
-        inp=inp,
-        v=v,
-        i=log.columns.get("i"),
-        x=log.columns.get("x"),
+    return Series(t=t, inp=inp, v=v, i=log.columns.get("i"), x=log.columns.get("x"))
+
+
+def gap_threshold(t: Array, gap: float | None = None) -> float:
+    """Time step (s) above which a log is split: ``gap``, else ``GAP_FACTOR`` median steps."""
+    if gap is not None:
+        return float(gap)
+    if len(t) < 2:
+        return float("inf")
+    return GAP_FACTOR * float(np.median(np.diff(t)))
+
+
+def split_runs(s: Series, gap: float | None = None) -> list[Series]:
+    """``s`` cut at its pauses (time steps above :func:`gap_threshold`) into runs.
+
+    Each run is simulated from its own measured start (no history crosses a pause).
+    Runs shorter than :data:`MIN_RUN` samples are dropped.
+    """
+    thr = gap_threshold(s.t, gap)
+    cuts = np.flatnonzero(np.diff(s.t) > thr) + 1
+    edges = [0, *(int(c) for c in cuts), len(s)]
+    out = []
+    for lo, hi in itertools.pairwise(edges):
+        if hi - lo >= MIN_RUN:
+            out.append(
+                Series(
+                    t=s.t[lo:hi],
+                    inp=s.inp[lo:hi],
+                    v=s.v[lo:hi],
+                    i=None if s.i is None else s.i[lo:hi],
+                    x=None if s.x is None else s.x[lo:hi],
+                )
+            )
+    return out
+
+
+def runs_from_logs(logs: Sequence[Log], gap: float | None = None) -> list[Series]:
+    """All runs of several logs (one experiment each, split at pauses), checked together.
+
+    Raises :class:`InputError` when the logs mix input kinds, disagree on the current
+    column, or together cannot determine anything.
+    """
+    if not logs:
+        raise InputError("no log given")
+    kind = logs[0].input_kind
+    runs: list[Series] = []
+    for log in logs:
+        if log.input_kind != kind:
+            raise InputError(
+                f"{log.source}: line 1: a {log.input_kind}-input log cannot be used with a "
+                f"{kind}-input log ({logs[0].source})"
+            )
+        s = _series(log)
+        got = split_runs(s, gap)
+        if not got:
+            raise InputError(
+                f"{log.source}: no stretch of {MIN_RUN} samples without a pause "
+                f"(pause = time step above {gap_threshold(s.t, gap):.4g} s; see --gap)"
+            )
+        runs.extend(got)
+    if len({r.i is None for r in runs}) > 1:
+        runs = [dataclasses.replace(r, i=None) for r in runs]
+    check_excitation(runs, ", ".join(log.source for log in logs), kind)
+    return runs
+
+
+def merged(runs: Sequence[Series]) -> Series:
+    """Runs end to end (times shifted to follow each other) for statistics and plots.
+
+    Never simulated as one: the joins are not continuous.
+    """
+    if len(runs) == 1:
+        return runs[0]
+    ts = []
+    off = 0.0
+    for r in runs:
+        h = float(np.median(np.diff(r.t))) if len(r) > 1 else 0.01
+        ts.append(r.t - r.t[0] + off)
+        off = float(ts[-1][-1]) + h
+    has_i = all(r.i is not None for r in runs)
+    has_x = all(r.x is not None for r in runs)
+    return Series(
+        t=np.concatenate(ts),
+        inp=np.concatenate([r.inp for r in runs]),
+        v=np.concatenate([r.v for r in runs]),
+        i=np.concatenate([r.i for r in runs if r.i is not None]) if has_i else None,
+        x=np.concatenate([r.x for r in runs if r.x is not None]) if has_x else None,
     )
-    check_excitation(s, log.source, log.input_kind)
-    return s
 
 
-def check_excitation(s: Series, source: str, kind: str) -> None:
-    """Raise :class:`InputError` when the data cannot support a fit."""
+def check_excitation(runs: Sequence[Series], source: str, kind: str) -> None:
+    """Raise :class:`InputError` when the runs together determine nothing.
+
+    Every common experiment passes: a single step (from rest or between two levels),
+    ramps, random levels, manual driving.  Refused: too few samples, non-finite values,
+    no motion beyond the noise.
+    """
+    n = sum(len(r) for r in runs)
+    if n < MIN_SAMPLES:
+        raise InputError(
+            f"{source}: only {n} samples; a fit needs at least {MIN_SAMPLES} "
+            "(a step, a ramp or a few seconds of varied input)"
+        )
     name = "u" if kind == "voltage" else "F"
-    if len(s) < MIN_SAMPLES:
+    for r in runs:
+        if not np.all(np.isfinite(r.v)):
+            raise InputError(f"{source}: speed is not finite everywhere")
+        if not np.all(np.isfinite(r.inp)):
+            raise InputError(f"{source}: column '{name}' is not finite everywhere")
+    v = np.concatenate([r.v for r in runs])
+    noise = float(np.mean([noise_std(r.v) for r in runs]))
+    if float(np.max(np.abs(v))) <= max(5.0 * noise, 1e-6) or float(np.ptp(v)) < 1e-6:
         raise InputError(
-            f"{source}: only {len(s)} samples; a fit needs at least {MIN_SAMPLES} "
-            "(several seconds of varied input)"
+            f"{source}: column 'v' never changes beyond its noise: the log shows no motion "
+            "to fit (no excitation)"
         )
-    span = float(np.ptp(s.inp))
-    if span <= 1e-9 * max(1.0, float(np.max(np.abs(s.inp)))):
+    inp = np.concatenate([r.inp for r in runs])
+    if not np.any(inp != 0.0):
         raise InputError(
-            f"{source}: column '{name}' is constant ({float(s.inp[0])!r}); a fit needs an "
-            "input that varies (steps, ramps or random levels)"
+            f"{source}: column '{name}' is 0 throughout: nothing drives the truck, so no "
+            "parameter of the drive can be determined"
         )
-    levels = np.unique(np.round(s.inp, 9))
-    if len(levels) < 3:
-        raise InputError(
-            f"{source}: column '{name}' takes only {len(levels)} values; a fit needs at "
-            "least 3 different input levels"
-        )
-    vmax = float(np.max(np.abs(s.v)))
-    if vmax <= 0.0 or float(np.ptp(s.v)) < 1e-6:
-        raise InputError(
-            f"{source}: column 'v' never changes: the log shows no motion to fit (no excitation)"
-        )
-    if not np.all(np.isfinite(s.v)):
-        raise InputError(f"{source}: speed is not finite everywhere")
 
 
 def noise_std(y: Array) -> float:
@@ -155,3 +255,36 @@ def chunks(s: Series, budget: int, pieces: int = 4) -> list[Series]:
     size = budget // pieces
     starts = np.linspace(0, n - size, pieces).astype(int)
     return [s.slice(int(a), int(a) + size) for a in starts]
+
+
+def chunks_of_runs(runs: Sequence[Series], budget: int, pieces: int = 4) -> list[Series]:
+    """At most ``budget`` samples over all runs, shared in proportion to their lengths.
+
+    Each run gets at least one chunk; each chunk starts from its own measured state.
+    """
+    n = sum(len(r) for r in runs)
+    if n <= budget:
+        return list(runs)
+    out: list[Series] = []
+    for r in runs:
+        share = max(int(budget * len(r) / n), min(len(r), 50))
+        k = max(1, min(pieces, round(pieces * len(runs) * len(r) / n)))
+        out.extend(chunks(r, share, k))
+    return out
+
+
+def split_runs_for_validation(
+    runs: Sequence[Series], fraction: float = 0.7
+) -> tuple[list[Series], list[Series]]:
+    """Estimation and validation runs when no validation log is given.
+
+    Several runs: every run is cut at ``fraction`` (the validation part starts from its
+    measured state, with its history), so both sides see every experiment.
+    """
+    est, val = [], []
+    for r in runs:
+        a, b = split(r, fraction)
+        est.append(a)
+        if len(b) >= MIN_RUN:
+            val.append(b)
+    return est, val or est

@@ -22,9 +22,25 @@ from dataclasses import dataclass
 import numpy as np
 
 from truckd.ident.candidates import Candidate, voltage_candidates
-from truckd.ident.data import Series, chunks, noise_std, split
-from truckd.ident.residuals import whiteness
-from truckd.ident.result import CandidateRow, Diagnosis, Finding, ModelSummary, Traces
+from truckd.ident.data import (
+    Series,
+    chunks_of_runs,
+    merged,
+    noise_std,
+    split_runs_for_validation,
+)
+from truckd.ident.linear import Feedforward, feedforward_of, start_model
+from truckd.ident.physics import effect_problem, effects_problems, vehicle_problems
+from truckd.ident.residuals import Whiteness, whiteness
+from truckd.ident.result import (
+    CandidateRow,
+    Diagnosis,
+    Finding,
+    ModelSummary,
+    Rejected,
+    Traces,
+)
+from truckd.ident.selection import close, delta_bic, passes, structured, white
 from truckd.ident.voltage import (
     FitResult,
     Param,
@@ -49,21 +65,10 @@ FIT_BUDGET = 4000
 """Samples of the estimation data used in the fitting loop (spread over chunks)."""
 FINAL_BUDGET = 8000
 """Samples used by the final joint refit of the extended model."""
+FINAL_NFEV = 80
+"""Evaluations of the final joint refit (R_m and battery sag correlate: they need room)."""
 VAL_BUDGET = 12000
 """Samples of the validation data used to select candidates."""
-BIC_MIN = 10.0
-"""Decrease of the information criterion a candidate must bring (strong evidence)."""
-REL_MIN = 0.05
-"""Relative decrease of the validation cost a candidate must bring."""
-AMBIGUOUS = 0.05
-"""Two candidates whose validation costs alone differ by less than this fraction (the
-cost is in units of the noise variance, so this compares what each leaves unexplained
-plus the noise), and that do not combine, are ambiguous."""
-ACF_MAX = 0.2
-"""Residual is called structured when more than this fraction of lags is outside the band."""
-STRUCT_MIN = 0.5
-"""... and its RMS beyond the noise exceeds this multiple of the noise level."""
-
 MAX_EXTRA_ROUNDS = 2
 """Rounds of trying the remaining candidates on top of the accepted ones."""
 
@@ -81,29 +86,55 @@ def _quiet(_: str) -> None:
     return None
 
 
-def identify_voltage(p0: VehicleParams, data: Series, progress: Progress = _quiet) -> FitResult:
-    """Seed model fitted to a whole voltage-input log (no effects)."""
-    fit_data = chunks(data, FIT_BUDGET)
+def identify_voltage(
+    p0: VehicleParams, runs: Sequence[Series], progress: Progress = _quiet
+) -> FitResult:
+    """Seed model fitted to all runs of voltage-input logs (no effects)."""
+    whole = merged(runs)
+    fit_data = chunks_of_runs(runs, FIT_BUDGET)
     w = weights_for(fit_data)
-    free = seed_params(p0, data.i is not None)
-    grid = stiction_grid(p0, data)
-    return _restick(_fit_seed(p0, free, fit_data, w, grid, progress), grid, [data], w)
+    p_lin, _ = _linear_start(p0, runs, progress)
+    free = seed_params(p_lin, whole.i is not None)
+    grid = stiction_grid(p0, whole)
+    best = _fit_seed(p0, p_lin, free, fit_data, w, grid, progress)
+    return _restick(best, grid, list(runs), w)
+
+
+def _linear_start(
+    p0: VehicleParams, runs: Sequence[Series], progress: Progress
+) -> tuple[VehicleParams, Feedforward | None]:
+    p_lin, ff = start_model(p0, runs)
+    if ff is None:
+        progress("linear estimate: too few sliding samples; starting from the configuration")
+    else:
+        progress(
+            f"linear estimate (SysId form): kS={ff.kS:.4g} V, kV={ff.kV:.4g} V s/m, "
+            f"kA={ff.kA:.4g} V s^2/m -> K_v={p_lin.K_v:.4g}, J_S={p_lin.J_S:.4g}, "
+            f"K_coulomb={p_lin.K_coulomb:.4g}"
+        )
+    return p_lin, ff
 
 
 def _fit_seed(
     p0: VehicleParams,
+    p_lin: VehicleParams,
     free: list[Param],
     fit_data: list[Series],
     w: Weights,
     grid: Sequence[float],
     progress: Progress,
 ) -> FitResult:
+    """Simulation-error refinement from the linear start ``p_lin`` (and from the
+    configuration ``p0``, a second start); the best of the refined models and the
+    unrefined linear start (the refinement must beat where it started)."""
     progress("fitting the seed model (motor, inertia, Coulomb, stiction)")
-    first = fit_with_stiction(p0, Effects(), free, fit_data, w, grid, progress, max_nfev=80)
-    # A second start from elsewhere guards against a local minimum.
-    alt = p0.replace(J_S=p0.J_S * 2.0, K_coulomb=p0.K_coulomb * 0.5, K_stiction=p0.K_coulomb * 0.5)
+    r = residuals(p_lin, Effects(), fit_data, w)
+    start = FitResult(p_lin, Effects(), float(r @ r), len(r), 0)
+    first = fit_with_stiction(p_lin, Effects(), free, fit_data, w, grid, progress, max_nfev=80)
+    alt = p0 if p0 != p_lin else p0.replace(J_S=p0.J_S * 2.0, K_coulomb=p0.K_coulomb * 0.5)
+    alt = alt.replace(K_stiction=max(alt.K_stiction, alt.K_coulomb))
     second = fit_with_stiction(alt, Effects(), free, fit_data, w, grid, progress, max_nfev=80)
-    return first if first.sse <= second.sse else second
+    return min((first, second, start), key=lambda m: m.sse)
 
 
 def _restick(m: FitResult, grid: Sequence[float], data: list[Series], w: Weights) -> FitResult:
@@ -118,8 +149,7 @@ def _val_cost(m: FitResult, val: Sequence[Series], w: Weights) -> float:
 
 
 def _delta_bic(new: FitResult, old: FitResult, extra: int) -> float:
-    n = old.n
-    return n * float(np.log(max(new.sse, 1e-300) / max(old.sse, 1e-300))) + extra * float(np.log(n))
+    return delta_bic(new.sse, old.sse, old.n, extra)
 
 
 def _fit_candidate(
@@ -151,6 +181,16 @@ def _fit_candidate(
         out = fit_with_stiction(first.params, e1, free, fit_data, w, grid, progress)
         if val_data is not None:
             out = _settle_tie(out, name, cand.grid, fit_data, val_data, w)
+    if name == "sensor_lag" and base.effects.sensor_lag == 0.0:
+        # A lag in the speed sensor looks like inertia: the seed fit (and the linear
+        # start) put the lag into J_S.  Second start: most of that time constant as lag.
+        p = base.params
+        tau = p.J_S * p.R_m / (p.K_T * p.K_v)
+        j_lo = min(f.lo for f in seed_free if f.name == "J_S")
+        alt = p.replace(J_S=max(0.05 * p.J_S, 1.01 * j_lo))
+        e_alt = dataclasses.replace(base.effects, sensor_lag=0.95 * tau)
+        second = fit_with_stiction(alt, e_alt, [*free, cand.param], fit_data, w, grid, progress)
+        out = second if second.sse < out.sse else out
     # Never worse than without the candidate (a local minimum): then it is simply off.
     return out if out.sse <= base.sse else base
 
@@ -184,20 +224,32 @@ def _settle_tie(
     return dataclasses.replace(m, effects=eff, sse=costs[best])
 
 
-def _structured(m: FitResult, s: Series) -> bool:
-    """The free-run speed residual of ``m`` on ``s`` has structure beyond the noise."""
-    pred = predict(m.params, m.effects, s)
-    r = s.v - pred.v
-    noise = noise_std(s.v)
-    h = float(np.median(np.diff(s.t)))
-    wt = whiteness(r, s.inp, noise, max_lag=max(10, round(1.0 / h)))
-    floor = max(STRUCT_MIN * noise, 2e-3 * float(np.std(s.v)))
-    return wt.acf_outside > ACF_MAX and wt.structure > floor
+def _structured(m: FitResult, runs: Sequence[Series]) -> bool:
+    """The free-run speed residual of ``m`` on ``runs`` has structure beyond the noise."""
+    y, y_sim = _free_run(m.params, m.effects, runs)
+    return _whiteness_of(y - y_sim, runs)[1]
+
+
+def _free_run(
+    p: VehicleParams, e: Effects, runs: Sequence[Series]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Measured and simulated speed of every run (each from its own start), end to end."""
+    sims = [predict(p, e, r).v for r in runs]
+    return np.concatenate([r.v for r in runs]), np.concatenate(sims)
+
+
+def _whiteness_of(r: np.ndarray, runs: Sequence[Series]) -> tuple[Whiteness, bool]:
+    """Whiteness statistics of a residual over ``runs`` and whether it is structured."""
+    whole = merged(runs)
+    noise = float(np.mean([noise_std(x.v) for x in runs]))
+    h = float(np.median(np.diff(whole.t)))
+    wt = whiteness(r, whole.inp, noise, max_lag=max(10, round(1.0 / h)))
+    return wt, structured(wt, noise, 2e-3 * float(np.std(whole.v)))
 
 
 def _close(a: float, b: float) -> bool:
-    """Two validation costs the data cannot tell apart (see :data:`AMBIGUOUS`)."""
-    return abs(a - b) < max(2.0 * BIC_MIN, AMBIGUOUS * min(a, b))
+    """Two validation costs the data cannot tell apart (:func:`selection.close`)."""
+    return close(a, b)
 
 
 def _rival(
@@ -233,36 +285,58 @@ def _rival(
 
 def _passes(new: _Model, old: _Model, extra: int) -> tuple[bool, float]:
     dbic = _delta_bic(new.fit, old.fit, extra)
-    ok = dbic < -BIC_MIN and new.val_cost < (1.0 - REL_MIN) * old.val_cost
+    ok = passes(dbic, new.val_cost, old.val_cost)
     return ok, dbic
 
 
-def _summary(p: VehicleParams, e: Effects, report: Series) -> tuple[ModelSummary, np.ndarray]:
-    pred = predict(p, e, report)
+def _summary(
+    p: VehicleParams, e: Effects, runs: Sequence[Series]
+) -> tuple[ModelSummary, np.ndarray]:
+    y, y_sim = _free_run(p, e, runs)
     params = {n: float(getattr(p, n)) for n in SEED_NAMES}
     for n in e.active():
         params[n] = float(getattr(e, n))
-    return ModelSummary(fit_percent(report.v, pred.v), rmse(report.v, pred.v), params), pred.v
+    ff = feedforward_of(p).to_json()
+    return ModelSummary(fit_percent(y, y_sim), rmse(y, y_sim), params, feedforward=ff), y_sim
 
 
 def diagnose_voltage(
     p0: VehicleParams,
-    data: Series,
-    validate: Series | None = None,
+    runs: Sequence[Series],
+    validate: Sequence[Series] | None = None,
     progress: Progress = _quiet,
 ) -> Diagnosis:
-    """Diagnose a voltage-input log (see module docstring)."""
-    est, val = (data, validate) if validate is not None else split(data)
-    report = validate if validate is not None else data
-    fit_data = chunks(est, FIT_BUDGET)
-    val_data = chunks(val, VAL_BUDGET)
+    """Diagnose voltage-input runs (see module docstring); ``validate`` runs when given."""
+    if validate:
+        est, val = list(runs), list(validate)
+    else:
+        est, val = split_runs_for_validation(runs)
+    report = list(validate) if validate else list(runs)
+    whole = merged(runs)
+    fit_data = chunks_of_runs(est, FIT_BUDGET)
+    val_data = chunks_of_runs(val, VAL_BUDGET)
     w = weights_for(fit_data)
-    seed_free = seed_params(p0, data.i is not None)
-    grid = stiction_grid(p0, data)
-    base_fit = _fit_seed(p0, seed_free, fit_data, w, grid, progress)
+    p_lin, ff = _linear_start(p0, est, progress)
+    seed_free = seed_params(p_lin, whole.i is not None)
+    grid = stiction_grid(p0, whole)
+    base_fit = _fit_seed(p0, p_lin, seed_free, fit_data, w, grid, progress)
     base = _Model(base_fit, (), _val_cost(base_fit, val_data, w))
+    rejected: list[Rejected] = []
 
-    cands = voltage_candidates(p0, data)
+    def possible(m: FitResult, names: Sequence[str]) -> bool:
+        """Every effect of ``m`` physically possible; else recorded as rejected."""
+        ok = True
+        for n in names:
+            pn = by_name[n].param.name
+            why = effect_problem(n, float(getattr(m.effects, pn)), m.params, runs)
+            if why is not None:
+                ok = False
+                if all(r.reason != why for r in rejected):
+                    rejected.append(Rejected(n, {pn: float(getattr(m.effects, pn))}, why))
+        return ok
+
+    cands = voltage_candidates(base_fit.params, whole)
+    by_name = {c.name: c for c in cands}
     tried: dict[str, _Model] = {}
     rows: dict[str, CandidateRow] = {}
     base_fit_pct = _summary(base_fit.params, base_fit.effects, val)[0].fit_percent
@@ -271,6 +345,10 @@ def diagnose_voltage(
         f = _fit_candidate(base_fit, seed_free, [], cand, fit_data, w, grid, progress, val_data)
         m = _Model(f, (cand.name,), _val_cost(f, val_data, w))
         ok, dbic = _passes(m, base, 1)
+        note = "passes alone" if ok else ""
+        if ok and not possible(f, [cand.name]):
+            ok = False
+            note = f"physically impossible: {rejected[-1].reason}"
         tried[cand.name] = m
         fp = _summary(f.params, f.effects, val)[0].fit_percent
         rows[cand.name] = CandidateRow(
@@ -281,12 +359,11 @@ def diagnose_voltage(
             cost_ratio=m.val_cost / base.val_cost if base.val_cost > 0 else 1.0,
             delta_bic=dbic,
             accepted=False,
-            note="passes alone" if ok else "",
+            note=note,
         )
     passing = sorted(
         (n for n, r in rows.items() if r.note == "passes alone"), key=lambda n: tried[n].val_cost
     )
-    by_name = {c.name: c for c in cands}
     current = base
     accepted: list[str] = []
     ambiguous: list[tuple[str, str]] = []
@@ -302,7 +379,7 @@ def diagnose_voltage(
             )
             new = _Model(f, (*current.names, name), _val_cost(f, val_data, w))
         ok, _ = _passes(new, current, 1)
-        if ok:
+        if ok and possible(new.fit, [*accepted, name]):
             accepted.append(name)
             current = new
             rows[name] = dataclasses.replace(rows[name], accepted=True, note="accepted")
@@ -341,7 +418,11 @@ def diagnose_voltage(
                 current.fit, seed_free, extra, cand, fit_data, w, grid, progress, val_data
             )
             new = _Model(f, (*current.names, cand.name), _val_cost(f, val_data, w))
-            if _passes(new, current, 1)[0] and (best is None or new.val_cost < best.val_cost):
+            if (
+                _passes(new, current, 1)[0]
+                and possible(new.fit, new.names)
+                and (best is None or new.val_cost < best.val_cost)
+            ):
                 best = new
         if best is None:
             break
@@ -373,10 +454,9 @@ def diagnose_voltage(
 
     # Final joint refit of the extended model on more of the data; stiction shows only
     # at the breakaways, which chunks may miss: a last look at it on all the data.
-    whole = est if validate is not None else data  # selection done: use all the data
-    polish_data = chunks(whole, FINAL_BUDGET, pieces=8)
-    full = [whole]
-    base_pol = _restick(base_fit, grid, full, w)
+    fit_runs = est if validate else list(runs)  # selection done: use all the data
+    polish_data = chunks_of_runs(fit_runs, FINAL_BUDGET, pieces=8)
+    base_pol = _restick(base_fit, grid, fit_runs, w)
     final = base_pol
     if accepted:
         progress("final joint refit on more data")
@@ -389,43 +469,48 @@ def diagnose_voltage(
             weights_for(polish_data),
             grid,
             progress,
-            max_nfev=30,
+            max_nfev=FINAL_NFEV,
         )
-        final = _restick(final, grid, full, w)
-    # The k-th step: the final model with only the first k effects switched on.
-    models = [base_pol]
-    for k in range(1, len(accepted) + 1):
-        later = {by_name[a].param.name: 0.0 for a in accepted[k:]}
-        models.append(
-            dataclasses.replace(final, effects=dataclasses.replace(final.effects, **later))
-        )
+        final = _restick(final, grid, fit_runs, w)
+        if effects_problems(final.effects, final.params, runs):
+            final = _restick(current.fit, grid, fit_runs, w)  # the refit left the limits
     base_sum, y_base = _summary(base_pol.params, base_pol.effects, report)
+    # Never worse: each accepted cause must raise the report fit; one that does not is
+    # switched off (a cause that lowers the validation fit is no cause).
     findings: list[Finding] = []
-    prev = base_sum.fit_percent
-    y_ext = y_base
-    ext_sum = base_sum
-    for name, model in zip(accepted, models[1:], strict=True):
-        ext_sum, y_ext = _summary(model.params, model.effects, report)
+    y_ext, ext_sum = y_base, base_sum
+    kept: list[str] = []
+    for name in accepted:
         param = by_name[name].param.name
+        later = {by_name[a].param.name: 0.0 for a in accepted if a not in (*kept, name)}
+        trial = dataclasses.replace(final.effects, **later)
+        s_k, y_k = _summary(final.params, trial, report)
+        if s_k.fit_percent <= ext_sum.fit_percent:
+            progress(f"{name} does not raise the report fit: not accepted")
+            rows[name] = dataclasses.replace(
+                rows[name], accepted=False, note="lowers the report fit: not accepted"
+            )
+            continue
         findings.append(
             Finding(
                 name=name,
                 params={param: float(getattr(final.effects, param))},
-                fit_percent=ext_sum.fit_percent,
-                fit_gain_percent=ext_sum.fit_percent - prev,
+                fit_percent=s_k.fit_percent,
+                fit_gain_percent=s_k.fit_percent - ext_sum.fit_percent,
             )
         )
-        prev = ext_sum.fit_percent
-    r = report.v - y_ext
-    noise = noise_std(report.v)
-    h = float(np.median(np.diff(report.t)))
-    wt = whiteness(r, report.inp, noise, max_lag=max(10, round(1.0 / h)))
-    floor = max(STRUCT_MIN * noise, 2e-3 * float(np.std(report.v)))
-    unexplained = wt.acf_outside > ACF_MAX and wt.structure > floor
-    notes = _notes(data)
+        kept.append(name)
+        ext_sum, y_ext = s_k, y_k
+    switched_off = {by_name[a].param.name: 0.0 for a in accepted if a not in kept}
+    ext_params = final.params if kept else base_pol.params
+    ext_effects = dataclasses.replace(final.effects, **switched_off) if kept else base_pol.effects
+    y_all = np.concatenate([r.v for r in report])
+    wt, unexplained = _whiteness_of(y_all - y_ext, report)
+    notes = [*_notes(runs, ff), *vehicle_problems(ext_params, runs)]
+    rep = merged(report)
     return Diagnosis(
         input="voltage",
-        samples=len(data),
+        samples=sum(len(r) for r in runs),
         baseline=base_sum,
         effects=findings,
         extended=ext_sum,
@@ -434,16 +519,16 @@ def diagnose_voltage(
         candidates=[rows[c.name] for c in cands],
         notes=notes,
         traces=Traces(
-            t=report.t,
-            inp=report.inp,
-            y=report.v,
+            t=rep.t,
+            inp=rep.inp,
+            y=rep.v,
             y_base=y_base,
             y_ext=y_ext,
-            i=report.i,
-            x=report.x,
+            i=rep.i,
+            x=rep.x,
         ),
-        vehicle=final.params,
-        model_effects=final.effects,
+        vehicle=ext_params,
+        model_effects=ext_effects,
         residual_stats={
             "rms": wt.rms,
             "noise": wt.noise,
@@ -451,18 +536,29 @@ def diagnose_voltage(
             "acf_outside_fraction": wt.acf_outside,
             "ccf_outside_fraction": wt.ccf_outside,
         },
+        rejected=rejected,
+        linear=None if ff is None else ff.to_json(),
+        runs=len(runs),
+        explains=not unexplained and white(wt),
     )
 
 
-def _notes(data: Series) -> list[str]:
-    """What this log can and cannot determine."""
+DETERMINED = 0.1
+"""A constant of the linear estimate is called determined when its relative standard
+error is below this."""
+
+
+def _notes(runs: Sequence[Series], ff: Feedforward | None) -> list[str]:
+    """What these runs can and cannot determine."""
+    whole = merged(runs)
     notes = [
         "L_m is not identifiable from speed sampled far slower than L_m/R_m (< 1 ms): "
         "kept at the configured value",
         "K_T is not identifiable without a known torque: held at the configured K_T/K_v "
         "ratio (J_S, K_coulomb, K_stiction are determined relative to it)",
+        "n_g, n_fd, r_w and m are not identifiable from voltage and speed: kept as configured",
     ]
-    if data.i is None:
+    if whole.i is None:
         notes.append(
             "no current column: R_m held at the configured value (only J_S R_m/K_T, "
             "K_coulomb R_m/K_T, K_stiction R_m/K_T and K_v are determined); viscous_friction "
@@ -470,6 +566,33 @@ def _notes(data: Series) -> list[str]:
         )
     else:
         notes.append("current column used: R_m and K_v determined from the electrical balance")
-    if not np.any(data.inp < 0) or not np.any(data.v < 0):
+    if ff is None:
+        notes.append(
+            "too few samples in motion for the linear estimate: the fit started from the "
+            "configuration"
+        )
+    else:
+        names = {"kS": "K_coulomb", "kV": "K_v", "kA": "J_S"}
+        good = [k for k, e in zip(("kS", "kV", "kA"), ff.rel_se, strict=True) if e < DETERMINED]
+        bad = [k for k in ("kS", "kV", "kA") if k not in good]
+        if good:
+            notes.append(
+                "determined by these runs: " + ", ".join(f"{k} ({names[k]})" for k in good)
+            )
+        if bad:
+            notes.append(
+                "poorly determined by these runs (relative standard error above "
+                f"{DETERMINED:.0%}): "
+                + ", ".join(f"{k} ({names[k]})" for k in bad)
+                + " (a slow ramp hardly shows kA, a single step barely separates kS from kV)"
+            )
+    starts = sum(
+        1
+        for r in runs
+        if np.any((np.abs(r.v[:-1]) < 1e-3 + 3 * noise_std(r.v)) & (np.abs(r.inp[:-1]) > 0))
+    )
+    if not starts:
+        notes.append("no start from rest: K_stiction (breakaway) kept near its configured value")
+    if not np.any(whole.inp < 0) or not np.any(whole.v < 0):
         notes.append("motion in one direction only: friction asymmetry cannot be checked")
     return notes

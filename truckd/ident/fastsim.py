@@ -16,6 +16,7 @@ electrical pole is kept as a pure lag of ``L_m/R_tot``.  Pure numerics, no I/O.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -330,6 +331,33 @@ def prelog_voltage(p: VehicleParams, eff: Effects, w0: float, i0: float | None) 
     return p.R_m * torque / p.K_T + p.K_v * w0
 
 
+HANDLED = (
+    "viscous_friction",
+    "aero_drag",
+    "load_force",
+    "input_delay",
+    "dead_zone",
+    "voltage_saturation",
+    "battery_sag",
+    "sensor_lag",
+)
+"""Effects fields :func:`simulate_voltage` models; any other active field is refused."""
+
+
+def unsupported_effects(eff: Effects) -> list[str]:
+    """Active fields of ``eff`` the fast simulator does not model (empty: all handled).
+
+    ``load_force_wavelength`` only matters with a non-zero ``load_force_amplitude``.
+    """
+    out = []
+    for f in dataclasses.fields(eff):
+        if f.name in HANDLED or f.name == "load_force_wavelength":
+            continue
+        if float(getattr(eff, f.name)) != 0.0:
+            out.append(f.name)
+    return out
+
+
 def simulate_voltage(
     p: VehicleParams,
     eff: Effects,
@@ -347,6 +375,12 @@ def simulate_voltage(
     voltage (V) until the first known command acts; 0 as in a plant started by
     :func:`truckd.sim.plant.simulate_open_loop`, see :func:`prelog_voltage` for a log.
     """
+    unsupported = unsupported_effects(eff)
+    if unsupported:
+        raise ValueError(
+            f"the fast simulator does not model {', '.join(unsupported)} "
+            "(position-dependent load); use truckd.sim.plant"
+        )
     n = len(t)
     hist = 0 if t_hist is None or u_hist is None else len(t_hist)
     t = np.asarray(t, float)

@@ -27,13 +27,11 @@ from truckd.ident.data import Series, initial_speed, noise_std, split
 from truckd.ident.fastsim import ForceModel, simulate_force
 from truckd.ident.residuals import whiteness
 from truckd.ident.result import CandidateRow, Diagnosis, Finding, ModelSummary, Traces
+from truckd.ident.selection import close, delta_bic, passes, structured
 from truckd.ident.voltage import fit_percent, rmse
 
 Array = NDArray[np.float64]
 
-BIC_MIN = 10.0
-REL_MIN = 0.05
-AMBIGUOUS = 0.05
 
 FORCE_CANDIDATES: dict[str, str] = {
     "viscous_friction": "F_v",
@@ -170,13 +168,13 @@ def diagnose_force(
     tried = {n: fit_idm(d_est, (n,)) for n in FORCE_CANDIDATES}
 
     def dbic(new: IdmFit, old: IdmFit) -> float:
-        return new.n * float(np.log(new.sse / old.sse)) + float(np.log(new.n))
+        return delta_bic(new.sse, old.sse, new.n, 1)
 
     rows: dict[str, CandidateRow] = {}
     for n, f in tried.items():
         vs = _val_sse(d_val, f)
         physical = n == "load_force" or f.theta[2] > 0.0
-        ok = physical and dbic(f, base) < -BIC_MIN and vs < (1.0 - REL_MIN) * base_val
+        ok = physical and passes(dbic(f, base), vs, base_val)
         rows[n] = CandidateRow(
             name=n,
             params={FORCE_CANDIDATES[n]: float(f.theta[2])},
@@ -201,12 +199,12 @@ def diagnose_force(
         f = trials[best]
         vs = _val_sse(d_val, f)
         physical = all(f.theta[2 + k] > 0.0 for k, n in enumerate(f.names) if n != "load_force")
-        if not (physical and dbic(f, current) < -BIC_MIN and vs < (1.0 - REL_MIN) * cur_val):
+        if not (physical and passes(dbic(f, current), vs, cur_val)):
             for n in remaining:
                 rows[n] = _note(rows[n], "adds nothing once others are in")
             break
         for n in scored[1:]:
-            if abs(_val_sse(d_val, trials[n]) - vs) < AMBIGUOUS * vs:
+            if close(_val_sse(d_val, trials[n]), vs, absolute=0.0):
                 ambiguous.append((best, n))
                 rows[n] = _note(rows[n], f"ambiguous with {best}")
         accepted.append(best)
@@ -237,9 +235,7 @@ def diagnose_force(
     r_f = d_rep.F - d_rep.regressors(current.names) @ current.theta
     noise_f = noise_std(d_rep.F)
     wt = whiteness(r_f, d_rep.v, noise_f, max_lag=50)
-    unexplained = wt.acf_outside > 0.2 and wt.structure > max(
-        0.5 * noise_f, 0.01 * float(np.std(d_rep.F))
-    )
+    unexplained = structured(wt, noise_f, 0.01 * float(np.std(d_rep.F)))
     return Diagnosis(
         input="force",
         samples=len(data),

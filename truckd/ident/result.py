@@ -22,6 +22,8 @@ class ModelSummary:
     rmse: float
     params: dict[str, float]
     force_relerr_percent: float | None = None
+    feedforward: dict[str, float] | None = None
+    """The model in WPILib SysId's form: kS (V), kV (V s/m), kA (V s^2/m)."""
 
     def to_json(self) -> dict[str, Any]:
         out: dict[str, Any] = {
@@ -29,6 +31,8 @@ class ModelSummary:
             "rmse": _num(self.rmse),
             "params": {k: _num(v) for k, v in self.params.items()},
         }
+        if self.feedforward is not None:
+            out["feedforward"] = {k: _num(v) for k, v in self.feedforward.items()}
         if self.force_relerr_percent is not None:
             out["force_relerr_percent"] = _num(self.force_relerr_percent)
         return out
@@ -70,6 +74,22 @@ class CandidateRow:
     note: str = ""
 
 
+@dataclass(frozen=True)
+class Rejected:
+    """A best fit outside what is physically possible, with the reason."""
+
+    name: str
+    params: dict[str, float]
+    reason: str
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "name": self.name,
+            "params": {k: _num(v) for k, v in self.params.items()},
+            "reason": self.reason,
+        }
+
+
 @dataclass
 class Traces:
     """Signals of the report data for the plots (SI)."""
@@ -102,6 +122,13 @@ class Diagnosis:
     """The extended model (voltage-input logs), for MODEL.yaml."""
     model_effects: Effects | None = None
     residual_stats: dict[str, float] = field(default_factory=dict)
+    rejected: list[Rejected] = field(default_factory=list)
+    """Best fits that are physically impossible: reported, never accepted."""
+    linear: dict[str, float] | None = None
+    """The linear equation-error estimate (SysId's OLS) the fit started from."""
+    runs: int = 1
+    explains: bool = False
+    """The extended model's residual is white at the noise level on the report data."""
 
     def to_json(self) -> dict[str, Any]:
         """The CONTRACTS.md section 4 object (plus ``notes`` and ``residual``)."""
@@ -115,6 +142,10 @@ class Diagnosis:
             "ambiguous": [[a, b] for a, b in self.ambiguous],
             "notes": list(self.notes),
             "residual": {k: _num(v) for k, v in self.residual_stats.items()},
+            "rejected": [r.to_json() for r in self.rejected],
+            "runs": int(self.runs),
+            "explains_data": bool(self.explains),
+            **({"linear_estimate": self.linear} if self.linear is not None else {}),
         }
 
 

@@ -8,6 +8,7 @@ random effect magnitudes in ranges where the effect is visible, and sensor noise
 from __future__ import annotations
 
 import dataclasses
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
@@ -82,3 +83,98 @@ def plant_log(
 def with_effect(name: str, value: float) -> Effects:
     """Effects with one switched on."""
     return dataclasses.replace(Effects(), **{name: value})
+
+
+SCALE_RANGE = (0.1, 10.0)
+"""Motor constant and inertia of drawn trucks: this factor times the default, log-uniform."""
+
+
+@dataclass(frozen=True)
+class DrawnTruck:
+    """A truck unlike the configured one, and how its log is recorded."""
+
+    params: VehicleParams
+    k_scale: float
+    """Motor constant (K_v, K_T and the friction torques) relative to the default."""
+    j_scale: float
+    """Inertia J_S relative to the default."""
+    rate_hz: float
+    jitter: float
+    """Relative jitter of the sample time."""
+    drop: float
+    """Fraction of rows dropped (a logger that misses samples)."""
+    speed_step: float
+    """Resolution of the logged speed, m/s (coarse steps)."""
+    noise_v: float
+
+
+def draw_truck(p: VehicleParams, rng: np.random.Generator) -> DrawnTruck:
+    """A truck with 0.1x..10x the default motor constant and inertia, logged at 50-200 Hz
+    with jittered timing, dropped rows and coarse speed steps.
+
+    The friction torques scale with the motor constant (the breakaway voltage stays);
+    the speed noise and resolution scale with the truck's top speed (the same sensor
+    relative to the speeds it sees).
+    """
+    lo, hi = np.log(SCALE_RANGE[0]), np.log(SCALE_RANGE[1])
+    k = float(np.exp(rng.uniform(lo, hi)))
+    j = float(np.exp(rng.uniform(lo, hi)))
+    q = p.replace(
+        K_v=p.K_v * k,
+        K_T=p.K_T * k,
+        K_coulomb=p.K_coulomb * k,
+        K_stiction=p.K_stiction * k,
+        J_S=p.J_S * j,
+    )
+    top = p.V_batt / (q.K_v / q.ratio)
+    return DrawnTruck(
+        params=q,
+        k_scale=k,
+        j_scale=j,
+        rate_hz=float(rng.uniform(50.0, 200.0)),
+        jitter=float(rng.uniform(0.0, 0.05)),
+        drop=float(rng.uniform(0.0, 0.03)),
+        speed_step=float(rng.uniform(0.0, 0.005)) * top,
+        noise_v=0.004 * top,
+    )
+
+
+def scaled_effect(name: str, value: float, k_scale: float) -> float:
+    """An effect magnitude drawn for the default truck, made equally visible on a truck
+    whose motor constant is ``k_scale`` times the default (forces scale with the stall
+    force, viscous friction with the back-EMF damping, drag with force per speed^2)."""
+    if name == "load_force":
+        return value * k_scale
+    if name == "viscous_friction":
+        return value * k_scale**2
+    if name == "aero_drag":
+        return value * k_scale**3
+    return value
+
+
+def drawn_log(
+    truck: DrawnTruck,
+    effects: Effects,
+    seed: int,
+    seconds: float = 50.0,
+    with_current: bool = False,
+) -> Log:
+    """A log of ``truck`` under random excitation: t, u, v (and i, 0.3 A noise)."""
+    rng = np.random.default_rng(seed)
+    h = 1.0 / truck.rate_hz
+    n = int(seconds / h)
+    t, u = excitation(rng, n, h=h)
+    dt = h * (1.0 + truck.jitter * rng.uniform(-1.0, 1.0, n - 1))
+    t = np.concatenate([[0.0], np.cumsum(dt)])
+    cfg = PlantConfig(effects=effects, noise_v=truck.noise_v, noise_i=0.3, seed=seed)
+    sim = simulate_open_loop(truck.params, t, u, cfg)
+    v = sim.v
+    if truck.speed_step > 0:
+        v = np.round(v / truck.speed_step) * truck.speed_step
+    keep = rng.random(n) >= truck.drop
+    keep[0] = True
+    cols: dict[str, Array] = {"t": t[keep], "u": u[keep], "v": v[keep]}
+    if with_current:
+        cols["i"] = sim.i[keep]
+    name = ", ".join(effects.active()) or "no effect"
+    return Log(cols, f"<drawn truck k={truck.k_scale:.3g} J={truck.j_scale:.3g}: {name}>")

@@ -53,16 +53,17 @@ class Weights:
 
 
 def seed_params(p0: VehicleParams, with_current: bool) -> list[Param]:
-    """The seed's smooth free parameters with bounds around the configured values.
+    """The seed's smooth free parameters with bounds around the starting values ``p0``
+    (the linear estimate from the data, :func:`truckd.ident.linear.start_model`).
 
     Stiction is not among them: it only decides *which* commands break the truck
     away, so the cost is flat between command levels; :func:`fit_seed_model` locates
     it on a grid (:func:`stiction_grid`).
     """
-    kc = max(p0.K_coulomb, 1e-4)
+    kc = max(p0.K_coulomb, 1e-3 * p0.K_T * p0.V_batt / p0.R_m)
     out = [
-        Param("K_v", p0.K_v, 0.2 * p0.K_v, 5.0 * p0.K_v),
-        Param("J_S", p0.J_S, 0.05 * p0.J_S, 20.0 * p0.J_S),
+        Param("K_v", p0.K_v, 0.1 * p0.K_v, 10.0 * p0.K_v),
+        Param("J_S", p0.J_S, 0.02 * p0.J_S, 50.0 * p0.J_S),
         Param("K_coulomb", kc, 0.0, 10.0 * kc),
     ]
     if with_current:

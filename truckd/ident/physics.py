@@ -1,0 +1,99 @@
+"""What a truck can physically be: limits for the seed parameters and every effect.
+
+A best fit outside these limits is reported with the reason and never accepted as a
+cause.  The limits use the configured mass ``m``, gearing and wheel radius (which the data
+cannot determine), with room for a configured mass that is off by up to 10x, and the
+log's own time scales.  Pure numerics.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from truckd.ident.data import Series
+from truckd.model.effects import Effects
+from truckd.model.params import VehicleParams
+
+G = 9.81
+"""Gravity, m/s^2."""
+MASS_ROOM = 10.0
+"""The configured mass may be off by this factor either way before inertia is impossible."""
+DELAY_FRACTION = 0.25
+"""An input delay or sensor lag longer than this fraction of the longest run is not seen."""
+DELAY_MAX_S = 0.5
+"""... nor one longer than this (s): a truck with more dead time is not controllable."""
+
+
+def reflected_mass(p: VehicleParams) -> float:
+    """The configured mass as an inertia at the motor shaft, kg m^2."""
+    return p.m * p.ratio**2
+
+
+def _longest_run(runs: Sequence[Series]) -> float:
+    return max(float(r.t[-1] - r.t[0]) for r in runs)
+
+
+def vehicle_problems(p: VehicleParams, runs: Sequence[Series]) -> list[str]:
+    """Reasons why the seed parameters ``p`` are physically impossible (empty: possible)."""
+    out = []
+    u_max = max(float(np.max(np.abs(r.inp))) for r in runs)
+    stall = p.K_T * u_max / p.R_m
+    if p.K_v <= 0 or p.K_T <= 0 or p.R_m <= 0:
+        out.append("motor constants must be positive")
+    jm = reflected_mass(p)
+    if not (jm / MASS_ROOM <= p.J_S <= jm * MASS_ROOM * 10.0):
+        out.append(
+            f"J_S = {p.J_S:.3g} kg m^2 outside what mass m = {p.m:g} kg and gearing allow "
+            f"({jm / MASS_ROOM:.3g} .. {jm * MASS_ROOM * 10.0:.3g})"
+        )
+    if p.K_coulomb >= stall:
+        out.append(
+            f"K_coulomb = {p.K_coulomb:.3g} N m at or above the stall torque at the log's "
+            f"largest command ({stall:.3g} N m): the truck could not have moved"
+        )
+    return out
+
+
+def effect_problem(name: str, value: float, p: VehicleParams, runs: Sequence[Series]) -> str | None:
+    """Why ``name = value`` is physically impossible for ``p`` on these runs (None: fine)."""
+    weight = p.m * G
+    v_max = max(float(np.max(np.abs(r.v))) for r in runs)
+    u_max = max(float(np.max(np.abs(r.inp))) for r in runs)
+    w_max = max(v_max / p.ratio, 1e-9)
+    stall = p.K_T * u_max / p.R_m
+    longest = _longest_run(runs)
+    delay_max = min(DELAY_MAX_S, DELAY_FRACTION * longest)
+    if name == "load_force" and abs(value) > weight:
+        return f"|load_force| = {abs(value):.3g} N exceeds the truck's weight m g = {weight:.3g} N"
+    if name == "aero_drag" and value * v_max**2 > weight:
+        return (
+            f"drag at {v_max:.2g} m/s = {value * v_max**2:.3g} N exceeds the weight {weight:.3g} N"
+        )
+    if name == "viscous_friction" and value * w_max > stall:
+        return (
+            f"viscous torque at top logged speed {value * w_max:.3g} N m exceeds the stall "
+            f"torque {stall:.3g} N m"
+        )
+    if name in ("input_delay", "sensor_lag") and value > delay_max:
+        return f"{name} = {value:.3g} s longer than the log's time scales allow ({delay_max:.3g} s)"
+    if name == "dead_zone" and value >= u_max:
+        return f"dead_zone = {value:.3g} V swallows every command (largest {u_max:.3g} V)"
+    if name == "voltage_saturation" and value < 0.1 * u_max:
+        return f"voltage_saturation = {value:.3g} V would leave the truck almost without drive"
+    if name == "battery_sag" and value > max(30.0 * p.R_m, 1.0):
+        return f"battery_sag = {value:.3g} ohm far above any battery's internal resistance"
+    if value < 0 and name != "load_force":
+        return f"{name} = {value:.3g} is negative"
+    return None
+
+
+def effects_problems(e: Effects, p: VehicleParams, runs: Sequence[Series]) -> list[str]:
+    """Reasons for every active effect of ``e`` that is physically impossible."""
+    out = []
+    for name in e.active():
+        why = effect_problem(name, float(getattr(e, name)), p, runs)
+        if why is not None:
+            out.append(why)
+    return out

@@ -1,0 +1,92 @@
+"""WPILib SysId JSON logs as contract logs (one :class:`Log` per test).
+
+A SysId data file holds up to four tests, ``slow-forward``, ``slow-backward`` (quasi-static
+voltage ramps) and ``fast-forward``, ``fast-backward`` (voltage steps), each a list of rows.
+Drivetrain rows are ``[t, V_left, V_right, x_left, x_right, v_left, v_right, angle,
+angular_rate]``; the other mechanisms' rows are ``[t, V, x, v]``.  A drivetrain becomes
+the mean of its left and right sides (the robot's straight-line voltage and speed);
+``units`` ``Meters`` or ``Feet`` (converted to m).  Each test is one experiment (run).
+
+``FILE.json:slow-forward,slow-backward`` selects tests (default: all four).
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from truckd.errors import InputError
+from truckd.inputs import read_text
+from truckd.logfile import MAX_LOG_BYTES, Log
+
+TESTS = ("slow-forward", "slow-backward", "fast-forward", "fast-backward")
+UNITS = {"meters": 1.0, "feet": 0.3048}
+
+
+def is_sysid_path(path: str) -> bool:
+    """A path (optionally with ``:test,...``) that names a SysId ``.json`` file."""
+    return split_selector(path)[0].lower().endswith(".json")
+
+
+def split_selector(path: str) -> tuple[str, tuple[str, ...]]:
+    """``FILE.json:a,b`` -> ``("FILE.json", ("a", "b"))``; no selector -> all tests."""
+    head, sep, tail = path.rpartition(":")
+    if sep and head.lower().endswith(".json") and tail:
+        return head, tuple(x.strip() for x in tail.split(",") if x.strip())
+    return path, TESTS
+
+
+def read_sysid(path: str) -> list[Log]:
+    """The selected tests of a SysId JSON file, one voltage-input log each (t, u, v, x)."""
+    file, wanted = split_selector(path)
+    text = read_text(file, "SysId JSON log", MAX_LOG_BYTES)  # a regular UTF-8 file, bounded
+    try:
+        raw = json.loads(text)
+    except (json.JSONDecodeError, RecursionError) as exc:
+        raise InputError(f"{file}: not a SysId JSON file: {str(exc)[:80]}") from None
+    if not isinstance(raw, dict):
+        raise InputError(f"{file}: not a SysId JSON file: expected an object with tests")
+    unit_name = str(raw.get("units", "Meters")).lower()
+    if unit_name not in UNITS:
+        raise InputError(
+            f"{file}: key 'units': {raw.get('units')!r}; expected Meters or Feet "
+            "(a linear mechanism; rotations have no vehicle speed)"
+        )
+    scale = UNITS[unit_name]
+    drivetrain = "drivetrain" in str(raw.get("test", "")).lower()
+    width = 9 if drivetrain else 4
+    logs = []
+    for name in wanted:
+        if name not in TESTS:
+            raise InputError(f"{path}: unknown test {name!r}; expected one of {', '.join(TESTS)}")
+        rows = raw.get(name)
+        if rows is None:
+            if wanted is TESTS:
+                continue
+            raise InputError(f"{file}: key {name!r} missing")
+        try:
+            a = np.asarray(rows, dtype=float)
+        except (TypeError, ValueError):
+            raise InputError(f"{file}: key {name!r}: rows are not lists of numbers") from None
+        if a.ndim != 2 or a.shape[1] < width or len(a) < 2:
+            raise InputError(
+                f"{file}: key {name!r}: expected rows of {width} numbers "
+                f"({'drivetrain' if drivetrain else 'simple'} test)"
+            )
+        if not np.all(np.isfinite(a[:, :width])):
+            raise InputError(f"{file}: key {name!r}: a value is not finite")
+        order = np.argsort(a[:, 0], kind="stable")
+        a = a[order]
+        keep = np.concatenate([[True], np.diff(a[:, 0]) > 0])
+        a = a[keep]
+        if drivetrain:
+            u = 0.5 * (a[:, 1] + a[:, 2])
+            x = 0.5 * (a[:, 3] + a[:, 4]) * scale
+            v = 0.5 * (a[:, 5] + a[:, 6]) * scale
+        else:
+            u, x, v = a[:, 1], a[:, 2] * scale, a[:, 3] * scale
+        logs.append(Log({"t": a[:, 0].copy(), "u": u, "v": v, "x": x}, f"{file}:{name}"))
+    if not logs:
+        raise InputError(f"{file}: no SysId test found (expected keys {', '.join(TESTS)})")
+    return logs
