@@ -140,6 +140,34 @@ def test_serial_device_vanishes_and_comes_back(tmp_path: Path) -> None:
         dev.close()
 
 
+def test_serial_device_vanishing_is_seen_by_the_loops_non_blocking_poll(tmp_path: Path) -> None:
+    """The daemon polls with ``recv(0.0)`` (one non-blocking read, no select): a device
+    that is unplugged must still take the link down, and data must still come through."""
+    path = str(tmp_path / "ttyTRUCK")
+    dev = PtyDevice(path)
+    link = SerialLink(path, reconnect_interval=0.02)
+    try:
+        assert link.recv(0.0) is None  # nothing there: None, the link stays up
+        assert link.connected
+        dev.send(F1)
+        dev.send(F2)
+        got: list[Frame] = []
+        deadline = time.monotonic() + 2.0
+        while len(got) < 2 and time.monotonic() < deadline:
+            f = link.recv(0.0)
+            if f is not None:
+                got.append(f)
+        assert got == [F1, F2]
+        dev.unplug()
+        deadline = time.monotonic() + 2.0
+        while link.connected and time.monotonic() < deadline:
+            link.recv(0.0)
+        assert not link.connected and link.stats.disconnects == 1
+    finally:
+        link.close()
+        dev.close()
+
+
 def test_missing_serial_device_reported(tmp_path: Path) -> None:
     link = open_link("serial", LinkConfig(serial_device=str(tmp_path / "nope")))
     assert not link.connected and link.last_error

@@ -206,7 +206,7 @@ class Controller:
             )
         assert res.z is not None
         plan_u, plan_v, _ = self.mpc.qp.plan(res.z)
-        self._plan = [float(x) for x in plan_u]
+        self._plan = plan_u.tolist()  # Python floats, as float(x) each
         self._plan_age = 0
         self._v_expected = float(plan_v[1])
         return self._finish(

@@ -21,6 +21,7 @@ import contextlib
 import errno
 import fcntl
 import os
+import select
 import termios
 import time
 from collections.abc import Callable
@@ -116,6 +117,21 @@ class SerialLink(FramedStreamLink):
         self._tail = data[n:]
 
     def _read_bytes(self, timeout: float) -> bytes:
+        fd = self._fd
+        if timeout == 0.0 and fd is not None:
+            # The loop's poll: one non-blocking read on the descriptor (pyserial opens it
+            # O_NONBLOCK) instead of pyserial's select, read(1), ioctl and read(n).
+            try:
+                data = os.read(fd, 4096)
+            except (BlockingIOError, InterruptedError):
+                return b""
+            except OSError as exc:
+                raise LinkDownError(f"{self.device}: {exc}") from None
+            if not data and select.select([fd], [], [], 0.0)[0]:
+                # nothing to read (a raw tty with VMIN 0 reads b"") but readable: hung up,
+                # as pyserial's "readiness to read but returned no data"
+                raise LinkDownError(f"{self.device}: device returned no data (hung up)")
+            return data
         ser = self._ser
         try:
             if self._timeout != timeout:
