@@ -194,7 +194,13 @@ class Daemon:
             self.recorder.discard()  # did not start: no empty log left behind
         elif self.recorder is not None:
             self.recorder.stop()
-            log.info("log flushed: %d rows in %s", self.recorder.rows, self.recorder.path)
+            if self.recorder.errors:  # a full disk or a size limit: say so, never "flushed"
+                log.error(
+                    "log incomplete: %d write errors; %s holds the rows written before "
+                    "the first failure", self.recorder.errors, self.recorder.path,
+                )  # fmt: skip
+            else:
+                log.info("log flushed: %d rows in %s", self.recorder.rows, self.recorder.path)
         if self.telemetry is not None:
             self.telemetry.close()
         if self.backend is not None:

@@ -188,6 +188,7 @@ class Recorder:
                 self._write_pending()
                 self._fh.close()
             except OSError as exc:
+                self.errors += 1
                 log.error("log close failed: %s", exc.strerror)
             self._fh = None
         if self.sidecar is not None:
