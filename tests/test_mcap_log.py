@@ -248,3 +248,13 @@ def test_sim_mcap_carries_the_supervisors_mode_and_enable(tmp_path: Path) -> Non
     assert [s["enable"] for s in states] == [bool(x) for x in log["enable"]]
     health = msgs["/truckd/truck1/health"]
     assert health[0]["mode"] == want_mode[0]
+
+
+def test_sim_mcap_empty_name_is_exit_2_and_writes_nothing(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    assert main(["sim", "--scenario", "cruise", "--duration", "0.2", "--mcap", ""]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--mcap" in err
+    assert list(tmp_path.iterdir()) == []

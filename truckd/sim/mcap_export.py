@@ -66,6 +66,8 @@ def mcap_paths(target: str, scenarios: tuple[str, ...]) -> dict[str, Path]:
     """Where each scenario's MCAP goes: ``target`` itself when it ends in ``.mcap`` (one
     scenario only), else ``target/<scenario>.mcap`` (the directory is created).  Raises
     InputError for a bad target."""
+    if not target.strip():
+        raise InputError(f"--mcap {target!r}: expected a directory or a *.mcap file name")
     p = Path(target)
     if p.suffix == ".mcap":
         if len(scenarios) != 1:
