@@ -118,7 +118,6 @@ class Daemon:
         self._states_sent = 0
         self._rate_mark = (0.0, 0)
         self._transitions: list[dict[str, object]] = []
-        self._ages: dict[str, float] = {}
 
     # -- start-up and shutdown -----------------------------------------------------
     def params(self) -> dict[str, Any]:
@@ -272,7 +271,6 @@ class Daemon:
         """The daemon's view of the step: log errors and mode changes, notify systemd."""
         self.out, self.decision = out.control, out.decision
         self.u, self.enable, self.seq = out.command.voltage, out.command.enable, out.seq + 1
-        self._ages = out.ages
         if out.error is not None and self.companion.controller_errors <= 3:
             log.error("controller failed: %s", out.error)
         tr = out.decision.transition
