@@ -82,7 +82,6 @@ def record_sim_sequence(
         seq.append((mode, inp))
         return inner(self, mode, inp, warm)
 
-    cfg = dataclasses.replace(cfg, time_budget_s=1.0)
     setup = SimSetup(
         tc.vehicle, tc.plant, cfg, ControlModel(tc.vehicle), tc.link.encoder_ticks_per_rev
     )
@@ -96,7 +95,7 @@ def record_sequence(
 ) -> list[tuple[str, QpInputs]]:
     """QPs the controller solves in a closed-loop stop-and-go run with ideal estimates
     (the true speed and gap: smoother than on the car, so warm starts fare better)."""
-    ctrl = Controller(model, dataclasses.replace(cfg, time_budget_s=1.0))
+    ctrl = Controller(model, cfg.in_simulated_time())
     seq: list[tuple[str, QpInputs]] = []
     inner = ctrl.mpc.solve
 

@@ -230,3 +230,31 @@ def test_sim_mcap_file_needs_one_scenario(
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "one scenario" in err
     assert not (tmp_path / "x.mcap").exists()
+
+
+def test_sim_mcap_carries_the_supervisors_mode_and_enable(tmp_path: Path) -> None:
+    """The sim runs the daemon's cycle (issue 11): its MCAP shows the supervisor's mode
+    and the driver enable of each cycle, as the --trace log records them, not a constant."""
+    argv = ["sim", "--scenario", "cruise", "--duration", "1", "--mcap", str(tmp_path / "m"),
+            "--trace", str(tmp_path / "tr")]  # fmt: skip
+    assert main(argv) == 0
+    log = read_log(tmp_path / "tr" / "cruise.csv")
+    names = {0: "INIT", 1: "ACTIVE", 2: "DEGRADED", 3: "SAFE_STOP", 4: "FAULT"}
+    want_mode = [names[int(x)] for x in log["mode"]]
+    assert set(want_mode) != {"ACTIVE"}  # cruise without a lead is not ACTIVE throughout
+    msgs = validate_all(read_mcap(tmp_path / "m" / "cruise.mcap"))
+    states = msgs["/truckd/truck1/state"]
+    assert [s["mode"] for s in states] == want_mode
+    assert [s["enable"] for s in states] == [bool(x) for x in log["enable"]]
+    health = msgs["/truckd/truck1/health"]
+    assert health[0]["mode"] == want_mode[0]
+
+
+def test_sim_mcap_empty_name_is_exit_2_and_writes_nothing(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    assert main(["sim", "--scenario", "cruise", "--duration", "0.2", "--mcap", ""]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--mcap" in err
+    assert list(tmp_path.iterdir()) == []

@@ -73,7 +73,7 @@ def run(args: argparse.Namespace) -> int:
         stop_ramp_v_per_s=cfg.runtime.stop_ramp_v_per_s,
     )
     names = SCENARIO_NAMES if args.scenario == "all" else (args.scenario,)
-    mcaps = mcap_paths(args.mcap, names) if args.mcap else {}
+    mcaps = mcap_paths(args.mcap, names) if args.mcap is not None else {}
     results, traces = [], []
     for name in names:
         metrics, trace = run_scenario(

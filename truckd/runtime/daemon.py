@@ -122,7 +122,6 @@ class Daemon:
         self._states_sent = 0
         self._rate_mark = (0.0, 0)
         self._transitions: list[dict[str, object]] = []
-        self._ages: dict[str, float] = {}
 
     # -- start-up and shutdown -----------------------------------------------------
     def params(self) -> dict[str, Any]:
@@ -199,7 +198,13 @@ class Daemon:
             self.recorder.discard()  # did not start: no empty log left behind
         elif self.recorder is not None:
             self.recorder.stop()
-            log.info("log flushed: %d rows in %s", self.recorder.rows, self.recorder.path)
+            if self.recorder.errors:  # a full disk or a size limit: say so, never "flushed"
+                log.error(
+                    "log incomplete: %d write errors; %s holds the rows written before "
+                    "the first failure", self.recorder.errors, self.recorder.path,
+                )  # fmt: skip
+            else:
+                log.info("log flushed: %d rows in %s", self.recorder.rows, self.recorder.path)
         if self.telemetry is not None:
             self.telemetry.close()
         if self.backend is not None:
@@ -280,7 +285,6 @@ class Daemon:
         self.out, self.decision = out.control, out.decision
         self._last_cycle = out
         self.u, self.enable, self.seq = out.command.voltage, out.command.enable, out.seq + 1
-        self._ages = out.ages
         if out.error is not None and self.companion.controller_errors <= 3:
             log.error("controller failed: %s", out.error)
         tr = out.decision.transition

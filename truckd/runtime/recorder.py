@@ -88,8 +88,13 @@ class Recorder:
         return self.files[-1] if self.files else None
 
     def _open_next(self) -> None:
-        if self._fh is not None:
-            self._fh.close()
+        fh, self._fh = self._fh, None  # never keep a closed file (a full disk at rotation)
+        if fh is not None:
+            try:
+                fh.close()
+            except OSError as exc:  # its last buffered rows are lost: counted, go on
+                self.errors += 1
+                log.error("log close failed: %s", exc.strerror)
         self._index += 1
         base = f"{self.prefix}-{self._stamp}-p{os.getpid()}-{self._index:04d}"
         p, fh = self._create(base)
@@ -126,6 +131,8 @@ class Recorder:
             self._event.set()
 
     def _write_pending(self) -> None:
+        if self._fh is None and self.files:  # a file could not be opened: try again
+            self._open_next()
         fh = self._fh
         if fh is None:
             return
@@ -188,6 +195,7 @@ class Recorder:
                 self._write_pending()
                 self._fh.close()
             except OSError as exc:
+                self.errors += 1
                 log.error("log close failed: %s", exc.strerror)
             self._fh = None
         if self.sidecar is not None:

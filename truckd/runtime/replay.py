@@ -35,7 +35,9 @@ def cycle_from_params(params: dict[str, Any], t0: float, source: str) -> Compani
             load_dataclass(VehicleParams, params["model"]["vehicle"], source),
             load_dataclass(Effects, params["model"]["effects"], source),
         )
-        control = load_dataclass(ControlConfig, params["control"], source)
+        # A log recorded before `control.move_blocks` existed ran the sparse QP (issue 11).
+        control_params = {"move_blocks": 0, **params["control"]}
+        control = load_dataclass(ControlConfig, control_params, source)
         sup = load_dataclass(SupervisorConfig, params["runtime"]["supervisor"], source)
         ramp = float(params["runtime"]["stop_ramp_v_per_s"])
         ticks = int(params["ticks_per_rev"])

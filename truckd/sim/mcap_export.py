@@ -2,11 +2,12 @@
 (``/truckd/<vehicle_id>/state``, ``/health``, ``/plan``; docs/foxglove.md), so the same
 Foxglove layout opens a simulation and a drive.
 
-Log time = simulated time (ns from 0).  The simulation has no supervisor: ``mode`` is
-``ACTIVE`` throughout (the controller always drives), ``ctrl`` the controller's mode.  The
-state holds the plant's truth (``v``, ``gap``, ``v_lead``) and the controller's estimate
-of the gap (``gap_est``); ``gap_ref`` is ``d_0 + h v``.  ``health`` is written every
-0.5 s with the scenario name.  ``plan`` stays empty until the trace carries plans.
+Log time = simulated time (ns from 0).  The simulation runs the daemon's cycle: ``mode``
+is the supervisor's mode, ``enable`` the driver enable sent and ``solve_us`` OSQP's time,
+as the daemon records them; ``ctrl`` is the controller's mode.  The state holds the
+plant's truth (``v``, ``gap``, ``v_lead``) and the controller's estimate of the gap
+(``gap_est``); ``gap_ref`` is ``d_0 + h v``.  ``health`` is written every 0.5 s with the
+scenario name.  ``plan`` stays empty until the trace carries plans.
 """
 
 from __future__ import annotations
@@ -17,10 +18,13 @@ from pathlib import Path
 from typing import Any
 
 from truckd.errors import InputError, TruckdError
+from truckd.runtime.cycle import LOG_COLUMNS
 from truckd.runtime.mcap_log import write_messages
 from truckd.sim.closed_loop import Trace
 
 HEALTH_PERIOD_S = 0.5
+_ENABLE = LOG_COLUMNS.index("enable")
+_SOLVE_US = LOG_COLUMNS.index("solve_us")
 
 
 def _f(x: float) -> float | None:
@@ -32,27 +36,29 @@ def trace_messages(scenario: str, tr: Trace) -> Iterator[tuple[str, int, Mapping
     next_health = 0.0
     for k, t in enumerate(tr.t):
         ns = round(t * 1e9)
+        mode = tr.supervisor[k]
+        row = tr.rows[k]
         yield (
             "state",
             ns,
             {
                 "seq": k,
                 "t": t,
-                "mode": "ACTIVE",
+                "mode": mode,
                 "v": _f(tr.v[k]),
                 "gap": _f(tr.gap[k]),
                 "gap_ref": _f(tr.gap_ref[k]),
                 "v_lead": _f(tr.v_lead[k]),
                 "u": tr.u[k],
                 "u_ff": _f(tr.u_ff[k]),
-                "solve_us": None,
-                "enable": True,
+                "solve_us": _f(row[_SOLVE_US]),
+                "enable": bool(row[_ENABLE]),
                 "ctrl": tr.mode[k],
                 "gap_est": _f(tr.gap_est[k]),
             },
         )
         if t >= next_health - 1e-9:
-            yield "health", ns, {"t": t, "mode": "ACTIVE", "faults": [], "sim": scenario}
+            yield "health", ns, {"t": t, "mode": mode, "faults": [], "sim": scenario}
             next_health = t + HEALTH_PERIOD_S
 
 
@@ -60,6 +66,8 @@ def mcap_paths(target: str, scenarios: tuple[str, ...]) -> dict[str, Path]:
     """Where each scenario's MCAP goes: ``target`` itself when it ends in ``.mcap`` (one
     scenario only), else ``target/<scenario>.mcap`` (the directory is created).  Raises
     InputError for a bad target."""
+    if not target.strip():
+        raise InputError(f"--mcap {target!r}: expected a directory or a *.mcap file name")
     p = Path(target)
     if p.suffix == ".mcap":
         if len(scenarios) != 1:
