@@ -258,3 +258,14 @@ def test_sim_mcap_empty_name_is_exit_2_and_writes_nothing(
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "--mcap" in err
     assert list(tmp_path.iterdir()) == []
+
+
+def test_sim_mcap_mistyped_file_name_is_exit_2(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``--mcap run.txt`` is a mistyped file name, not a new directory called run.txt."""
+    assert main(["sim", "--scenario", "cruise", "--duration", "0.2", "--mcap",
+                 str(tmp_path / "run.txt")]) == 2  # fmt: skip
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--mcap" in err
+    assert not (tmp_path / "run.txt").exists()

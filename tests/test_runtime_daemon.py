@@ -265,3 +265,46 @@ def test_missing_model_file_is_exit_2(tmp_path: Path) -> None:
     )  # fmt: skip
     assert r.returncode == 2
     assert "missing.yaml" in r.stderr
+
+
+def test_a_failing_shutdown_step_still_closes_the_link_and_releases_the_device(
+    tmp_path: Path,
+) -> None:
+    """A recorder that raises at shutdown (a bug, a dying disk) is logged; the motor-off
+    before it went out and the link close and device release after it still happen."""
+    cfg_path = write_config(
+        tmp_path / "truck.yaml",
+        {"runtime": {"realtime": False, "telemetry": {"enabled": False},
+                     "recorder": {"dir": str(tmp_path / "logs")}}},
+    )  # fmt: skip
+    d = Daemon(load_config(cfg_path), "sim", duration=1.0, env={})
+    closed: list[str] = []
+    d.start()
+    assert d.backend is not None and d.recorder is not None
+    backend_close = d.backend.close
+
+    def close_backend() -> None:
+        closed.append("backend")
+        backend_close()
+
+    def recorder_stop() -> None:
+        raise OSError("injected: the disk went away")
+
+    d.backend.close = close_backend  # type: ignore[method-assign]
+    d.recorder.stop = recorder_stop  # type: ignore[method-assign]
+    if d.claim is not None:
+        claim_release = d.claim.release
+
+        def release() -> None:
+            closed.append("claim")
+            claim_release()
+
+        d.claim.release = release  # type: ignore[method-assign]
+    try:
+        d.shutdown()
+    finally:
+        unfreeze_gc()
+    assert "backend" in closed
+    assert d.claim is None or "claim" in closed
+    fw = d.backend.firmware
+    assert fw is not None and (fw.voltage, fw.enabled) == (0.0, False)

@@ -178,8 +178,31 @@ class Daemon:
         """Motor off, notify, flush the log, close telemetry and the link.
 
         Motor-off goes out only on a link this daemon opened (``port`` is set only then,
-        under the device lock): a daemon that failed to start sends nothing."""
+        under the device lock): a daemon that failed to start sends nothing.  Each step is
+        guarded: one that fails is logged and the rest still run, and the link is closed and
+        the device released whatever happened before."""
         self.notifier.stopping("stopping: motor off")
+        try:
+            for step in (self._motor_off, self._close_logs, self._close_telemetry):
+                try:
+                    step()
+                except Exception:  # keep shutting down: the lock must be released
+                    log.exception("shutdown step %s failed", step.__name__)
+        finally:
+            try:
+                if self.backend is not None:
+                    self.backend.close()
+            finally:
+                if self.claim is not None:
+                    self.claim.release()
+                self.notifier.close()
+        s = self.rk.stats()
+        log.info(
+            "stopped after %d cycles: misses %d, lateness p99 %.0f us, compute p99 %.0f us",
+            s.cycles, s.misses, s.lateness_us_p99, s.compute_us_p99,
+        )  # fmt: skip
+
+    def _motor_off(self) -> None:
         if self.port is not None:
             for _ in range(3):
                 try:
@@ -190,6 +213,8 @@ class Daemon:
                     break
         if self.backend is not None:
             self.backend.tick(self.period)  # sim: let the firmware apply it
+
+    def _close_logs(self) -> None:
         if self.rxlog is not None:
             self.rxlog.stop()
         if self.telemetry is not None or self.mcap is not None:
@@ -205,18 +230,10 @@ class Daemon:
                 )  # fmt: skip
             else:
                 log.info("log flushed: %d rows in %s", self.recorder.rows, self.recorder.path)
+
+    def _close_telemetry(self) -> None:
         if self.telemetry is not None:
             self.telemetry.close()
-        if self.backend is not None:
-            self.backend.close()
-        if self.claim is not None:
-            self.claim.release()
-        self.notifier.close()
-        s = self.rk.stats()
-        log.info(
-            "stopped after %d cycles: misses %d, lateness p99 %.0f us, compute p99 %.0f us",
-            s.cycles, s.misses, s.lateness_us_p99, s.compute_us_p99,
-        )  # fmt: skip
 
     def run(self) -> int:
         """Start, loop until SIGTERM/SIGINT or the duration, shut down; exit code 0."""

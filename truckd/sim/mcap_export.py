@@ -80,6 +80,11 @@ def mcap_paths(target: str, scenarios: tuple[str, ...]) -> dict[str, Path]:
         if not p.parent.is_dir():
             raise InputError(f"--mcap {target}: directory {p.parent} does not exist")
         return {scenarios[0]: p}
+    if p.suffix and not p.exists():
+        raise InputError(
+            f"--mcap {target}: expected a *.mcap file name or a directory (a new directory "
+            f"has no suffix; '{p.suffix}' looks like a mistyped file name)"
+        )
     if p.exists() and not p.is_dir():
         raise InputError(f"--mcap {target}: not a directory; expected a directory or *.mcap")
     try:
