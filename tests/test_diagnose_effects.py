@@ -29,6 +29,7 @@ TOLERANCE: dict[str, tuple[float, float]] = {
     "load_force": (0.05, 0.2),  # N
     "input_delay": (0.0, 0.003),  # s
     "dead_zone": (0.0, 0.3),  # V: only known to between two command levels
+    "dead_zone_offset": (0.0, 0.15),  # V: continuous in the width, refined by gradient
     "voltage_saturation": (0.0, 0.1),  # V
     "battery_sag": (0.10, 0.0),
     "sensor_lag": (0.10, 0.0),

@@ -141,3 +141,26 @@ def test_known_dead_zone_helps_instead_of_hurting() -> None:
         assert not metrics["collision"]
         rms[label] = metrics["gap_error_rms_m"]
     assert rms["known"] < 0.85 * rms["seed"]
+
+
+@pytest.mark.parametrize("wanted", [0.0, 0.05, -0.3, 1.0, -2.5, 4.0])
+def test_offset_dead_zone_command_makes_the_driver_apply_the_wanted_voltage(
+    wanted: float,
+) -> None:
+    """Textbook form (output ``c - sign(c) 1.2``): the command adds the offset back."""
+    eff = Effects(dead_zone_offset=1.2)
+    sent = dead_zone_command(wanted, 0.0, 1.2)
+    assert abs(sent) == (abs(wanted) + 1.2 if wanted else 0.0)
+    applied, _ = driver_output(sent, eff, 7.2)
+    assert applied == pytest.approx(wanted, abs=1e-12)
+
+
+@pytest.mark.parametrize("wanted", [0.1, 0.3, -0.4, 0.6, 2.0])
+def test_both_dead_zone_forms_send_the_nearest_voltage_the_driver_applies(
+    wanted: float,
+) -> None:
+    """Threshold 1.5 V and offset 1.0 V: the driver applies 0 or at least 0.5 V."""
+    eff = Effects(dead_zone=1.5, dead_zone_offset=1.0)
+    applied, _ = driver_output(dead_zone_command(wanted, 1.5, 1.0), eff, 7.2)
+    best = min(abs(wanted), abs(abs(wanted) - 0.5)) if abs(wanted) < 0.5 else 0.0
+    assert abs(applied - wanted) <= best + 1e-12

@@ -30,6 +30,7 @@ def test_all_contract_effects_are_switches() -> None:
         "load_force",
         "input_delay",
         "dead_zone",
+        "dead_zone_offset",
         "voltage_saturation",
         "battery_sag",
         "sensor_lag",

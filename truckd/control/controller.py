@@ -359,7 +359,9 @@ class Controller:
         u = limit_command(u, self.u_prev, self.u_max, self._du)
         # A known driver dead zone: a voltage inside it cannot be applied; send the nearest
         # one that can (may exceed the rate limit by the zone's width, never the voltage limit).
-        u = min(max(dead_zone_command(u, self.model.effects.dead_zone), -self.u_max), self.u_max)
+        eff = self.model.effects
+        u = dead_zone_command(u, eff.dead_zone, eff.dead_zone_offset)
+        u = min(max(u, -self.u_max), self.u_max)
         self.u_prev = u
         self._sent.append(u)
         return ControlOutput(

@@ -12,7 +12,9 @@ its command, the armature voltage whose steady current produces the missing torq
 A known driver dead zone is not an offset: the driver (``truckd.model.effects.driver_output``)
 outputs 0 for ``|u| < dead_zone`` and passes larger commands unchanged, so
 :func:`dead_zone_command` only moves a wanted voltage that falls inside the zone to the nearest
-voltage the driver can produce.  Pure numerics.
+voltage the driver can produce.  The textbook form ``dead_zone_offset`` is an offset: the
+driver outputs ``u - sign(u) u_dz`` above it, so the command is the wanted voltage plus
+``sign(u) u_dz``.  Pure numerics.
 """
 
 from __future__ import annotations
@@ -49,12 +51,22 @@ def breakaway_feedforward(p: VehicleParams, eff: Effects, margin: float) -> floa
     return torque_to_voltage(p, torque)
 
 
-def dead_zone_command(u: float, dead_zone: float) -> float:
-    """The command (V) that makes a driver with a dead zone (V) apply as close to ``u`` as it can.
+def dead_zone_command(u: float, dead_zone: float, offset: float = 0.0) -> float:
+    """The command (V) that makes a driver with a dead zone apply as close to ``u`` as it can.
 
-    Outside the zone the driver passes the command unchanged, so it is sent as is; inside,
-    the driver can only make 0 V or the threshold: the nearer of the two is sent.
+    ``dead_zone`` (V) is the threshold form: outside the zone the driver passes the command
+    unchanged, so it is sent as is; inside, the driver can only make 0 V or the threshold:
+    the nearer of the two is sent.  ``offset`` (V) is the textbook form (output
+    ``c - sign(c) offset`` for a command ``c`` beyond it): ``u + sign(u) offset`` is sent.
+    With both, the smallest non-zero output is ``dead_zone - offset``.
     """
-    if dead_zone <= 0.0 or abs(u) >= dead_zone or not math.isfinite(u):
+    if not math.isfinite(u) or u == 0.0:
         return u
-    return math.copysign(dead_zone, u) if abs(u) >= 0.5 * dead_zone else 0.0
+    if offset <= 0.0:
+        if dead_zone <= 0.0 or abs(u) >= dead_zone:
+            return u
+        return math.copysign(dead_zone, u) if abs(u) >= 0.5 * dead_zone else 0.0
+    smallest = max(dead_zone - offset, 0.0)  # smallest non-zero output (V)
+    if abs(u) >= smallest:
+        return math.copysign(abs(u) + offset, u)
+    return math.copysign(max(dead_zone, offset), u) if abs(u) >= 0.5 * smallest else 0.0

@@ -77,6 +77,12 @@ def voltage_candidates(p0: VehicleParams, data: Series) -> list[Candidate]:
             ),
         ),
         Candidate("dead_zone", Param("dead_zone", 1.0, 0.0, 0.8 * u_max), mids, smooth=False),
+        # The offset form is continuous in its width: refined by gradient from a coarse grid.
+        Candidate(
+            "dead_zone_offset",
+            Param("dead_zone_offset", 1.0, 0.0, 0.8 * u_max),
+            tuple(float(x) for x in np.array([0.05, 0.1, 0.2, 0.3]) * u_max),
+        ),
         Candidate(
             "voltage_saturation",
             Param("voltage_saturation", 1.0, 0.2 * sat_hi, sat_hi),

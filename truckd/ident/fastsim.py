@@ -246,6 +246,8 @@ def run(
 def driver_volts(u: Array, eff: Effects, v_batt: float) -> Array:
     """Vectorised :func:`truckd.model.effects.driver_output` voltage (V)."""
     out = np.where(np.abs(u) >= eff.dead_zone, u, 0.0)
+    if eff.dead_zone_offset != 0.0:
+        out = np.sign(out) * np.maximum(np.abs(out) - eff.dead_zone_offset, 0.0)
     limit = v_batt if eff.voltage_saturation == 0.0 else min(v_batt, eff.voltage_saturation)
     return np.clip(out, -limit, limit)
 
@@ -337,6 +339,7 @@ HANDLED = (
     "load_force",
     "input_delay",
     "dead_zone",
+    "dead_zone_offset",
     "voltage_saturation",
     "battery_sag",
     "sensor_lag",

@@ -43,6 +43,7 @@ FORCE_CANDIDATES: dict[str, str] = {
 NOT_APPLICABLE = (
     "input_delay",
     "dead_zone",
+    "dead_zone_offset",
     "voltage_saturation",
     "battery_sag",
     "sensor_lag",

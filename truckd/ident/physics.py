@@ -78,8 +78,8 @@ def effect_problem(name: str, value: float, p: VehicleParams, runs: Sequence[Ser
         )
     if name in ("input_delay", "sensor_lag") and value > delay_max:
         return f"{name} = {value:.3g} s longer than the log's time scales allow ({delay_max:.3g} s)"
-    if name == "dead_zone" and value >= u_max:
-        return f"dead_zone = {value:.3g} V swallows every command (largest {u_max:.3g} V)"
+    if name in ("dead_zone", "dead_zone_offset") and value >= u_max:
+        return f"{name} = {value:.3g} V swallows every command (largest {u_max:.3g} V)"
     if name == "voltage_saturation" and value < 0.1 * u_max:
         return f"voltage_saturation = {value:.3g} V would leave the truck almost without drive"
     if name == "battery_sag" and value > max(30.0 * p.R_m, 1.0):

@@ -26,6 +26,7 @@ EFFECT_RANGES: dict[str, tuple[float, float]] = {
     "load_force": (2.0, 6.0),  # N, either sign
     "input_delay": (0.012, 0.08),  # s, not a multiple of the 10 ms sample
     "dead_zone": (0.8, 2.0),  # V
+    "dead_zone_offset": (0.8, 2.0),  # V
     "voltage_saturation": (3.5, 5.5),  # V
     "battery_sag": (0.08, 0.25),  # ohm
     "sensor_lag": (0.03, 0.15),  # s

@@ -14,7 +14,10 @@ name                      parameter           physics
                                               ``load_force_wavelength`` (m) add
                                               ``A sin(2 pi x / lambda)`` (rolling terrain)
 ``input_delay``           s                   dead time between command and actuation
-``dead_zone``             V                   the driver outputs 0 for ``|u| < u_dz``
+``dead_zone``             V                   the driver outputs 0 for ``|u| < u_dz`` and
+                                              ``u`` above (a threshold)
+``dead_zone_offset``      V                   the textbook form: 0 for ``|u| < u_dz`` and
+                                              ``u - sign(u) u_dz`` above (an offset)
 ``voltage_saturation``    V                   applied voltage clipped to ``+-u_sat``
 ``battery_sag``           ohm                 battery internal resistance ``R_b``: with duty
                                               ``d = u / V_batt`` the motor sees
@@ -37,6 +40,7 @@ EFFECT_NAMES: tuple[str, ...] = (
     "load_force",
     "input_delay",
     "dead_zone",
+    "dead_zone_offset",
     "voltage_saturation",
     "battery_sag",
     "sensor_lag",
@@ -71,6 +75,13 @@ class Effects:
         "dead time command -> actuation", unit="s", lo=0.0, hi=1.0, default=0.0
     )
     dead_zone: float = spec("driver dead zone half-width", unit="V", lo=0.0, hi=50.0, default=0.0)
+    dead_zone_offset: float = spec(
+        "driver dead zone half-width, subtracted above it (u - sign(u) u_dz)",
+        unit="V",
+        lo=0.0,
+        hi=50.0,
+        default=0.0,
+    )
     voltage_saturation: float = spec(
         "applied-voltage clip, 0 = off (the battery voltage still limits)",
         unit="V",
@@ -94,10 +105,12 @@ def driver_output(u_cmd: float, eff: Effects, v_batt: float) -> tuple[float, flo
     """What the motor driver makes of a voltage command (V).
 
     Returns ``(open-circuit voltage at the motor (V), extra series resistance (ohm))``:
-    dead zone, then the clip at the battery voltage (and ``voltage_saturation``), then
-    the battery's resistance seen through the duty cycle.
+    dead zone (threshold form, then offset form), then the clip at the battery voltage
+    (and ``voltage_saturation``), then the battery's resistance seen through the duty cycle.
     """
     u = u_cmd if abs(u_cmd) >= eff.dead_zone else 0.0
+    if eff.dead_zone_offset != 0.0:
+        u = math.copysign(max(abs(u) - eff.dead_zone_offset, 0.0), u)
     limit = v_batt if eff.voltage_saturation == 0.0 else min(v_batt, eff.voltage_saturation)
     u = max(-limit, min(limit, u))
     duty = u / v_batt

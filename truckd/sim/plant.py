@@ -174,7 +174,12 @@ class Plant:
         i = self.motor.i
         if self.cfg.noise_i:
             i += float(self.rng.normal(0.0, self.cfg.noise_i))
-        if eff.battery_sag == 0.0 and eff.dead_zone == 0.0 and eff.voltage_saturation == 0.0:
+        if (
+            eff.battery_sag == 0.0
+            and eff.dead_zone == 0.0
+            and eff.dead_zone_offset == 0.0
+            and eff.voltage_saturation == 0.0
+        ):
             limit = self.p.V_batt
             return v, i, limit, max(-limit, min(limit, self._u_active))
         volts, _ = driver_output(self._u_active, eff, self.p.V_batt)
