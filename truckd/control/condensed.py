@@ -94,6 +94,9 @@ class CondensedQp:
         e[n, nb] = e[n + 1, nb + 1] = 1.0
         me = m @ e
         self.ME, self.C0, self.Cl = me, c0, cl
+        # expand() in one product: [M E | C0 | Cl] [w; x0; v_lead] (one numpy call, not 3).
+        self._expand_m = np.hstack([me, c0, cl])
+        self._expand_v = np.empty(self.nw + NX + n)
         # Rows: block inputs (nb), block changes (nb - 1), the sparse QP's state and slack
         # rows (from its minimum-gap block to the end).
         self._r_state = lay.r_gap
@@ -199,8 +202,10 @@ class CondensedQp:
         np.add(nac[n : 2 * n], inp.v_cap, out=hi[r + n : r + 2 * n])
 
     def expand(self, w: Vec, inp: QpInputs) -> Vec:
-        """The sparse QP's decision vector ``z = M E w + C0 x0 + Cl v_lead``."""
-        z: Vec = self.ME @ w
-        z += self.C0 @ inp.x0
-        z += self.Cl @ inp.v_lead
+        """The sparse QP's decision vector ``z = M E w + C0 x0 + Cl v_lead`` (a new array)."""
+        nw, v = self.nw, self._expand_v
+        v[:nw] = w
+        v[nw : nw + NX] = inp.x0
+        v[nw + NX :] = inp.v_lead
+        z: Vec = self._expand_m @ v
         return z

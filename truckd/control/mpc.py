@@ -196,9 +196,11 @@ class MpcSolver:
         status_val = info.status_val
         run_time = float(info.run_time)
         iters = int(info.iter)
+        # The binding hands out a new float64 array on every access of ``x``/``y`` (a copy
+        # of the solver's memory, test_mpc_condensed checks it): kept as they are.
         sol = ext.solution
-        z = np.array(sol.x, dtype=float)
-        y = np.array(sol.y, dtype=float)
+        z: Vec = sol.x
+        y: Vec = sol.y
         finite = math.isfinite(float(z.sum()) + float(y.sum()))
         if status_val not in _USABLE or not finite:
             status = str(info.status)
