@@ -123,3 +123,35 @@ def test_one_step_per_block_is_the_sparse_optimum(params: VehicleParams) -> None
         np.testing.assert_allclose(
             a.z[: 3 * (base.horizon + 1)], b.z[: 3 * (base.horizon + 1)], atol=1e-3
         )
+
+
+@pytest.mark.parametrize("blocks", [0, 8])
+def test_a_kept_solution_is_not_overwritten_by_the_next_solve(
+    params: VehicleParams, blocks: int
+) -> None:
+    """The solver keeps OSQP's solution arrays without copying them (the binding returns a
+    new array on each access): the next solve must leave the previous result as it was."""
+    cfg = dataclasses.replace(ControlConfig(), move_blocks=blocks, time_budget_s=1.0)
+    s = MpcSolver(ControlModel(params), cfg)
+    rng = np.random.default_rng(11)
+    first = s.solve("follow", _inputs(rng, cfg, lead=True))
+    assert first.ok and first.z is not None
+    z1 = first.z.copy()
+    second = s.solve("cruise", _inputs(rng, cfg, lead=False))
+    assert second.ok and second.z is not None
+    assert not np.array_equal(second.z, z1)  # a different QP: the check can fail
+    np.testing.assert_array_equal(first.z, z1)
+    assert not np.shares_memory(s._warm[0], first.z)
+
+
+def test_expand_is_the_three_products(params: VehicleParams) -> None:
+    """``expand`` (one product with the stacked matrices) is ``M E w + C0 x0 + Cl v_lead``."""
+    cfg = ControlConfig()
+    qp = QpBuilder(ControlModel(params), cfg)
+    cq = CondensedQp(qp, block_lengths(cfg.horizon, 8))
+    rng = np.random.default_rng(12)
+    for _ in range(5):
+        inp = _inputs(rng, cfg, lead=True)
+        w = rng.normal(size=cq.nw)
+        ref = cq.ME @ w + cq.C0 @ inp.x0 + cq.Cl @ inp.v_lead
+        np.testing.assert_allclose(cq.expand(w, inp), ref, rtol=1e-13, atol=1e-13)

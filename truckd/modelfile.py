@@ -16,13 +16,13 @@ from pathlib import Path
 
 import yaml
 
-from truckd.config.schema import load_dataclass, spec, to_plain
 from truckd.config.truck import TruckConfig
-from truckd.config.yamlsafe import MAX_BYTES, load_yaml
 from truckd.inputs import read_text
 from truckd.model.effects import Effects
 from truckd.model.params import VehicleParams
 from truckd.outputs import write_text
+from truckd.schema import load_dataclass, spec, to_plain
+from truckd.yamlsafe import MAX_BYTES, load_yaml
 
 
 @dataclass(frozen=True)

@@ -11,8 +11,6 @@ from importlib import resources
 from pathlib import Path
 
 from truckd.config.ids import vehicle_id_problem
-from truckd.config.schema import load_dataclass, spec
-from truckd.config.yamlsafe import MAX_BYTES, load_yaml
 from truckd.control.config import ControlConfig
 from truckd.control.platoon import PlatoonConfig
 from truckd.inputs import read_text
@@ -20,6 +18,8 @@ from truckd.io.config import LinkConfig
 from truckd.model.params import VehicleParams
 from truckd.model.plant_config import PlantConfig, encoder_ticks_per_rev
 from truckd.runtime.config import RuntimeConfig
+from truckd.schema import load_dataclass, spec
+from truckd.yamlsafe import MAX_BYTES, load_yaml
 
 
 @dataclass(frozen=True)

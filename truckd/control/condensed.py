@@ -94,6 +94,9 @@ class CondensedQp:
         e[n, nb] = e[n + 1, nb + 1] = 1.0
         me = m @ e
         self.ME, self.C0, self.Cl = me, c0, cl
+        # expand() in one product: [M E | C0 | Cl] [w; x0; v_lead] (one numpy call, not 3).
+        self._expand_m = np.hstack([me, c0, cl])
+        self._expand_v = np.empty(self.nw + NX + n)
         # Rows: block inputs (nb), block changes (nb - 1), the sparse QP's state and slack
         # rows (from its minimum-gap block to the end).
         self._r_state = lay.r_gap
@@ -147,60 +150,76 @@ class CondensedQp:
         self._lo_state = lo_t[lay.r_gap :].copy()
         self._hi_state = hi_t[lay.r_gap :].copy()
         self._du = cfg.du_max * cfg.period
-        # Everything per cycle in one matrix-vector product: G [x0; v_lead; u_prev; v_ref; 1]
-        # = [q; -A_s c] (each numpy call costs 5-10x its hot time in the loop: cold caches).
-        ns = a_state.shape[0]
-        self._s = np.zeros(NX + n + 3)
-        self._s[-1] = 1.0
-        self._out = np.empty(self.nw + ns)
-        self._G: dict[str, Vec] = {}
+        # Everything per cycle in one matrix-vector product, bounds included:
+        # F [x0; v_lead; u_prev; v_ref; u_lo; u_hi; v_cap; 1] = [q; l; u] but the first
+        # block's bounds (each numpy call costs 5-10x its hot time in the loop: cold caches).
+        # One F per mode and lead/no lead (the gap rows' lower bound is d_min or none).
+        nw, m = self.nw, self.m
+        r = 2 * nb - 1
+        c_u, c_ref, c_lo, c_hi, c_cap, c_1 = range(NX + n, NX + n + 6)
+        self._s = np.zeros(NX + n + 6)
+        self._s[c_1] = 1.0
+        self._buf = np.empty(nw + 2 * m)
+        self.q_view, self.lo_view, self.hi_view = (
+            self._buf[:nw],
+            self._buf[nw : nw + m],
+            self._buf[nw + m :],
+        )
+        """``q``, ``l``, ``u`` as :meth:`fill` leaves them (views of one buffer)."""
+        self._F: dict[tuple[str, bool], Vec] = {}
         for mode in qp.P:
-            g = np.zeros((self.nw + ns, NX + n + 3))
-            g[: self.nw, :NX] = self._hx[mode]
-            g[: self.nw, NX : NX + n] = self._hl[mode]
-            g[: self.nw, NX + n] = self._g_u
-            g[: self.nw, NX + n + 1] = self._g_ref[mode] if mode != "follow" else 0.0
-            g[: self.nw, NX + n + 2] = self._g0[mode]
-            g[self.nw :, :NX] = -self._a_c0
-            g[self.nw :, NX : NX + n] = -self._a_cl
-            self._G[mode] = g
-        # Block rows' bounds: the first set per cycle, the others' voltage bounds too.
-        self._lo_blocks = np.concatenate([np.zeros(nb), np.full(nb - 1, -self._du)])
-        self._hi_blocks = np.concatenate([np.zeros(nb), np.full(nb - 1, self._du)])
+            for lead in (False, True):
+                f = np.zeros((nw + 2 * m, NX + n + 6))
+                f[:nw, :NX] = self._hx[mode]
+                f[:nw, NX : NX + n] = self._hl[mode]
+                f[:nw, c_u] = self._g_u
+                f[:nw, c_ref] = self._g_ref[mode] if mode != "follow" else 0.0
+                f[:nw, c_1] = self._g0[mode]
+                lo_rows, hi_rows = nw + np.arange(m), nw + m + np.arange(m)
+                for rows in (lo_rows, hi_rows):
+                    f[rows[r:], :NX] = -self._a_c0
+                    f[rows[r:], NX : NX + n] = -self._a_cl
+                f[lo_rows[1:nb], c_lo] = 1.0
+                f[hi_rows[1:nb], c_hi] = 1.0
+                f[lo_rows[nb:r], c_1] = -self._du
+                f[hi_rows[nb:r], c_1] = self._du
+                f[lo_rows[r:], c_1] = self._lo_state
+                f[hi_rows[r:], c_1] = self._hi_state
+                if lead:  # the minimum gap replaces the state rows' own lower bound
+                    f[lo_rows[r : r + n], c_1] = cfg.d_min
+                # speed rows: the cap replaces the state rows' own upper bound
+                f[hi_rows[r + n : r + 2 * n], c_1] = 0.0
+                f[hi_rows[r + n : r + 2 * n], c_cap] = 1.0
+                self._F[(mode, lead)] = f
 
     def p_triu(self, mode: str) -> sp.csc_matrix:
         """The upper triangle of the condensed cost matrix (OSQP's form)."""
         return sp.triu(self.P[mode], format="csc")
 
-    def vectors_into(self, mode: str, inp: QpInputs, q: Vec, lo: Vec, hi: Vec) -> None:
-        """This cycle's condensed ``q``, ``l``, ``u`` written into the given arrays (equal
-        to condensing :meth:`QpBuilder.vectors_into`'s, without building those)."""
-        nb, n, nw = self.nb, self.qp.lay.N, self.nw
+    def fill(self, mode: str, inp: QpInputs) -> None:
+        """This cycle's condensed ``q``, ``l``, ``u`` into :attr:`q_view`, :attr:`lo_view`,
+        :attr:`hi_view` (equal to condensing :meth:`QpBuilder.vectors_into`'s)."""
+        n = self.qp.lay.N
         sv = self._s
         sv[:NX] = inp.x0
         sv[NX : NX + n] = inp.v_lead
-        sv[NX + n] = inp.u_prev
-        sv[NX + n + 1] = inp.v_ref
-        out = np.dot(self._G[mode], sv, out=self._out)
-        q[:] = out[:nw]
-        nac = out[nw:]  # -A_s c
-        r = 2 * nb - 1
-        lo[:r] = self._lo_blocks
-        hi[:r] = self._hi_blocks
-        # Block inputs: the first with the sparse QP's first-move bounds (rate-limited),
-        # the others with the plain voltage bounds; block changes: the rate limit.
-        lo[0], hi[0] = self.qp.first_move_bounds(inp)
-        lo[1:nb] = inp.u_lo
-        hi[1:nb] = inp.u_hi
-        np.add(self._lo_state, nac, out=lo[r:])
-        np.add(self._hi_state, nac, out=hi[r:])
-        if inp.lead:
-            np.add(nac[:n], self.qp.cfg.d_min, out=lo[r : r + n])
-        np.add(nac[n : 2 * n], inp.v_cap, out=hi[r + n : r + 2 * n])
+        sv[NX + n : NX + n + 5] = (inp.u_prev, inp.v_ref, inp.u_lo, inp.u_hi, inp.v_cap)
+        np.dot(self._F[(mode, inp.lead)], sv, out=self._buf)
+        # The first block: the sparse QP's first-move bounds (rate-limited).
+        self.lo_view[0], self.hi_view[0] = self.qp.first_move_bounds(inp)
+
+    def vectors_into(self, mode: str, inp: QpInputs, q: Vec, lo: Vec, hi: Vec) -> None:
+        """:meth:`fill`, copied into the given arrays."""
+        self.fill(mode, inp)
+        q[:] = self.q_view
+        lo[:] = self.lo_view
+        hi[:] = self.hi_view
 
     def expand(self, w: Vec, inp: QpInputs) -> Vec:
-        """The sparse QP's decision vector ``z = M E w + C0 x0 + Cl v_lead``."""
-        z: Vec = self.ME @ w
-        z += self.C0 @ inp.x0
-        z += self.Cl @ inp.v_lead
+        """The sparse QP's decision vector ``z = M E w + C0 x0 + Cl v_lead`` (a new array)."""
+        nw, v = self.nw, self._expand_v
+        v[:nw] = w
+        v[nw : nw + NX] = inp.x0
+        v[nw + NX :] = inp.v_lead
+        z: Vec = self._expand_m @ v
         return z

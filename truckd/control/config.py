@@ -11,7 +11,7 @@ import dataclasses
 import math
 from dataclasses import dataclass
 
-from truckd.config.schema import spec
+from truckd.schema import spec
 
 
 @dataclass(frozen=True)

@@ -96,10 +96,13 @@ class MpcSolver:
             nv, nc = self.condensed.nw, self.condensed.m
         else:
             nv, nc = lay.nz, lay.m
-        # Per-cycle work arrays (the vectors are copied into OSQP by its update).
-        self._q = np.empty(nv)
-        self._lo = np.empty(nc)
-        self._hi = np.empty(nc)
+        # Per-cycle work arrays (the vectors are copied into OSQP by its update); the
+        # condensed QP writes its own (one product fills all three).
+        if self.condensed is None:
+            self._q, self._lo, self._hi = np.empty(nv), np.empty(nc), np.empty(nc)
+        else:
+            c = self.condensed
+            self._q, self._lo, self._hi = c.q_view, c.lo_view, c.hi_view
         self._xw = np.empty(nv)
         self._yw = np.empty(nc)
         self._x_cold = np.zeros(nv)
@@ -148,7 +151,7 @@ class MpcSolver:
         if self.condensed is None:
             self.qp.vectors_into(mode, inp, self._q, self._lo, self._hi)
         else:
-            self.condensed.vectors_into(mode, inp, self._q, self._lo, self._hi)
+            self.condensed.fill(mode, inp)
 
     def reset(self) -> None:
         """Forget the previous solution (no warm start next time)."""
@@ -196,9 +199,11 @@ class MpcSolver:
         status_val = info.status_val
         run_time = float(info.run_time)
         iters = int(info.iter)
+        # The binding hands out a new float64 array on every access of ``x``/``y`` (a copy
+        # of the solver's memory, test_mpc_condensed checks it): kept as they are.
         sol = ext.solution
-        z = np.array(sol.x, dtype=float)
-        y = np.array(sol.y, dtype=float)
+        z: Vec = sol.x
+        y: Vec = sol.y
         finite = math.isfinite(float(z.sum()) + float(y.sum()))
         if status_val not in _USABLE or not finite:
             status = str(info.status)

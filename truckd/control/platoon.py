@@ -24,8 +24,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
-from truckd.config.schema import spec
 from truckd.control.config import ControlConfig
+from truckd.schema import spec
 
 CACC = "CACC"
 ACC = "ACC"

@@ -29,7 +29,7 @@ import math
 from dataclasses import dataclass, field
 from enum import StrEnum
 
-from truckd.config.schema import spec
+from truckd.schema import spec
 
 
 class Mode(StrEnum):

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from truckd.config.schema import spec
+from truckd.schema import spec
 
 
 @dataclass(frozen=True)

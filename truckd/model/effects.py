@@ -31,8 +31,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from truckd.config.schema import spec
 from truckd.model.params import VehicleParams
+from truckd.schema import spec
 
 EFFECT_NAMES: tuple[str, ...] = (
     "viscous_friction",

@@ -10,7 +10,7 @@ import dataclasses
 from dataclasses import dataclass
 from functools import cached_property
 
-from truckd.config.schema import spec
+from truckd.schema import spec
 
 
 @dataclass(frozen=True)

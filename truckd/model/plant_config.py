@@ -7,8 +7,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from truckd.config.schema import spec
 from truckd.model.effects import Effects
+from truckd.schema import spec
 
 
 @dataclass(frozen=True)

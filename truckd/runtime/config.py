@@ -5,8 +5,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from truckd.config.schema import spec
 from truckd.control.supervisor import SupervisorConfig
+from truckd.schema import spec
 
 
 @dataclass(frozen=True)

@@ -20,7 +20,6 @@ from collections.abc import Callable, Mapping
 from typing import Any
 
 from firmware_protocol.messages import CompanionHeartbeat, CompanionState, MotorCommand
-from truckd.config.schema import to_plain
 from truckd.config.truck import TruckConfig
 from truckd.control.controller import ControlOutput
 from truckd.control.platoon import platoon_control
@@ -41,6 +40,7 @@ from truckd.runtime.realtime import RealtimeReport, promote_helpers, setup_realt
 from truckd.runtime.recorder import Recorder
 from truckd.runtime.rxlog import RxLog
 from truckd.runtime.telemetry import Telemetry
+from truckd.schema import to_plain
 
 log = logging.getLogger("truckd.daemon")
 

@@ -16,7 +16,6 @@ from typing import Any
 
 import numpy as np
 
-from truckd.config.schema import load_dataclass
 from truckd.control.config import ControlConfig
 from truckd.control.qp import ControlModel
 from truckd.control.supervisor import SupervisorConfig
@@ -26,6 +25,7 @@ from truckd.model.effects import Effects
 from truckd.model.params import VehicleParams
 from truckd.runtime.cycle import MODE_CODE, CompanionCycle, CycleOutputs
 from truckd.runtime.rxlog import read_rx_log
+from truckd.schema import load_dataclass
 
 
 def cycle_from_params(params: dict[str, Any], t0: float, source: str) -> CompanionCycle:

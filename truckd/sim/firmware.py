@@ -45,10 +45,10 @@ from firmware_protocol.fwcore import (
     FirmwareCore,
 )
 from firmware_protocol.messages import FirmwareFault, FirmwareState, MotorCommand
-from truckd.config.schema import spec
 from truckd.io.inproc import Wire, inproc_pair
 from truckd.io.link import FramedStreamLink, Link
 from truckd.model.plant_config import encoder_ticks_per_rev as encoder_ticks_per_rev
+from truckd.schema import spec
 from truckd.sim.plant import Plant
 
 RangeFn = Callable[[float, float], float | None]

@@ -16,8 +16,8 @@ import typing
 from collections.abc import Mapping
 from typing import Any, TypeVar, get_args, get_origin, get_type_hints
 
-from truckd.config.yamlsafe import short
 from truckd.errors import InputError
+from truckd.yamlsafe import short
 
 T = TypeVar("T")
 
