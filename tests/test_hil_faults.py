@@ -19,7 +19,8 @@ from dataclasses import dataclass
 from typing import Any
 
 import pytest
-from hil_support import Daemon, Firmware, Sample, Watch, hil_config, new_port
+from hil_support import Daemon, Firmware, Sample, StallProbe, Watch, hil_config, new_port
+from stall_probe import excused
 
 from truckd.config.truck import TruckConfig, load_config
 
@@ -216,15 +217,33 @@ def test_counter_errors(rig: Rig) -> None:
 
 
 def test_garbage_bytes(rig: Rig) -> None:
-    t0 = rig.steady()
-    before = rig.watch.last_health()["link"]
-    for _ in range(5):
-        rig.fw.cmd({"fault": "garbage", "bytes": 2000})
-        rig.wait_fw(0.2)
-    rig.wait_fw(0.5)
-    msgs = rig.check_window(t0)
-    # resynchronised on the next delimiter: the sensors never went stale
-    assert not any(m["mode"] in STOPPED for m in msgs)
+    """Resynchronised on the next delimiter: the garbage never makes the sensors stale.
+
+    A stop is judged against the host's own stalls, measured independently of the code
+    under test (a StallProbe thread here): a host that takes the firmware or the daemon
+    away for longer than the encoder timeout makes the data really stale, and the
+    supervisor rightly stops.  A stop that no stall explains fails the test."""
+    probe = StallProbe()
+    try:
+        t0 = rig.steady()
+        before = rig.watch.last_health()["link"]
+        for _ in range(5):
+            rig.fw.cmd({"fault": "garbage", "bytes": 2000})
+            rig.wait_fw(0.2)
+        rig.wait_fw(0.5)
+        rig.check_window(t0)
+        samples = rig.watch.since(t0)
+    finally:
+        probe.stop()
+    msgs = [s.msg for s in samples]
+    ok = [m["mode"] not in STOPPED for m in msgs]
+    recovery = rig.cfg.runtime.supervisor.recovery_s + 0.5
+    why = excused([s.rx for s in samples], ok, probe.stalls, recovery)
+    unexplained = [m for m, a, e in zip(msgs, ok, why, strict=True) if not a and not e]
+    assert not unexplained, (
+        [(m["seq"], m["mode"], m["faults"], m["ages_ms"]) for m in unexplained[:3]],
+        f"host stalls {probe.stalls}, worst {probe.worst * 1e3:.1f} ms",
+    )
     after = rig.watch.last_health()["link"]
     assert after["framing_bytes_discarded"] > before["framing_bytes_discarded"]
 
