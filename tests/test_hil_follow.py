@@ -19,6 +19,7 @@ goes DEGRADED on missed deadlines, and the test still sees it outside the host's
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import json
 import math
@@ -210,8 +211,12 @@ def test_follow_15s_rate_safety_and_steady_state(tmp_path: Path) -> None:
     ok = excused(list(t_log[run]), list(active), stalls, cfg.runtime.supervisor.recovery_s + 0.3)
     judged = [a for a, e in zip(active, ok, strict=True) if not e]
     assert len(judged) >= 0.5 * rate * (RUN_S - 2.0), f"{len(judged)} cycles judged; {host}"
+    episodes = collections.Counter(
+        (m["mode"], tuple(m["faults"])) for m in msgs if m["mode"] != "ACTIVE"
+    )
     assert np.mean(judged) > 0.9, (
-        f"ACTIVE {np.mean(judged):.0%} of the judged cycles ({sum(ok)} excused); {host}"
+        f"ACTIVE {np.mean(judged):.0%} of the judged cycles ({sum(ok)} excused); {host}; "
+        f"states not ACTIVE (mode, faults): {dict(episodes)}"
     )
     # steady state: true gap at d_ref = d_0 + h v over the last 3 s (within 5 cm), after
     # SETTLE_S without a host stall or a non-ACTIVE state (see settled())

@@ -168,6 +168,36 @@ def test_serial_device_vanishing_is_seen_by_the_loops_non_blocking_poll(tmp_path
         dev.close()
 
 
+def test_bytes_arriving_between_the_poll_and_its_hangup_check_are_data(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The poll reads (b"" when empty), then asks select whether an empty read means a
+    hang-up.  A frame that arrives in between makes the descriptor readable too: it is
+    data, not a hang-up (this race once cut the motor: FAULT on link_down while the
+    firmware was streaming).  The race is made certain by writing inside select."""
+    path = str(tmp_path / "ttyTRUCK")
+    dev = PtyDevice(path)
+    link = SerialLink(path, reconnect_interval=0.02)
+    real_select = select.select
+    pending = [F1]
+
+    def select_after_a_write(r: list[int], w: list[int], x: list[int], t: float) -> object:
+        while pending:  # the firmware's frame lands just after the empty read
+            dev.send(pending.pop())
+            deadline = time.monotonic() + 2.0
+            while not real_select(r, [], [], 0.0)[0] and time.monotonic() < deadline:
+                time.sleep(0.001)
+        return real_select(r, w, x, t)
+
+    monkeypatch.setattr("truckd.io.serial_link.select.select", select_after_a_write)
+    try:
+        assert link.recv(0.0) == F1
+        assert link.connected and link.stats.disconnects == 0
+    finally:
+        link.close()
+        dev.close()
+
+
 def test_missing_serial_device_reported(tmp_path: Path) -> None:
     link = open_link("serial", LinkConfig(serial_device=str(tmp_path / "nope")))
     assert not link.connected and link.last_error

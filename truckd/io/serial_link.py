@@ -116,21 +116,30 @@ class SerialLink(FramedStreamLink):
             raise FrameDroppedError(f"{self.device}: transmit buffer full")
         self._tail = data[n:]
 
+    def _read_now(self, fd: int) -> bytes:
+        """One non-blocking read of what is there (b"" when nothing is)."""
+        try:
+            return os.read(fd, 4096)
+        except (BlockingIOError, InterruptedError):
+            return b""
+        except OSError as exc:
+            raise LinkDownError(f"{self.device}: {exc}") from None
+
     def _read_bytes(self, timeout: float) -> bytes:
         fd = self._fd
         if timeout == 0.0 and fd is not None:
             # The loop's poll: one non-blocking read on the descriptor (pyserial opens it
             # O_NONBLOCK) instead of pyserial's select, read(1), ioctl and read(n).
-            try:
-                data = os.read(fd, 4096)
-            except (BlockingIOError, InterruptedError):
-                return b""
-            except OSError as exc:
-                raise LinkDownError(f"{self.device}: {exc}") from None
+            data = self._read_now(fd)
             if not data and select.select([fd], [], [], 0.0)[0]:
-                # nothing to read (a raw tty with VMIN 0 reads b"") but readable: hung up,
-                # as pyserial's "readiness to read but returned no data"
-                raise LinkDownError(f"{self.device}: device returned no data (hung up)")
+                # A raw tty with VMIN 0 reads b"" when empty, and a hung-up one reads b""
+                # while select says readable.  Bytes that arrived between the read and the
+                # select also make it readable: read again, and only a second b"" from a
+                # readable descriptor is a hang-up (pyserial's "readiness to read but
+                # returned no data", which selects first and so has no such race).
+                data = self._read_now(fd)
+                if not data:
+                    raise LinkDownError(f"{self.device}: device returned no data (hung up)")
             return data
         ser = self._ser
         try:
