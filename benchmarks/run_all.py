@@ -22,6 +22,7 @@ ORDER = (
     "diagnose_bench",
     "closed_loop_gain",
     "platoon_figures",
+    "platoon_frequency",
     "router_bench",
     "platoon_hil",
 )

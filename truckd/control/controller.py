@@ -87,6 +87,20 @@ class Controller:
         self.holding = False
         """Standstill hold active (see :meth:`_update_hold`)."""
         self._release_cycles = 0
+        self.pipeline_v: list[float] = []
+        """Speeds (m/s) predicted at ``now + k period`` for the commands already sent but
+        not yet acting (the input delay): the QP's horizon starts after them.  Set by
+        each solve; a published plan begins with them."""
+
+    @property
+    def forecast_steps(self) -> int:
+        """Values a lead-speed forecast should have (one per period from now): the input
+        delay's commands in the pipeline, then the MPC horizon."""
+        return self._delay_steps + self.mpc.horizon
+
+    def _pipeline_steps(self) -> int:
+        """Commands sent but not yet acting (the QP's step 0 lies this many periods ahead)."""
+        return max(len(self._sent) - 1, 0) if self._delay_steps > 0 else 0
 
     def step(
         self,
@@ -99,8 +113,10 @@ class Controller:
         """One cycle at caller time t (s) with the samples received since the last one
         (oldest first).
 
-        ``v_lead_forecast`` (m/s per MPC step, optional) replaces the constant-speed
-        prediction of the lead, e.g. a plan received from the truck ahead.  ``headway``
+        ``v_lead_forecast`` (m/s at t + k period, k = 0, 1, ...; optional; see
+        :attr:`forecast_steps`) replaces the constant-speed prediction of the lead, e.g. a
+        plan received from the truck ahead: with an input delay its first values cover
+        the commands already in the pipeline, the rest the QP's horizon.  ``headway``
         (s, optional) replaces the configured time headway (platooning, see
         :meth:`control`).
         """
@@ -112,8 +128,10 @@ class Controller:
         return self.control(self.estimator.estimate(t), v_lead_forecast, headway)
 
     def _lead_horizon(self, est: Estimate, forecast: Sequence[float] | None) -> Vec:
-        """Lead speed over the horizon: the forecast when given and finite, else constant."""
-        n = self.mpc.horizon
+        """Lead speed (m/s) from now over the pipeline and the QP's horizon
+        (:meth:`_pipeline_steps` + horizon values): the forecast when given and finite
+        (its last value held past its end), else the estimate held constant."""
+        n = self._pipeline_steps() + self.mpc.horizon
         if forecast is not None and len(forecast) > 0:
             f: Vec = np.asarray(forecast, dtype=float)[:n]
             if f.size < n:
@@ -168,17 +186,21 @@ class Controller:
             # model it is 0 V: else the rate penalty keeps asking for it and the breakaway
             # feedforward kicks the truck forward again and again while it should stand.
             u_prev_mpc = 0.0
-        v_lead_h = self._lead_horizon(est, forecast) if lead else np.zeros(self.mpc.horizon)
+        n_pipe = self._pipeline_steps()
+        v_lead_all = (
+            self._lead_horizon(est, forecast) if lead else np.zeros(n_pipe + self.mpc.horizon)
+        )
         if mode == "follow":
             # Never follow faster than the set speed: a faster lead is taken as driving at
             # v_set (conservative, the predicted gap is smaller than the real one).
-            v_lead_h = np.minimum(v_lead_h, cfg.v_set)
+            v_lead_all = np.minimum(v_lead_all, cfg.v_set)
+        v_lead_h = v_lead_all[n_pipe:]
         inp = QpInputs(
             x0=self._initial_state(
                 v,
                 est.gap - (h - cfg.time_headway) * v if lead else 0.0,
                 ff,
-                float(v_lead_h[0]),
+                v_lead_all[:n_pipe] if n_pipe else v_lead_h[:1],
                 held=u_prev_mpc == 0.0,
             ),
             u_prev=u_prev_mpc,
@@ -270,11 +292,12 @@ class Controller:
         return self.disturbance_v
 
     def _initial_state(
-        self, v: float, gap: float, ff: float, v_lead: float, held: bool = False
+        self, v: float, gap: float, ff: float, v_lead: Vec, held: bool = False
     ) -> Vec:
         """The QP's ``x_0``: the current ``R_m i`` after the electrical transient (about
         0.5 ms, so settled within a cycle) from the voltage acting now; with a known input
-        delay, the state predicted over the commands sent but not yet acting."""
+        delay, the state predicted over the commands sent but not yet acting, with the
+        lead at ``v_lead[k]`` (m/s) in pipeline step k.  Records :attr:`pipeline_v`."""
         p = self.model.params
         sent = self._sent
         acting = sent[0] if len(sent) == sent.maxlen else 0.0
@@ -283,10 +306,13 @@ class Controller:
         if held:
             acting = ff  # no current beyond what the feedforward accounts for
         x: Vec = np.array([acting - ff - p.K_v * p.omega(v), v, gap])
+        speeds = [v]
         if self._delay_steps > 0:
             pred = self.mpc.qp.pred
-            for u in list(sent)[1:]:
-                x = pred.Ad @ x + pred.bu * (u - ff) + pred.bl * v_lead
+            for k, u in enumerate(list(sent)[1:]):
+                x = pred.Ad @ x + pred.bu * (u - ff) + pred.bl * float(v_lead[k])
+                speeds.append(float(x[1]))
+        self.pipeline_v = speeds[:-1]
         return x
 
     def _fallback(

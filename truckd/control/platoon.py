@@ -45,7 +45,7 @@ class PlatoonConfig:
         unit="s",
         lo=0.05,
         hi=5.0,
-        default=0.6,
+        default=0.3,
     )
     acc_headway: float = spec(
         "time headway on the range sensor alone (ACC fallback)",

@@ -80,8 +80,9 @@ class CycleInputs:
 
 @dataclass(frozen=True, slots=True)
 class Plan:
-    """The controller's predicted trajectory: step ``dt`` (s), speed ``v`` (m/s, N+1
-    points from now) and acceleration ``a`` (m/s^2, N steps)."""
+    """The controller's predicted trajectory: step ``dt`` (s), speed ``v`` (m/s, from now:
+    one point per command still in the input delay's pipeline, then the QP's N+1) and
+    acceleration ``a`` (m/s^2, one fewer)."""
 
     dt: float
     v: tuple[float, ...]
@@ -207,7 +208,9 @@ class CompanionCycle:
             return None
         _u, v, _d = self.controller.mpc.qp.plan(z)
         dt = self.period
-        vs = tuple(float(x) for x in v)
+        # from now: the speeds over the commands already in the pipeline (input delay),
+        # then the QP's, whose step 0 lies that many periods ahead
+        vs = (*self.controller.pipeline_v, *(float(x) for x in v))
         return Plan(dt, vs, tuple((b - a) / dt for a, b in itertools.pairwise(vs)))
 
     def state_message(self, out: CycleOutputs, lateness_s: float = 0.0) -> dict[str, Any]:

@@ -127,7 +127,7 @@ class DaemonPlatoon:
         self.wall = wall
         self.receiver = PlanReceiver(cfg.predecessor) if cfg.predecessor else None
         self.mode = (
-            PlatoonMode(cfg, cyc.period, cyc.controller.mpc.horizon) if cfg.predecessor else None
+            PlatoonMode(cfg, cyc.period, cyc.controller.forecast_steps) if cfg.predecessor else None
         )
         self.decision: PlatoonDecision | None = None
         self._now = math.nan

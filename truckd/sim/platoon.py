@@ -235,7 +235,7 @@ class _Follower:
             setup.stop_ramp_v_per_s,
             time_budget=False,  # simulated time: judged by what the solver did
         )
-        self.mode = PlatoonMode(pcfg, cfg.period, self.cyc.controller.mpc.horizon, initial=CACC)
+        self.mode = PlatoonMode(pcfg, cfg.period, self.cyc.controller.forecast_steps, initial=CACC)
         self.out: CycleOutputs | None = None
         self.dec: PlatoonDecision | None = None
 
