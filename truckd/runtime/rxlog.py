@@ -11,7 +11,8 @@ precision (``repr``), written by a background thread (the loop only appends to a
   on the caller's clock (s) and the parameters in use (the daemon's ``params``
   queryable: model, control, runtime, ticks per revolution);
 - then one line per cycle: ``[now, link_up, loop_missed, [[t, name, type, [fields]], ...]]``
-  and, when the cycle had a lead forecast, a fifth element with it.
+  and, when the cycle had a lead forecast or a headway (a platoon follower), a fifth
+  element with the forecast (m/s per period, or null) and a sixth with the headway (s).
 
 Off unless ``runtime.recorder.messages`` is true; not rotated (it grows by about 20 kB/s
 at 100 Hz).
@@ -69,8 +70,10 @@ def encode_cycle(inp: CycleInputs) -> str:
         values = (getattr(r.msg, f) for f in _FIELDS[kind])
         rx.append([r.t, r.name, kind, [v if isinstance(v, float) else int(v) for v in values]])
     row: list[Any] = [inp.now, inp.link_up, inp.loop_missed, rx]
-    if inp.lead_forecast is not None:
-        row.append(list(inp.lead_forecast))
+    if inp.lead_forecast is not None or inp.headway is not None:
+        row.append(None if inp.lead_forecast is None else list(inp.lead_forecast))
+    if inp.headway is not None:
+        row.append(inp.headway)
     return json.dumps(row, separators=(",", ":"))
 
 
@@ -84,8 +87,9 @@ def decode_cycle(line: str, where: str) -> CycleInputs:
             cls, conv = _TYPES[kind]
             msg = cls(*(c(v) for c, v in zip(conv, fields, strict=True)))
             received.append(Received(float(t), str(name), msg))
-        forecast = [float(x) for x in row[4]] if len(row) > 4 else None
-        return CycleInputs(float(now), received, bool(link_up), bool(missed), forecast)
+        forecast = [float(x) for x in row[4]] if len(row) > 4 and row[4] is not None else None
+        headway = float(row[5]) if len(row) > 5 else None
+        return CycleInputs(float(now), received, bool(link_up), bool(missed), forecast, headway)
     except (ValueError, TypeError, KeyError, IndexError) as exc:
         raise InputError(f"{where}: not a cycle of a {FORMAT} log: {exc}") from None
 
