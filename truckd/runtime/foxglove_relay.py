@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import json
 import logging
+import signal
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -204,6 +205,11 @@ def run_relay(
     """Start ``relay``, print its address and, every ``interval`` s when it changed, how
     many messages went out per topic; until ``duration`` (None: until interrupted)."""
     port = relay.start()
+    # Ctrl-C and SIGTERM end the relay.  Installed after the start: the native libraries
+    # (Zenoh, the Foxglove server) set up their runtimes there, and with Python's own
+    # SIGINT handler beneath them a Ctrl-C was now and then not seen (the relay kept
+    # running; about 1 run in 20 beside a busy core).
+    previous = _on_stop_signals()
     out.write(f"foxglove: serving on ws://{relay.host}:{port} (open it in Foxglove)\n")
     out.flush()
     t_end = None if duration is None else clock() + duration
@@ -218,4 +224,18 @@ def run_relay(
                 last = line
     finally:
         relay.close()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
     return relay.stats
+
+
+def _interrupted(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt  # the CLI's exit code 130, after the relay is closed
+
+
+def _on_stop_signals() -> dict[int, Any]:
+    """SIGINT and SIGTERM raise KeyboardInterrupt in the main thread (only there: a relay
+    run from another thread keeps the process's handlers); the previous handlers."""
+    if threading.current_thread() is not threading.main_thread():
+        return {}
+    return {sig: signal.signal(sig, _interrupted) for sig in (signal.SIGINT, signal.SIGTERM)}
