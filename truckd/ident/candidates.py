@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from truckd.ident.data import Series
+from truckd.ident.terrain import Stretch
 from truckd.ident.voltage import Param
 from truckd.model.params import VehicleParams
 
@@ -31,6 +32,23 @@ class Candidate:
     grid: tuple[float, ...]
     smooth: bool = True
     needs_current: bool = False
+    preset: tuple[tuple[str, float], ...] = ()
+    """Effects fields set with the candidate and held (a hill's start and length, m)."""
+    output: str = ""
+    """Effect name (CONTRACTS.md section 4) it reports as; default its own name."""
+
+
+def hill_candidate(p0: VehicleParams, stretch: Stretch) -> Candidate:
+    """A load on the located stretch of road (``load_force`` with profile hill)."""
+    weight = p0.m * 9.81
+    f = stretch.force
+    return Candidate(
+        "load_force_hill",
+        Param("hill_force", max(abs(f), 0.01 * weight), -2.0 * weight, 2.0 * weight),
+        tuple(sorted(float(x) for x in (0.5 * f, f, 1.5 * f))),
+        preset=(("hill_start", stretch.start), ("hill_length", stretch.length)),
+        output="load_force",
+    )
 
 
 def voltage_candidates(p0: VehicleParams, data: Series) -> list[Candidate]:
