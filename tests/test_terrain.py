@@ -13,7 +13,14 @@ import pytest
 
 from truckd.ident.api import diagnose_log
 from truckd.ident.data import runs_from_logs, with_position
-from truckd.ident.synth import DrawnTruck, draw_truck, drawn_log, hill_effects, hill_force_for
+from truckd.ident.synth import (
+    DrawnTruck,
+    draw_truck,
+    drawn_log,
+    hill_effects,
+    hill_force_for,
+    rolling_effects,
+)
 from truckd.ident.terrain import locate
 from truckd.model.effects import Effects
 from truckd.model.params import VehicleParams
@@ -65,3 +72,19 @@ def test_hill_residual_is_located_from_position(params: VehicleParams) -> None:
     assert s is not None
     assert abs(s.start - eff.hill_start) < 0.5
     assert np.sign(s.force) == np.sign(eff.hill_force)
+
+
+@pytest.mark.parametrize("k", [0, 2])
+def test_rolling_terrain_is_named_with_its_wavelength(params: VehicleParams, k: int) -> None:
+    rng = np.random.default_rng(CHILDREN[k])
+    truck = draw_truck(params, rng)
+    seed = int(rng.integers(1 << 30))
+    rng.random()
+    eff = rolling_effects(truck, seed, hill_force_for(truck, params))
+    d = diagnose_log(drawn_log(truck, eff, seed), params)
+    assert [f.name for f in d.effects] == ["load_force"]
+    out = d.effects[0].to_json()
+    assert out["profile"] == "rolling"
+    assert abs(out["wavelength_m"] - eff.load_force_wavelength) < 0.1 * eff.load_force_wavelength
+    assert abs(out["amplitude_n"] - eff.load_force_amplitude) < 0.25 * eff.load_force_amplitude
+    assert d.extended.fit_percent > d.baseline.fit_percent

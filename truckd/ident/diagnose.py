@@ -21,7 +21,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from truckd.ident.candidates import Candidate, hill_candidate, voltage_candidates
+from truckd.ident.candidates import (
+    Candidate,
+    hill_candidate,
+    rolling_candidate,
+    voltage_candidates,
+)
 from truckd.ident.data import (
     Series,
     chunks_of_runs,
@@ -42,7 +47,7 @@ from truckd.ident.result import (
     Traces,
 )
 from truckd.ident.selection import close, delta_bic, passes, structured, white
-from truckd.ident.terrain import hill_problem, locate
+from truckd.ident.terrain import hill_problem, locate, locate_wave, rolling_problem
 from truckd.ident.voltage import (
     FitResult,
     Param,
@@ -176,8 +181,9 @@ def _fit_candidate(
     e0 = dataclasses.replace(e_base, **{name: value})
     free = [*seed_free, *extra_free]
     if cand.smooth:
-        out = fit_with_stiction(base.params, e0, [*free, cand.param], fit_data, w, grid, progress)
-        if cand.preset:
+        own = [cand.param, *cand.extra]
+        out = fit_with_stiction(base.params, e0, [*free, *own], fit_data, w, grid, progress)
+        if cand.param.name == "hill_force":
             out = _refine_stretch(out, [*free, cand.param], fit_data, w, grid, progress)
     else:
         first = fit_with_stiction(base.params, e0, free, fit_data, w, grid, progress)
@@ -210,6 +216,13 @@ def _params_of(cand: Candidate, e: Effects) -> dict[str, float]:
 
 def _profile_of(cand: Candidate, e: Effects) -> dict[str, float | str] | None:
     """Position description of a position-dependent load (CONTRACTS.md section 4)."""
+    if cand.param.name == "load_force_amplitude":
+        return {
+            "profile": "rolling",
+            "amplitude_n": e.load_force_amplitude,
+            "wavelength_m": e.load_force_wavelength,
+            "phase_rad": e.load_force_phase,
+        }
     if cand.param.name != "hill_force":
         return None
     return {
@@ -362,6 +375,9 @@ def _summary(
     if e.hill_force != 0.0:
         for n in ("hill_force", "hill_start", "hill_length"):
             params[n] = float(getattr(e, n))
+    if e.load_force_amplitude != 0.0:
+        for n in ("load_force_amplitude", "load_force_wavelength", "load_force_phase"):
+            params[n] = float(getattr(e, n))
     ff = feedforward_of(p).to_json()
     return ModelSummary(fit_percent(y, y_sim), rmse(y, y_sim), params, feedforward=ff), y_sim
 
@@ -396,9 +412,13 @@ def diagnose_voltage(
         ok = True
         for n in names:
             pn = by_name[n].param.name
-            if by_name[n].preset:
-                e = m.effects
+            e = m.effects
+            if pn == "hill_force":
                 why = hill_problem(e.hill_force, e.hill_start, e.hill_length, m.params, runs)
+            elif pn == "load_force_amplitude":
+                why = rolling_problem(
+                    e.load_force_amplitude, e.load_force_wavelength, m.params, runs
+                )
             else:
                 why = effect_problem(n, float(getattr(m.effects, pn)), m.params, runs)
             if why is not None:
@@ -415,6 +435,10 @@ def diagnose_voltage(
             f" m ({stretch.force:.3g} N): hill candidate"
         )
         cands.append(hill_candidate(base_fit.params, stretch))
+    wave = locate_wave(base_fit.params, runs)
+    if wave is not None:
+        progress(f"residual periodic in position ({wave.wavelength:.3g} m): rolling candidate")
+        cands.append(rolling_candidate(base_fit.params, wave))
     by_name = {c.name: c for c in cands}
     tried: dict[str, _Model] = {}
     rows: dict[str, CandidateRow] = {}

@@ -353,6 +353,7 @@ HANDLED = (
     "sensor_lag",
     "load_force_amplitude",
     "load_force_wavelength",
+    "load_force_phase",
     "hill_force",
     "hill_start",
     "hill_length",

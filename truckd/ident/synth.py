@@ -197,3 +197,13 @@ def hill_force_for(truck: DrawnTruck, p: VehicleParams) -> float:
     """A hill force (N) as visible on ``truck`` as 3 N on the default one, within a 15 %
     grade of the configured weight (a steeper hill stops a weak truck for good)."""
     return min(3.0 * truck.k_scale, 0.15 * p.m * 9.81)
+
+
+def rolling_effects(truck: DrawnTruck, seed: int, amplitude: float) -> Effects:
+    """Rolling terrain of ``amplitude`` N whose wavelength is a quarter of the range the
+    clean log of ``truck`` (same seed) drives over (so that it covers several waves)."""
+    clean = drawn_log(truck, Effects(), seed)
+    t, v = clean["t"], clean["v"]
+    x = np.concatenate([[0.0], np.cumsum(0.5 * (v[1:] + v[:-1]) * np.diff(t))])
+    span = float(np.max(x) - np.min(x))
+    return Effects(load_force_amplitude=amplitude, load_force_wavelength=max(span / 4.0, 0.5))

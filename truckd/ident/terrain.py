@@ -4,7 +4,8 @@ The seed model's equation error, as a force at the wheels (N), is binned by posi
 (m).  A load that lives on a stretch of road shows as a run of bins whose median lies
 away from the rest; the stretch with the largest summed deviation is the hill's first
 guess.  The simulation-error fit then refines its force, start and length
-(:mod:`truckd.ident.diagnose`).  Pure numerics.
+(:mod:`truckd.ident.diagnose`).  Rolling terrain is the sinusoid in position that best
+fits the same binned residual (:func:`locate_wave`).  Pure numerics.
 
 How it is told apart from time- or speed-dependent effects: the residual of an input
 delay, a sensor lag or aero drag follows the command or the speed, so binned by
@@ -78,8 +79,21 @@ def residual_force(p: VehicleParams, s: Series) -> tuple[np.ndarray, np.ndarray,
     return s.x, force, usable
 
 
-def locate(p: VehicleParams, runs: Sequence[Series]) -> Stretch | None:
-    """The stretch of road where the residual force is localised, or None."""
+@dataclass(frozen=True)
+class Profile:
+    """The residual force binned by position: bin starts (m), deviation from the
+    median (N), which bins hold data, bin width (m), driven range (m)."""
+
+    left: np.ndarray
+    dev: np.ndarray
+    have: np.ndarray
+    width: float
+    span: float
+    min_len: float
+
+
+def profile(p: VehicleParams, runs: Sequence[Series]) -> Profile | None:
+    """Residual force binned by position over all runs (None: too little travel)."""
     xs, fs = [], []
     travel = []
     for r in runs:
@@ -109,6 +123,17 @@ def locate(p: VehicleParams, runs: Sequence[Series]) -> Stretch | None:
     if have.sum() < 10:
         return None
     dev = np.where(have, med - float(np.median(med[have])), 0.0)
+    left = lo + width * np.arange(nb)
+    return Profile(left, dev, have, width, span, min_len)
+
+
+def locate(p: VehicleParams, runs: Sequence[Series]) -> Stretch | None:
+    """The stretch of road where the residual force is localised, or None."""
+    prof = profile(p, runs)
+    if prof is None:
+        return None
+    dev, have, width, span = prof.dev, prof.have, prof.width, prof.span
+    nb = len(dev)
     best = (0.0, 0, 0)
     for sign in (1.0, -1.0):
         run_sum, start = 0.0, 0
@@ -128,7 +153,65 @@ def locate(p: VehicleParams, runs: Sequence[Series]) -> Stretch | None:
     if strong.size:
         b0, b1 = b0 + int(strong[0]), b0 + int(strong[-1]) + 1
     force = float(np.mean(dev[b0:b1][have[b0:b1]]))
-    return Stretch(start=lo + b0 * width, length=(b1 - b0) * width, force=force, bin_width=width)
+    return Stretch(
+        start=float(prof.left[b0]), length=(b1 - b0) * width, force=force, bin_width=width
+    )
+
+
+@dataclass(frozen=True)
+class Wave:
+    """Rolling terrain: ``amplitude sin(2 pi x / wavelength + phase)`` (N, m, rad)."""
+
+    amplitude: float
+    wavelength: float
+    phase: float
+
+
+def locate_wave(p: VehicleParams, runs: Sequence[Series]) -> Wave | None:
+    """The sinusoid in position that best explains the binned residual force, or None.
+
+    Wavelengths from 4 bins (and 2 x the shortest visible stretch) to half the driven
+    range, on a log grid; sine and cosine fitted by least squares at each.
+    """
+    prof = profile(p, runs)
+    if prof is None:
+        return None
+    lo_w = max(4.0 * prof.width, 2.0 * prof.min_len)
+    hi_w = 0.5 * prof.span
+    if hi_w <= lo_w:
+        return None
+    xc = (prof.left + 0.5 * prof.width)[prof.have]
+    y = prof.dev[prof.have]
+    best: tuple[float, Wave] | None = None
+    for lam in np.geomspace(lo_w, hi_w, 80):
+        k = 2.0 * np.pi / lam
+        a_mat = np.column_stack([np.sin(k * xc), np.cos(k * xc), np.ones_like(xc)])
+        coef, *_ = np.linalg.lstsq(a_mat, y, rcond=None)
+        sse = float(np.sum((y - a_mat @ coef) ** 2))
+        amp = float(np.hypot(coef[0], coef[1]))
+        wave = Wave(amp, float(lam), float(np.arctan2(coef[1], coef[0])))
+        if best is None or sse < best[0]:
+            best = (sse, wave)
+    return None if best is None else best[1]
+
+
+def rolling_problem(
+    amplitude: float, wavelength: float, p: VehicleParams, runs: Sequence[Series]
+) -> str | None:
+    """Why rolling terrain of ``amplitude`` N and ``wavelength`` m is impossible."""
+    weight = p.m * 9.81
+    if abs(amplitude) > GRADE_MAX * weight:
+        return (
+            f"load_force_amplitude = {abs(amplitude):.3g} N exceeds a {GRADE_MAX:.0%} grade "
+            f"of the truck's weight ({GRADE_MAX * weight:.3g} N)"
+        )
+    travel = max(float(np.median(np.abs(r.v))) * float(np.median(np.diff(r.t))) for r in runs)
+    if wavelength < 2.0 * MIN_SAMPLES_TRAVEL * travel:
+        return (
+            f"load_force_wavelength = {wavelength:.3g} m shorter than "
+            f"{2 * MIN_SAMPLES_TRAVEL} samples of travel"
+        )
+    return None
 
 
 def hill_problem(

@@ -12,7 +12,8 @@ name                      parameter           physics
                                               speed and direction (grade, towing, offset);
                                               ``load_force_amplitude`` (N) and
                                               ``load_force_wavelength`` (m) add
-                                              ``A sin(2 pi x / lambda)`` (rolling terrain);
+                                              ``A sin(2 pi x / lambda + phi)`` (rolling
+                                              terrain, ``load_force_phase`` phi in rad);
                                               ``hill_force`` (N) adds a force on the
                                               stretch ``hill_start <= x < hill_start +
                                               hill_length`` (m) of the road (a hill, a bump)
@@ -73,6 +74,13 @@ class Effects:
         lo_open=True,
         hi=1e4,
         default=10.0,
+    )
+    load_force_phase: float = spec(
+        "phase of the position-dependent load force at x = 0",
+        unit="rad",
+        lo=-100.0,
+        hi=100.0,
+        default=0.0,
     )
     hill_force: float = spec(
         "extra force opposing forward motion on a stretch of the road (+ = uphill)",
@@ -142,7 +150,8 @@ def terrain_force(eff: Effects, x: float) -> float:
     """The position-dependent part of the load force (N) at position x (m)."""
     force = 0.0
     if eff.load_force_amplitude != 0.0:
-        force += eff.load_force_amplitude * math.sin(2.0 * math.pi * x / eff.load_force_wavelength)
+        phase = 2.0 * math.pi * x / eff.load_force_wavelength + eff.load_force_phase
+        force += eff.load_force_amplitude * math.sin(phase)
     if eff.hill_force != 0.0 and eff.hill_start <= x < eff.hill_start + eff.hill_length:
         force += eff.hill_force
     return force
