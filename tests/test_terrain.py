@@ -21,7 +21,7 @@ from truckd.ident.synth import (
     hill_force_for,
     rolling_effects,
 )
-from truckd.ident.terrain import locate
+from truckd.ident.terrain import hill_problem, locate, rolling_problem
 from truckd.model.effects import Effects
 from truckd.model.params import VehicleParams
 
@@ -88,3 +88,19 @@ def test_rolling_terrain_is_named_with_its_wavelength(params: VehicleParams, k: 
     assert abs(out["wavelength_m"] - eff.load_force_wavelength) < 0.1 * eff.load_force_wavelength
     assert abs(out["amplitude_n"] - eff.load_force_amplitude) < 0.25 * eff.load_force_amplitude
     assert d.extended.fit_percent > d.baseline.fit_percent
+
+
+def test_impossible_terrain_is_a_finding_not_a_cause(params: VehicleParams) -> None:
+    """A hill steeper than 35 % of the weight, outside the driven range or shorter than
+    3 samples of travel, and rolling terrain too strong: each gets a reason."""
+    rng = np.random.default_rng(CHILDREN[4])
+    truck = draw_truck(params, rng)
+    runs = [with_position(r) for r in runs_from_logs([drawn_log(truck, Effects(), 3)])]
+    x = np.concatenate([r.x for r in runs if r.x is not None])
+    mid, weight = float(np.median(x)), params.m * 9.81
+    assert hill_problem(0.2 * weight, mid, 1.0, params, runs) is None
+    assert "grade" in str(hill_problem(0.5 * weight, mid, 1.0, params, runs))
+    assert "outside" in str(hill_problem(1.0, float(np.max(x)) + 1.0, 1.0, params, runs))
+    assert "shorter" in str(hill_problem(1.0, mid, 1e-4, params, runs))
+    assert rolling_problem(0.2 * weight, 2.0, params, runs) is None
+    assert "grade" in str(rolling_problem(0.5 * weight, 2.0, params, runs))
