@@ -15,6 +15,8 @@ viscous friction, which needs it) (:func:`truckd.ident.synth.draw_truck`); the e
 magnitudes scale with the motor constant (:func:`truckd.ident.synth.scaled_effect`).
 Diagnosis is always started from the *default* configuration.  Also reported: false
 causes per 100 logs (named effects that were not hidden, over every log of the run).
+Terrain cases ``hill`` (a load on 5 m of road, crossed repeatedly) and ``rolling`` (a
+sinusoid in position): the hidden cause is ``load_force`` with that profile, located.
 
     nice .venv/bin/python benchmarks/diagnose_bench.py [--seeds N] [--trucks default|drawn]
         [--json FILE]
@@ -37,8 +39,11 @@ from truckd.ident.api import diagnose_log
 from truckd.ident.synth import (
     draw_truck,
     drawn_log,
+    hill_effects,
+    hill_force_for,
     plant_log,
     random_effect,
+    rolling_effects,
     scaled_effect,
     with_effect,
 )
@@ -133,13 +138,78 @@ def _drawn(p: Any, name: str, seed: int) -> dict[str, Any]:
     return row
 
 
+TERRAIN = ("hill", "rolling")
+"""Position-dependent load cases of the drawn run (named ``load_force`` with a profile)."""
+
+
+def _terrain(p: Any, name: str, seed: int) -> dict[str, Any]:
+    """A drawn truck on a hill (load on 5 m of road, crossed repeatedly) or on rolling
+    terrain (a quarter of the driven range per wave); hit: ``load_force`` alone, with the
+    right profile, located (hill edges within 30 % of its length; wavelength within
+    10 %) and its force within 25 %, the extended fit above the seed's."""
+    rng = np.random.default_rng(seed)
+    truck = draw_truck(p, rng)
+    log_seed = int(rng.integers(1 << 30))
+    force = hill_force_for(truck, p) * (1.0 if rng.random() < 0.5 else -1.0)
+    if name == "hill":
+        eff = hill_effects(truck, log_seed, force)
+        value = eff.hill_force
+    else:
+        eff = rolling_effects(truck, log_seed, abs(force))
+        value = eff.load_force_amplitude
+    t0 = time.perf_counter()
+    d = diagnose_log(drawn_log(truck, eff, log_seed), p)
+    dt = time.perf_counter() - t0
+    names = [f.name for f in d.effects]
+    out = next((f.to_json() for f in d.effects if f.name == "load_force"), {})
+    if name == "hill":
+        tol = 0.3 * eff.hill_length
+        located = (
+            out.get("profile") == "hill"
+            and abs(out["x_start_m"] - eff.hill_start) < tol
+            and abs(out["x_end_m"] - eff.hill_start - eff.hill_length) < tol
+        )
+        found = out.get("value", float("nan"))
+    else:
+        located = (
+            out.get("profile") == "rolling"
+            and abs(out["wavelength_m"] - eff.load_force_wavelength)
+            < 0.1 * eff.load_force_wavelength
+        )
+        found = out.get("amplitude_n", float("nan"))
+    return {
+        "case": name,
+        "seed": seed,
+        "k_scale": truck.k_scale,
+        "j_scale": truck.j_scale,
+        "rate_hz": truck.rate_hz,
+        "value": value,
+        "found": found,
+        "profile": out,
+        "named": names,
+        "name_hit": out.get("profile") == name,
+        "false_causes": len([n for n in names if n != "load_force"]),
+        "unexplained": d.unexplained,
+        "baseline_fit": d.baseline.fit_percent,
+        "extended_fit": d.extended.fit_percent,
+        "rejected": [r.name for r in d.rejected],
+        "hit": bool(
+            names == ["load_force"]
+            and located
+            and abs(found - value) <= 0.25 * abs(value)
+            and d.extended.fit_percent > d.baseline.fit_percent
+        ),
+        "time_s": dt,
+    }
+
+
 def _run_drawn(p: Any, seeds: list[int]) -> list[dict[str, Any]]:
-    """Every effect once per seed, and clean logs twice per seed (other seeds)."""
-    jobs = [(name, s) for name in EFFECT_NAMES for s in seeds]
+    """Every effect and terrain case once per seed, clean logs twice per seed."""
+    jobs = [(name, s) for name in (*EFFECT_NAMES, *TERRAIN) for s in seeds]
     jobs += [("none", s + k) for s in seeds for k in (1, 2)]
     rows = []
     for name, s in jobs:
-        rows.append(_drawn(p, name, s))
+        rows.append(_terrain(p, name, s) if name in TERRAIN else _drawn(p, name, s))
         r = rows[-1]
         print(
             f"  {name} seed {s} k={r['k_scale']:.3g} J={r['j_scale']:.3g}: "
@@ -208,7 +278,7 @@ def main() -> int:
     rows: list[dict[str, Any]] = []
     if args.trucks == "drawn":
         rows = _run_drawn(p, seeds)
-        cases = [*EFFECT_NAMES, "none"]
+        cases = [*EFFECT_NAMES, *TERRAIN, "none"]
     else:
         cases = [*EFFECT_NAMES, "none", "two", "unexplained"]
         for name in EFFECT_NAMES:
@@ -232,7 +302,7 @@ def main() -> int:
     for case in cases:
         rs = [r for r in rows if r["case"] == case]
         table[case] = {"runs": len(rs), "hit_rate": float(np.mean([r["hit"] for r in rs]))}
-        if case in EFFECT_NAMES:
+        if case in EFFECT_NAMES or case in TERRAIN:
             table[case]["named_rate"] = float(np.mean([r["name_hit"] for r in rs]))
             table[case]["median_time_s"] = float(np.median([r["time_s"] for r in rs]))
     false_per_100 = None

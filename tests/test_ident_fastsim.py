@@ -140,9 +140,37 @@ def test_log_starting_mid_motion_under_a_delay(params: VehicleParams, with_curre
     assert err < 5e-4, f"rms {err:.2e} m/s"
 
 
-def test_fast_simulator_refuses_effects_it_does_not_model(params: VehicleParams) -> None:
-    """Terrain (position-dependent load) is not modelled: refused, never silently ignored."""
-    t = np.arange(100) * 0.01
-    eff = Effects(load_force_amplitude=2.0, load_force_wavelength=5.0)
-    with pytest.raises(ValueError, match="load_force_amplitude"):
-        simulate_voltage(params, eff, t, np.full(100, 3.0))
+@pytest.mark.parametrize(
+    "eff",
+    [
+        Effects(load_force_amplitude=2.0, load_force_wavelength=1.5),
+        Effects(hill_force=3.0, hill_start=0.5, hill_length=1.0),
+        Effects(hill_force=-2.0, hill_start=-1.0, hill_length=0.8, load_force=0.5),
+    ],
+    ids=["rolling", "hill", "downhill"],
+)
+def test_fast_simulator_agrees_with_plant_on_terrain(params: VehicleParams, eff: Effects) -> None:
+    """A position-dependent load (rolling terrain, a hill) is simulated as the plant does,
+    and it matters (without it the run differs)."""
+    rng = np.random.default_rng(11)
+    t, u = excitation(rng, 1500)
+    ref = simulate_open_loop(params, t, u, PlantConfig(effects=eff))
+    fast = simulate_voltage(params, eff, t, u)
+    flat = simulate_voltage(params, Effects(load_force=eff.load_force), t, u)
+    err = float(np.sqrt(np.mean((ref.v - fast.v) ** 2)))
+    assert err < 2e-3, f"rms {err:.2e} m/s"
+    assert float(np.sqrt(np.mean((ref.v - flat.v) ** 2))) > 10 * err
+
+
+def test_fast_simulator_starts_terrain_at_the_given_position(params: VehicleParams) -> None:
+    """``x0`` places a chunk on the road: a chunk started mid-log matches the whole run."""
+    rng = np.random.default_rng(12)
+    t, u = excitation(rng, 1500)
+    eff = Effects(hill_force=3.0, hill_start=0.3, hill_length=1.0)
+    whole = simulate_voltage(params, eff, t, u)
+    k = 600
+    v0, pre = float(whole.v[k]), float(u[k - 1])
+    part = simulate_voltage(params, eff, t[k:], u[k:], v0, v_pre=pre, x0=float(whole.x[k]))
+    at_zero = simulate_voltage(params, eff, t[k:], u[k:], v0, v_pre=pre)
+    assert np.max(np.abs(part.v - whole.v[k:])) < 1e-3
+    assert np.max(np.abs(at_zero.v - whole.v[k:])) > 1e-2

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from truckd.ident.data import Series
+from truckd.ident.terrain import Stretch, Wave
 from truckd.ident.voltage import Param
 from truckd.model.params import VehicleParams
 
@@ -31,6 +32,25 @@ class Candidate:
     grid: tuple[float, ...]
     smooth: bool = True
     needs_current: bool = False
+    preset: tuple[tuple[str, float], ...] = ()
+    """Effects fields set with the candidate and held (a hill's start and length, m)."""
+    output: str = ""
+    """Effect name (CONTRACTS.md section 4) it reports as; default its own name."""
+    extra: tuple[Param, ...] = ()
+    """Further parameters freed with it when it is fitted alone (held afterwards)."""
+
+
+def hill_candidate(p0: VehicleParams, stretch: Stretch) -> Candidate:
+    """A load on the located stretch of road (``load_force`` with profile hill)."""
+    weight = p0.m * 9.81
+    f = stretch.force
+    return Candidate(
+        "load_force_hill",
+        Param("hill_force", max(abs(f), 0.01 * weight), -2.0 * weight, 2.0 * weight),
+        tuple(sorted(float(x) for x in (0.5 * f, f, 1.5 * f))),
+        preset=(("hill_start", stretch.start), ("hill_length", stretch.length)),
+        output="load_force",
+    )
 
 
 def voltage_candidates(p0: VehicleParams, data: Series) -> list[Candidate]:
@@ -101,3 +121,21 @@ def voltage_candidates(p0: VehicleParams, data: Series) -> list[Candidate]:
     ]
     with_current = data.i is not None
     return [c for c in out if with_current or not c.needs_current]
+
+
+def rolling_candidate(p0: VehicleParams, wave: Wave) -> Candidate:
+    """Rolling terrain (``load_force`` with profile rolling) at the located wavelength."""
+    weight = p0.m * 9.81
+    a = max(wave.amplitude, 1e-3 * weight)
+    lam = wave.wavelength
+    return Candidate(
+        "load_force_rolling",
+        Param("load_force_amplitude", a, 0.0, 2.0 * weight),
+        (0.5 * a, a, 1.5 * a),
+        preset=(("load_force_wavelength", lam), ("load_force_phase", wave.phase)),
+        output="load_force",
+        extra=(
+            Param("load_force_wavelength", lam, 0.8 * lam, 1.25 * lam),
+            Param("load_force_phase", 1.0, wave.phase - 2.0, wave.phase + 2.0),
+        ),
+    )

@@ -257,6 +257,15 @@ def chunks(s: Series, budget: int, pieces: int = 4) -> list[Series]:
     return [s.slice(int(a), int(a) + size) for a in starts]
 
 
+def with_position(s: Series) -> Series:
+    """``s`` with a position (m): its own ``x`` column, else the speed integrated
+    (trapezoid) from 0 at the run's start."""
+    if s.x is not None:
+        return s
+    steps = 0.5 * (s.v[1:] + s.v[:-1]) * np.diff(s.t)
+    return dataclasses.replace(s, x=np.concatenate([[0.0], np.cumsum(steps)]))
+
+
 def chunks_of_runs(runs: Sequence[Series], budget: int, pieces: int = 4) -> list[Series]:
     """At most ``budget`` samples over all runs, shared in proportion to their lengths.
 

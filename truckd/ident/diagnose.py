@@ -21,13 +21,19 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from truckd.ident.candidates import Candidate, voltage_candidates
+from truckd.ident.candidates import (
+    Candidate,
+    hill_candidate,
+    rolling_candidate,
+    voltage_candidates,
+)
 from truckd.ident.data import (
     Series,
     chunks_of_runs,
     merged,
     noise_std,
     split_runs_for_validation,
+    with_position,
 )
 from truckd.ident.linear import Feedforward, feedforward_of, start_model
 from truckd.ident.physics import effect_problem, effects_problems, vehicle_problems
@@ -41,6 +47,7 @@ from truckd.ident.result import (
     Traces,
 )
 from truckd.ident.selection import close, delta_bic, passes, structured, white
+from truckd.ident.terrain import hill_problem, locate, locate_wave, rolling_problem
 from truckd.ident.voltage import (
     FitResult,
     Param,
@@ -169,11 +176,15 @@ def _fit_candidate(
     data; among the values those data cannot tell apart, the validation data choose.
     """
     name = cand.param.name
-    value, _ = scan(base.params, base.effects, name, cand.grid, fit_data, w)
-    e0 = dataclasses.replace(base.effects, **{name: value})
+    e_base = dataclasses.replace(base.effects, **dict(cand.preset))
+    value, _ = scan(base.params, e_base, name, cand.grid, fit_data, w)
+    e0 = dataclasses.replace(e_base, **{name: value})
     free = [*seed_free, *extra_free]
     if cand.smooth:
-        out = fit_with_stiction(base.params, e0, [*free, cand.param], fit_data, w, grid, progress)
+        own = [cand.param, *cand.extra]
+        out = fit_with_stiction(base.params, e0, [*free, *own], fit_data, w, grid, progress)
+        if cand.param.name == "hill_force":
+            out = _refine_stretch(out, [*free, cand.param], fit_data, w, grid, progress)
     else:
         first = fit_with_stiction(base.params, e0, free, fit_data, w, grid, progress)
         value, _ = scan(first.params, first.effects, name, cand.grid, fit_data, w, coarse=200)
@@ -193,6 +204,71 @@ def _fit_candidate(
         out = second if second.sse < out.sse else out
     # Never worse than without the candidate (a local minimum): then it is simply off.
     return out if out.sse <= base.sse else base
+
+
+def _params_of(cand: Candidate, e: Effects) -> dict[str, float]:
+    """The candidate's fitted parameter and its held ones (a hill's start, length)."""
+    out = {cand.param.name: float(getattr(e, cand.param.name))}
+    for n, _ in cand.preset:
+        out[n] = float(getattr(e, n))
+    return out
+
+
+def _profile_of(cand: Candidate, e: Effects) -> dict[str, float | str] | None:
+    """Position description of a position-dependent load (CONTRACTS.md section 4)."""
+    if cand.param.name == "load_force_amplitude":
+        return {
+            "profile": "rolling",
+            "amplitude_n": e.load_force_amplitude,
+            "wavelength_m": e.load_force_wavelength,
+            "phase_rad": e.load_force_phase,
+        }
+    if cand.param.name != "hill_force":
+        return None
+    return {
+        "profile": "hill",
+        "x_start_m": e.hill_start,
+        "x_end_m": e.hill_start + e.hill_length,
+        "value": e.hill_force,
+    }
+
+
+def _refine_stretch(
+    m: FitResult,
+    free: list[Param],
+    fit_data: list[Series],
+    w: Weights,
+    grid: Sequence[float],
+    progress: Progress,
+) -> FitResult:
+    """Move a hill's edges (start, end) by simulation error, force held, then refit.
+
+    The edges only matter through which samples lie on the stretch (the cost is flat
+    between them): each edge is scanned on a grid of a few bin widths either side.
+    """
+    e = m.effects
+    step = max(e.hill_length / 10.0, 1e-3)
+    best_e, best = e, m.sse
+    for _ in range(2):
+        for edge in ("start", "end"):
+            for k in np.arange(-4.0, 4.5, 1.0) * step:
+                start, end = best_e.hill_start, best_e.hill_start + best_e.hill_length
+                if edge == "start":
+                    start += k
+                else:
+                    end += k
+                if end - start <= step:
+                    continue
+                trial = dataclasses.replace(best_e, hill_start=start, hill_length=end - start)
+                r = residuals(m.params, trial, fit_data, w)
+                c = float(r @ r)
+                if c < best:
+                    best_e, best = trial, c
+        step /= 3.0
+    if best_e == e:
+        return m
+    out = fit_with_stiction(m.params, best_e, free, fit_data, w, grid, progress)
+    return out if out.sse <= best else dataclasses.replace(m, effects=best_e, sse=best)
 
 
 def _settle_tie(
@@ -296,6 +372,12 @@ def _summary(
     params = {n: float(getattr(p, n)) for n in SEED_NAMES}
     for n in e.active():
         params[n] = float(getattr(e, n))
+    if e.hill_force != 0.0:
+        for n in ("hill_force", "hill_start", "hill_length"):
+            params[n] = float(getattr(e, n))
+    if e.load_force_amplitude != 0.0:
+        for n in ("load_force_amplitude", "load_force_wavelength", "load_force_phase"):
+            params[n] = float(getattr(e, n))
     ff = feedforward_of(p).to_json()
     return ModelSummary(fit_percent(y, y_sim), rmse(y, y_sim), params, feedforward=ff), y_sim
 
@@ -307,6 +389,8 @@ def diagnose_voltage(
     progress: Progress = _quiet,
 ) -> Diagnosis:
     """Diagnose voltage-input runs (see module docstring); ``validate`` runs when given."""
+    runs = [with_position(r) for r in runs]
+    validate = [with_position(r) for r in validate] if validate else None
     if validate:
         est, val = list(runs), list(validate)
     else:
@@ -328,7 +412,15 @@ def diagnose_voltage(
         ok = True
         for n in names:
             pn = by_name[n].param.name
-            why = effect_problem(n, float(getattr(m.effects, pn)), m.params, runs)
+            e = m.effects
+            if pn == "hill_force":
+                why = hill_problem(e.hill_force, e.hill_start, e.hill_length, m.params, runs)
+            elif pn == "load_force_amplitude":
+                why = rolling_problem(
+                    e.load_force_amplitude, e.load_force_wavelength, m.params, runs
+                )
+            else:
+                why = effect_problem(n, float(getattr(m.effects, pn)), m.params, runs)
             if why is not None:
                 ok = False
                 if all(r.reason != why for r in rejected):
@@ -336,6 +428,17 @@ def diagnose_voltage(
         return ok
 
     cands = voltage_candidates(base_fit.params, whole)
+    stretch = locate(base_fit.params, runs)
+    if stretch is not None:
+        progress(
+            f"residual localised on [{stretch.start:.3g}, {stretch.start + stretch.length:.3g}]"
+            f" m ({stretch.force:.3g} N): hill candidate"
+        )
+        cands.append(hill_candidate(base_fit.params, stretch))
+    wave = locate_wave(base_fit.params, runs)
+    if wave is not None:
+        progress(f"residual periodic in position ({wave.wavelength:.3g} m): rolling candidate")
+        cands.append(rolling_candidate(base_fit.params, wave))
     by_name = {c.name: c for c in cands}
     tried: dict[str, _Model] = {}
     rows: dict[str, CandidateRow] = {}
@@ -353,7 +456,7 @@ def diagnose_voltage(
         fp = _summary(f.params, f.effects, val)[0].fit_percent
         rows[cand.name] = CandidateRow(
             name=cand.name,
-            params={cand.param.name: float(getattr(f.effects, cand.param.name))},
+            params=_params_of(cand, f.effects),
             fit_percent=fp,
             gain_percent=fp - base_fit_pct,
             cost_ratio=m.val_cost / base.val_cost if base.val_cost > 0 else 1.0,
@@ -481,7 +584,6 @@ def diagnose_voltage(
     y_ext, ext_sum = y_base, base_sum
     kept: list[str] = []
     for name in accepted:
-        param = by_name[name].param.name
         later = {by_name[a].param.name: 0.0 for a in accepted if a not in (*kept, name)}
         trial = dataclasses.replace(final.effects, **later)
         s_k, y_k = _summary(final.params, trial, report)
@@ -493,8 +595,9 @@ def diagnose_voltage(
             continue
         findings.append(
             Finding(
-                name=name,
-                params={param: float(getattr(final.effects, param))},
+                name=by_name[name].output or name,
+                params=_params_of(by_name[name], final.effects),
+                profile=_profile_of(by_name[name], final.effects),
                 fit_percent=s_k.fit_percent,
                 fit_gain_percent=s_k.fit_percent - ext_sum.fit_percent,
             )

@@ -18,12 +18,13 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 
-from truckd.model.effects import Effects
+from truckd.model.effects import Effects, position_dependent, terrain_force
 from truckd.model.params import VehicleParams
 
 Array = NDArray[np.float64]
@@ -108,6 +109,9 @@ class Kinetics:
     """Per-command factor on ``c``, ``sigma``, ``d`` and ``drag`` (None = 1)."""
     lag: float = 0.0
     """Electrical lag (s) for the breakaway test when the speed reaches zero."""
+    terrain: Callable[[float], float] | None = None
+    """Extra load per unit inertia at position ``x`` (integral of speed from the start),
+    evaluated at the start of each sub-interval as the plant does (None = none)."""
 
 
 def _phi(b: float, h: float) -> tuple[float, float, float]:
@@ -192,9 +196,11 @@ def run(
     b_list = kin.b.tolist()
     c, sigma, d, drag = kin.c, kin.sigma, kin.d, kin.drag
     lag = kin.lag
+    terrain = kin.terrain
     sc_list = kin.scale.tolist() if kin.scale is not None else None
     lag_alpha_cache: dict[float, float] = {}
     for dt, k, se in zip(tl.dt.tolist(), tl.cmd.tolist(), tl.sample_end.tolist(), strict=True):
+        f = 1.0
         if k >= 0:
             a, b = a_list[k], b_list[k]
             if sc_list is not None:
@@ -202,6 +208,8 @@ def run(
                 c, sigma, d, drag = kin.c * f, kin.sigma * f, kin.d * f, kin.drag * f
         else:
             a, b = kin.a_idle, kin.b_idle
+        if terrain is not None:
+            d = (kin.d + terrain(x)) * f
         if drag != 0.0:
             aw = abs(w)
             b_eff = b + 2.0 * drag * aw
@@ -343,22 +351,41 @@ HANDLED = (
     "voltage_saturation",
     "battery_sag",
     "sensor_lag",
+    "load_force_amplitude",
+    "load_force_wavelength",
+    "load_force_phase",
+    "hill_force",
+    "hill_start",
+    "hill_length",
 )
 """Effects fields :func:`simulate_voltage` models; any other active field is refused."""
 
 
 def unsupported_effects(eff: Effects) -> list[str]:
-    """Active fields of ``eff`` the fast simulator does not model (empty: all handled).
-
-    ``load_force_wavelength`` only matters with a non-zero ``load_force_amplitude``.
-    """
+    """Active fields of ``eff`` the fast simulator does not model (empty: all handled)."""
     out = []
     for f in dataclasses.fields(eff):
-        if f.name in HANDLED or f.name == "load_force_wavelength":
+        if f.name in HANDLED:
             continue
         if float(getattr(eff, f.name)) != 0.0:
             out.append(f.name)
     return out
+
+
+def _terrain(
+    p: VehicleParams, eff: Effects, kappa: float, x0: float
+) -> Callable[[float], float] | None:
+    """The position-dependent load per unit inertia as a function of the motor angle
+    travelled (rad) from ``x0`` (m); None when the load does not depend on position."""
+    if not position_dependent(eff):
+        return None
+    per_newton = kappa * p.force_to_torque(1.0) / p.J_S
+    ratio = p.ratio
+
+    def extra(angle: float) -> float:
+        return per_newton * terrain_force(eff, x0 + angle * ratio)
+
+    return extra
 
 
 def simulate_voltage(
@@ -370,8 +397,11 @@ def simulate_voltage(
     t_hist: Array | None = None,
     u_hist: Array | None = None,
     v_pre: float = 0.0,
+    x0: float = 0.0,
 ) -> VoltagePrediction:
     """Fast free run of the plant model on a log's input (``u[k]`` from ``t[k]``).
+
+    ``x0``: position (m) at ``t[0]``, where a position-dependent load is evaluated from.
 
     ``t_hist``/``u_hist``: commands issued before ``t[0]`` (a chunk's history), which
     still act after ``t[0]`` when there is an input delay.  ``v_pre``: the motor
@@ -381,8 +411,7 @@ def simulate_voltage(
     unsupported = unsupported_effects(eff)
     if unsupported:
         raise ValueError(
-            f"the fast simulator does not model {', '.join(unsupported)} "
-            "(position-dependent load); use truckd.sim.plant"
+            f"the fast simulator does not model {', '.join(unsupported)} ; use truckd.sim.plant"
         )
     n = len(t)
     hist = 0 if t_hist is None or u_hist is None else len(t_hist)
@@ -409,6 +438,7 @@ def simulate_voltage(
         drag=kappa * eff.aero_drag * p.ratio**3 / p.J_S,
         scale=k_arr / kappa if eff.battery_sag != 0.0 else None,
         lag=lag_e,
+        terrain=_terrain(p, eff, kappa, x0),
     )
     tl = _merge_equal(timeline(t, eff.input_delay + lag_e, hist, t_cmd), a, b)
     w0 = p.omega(v0)

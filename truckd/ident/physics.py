@@ -13,6 +13,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from truckd.ident.data import Series
+from truckd.ident.terrain import hill_problem, rolling_problem
 from truckd.model.effects import Effects
 from truckd.model.params import VehicleParams
 
@@ -94,6 +95,14 @@ def effects_problems(e: Effects, p: VehicleParams, runs: Sequence[Series]) -> li
     out = []
     for name in e.active():
         why = effect_problem(name, float(getattr(e, name)), p, runs)
+        if why is not None:
+            out.append(why)
+    if e.hill_force != 0.0:
+        why = hill_problem(e.hill_force, e.hill_start, e.hill_length, p, runs)
+        if why is not None:
+            out.append(why)
+    if e.load_force_amplitude != 0.0:
+        why = rolling_problem(e.load_force_amplitude, e.load_force_wavelength, p, runs)
         if why is not None:
             out.append(why)
     return out

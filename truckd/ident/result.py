@@ -46,14 +46,20 @@ class Finding:
     params: dict[str, float]
     fit_percent: float
     fit_gain_percent: float
+    profile: dict[str, float | str] | None = None
+    """Where a position-dependent load acts (``profile``: "hill", ``x_start_m``,
+    ``x_end_m``, ``value`` N); None for an effect that does not depend on position."""
 
     def to_json(self) -> dict[str, Any]:
-        return {
+        out: dict[str, Any] = {
             "name": self.name,
             "params": {k: _num(v) for k, v in self.params.items()},
             "fit_percent": _num(self.fit_percent),
             "fit_gain_percent": _num(self.fit_gain_percent),
         }
+        if self.profile is not None:
+            out.update({k: v if isinstance(v, str) else _num(v) for k, v in self.profile.items()})
+        return out
 
 
 @dataclass(frozen=True)

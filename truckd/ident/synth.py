@@ -179,3 +179,31 @@ def drawn_log(
         cols["i"] = sim.i[keep]
     name = ", ".join(effects.active()) or "no effect"
     return Log(cols, f"<drawn truck k={truck.k_scale:.3g} J={truck.j_scale:.3g}: {name}>")
+
+
+def hill_effects(
+    truck: DrawnTruck, seed: int, force: float, length: float = 5.0, seconds: float = 50.0
+) -> Effects:
+    """A hill of ``force`` N on ``length`` m of the road, centred where the clean log of
+    ``truck`` (same seed) spends most of its time (so that it is crossed repeatedly)."""
+    clean = drawn_log(truck, Effects(), seed, seconds)
+    t, v = clean["t"], clean["v"]
+    x = np.concatenate([[0.0], np.cumsum(0.5 * (v[1:] + v[:-1]) * np.diff(t))])
+    centre = float(np.median(x))
+    return Effects(hill_force=force, hill_start=centre - 0.5 * length, hill_length=length)
+
+
+def hill_force_for(truck: DrawnTruck, p: VehicleParams) -> float:
+    """A hill force (N) as visible on ``truck`` as 3 N on the default one, within a 15 %
+    grade of the configured weight (a steeper hill stops a weak truck for good)."""
+    return min(3.0 * truck.k_scale, 0.15 * p.m * 9.81)
+
+
+def rolling_effects(truck: DrawnTruck, seed: int, amplitude: float) -> Effects:
+    """Rolling terrain of ``amplitude`` N whose wavelength is a quarter of the range the
+    clean log of ``truck`` (same seed) drives over (so that it covers several waves)."""
+    clean = drawn_log(truck, Effects(), seed)
+    t, v = clean["t"], clean["v"]
+    x = np.concatenate([[0.0], np.cumsum(0.5 * (v[1:] + v[:-1]) * np.diff(t))])
+    span = float(np.max(x) - np.min(x))
+    return Effects(load_force_amplitude=amplitude, load_force_wavelength=max(span / 4.0, 0.5))

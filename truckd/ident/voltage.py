@@ -127,7 +127,8 @@ def predict(p: VehicleParams, e: Effects, s: Series) -> VoltagePrediction:
     v0 = initial_speed(s.v)
     i0 = None if s.i is None else float(s.i[0])
     v_pre = prelog_voltage(p, e, p.omega(v0), i0)
-    return simulate_voltage(p, e, s.t, s.inp, v0, s.hist_t, s.hist_inp, v_pre)
+    x0 = 0.0 if s.x is None else float(s.x[0])
+    return simulate_voltage(p, e, s.t, s.inp, v0, s.hist_t, s.hist_inp, v_pre, x0)
 
 
 def residuals(p: VehicleParams, e: Effects, data: Sequence[Series], w: Weights) -> Array:

@@ -12,7 +12,11 @@ name                      parameter           physics
                                               speed and direction (grade, towing, offset);
                                               ``load_force_amplitude`` (N) and
                                               ``load_force_wavelength`` (m) add
-                                              ``A sin(2 pi x / lambda)`` (rolling terrain)
+                                              ``A sin(2 pi x / lambda + phi)`` (rolling
+                                              terrain, ``load_force_phase`` phi in rad);
+                                              ``hill_force`` (N) adds a force on the
+                                              stretch ``hill_start <= x < hill_start +
+                                              hill_length`` (m) of the road (a hill, a bump)
 ``input_delay``           s                   dead time between command and actuation
 ``dead_zone``             V                   the driver outputs 0 for ``|u| < u_dz`` and
                                               ``u`` above (a threshold)
@@ -71,6 +75,26 @@ class Effects:
         hi=1e4,
         default=10.0,
     )
+    load_force_phase: float = spec(
+        "phase of the position-dependent load force at x = 0",
+        unit="rad",
+        lo=-100.0,
+        hi=100.0,
+        default=0.0,
+    )
+    hill_force: float = spec(
+        "extra force opposing forward motion on a stretch of the road (+ = uphill)",
+        unit="N",
+        lo=-1e3,
+        hi=1e3,
+        default=0.0,
+    )
+    hill_start: float = spec(
+        "position where the hill_force stretch starts", unit="m", lo=-1e5, hi=1e5, default=0.0
+    )
+    hill_length: float = spec(
+        "length of the hill_force stretch", unit="m", lo=0.0, hi=1e5, default=0.0
+    )
     input_delay: float = spec(
         "dead time command -> actuation", unit="s", lo=0.0, hi=1.0, default=0.0
     )
@@ -117,12 +141,25 @@ def driver_output(u_cmd: float, eff: Effects, v_batt: float) -> tuple[float, flo
     return u, eff.battery_sag * duty * duty
 
 
+def position_dependent(eff: Effects) -> bool:
+    """Whether the load force of ``eff`` varies with position (terrain or a hill)."""
+    return eff.load_force_amplitude != 0.0 or (eff.hill_force != 0.0 and eff.hill_length > 0.0)
+
+
+def terrain_force(eff: Effects, x: float) -> float:
+    """The position-dependent part of the load force (N) at position x (m)."""
+    force = 0.0
+    if eff.load_force_amplitude != 0.0:
+        phase = 2.0 * math.pi * x / eff.load_force_wavelength + eff.load_force_phase
+        force += eff.load_force_amplitude * math.sin(phase)
+    if eff.hill_force != 0.0 and eff.hill_start <= x < eff.hill_start + eff.hill_length:
+        force += eff.hill_force
+    return force
+
+
 def load_torque(p: VehicleParams, eff: Effects, x: float) -> float:
     """Load torque at the motor shaft (N m) at vehicle position x (m)."""
-    force = eff.load_force
-    if eff.load_force_amplitude != 0.0:
-        force += eff.load_force_amplitude * math.sin(2.0 * math.pi * x / eff.load_force_wavelength)
-    return p.force_to_torque(force)
+    return p.force_to_torque(eff.load_force + terrain_force(eff, x))
 
 
 def drag_linearisation(p: VehicleParams, eff: Effects, omega0: float) -> tuple[float, float]:

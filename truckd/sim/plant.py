@@ -14,7 +14,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from truckd.model.effects import drag_linearisation, driver_output, load_torque
+from truckd.model.effects import (
+    drag_linearisation,
+    driver_output,
+    load_torque,
+    position_dependent,
+)
 from truckd.model.motor import MotorState, SegmentInputs, advance
 from truckd.model.params import VehicleParams
 from truckd.model.plant_config import PlantConfig as PlantConfig  # the plant: section
@@ -63,7 +68,7 @@ class Plant:
         self._sensor = _SensorState()
         self._ratio = params.ratio
         eff = self.cfg.effects
-        self._constant_load = eff.aero_drag == 0.0 and eff.load_force_amplitude == 0.0
+        self._constant_load = eff.aero_drag == 0.0 and not position_dependent(eff)
         self._load0 = load_torque(params, eff, 0.0)
         self._inputs = SegmentInputs(voltage=0.0)
         self._tick_len = (
