@@ -56,6 +56,7 @@ TOLERANCE: dict[str, tuple[float, float]] = {
     "load_force": (0.05, 0.2),
     "input_delay": (0.0, 0.003),
     "dead_zone": (0.0, 0.3),
+    "dead_zone_offset": (0.0, 0.3),
     "voltage_saturation": (0.0, 0.1),
     "battery_sag": (0.10, 0.0),
     "sensor_lag": (0.10, 0.0),
