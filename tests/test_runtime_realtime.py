@@ -73,3 +73,57 @@ def test_not_permitted_paths_log_clear_lines(
     text = caplog.text
     assert "SCHED_FIFO 20 not permitted (Operation not permitted)" in text
     assert "mlockall skipped: RLIMIT_MEMLOCK is 65536 B" in text
+
+
+LATENCY_CHILD = """
+import json, os, struct, sys
+from truckd.runtime.realtime import RealtimeReport, hold_cpu_latency, release_cpu_latency
+def current():
+    fd = os.open(sys.argv[1], os.O_RDONLY)
+    try:
+        return struct.unpack("=i", os.read(fd, 4))[0]
+    finally:
+        os.close(fd)
+before = current()
+rep = RealtimeReport()
+hold_cpu_latency(int(sys.argv[2]), rep)
+held = current()
+release_cpu_latency()
+print(json.dumps({"before": before, "held": held, "after": current(), "rep": rep.cpu_latency_us}))
+"""
+
+
+@pytest.mark.skipif(
+    not os.access(realtime.CPU_LATENCY_DEV, os.R_OK | os.W_OK),
+    reason="needs read and write access to /dev/cpu_dma_latency (root)",
+)
+def test_cpu_latency_request_is_held_while_open_and_dropped_on_release() -> None:
+    """The kernel's aggregate PM QoS target (read back from the device) is the value
+    requested while it is held, and what it was before once released."""
+    proc = subprocess.run(
+        [sys.executable, "-c", LATENCY_CHILD, realtime.CPU_LATENCY_DEV, "7"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        cwd="/",
+        env={**os.environ, "PYTHONPATH": os.getcwd()},
+    )
+    assert proc.returncode == 0, proc.stderr
+    out = json.loads(proc.stdout)
+    assert out["rep"] == 7
+    assert out["held"] == min(7, out["before"])
+    assert out["after"] == out["before"]
+
+
+def test_cpu_latency_not_permitted_logs_and_runs_on(
+    tmp_path: os.PathLike[str], caplog: pytest.LogCaptureFixture
+) -> None:
+    """A device that cannot be opened leaves the report empty and says why, once."""
+    rep = realtime.RealtimeReport()
+    missing = os.path.join(tmp_path, "no_such_device")
+    with caplog.at_level(logging.INFO, logger="truckd.realtime"):
+        realtime.hold_cpu_latency(0, rep, device=missing)
+    assert rep.cpu_latency_us is None
+    assert rep.as_dict()["cpu_latency_us"] is None
+    assert "CPU wake-up latency 0 us not requested" in caplog.text
+    assert "No such file or directory" in caplog.text

@@ -32,6 +32,10 @@ import scipy.sparse as sp
 
 from truckd.control.qp import NX, QpBuilder, QpInputs, Vec
 
+N_SCALARS = 8
+"""Scalar inputs behind x0 and v_lead: u_prev, v_ref, u_lo, u_hi, v_cap, 1, and the first
+block's bounds."""
+
 
 def block_lengths(horizon: int, blocks: int) -> tuple[int, ...]:
     """Steps per block: 1, 1, then doubling while the rest of the horizon still spreads
@@ -94,9 +98,6 @@ class CondensedQp:
         e[n, nb] = e[n + 1, nb + 1] = 1.0
         me = m @ e
         self.ME, self.C0, self.Cl = me, c0, cl
-        # expand() in one product: [M E | C0 | Cl] [w; x0; v_lead] (one numpy call, not 3).
-        self._expand_m = np.hstack([me, c0, cl])
-        self._expand_v = np.empty(self.nw + NX + n)
         # Rows: block inputs (nb), block changes (nb - 1), the sparse QP's state and slack
         # rows (from its minimum-gap block to the end).
         self._r_state = lay.r_gap
@@ -154,11 +155,19 @@ class CondensedQp:
         # F [x0; v_lead; u_prev; v_ref; u_lo; u_hi; v_cap; 1] = [q; l; u] but the first
         # block's bounds (each numpy call costs 5-10x its hot time in the loop: cold caches).
         # One F per mode and lead/no lead (the gap rows' lower bound is d_min or none).
+        # The first block's bounds (the rate-limited first move, not linear in the inputs)
+        # are inputs too, so that F gives every bound: each numpy call in the loop costs
+        # 5-10x its hot time (cold caches after the period's sleep), so few calls.
         nw, m = self.nw, self.m
         r = 2 * nb - 1
-        c_u, c_ref, c_lo, c_hi, c_cap, c_1 = range(NX + n, NX + n + 6)
-        self._s = np.zeros(NX + n + 6)
+        c_u, c_ref, c_lo, c_hi, c_cap, c_1, c_lo0, c_hi0 = range(NX + n, NX + n + N_SCALARS)
+        # One buffer [w; x0; v_lead; scalars]: fill() writes the inputs behind w, expand()
+        # puts the solution in front and maps all of it in one product.
+        self._ws = np.zeros(nw + NX + n + N_SCALARS)
+        self._s = self._ws[nw:]
         self._s[c_1] = 1.0
+        self._filled: QpInputs | None = None
+        self._expand_m = np.hstack([me, c0, cl, np.zeros((lay.nz, N_SCALARS))])
         self._buf = np.empty(nw + 2 * m)
         self.q_view, self.lo_view, self.hi_view = (
             self._buf[:nw],
@@ -169,7 +178,7 @@ class CondensedQp:
         self._F: dict[tuple[str, bool], Vec] = {}
         for mode in qp.P:
             for lead in (False, True):
-                f = np.zeros((nw + 2 * m, NX + n + 6))
+                f = np.zeros((nw + 2 * m, NX + n + N_SCALARS))
                 f[:nw, :NX] = self._hx[mode]
                 f[:nw, NX : NX + n] = self._hl[mode]
                 f[:nw, c_u] = self._g_u
@@ -179,6 +188,8 @@ class CondensedQp:
                 for rows in (lo_rows, hi_rows):
                     f[rows[r:], :NX] = -self._a_c0
                     f[rows[r:], NX : NX + n] = -self._a_cl
+                f[lo_rows[0], c_lo0] = 1.0
+                f[hi_rows[0], c_hi0] = 1.0
                 f[lo_rows[1:nb], c_lo] = 1.0
                 f[hi_rows[1:nb], c_hi] = 1.0
                 f[lo_rows[nb:r], c_1] = -self._du
@@ -203,10 +214,16 @@ class CondensedQp:
         sv = self._s
         sv[:NX] = inp.x0
         sv[NX : NX + n] = inp.v_lead
-        sv[NX + n : NX + n + 5] = (inp.u_prev, inp.v_ref, inp.u_lo, inp.u_hi, inp.v_cap)
+        # the first block: the sparse QP's first-move bounds (rate-limited)
+        lo0, hi0 = self.qp.first_move_bounds(inp)
+        sv[NX + n :] = (inp.u_prev, inp.v_ref, inp.u_lo, inp.u_hi, inp.v_cap, 1.0, lo0, hi0)
         np.dot(self._F[(mode, inp.lead)], sv, out=self._buf)
-        # The first block: the sparse QP's first-move bounds (rate-limited).
-        self.lo_view[0], self.hi_view[0] = self.qp.first_move_bounds(inp)
+        self._filled = inp
+
+    def input_sum(self) -> float:
+        """The sum of every input of the last :meth:`fill` (x0, v_lead, u_prev, v_ref,
+        u_lo, u_hi, v_cap): finite exactly when all of them are (and none is huge)."""
+        return float(self._s.sum())
 
     def vectors_into(self, mode: str, inp: QpInputs, q: Vec, lo: Vec, hi: Vec) -> None:
         """:meth:`fill`, copied into the given arrays."""
@@ -216,10 +233,14 @@ class CondensedQp:
         hi[:] = self.hi_view
 
     def expand(self, w: Vec, inp: QpInputs) -> Vec:
-        """The sparse QP's decision vector ``z = M E w + C0 x0 + Cl v_lead`` (a new array)."""
-        nw, v = self.nw, self._expand_v
-        v[:nw] = w
-        v[nw : nw + NX] = inp.x0
-        v[nw + NX :] = inp.v_lead
-        z: Vec = self._expand_m @ v
+        """The sparse QP's decision vector ``z = M E w + C0 x0 + Cl v_lead`` (a new array)
+        for the inputs of the last :meth:`fill` (``inp``: the same inputs, when no fill
+        came after them it is not read; else they are written again)."""
+        ws, nw = self._ws, self.nw
+        if inp is not self._filled:
+            n = self.qp.lay.N
+            self._s[:NX] = inp.x0
+            self._s[NX : NX + n] = inp.v_lead
+        ws[:nw] = w
+        z: Vec = self._expand_m @ ws
         return z

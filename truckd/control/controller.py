@@ -25,7 +25,7 @@ from truckd.control.feedforward import (
     moving_feedforward,
 )
 from truckd.control.mpc import MpcSolver
-from truckd.control.qp import ControlModel, QpInputs, Vec
+from truckd.control.qp import I_V, NX, ControlModel, QpInputs, Vec
 
 
 @dataclass(frozen=True)
@@ -87,6 +87,7 @@ class Controller:
         self.holding = False
         """Standstill hold active (see :meth:`_update_hold`)."""
         self._release_cycles = 0
+        self._v_lead_buf = np.empty(self._delay_steps + self.mpc.horizon)
         self.pipeline_v: list[float] = []
         """Speeds (m/s) predicted at ``now + k period`` for the commands already sent but
         not yet acting (the input delay): the QP's horizon starts after them.  Set by
@@ -127,19 +128,23 @@ class Controller:
             self.estimator.update_range(t, r, v_now)
         return self.control(self.estimator.estimate(t), v_lead_forecast, headway)
 
-    def _lead_horizon(self, est: Estimate, forecast: Sequence[float] | None) -> Vec:
-        """Lead speed (m/s) from now over the pipeline and the QP's horizon
-        (:meth:`_pipeline_steps` + horizon values): the forecast when given and finite
-        (its last value held past its end), else the estimate held constant."""
-        n = self._pipeline_steps() + self.mpc.horizon
+    def _lead_horizon(
+        self, est: Estimate, forecast: Sequence[float] | None, n: int, cap: float
+    ) -> Vec:
+        """Lead speed (m/s) from now over the pipeline and the QP's horizon (``n`` =
+        :meth:`_pipeline_steps` + horizon values), at most ``cap``: the forecast when given
+        and finite (its last value held past its end), else the estimate held constant
+        (written into a work array reused every cycle: the QP copies it)."""
         if forecast is not None and len(forecast) > 0:
             f: Vec = np.asarray(forecast, dtype=float)[:n]
             if f.size < n:
                 f = np.concatenate([f, np.full(n - f.size, f[-1])])
             if np.all(np.isfinite(f)):
-                out: Vec = np.maximum(f, 0.0)
+                out: Vec = np.clip(f, 0.0, cap)
                 return out
-        return np.full(n, max(est.v_lead, 0.0))
+        buf = self._v_lead_buf[:n]
+        buf.fill(min(max(est.v_lead, 0.0), cap))
+        return buf
 
     def control(
         self,
@@ -187,13 +192,15 @@ class Controller:
             # feedforward kicks the truck forward again and again while it should stand.
             u_prev_mpc = 0.0
         n_pipe = self._pipeline_steps()
-        v_lead_all = (
-            self._lead_horizon(est, forecast) if lead else np.zeros(n_pipe + self.mpc.horizon)
-        )
-        if mode == "follow":
+        n_all = n_pipe + self.mpc.horizon
+        if lead:
             # Never follow faster than the set speed: a faster lead is taken as driving at
             # v_set (conservative, the predicted gap is smaller than the real one).
-            v_lead_all = np.minimum(v_lead_all, cfg.v_set)
+            cap = cfg.v_set if mode == "follow" else math.inf
+            v_lead_all = self._lead_horizon(est, forecast, n_all, cap)
+        else:
+            v_lead_all = self._v_lead_buf[:n_all]
+            v_lead_all.fill(0.0)
         v_lead_h = v_lead_all[n_pipe:]
         inp = QpInputs(
             x0=self._initial_state(
@@ -226,11 +233,12 @@ class Controller:
                 res.run_time_s,
                 ff,
             )
-        assert res.z is not None
-        plan_u, plan_v, _ = self.mpc.qp.plan(res.z)
-        self._plan = plan_u.tolist()  # Python floats, as float(x) each
+        z = res.z
+        assert z is not None
+        u0 = self.mpc.qp.lay.u0
+        self._plan = z[u0 : u0 + self.mpc.horizon].tolist()  # Python floats
         self._plan_age = 0
-        self._v_expected = float(plan_v[1])
+        self._v_expected = float(z[NX + I_V])  # v_1
         return self._finish(
             est, v, res.u0, ff, mode, None, res.status, res.iterations, res.run_time_s, gap_ref
         )

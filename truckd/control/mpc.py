@@ -161,21 +161,27 @@ class MpcSolver:
     def solve(self, mode: str, inp: QpInputs, warm: bool = True) -> MpcResult:
         """Update the vectors, warm start, solve, check.  Never raises on solver trouble."""
         s = self._solvers[mode]
+        qp, cq = self.qp, self.condensed
         # One sum: a NaN or an infinity anywhere makes it non-finite (an overflow of huge
-        # finite inputs too, which is as well rejected).
-        total = (
-            inp.u_prev
-            + inp.v_ref
-            + inp.v_cap
-            + inp.u_lo
-            + inp.u_hi
-            + float(inp.x0.sum())
-            + float(inp.v_lead.sum())
-        )
+        # finite inputs too, which is as well rejected).  The condensed QP's fill gathers
+        # every input into one vector first, so one reduction checks them all.
+        if cq is not None:
+            cq.fill(mode, inp)
+            total = cq.input_sum()
+        else:
+            total = (
+                inp.u_prev
+                + inp.v_ref
+                + inp.v_cap
+                + inp.u_lo
+                + inp.u_hi
+                + float(inp.x0.sum())
+                + float(inp.v_lead.sum())
+            )
         if not math.isfinite(total):
             return MpcResult(False, math.nan, "non-finite-input", 0, 0.0, None)
-        qp, cq = self.qp, self.condensed
-        self._vectors_into(mode, inp)
+        if cq is None:
+            qp.vectors_into(mode, inp, self._q, self._lo, self._hi)
         # The binding directly (osqp.OSQP.update and .solve wrap it with copies, clipping
         # and a namespace of every info field: a quarter of the cycle's Python time).  Our
         # infinity (qp.INF) is OSQP's, so nothing needs clipping.

@@ -18,6 +18,7 @@ stamped in the receiver's future by more than ``max_clock_skew_s`` is refused.
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 from collections.abc import Sequence
@@ -132,10 +133,11 @@ class Plan:
 def make_plan(t: float, seq: int, dt: float, speeds: Sequence[float], vehicle_id: str = "") -> Plan:
     """A plan from predicted speeds (m/s) at ``t + k dt``; accelerations by differences.
     Negative speeds (a reversing prediction) are clipped to 0."""
-    v = tuple(max(float(x), 0.0) for x in speeds)
+    # max(x, 0.0) as a comparison: the same result (NaN kept), a third of the time
+    v = tuple([0.0 if x < 0.0 else x for x in map(float, speeds)])
     if not v:
         raise ValueError("a plan needs at least one speed")
-    a = [(v[k + 1] - v[k]) / dt for k in range(len(v) - 1)]
+    a = [(b - a) / dt for a, b in itertools.pairwise(v)]
     a.append(a[-1] if a else 0.0)
     return Plan(t, seq, dt, v, tuple(a), vehicle_id)
 

@@ -387,6 +387,10 @@ class QpBuilder:
         start); the last step of each block repeats."""
         return np.take(y, self._shift_dual_idx, out=out)
 
+    def speeds(self, z: Vec) -> Vec:
+        """The predicted speeds ``v_0 .. v_N`` (m/s) of a solution: a view, not a copy."""
+        return z[I_V : NX * (self.lay.N + 1) : NX]
+
     def plan(self, z: Vec) -> tuple[Vec, Vec, Vec]:
         """``(u (N,), v (N+1,), d (N+1,))`` of a solution."""
         lay, n = self.lay, self.lay.N

@@ -82,6 +82,8 @@ class Link:
         self.reconnect_interval = reconnect_interval
         self._clock = clock
         self._pending: deque[Frame] = deque()
+        self._drained = False
+        """Set by a backend's read that emptied the device (see :meth:`recv_all`)."""
         self._connected = False
         self._next_attempt = float("-inf")
         self._ever_connected = False
@@ -210,6 +212,28 @@ class Link:
         self.stats.rx_frames += len(frames)
         self._pending.extend(frames)
         return self._pending.popleft() if self._pending else None
+
+    def recv_all(self) -> list[Frame]:
+        """Every frame available now, without waiting: those pending, then what the
+        device holds, read until it has no more (or, where the backend can tell, until a
+        read has emptied it: one read instead of a second, empty one)."""
+        out = list(self._pending)
+        self._pending.clear()
+        if not self._ensure():
+            return out
+        try:
+            while True:
+                self._drained = False
+                frames = self._read(0.0)
+                if not frames:
+                    break
+                self.stats.rx_frames += len(frames)
+                out.extend(frames)
+                if self._drained:
+                    break
+        except LinkDownError as exc:
+            self._down(exc)
+        return out
 
     def close(self) -> None:
         """Close for good (no reconnection)."""

@@ -32,6 +32,8 @@ import serial
 from truckd.io.link import FrameDroppedError, FramedStreamLink, LinkBusyError, LinkDownError
 
 DEFAULT_BAUDRATE = 115200
+READ_SIZE = 4096
+"""Bytes one non-blocking read of the loop's poll takes at most."""
 _BUSY = {errno.EBUSY, errno.EAGAIN, errno.EWOULDBLOCK}
 
 
@@ -119,7 +121,7 @@ class SerialLink(FramedStreamLink):
     def _read_now(self, fd: int) -> bytes:
         """One non-blocking read of what is there (b"" when nothing is)."""
         try:
-            return os.read(fd, 4096)
+            return os.read(fd, READ_SIZE)
         except (BlockingIOError, InterruptedError):
             return b""
         except OSError as exc:
@@ -131,6 +133,8 @@ class SerialLink(FramedStreamLink):
             # The loop's poll: one non-blocking read on the descriptor (pyserial opens it
             # O_NONBLOCK) instead of pyserial's select, read(1), ioctl and read(n).
             data = self._read_now(fd)
+            # a short read took everything the tty held: no second read needed this poll
+            self._drained = 0 < len(data) < READ_SIZE
             if not data and select.select([fd], [], [], 0.0)[0]:
                 # A raw tty with VMIN 0 reads b"" when empty, and a hung-up one reads b""
                 # while select says readable.  Bytes that arrived between the read and the

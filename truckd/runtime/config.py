@@ -75,6 +75,15 @@ class RuntimeConfig:
     )
     realtime: bool = spec("try SCHED_FIFO and mlockall (logged when not permitted)", default=True)
     rt_priority: int = spec("SCHED_FIFO priority", lo=1, hi=99, default=50)
+    cpu_latency_us: int = spec(
+        "with realtime: the CPU wake-up latency to hold while running (Linux PM QoS, "
+        "/dev/cpu_dma_latency; 0 keeps the cores out of deep idle states: faster cycles, "
+        "more power); -1 leaves the kernel's idle policy alone",
+        unit="us",
+        lo=-1,
+        hi=1_000_000,
+        default=0,
+    )
     stop_ramp_v_per_s: float = spec(
         "voltage ramp towards 0 V in SAFE_STOP", unit="V/s", lo=0.0, lo_open=True, default=60.0
     )

@@ -199,19 +199,27 @@ class CompanionCycle:
         self.seq += 1
         return res
 
-    def plan(self, out: CycleOutputs) -> Plan | None:
-        """The controller's predicted trajectory of the cycle ``out`` (call it before the
-        next step); None when that cycle's MPC did not solve (hold, fallback)."""
+    def plan_speeds(self, out: CycleOutputs) -> list[float] | None:
+        """The predicted speeds (m/s, one per period from now) of the cycle ``out`` (call
+        it before the next step): the speeds over the commands already in the pipeline
+        (input delay), then the QP's, whose step 0 lies that many periods ahead; None when
+        that cycle's MPC did not solve (hold, fallback)."""
         c = out.control
         z = self.controller.mpc.last_solution
         if c is None or c.fallback_reason is not None or c.solve_iterations == 0 or z is None:
             return None
-        _u, v, _d = self.controller.mpc.qp.plan(z)
+        pipe = self.controller.pipeline_v
+        v: list[float] = self.controller.mpc.qp.speeds(z).tolist()
+        return [*pipe, *v] if pipe else v
+
+    def plan(self, out: CycleOutputs) -> Plan | None:
+        """The controller's predicted trajectory of the cycle ``out`` (call it before the
+        next step); None when that cycle's MPC did not solve (hold, fallback)."""
+        vs = self.plan_speeds(out)
+        if vs is None:
+            return None
         dt = self.period
-        # from now: the speeds over the commands already in the pipeline (input delay),
-        # then the QP's, whose step 0 lies that many periods ahead
-        vs = (*self.controller.pipeline_v, *(float(x) for x in v))
-        return Plan(dt, vs, tuple((b - a) / dt for a, b in itertools.pairwise(vs)))
+        return Plan(dt, tuple(vs), tuple((b - a) / dt for a, b in itertools.pairwise(vs)))
 
     def state_message(self, out: CycleOutputs, lateness_s: float = 0.0) -> dict[str, Any]:
         """The published state (CONTRACTS.md section 5); ``lateness_s`` the loop's."""

@@ -36,7 +36,12 @@ from truckd.runtime.mcap_log import McapLog
 from truckd.runtime.notify import Notifier
 from truckd.runtime.platoon_link import DaemonPlatoon
 from truckd.runtime.ratekeeper import RateKeeper
-from truckd.runtime.realtime import RealtimeReport, promote_helpers, setup_realtime
+from truckd.runtime.realtime import (
+    RealtimeReport,
+    promote_helpers,
+    release_cpu_latency,
+    setup_realtime,
+)
 from truckd.runtime.recorder import Recorder
 from truckd.runtime.rxlog import RxLog
 from truckd.runtime.telemetry import Telemetry
@@ -195,6 +200,7 @@ class Daemon:
             finally:
                 if self.claim is not None:
                     self.claim.release()
+                release_cpu_latency()
                 self.notifier.close()
         s = self.rk.stats()
         log.info(
@@ -240,7 +246,9 @@ class Daemon:
         old = {s: signal.signal(s, self.request_stop) for s in (signal.SIGTERM, signal.SIGINT)}
         try:
             self.start()
-            self.realtime = setup_realtime(self.rt.realtime, self.rt.rt_priority)
+            self.realtime = setup_realtime(
+                self.rt.realtime, self.rt.rt_priority, self.rt.cpu_latency_us
+            )
             if self.realtime.sched_fifo:
                 promote_helpers(max(1, self.rt.rt_priority - 1), self.realtime)
             self.loop()

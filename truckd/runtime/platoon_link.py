@@ -39,9 +39,9 @@ def cycle_plan(
     clock): the MPC's predicted speeds when it solved, standstill while the controller
     holds the truck at rest, None otherwise (a fallback has no plan to promise: the
     follower's plan goes stale and it falls back to ACC)."""
-    p = cyc.plan(out)
-    if p is not None:
-        return make_plan(t, out.seq, p.dt, p.v, vehicle_id)
+    v = cyc.plan_speeds(out)
+    if v is not None:
+        return make_plan(t, out.seq, cyc.period, v, vehicle_id)
     c = out.control
     if c is not None and c.mode == "hold":
         n = cyc.controller.mpc.horizon

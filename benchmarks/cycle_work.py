@@ -1,0 +1,141 @@
+"""The companion step's work per cycle, counted in instructions (repeatable on a noisy
+machine) and timed hot (back to back) and paced (one cycle per 10 ms, as on the car).
+
+The step is the pure part of every cycle: sensors -> controller (the MPC solve) ->
+supervisor -> motor command, then the plan, the state message and the log row, on the
+inputs of the stored daemon run ``tests/data/replay/run.rx.jsonl`` (300 cycles of follow
+at 100 Hz; the same inputs every time).  Poll, send and publish are I/O and are measured
+by ``loop_bench.py``.
+
+* ``instructions_per_cycle``: ``valgrind --tool=callgrind`` counts the instructions of the
+  whole process replaying the log once and three times; the difference divided by the
+  extra cycles is the step's own count (imports and set-up, the same in both, cancel).
+  The same code and inputs give about the same count whatever the machine is doing
+  (OpenBLAS held to one thread).
+* ``hot_us_p50``: wall time per step back to back (caches warm);
+  ``paced_us_p50``: the same with a 10 ms sleep after each step: the caches and the
+  branch predictors go cold in the sleep, as they do in the daemon's loop, and each numpy
+  or OSQP call then costs several times its hot time.
+
+``--root DIR`` measures the truckd of another checkout (e.g. the previous release, for a
+side-by-side figure).
+
+    .venv/bin/python benchmarks/cycle_work.py [--root DIR] [--json FILE]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import re
+import shutil
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parent.parent
+LOG = ROOT / "tests" / "data" / "replay" / "run.rx.jsonl"
+
+CHILD = r"""
+import json, sys, time
+sys.path.insert(0, sys.argv[1])
+from truckd.runtime.rxlog import read_rx_log
+from truckd.runtime.replay import cycle_from_params
+from truckd.runtime.platoon_link import cycle_plan
+path, reps, pace = sys.argv[2], int(sys.argv[3]), float(sys.argv[4])
+t0, params, cycles = read_rx_log(path)
+cycles = list(cycles)
+cycs = [cycle_from_params(params, t0, path) for _ in range(3)]  # set-up alike for any reps
+times = []
+pc = time.perf_counter
+for cyc in cycs[:reps]:
+    for inp in cycles:
+        a = pc()
+        out = cyc.step(inp)
+        plan = cycle_plan(cyc, out, 0.0, "truck1")
+        if plan is not None:
+            plan.as_dict()
+        cyc.state_message(out)
+        cyc.log_row(out)
+        times.append(pc() - a)
+        if pace > 0.0:
+            time.sleep(pace)
+print(json.dumps({"cycles": len(cycles), "times": times}))
+"""
+
+
+def _child(root: Path, reps: int, pace: float, valgrind: bool) -> tuple[dict[str, Any], int]:
+    """Run the replay in a fresh process; (its JSON, instructions or 0)."""
+    with tempfile.TemporaryDirectory() as tmp:
+        script = Path(tmp) / "child.py"
+        script.write_text(CHILD)
+        cmd = [sys.executable, str(script), str(root), str(LOG), str(reps), str(pace)]
+        env = {**os.environ, "OPENBLAS_NUM_THREADS": "1"}
+        if valgrind:
+            out_file = Path(tmp) / "callgrind.out"
+            cmd = ["valgrind", "--tool=callgrind", f"--callgrind-out-file={out_file}", *cmd]
+        proc = subprocess.run(cmd, capture_output=True, text=True, env=env, check=False)
+        if proc.returncode != 0:
+            raise RuntimeError(f"replay failed: {proc.stderr[-2000:]}")
+        instructions = 0
+        if valgrind:
+            m = re.search(r"Collected : (\d+)", proc.stderr)
+            if m is None:
+                raise RuntimeError("callgrind printed no instruction count")
+            instructions = int(m.group(1))
+        return json.loads(proc.stdout.splitlines()[-1]), instructions
+
+
+def _p50_us(times: list[float]) -> float:
+    xs = sorted(times[10:])  # the first cycles start the solver cold
+    return xs[len(xs) // 2] * 1e6
+
+
+def run(root: Path) -> dict[str, Any]:
+    result: dict[str, Any] = {"root": str(root), "log": str(LOG.relative_to(ROOT))}
+    if shutil.which("valgrind"):
+        one, i1 = _child(root, 1, 0.0, True)
+        _, i3 = _child(root, 3, 0.0, True)
+        result["instructions_per_cycle"] = round((i3 - i1) / (2 * one["cycles"]))
+    else:
+        result["instructions_per_cycle"] = None
+        result["note"] = "valgrind not found: no instruction count"
+    hot, _ = _child(root, 3, 0.0, False)
+    paced, _ = _child(root, 1, 0.01, False)
+    result["cycles"] = hot["cycles"]
+    result["hot_us_p50"] = _p50_us(hot["times"])
+    result["paced_us_p50"] = _p50_us(paced["times"])
+    result["machine"] = {
+        "cpus": os.cpu_count(),
+        "kernel": platform.release(),
+        "python": platform.python_version(),
+        "loadavg_1_5_15": list(os.getloadavg()),
+    }
+    return result
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--root", type=Path, default=ROOT, help="the checkout whose truckd runs")
+    ap.add_argument("--json", metavar="FILE")
+    args = ap.parse_args()
+    if not (args.root / "truckd" / "runtime" / "cycle.py").is_file():
+        print(f"cycle_work: {args.root}: not a truckd checkout", file=sys.stderr)
+        return 2
+    r = run(args.root.resolve())
+    ipc = r["instructions_per_cycle"]
+    print(f"cycle_work: {r['cycles']} cycles of {r['log']} ({r['root']})")
+    print(f"  instructions per cycle  {ipc if ipc is not None else 'n/a (no valgrind)'}")
+    print(f"  hot p50 / paced p50     {r['hot_us_p50']:.0f} / {r['paced_us_p50']:.0f} us")
+    print(f"  load average            {r['machine']['loadavg_1_5_15'][0]:.2f}")
+    if args.json:
+        Path(args.json).write_text(json.dumps(r, indent=2) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
