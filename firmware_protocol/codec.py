@@ -92,15 +92,25 @@ class Field:
     """Raw range (the bit range narrowed by the DBC's physical limits)."""
 
 
+def _bit_range(f: Field) -> tuple[int, int]:
+    """The raw values the field's bits can hold."""
+    if f.sign_bit:
+        return -f.sign_bit, f.sign_bit - 1
+    return 0, f.mask
+
+
 class Layout:
     """Packs and unpacks one message's raw signal values (compiled from the DBC)."""
 
-    __slots__ = ("checksum", "fields", "length")
+    __slots__ = ("checked", "checksum", "fields", "length")
 
     def __init__(self, fields: tuple[Field, ...], length: int) -> None:
         self.fields = fields
         self.length = length
         self.checksum = next(f for f in fields if f.name == "CHECKSUM")
+        self.checked = tuple(f for f in fields if (f.lo, f.hi) != _bit_range(f))
+        """The fields whose raw range is narrower than their bits (the only ones a
+        received value can fall outside of)."""
 
     def pack_int(self, raw: Mapping[str, int]) -> int:
         """The payload as an integer; every signal must be given, within its range."""
@@ -272,11 +282,15 @@ def encode_raw(name: str, raw: Mapping[str, int], counter: int) -> Frame:
 
     Raises :class:`EncodeError` for a missing or unknown signal or a raw value outside the
     DBC's range (as cantools' strict encoding does)."""
-    spec = specs()[name]
-    lay = spec.layout
     values = dict(raw)
     values["COUNTER"] = counter & 0xF
     values["CHECKSUM"] = 0
+    return _pack(specs()[name], values)
+
+
+def _pack(spec: MessageSpec, values: Mapping[str, int]) -> Frame:
+    """The frame of every raw value, COUNTER given and CHECKSUM 0 (computed here)."""
+    lay = spec.layout
     x = lay.pack_int(values)
     n = lay.length
     cs = message_checksum(spec.can_id, x.to_bytes(n, "little")[:-1])
@@ -290,8 +304,10 @@ def encode(msg: Message, counter: int) -> Frame:
     Values are rounded to the signal resolution and clamped to its range; a non-finite
     value raises ValueError (nothing is sent).
     """
-    name, raw = _signals(msg)
-    return encode_raw(name, raw, counter)
+    name, raw = _signals(msg)  # a new dict: completed in place
+    raw["COUNTER"] = counter & 0xF
+    raw["CHECKSUM"] = 0
+    return _pack(specs()[name], raw)
 
 
 def decode_raw(frame: Frame) -> tuple[MessageSpec, dict[str, int]]:
@@ -308,7 +324,7 @@ def decode_raw(frame: Frame) -> tuple[MessageSpec, dict[str, int]]:
     if message_checksum(spec.can_id, data[:-1]) != data[-1]:
         raise DecodeError("checksum", f"{spec.name}: CRC-8 mismatch")
     values = spec.layout.unpack(data)
-    for f in spec.layout.fields:
+    for f in spec.layout.checked:
         v = values[f.name]
         if not f.lo <= v <= f.hi:
             raise DecodeError("payload", f"{spec.name}.{f.name}: raw {v} outside [{f.lo}, {f.hi}]")
@@ -322,43 +338,67 @@ def _enum(cls: Callable[[int], Any], value: int, name: str) -> Any:
         raise DecodeError("payload", f"{name}: value {value} not defined") from None
 
 
+def _motor_cmd(sc: Mapping[str, float], r: Mapping[str, int]) -> Message:
+    return MotorCommand(voltage=r["VOLTAGE"] * sc["VOLTAGE"], enable=bool(r["ENABLE"]))
+
+
+def _companion_heartbeat(sc: Mapping[str, float], r: Mapping[str, int]) -> Message:
+    return CompanionHeartbeat(
+        state=_enum(CompanionState, r["STATE"], "COMPANION_HEARTBEAT.STATE"),
+        faults=r["FAULTS"],
+    )
+
+
+def _wheel_encoders(sc: Mapping[str, float], r: Mapping[str, int]) -> Message:
+    return WheelEncoders(
+        ticks_left=r["TICKS_LEFT"],
+        ticks_right=r["TICKS_RIGHT"],
+        sample_time=r["SAMPLE_TIME"] * sc["SAMPLE_TIME"],
+        status=r["STATUS"],
+    )
+
+
+def _motor_feedback(sc: Mapping[str, float], r: Mapping[str, int]) -> Message:
+    return MotorFeedback(
+        current=r["CURRENT"] * sc["CURRENT"],
+        vbat=r["VBAT"] * sc["VBAT"],
+        u_applied=r["U_APPLIED"] * sc["U_APPLIED"],
+        status=r["STATUS"],
+    )
+
+
+def _range(sc: Mapping[str, float], r: Mapping[str, int]) -> Message:
+    return RangeReading(
+        distance=r["DISTANCE"] * sc["DISTANCE"],
+        status=_enum(RangeStatus, r["STATUS"], "RANGE.STATUS"),
+        sample_time=r["SAMPLE_TIME"] * sc["SAMPLE_TIME"],
+    )
+
+
+def _firmware_heartbeat(sc: Mapping[str, float], r: Mapping[str, int]) -> Message:
+    return FirmwareHeartbeat(
+        state=_enum(FirmwareState, r["STATE"], "FIRMWARE_HEARTBEAT.STATE"),
+        faults=FirmwareFault(r["FAULTS"]),
+        cmd_errors=r["CMD_ERRORS"],
+    )
+
+
+_BUILDERS: dict[str, Callable[[Mapping[str, float], Mapping[str, int]], Message]] = {
+    "MOTOR_CMD": _motor_cmd,
+    "COMPANION_HEARTBEAT": _companion_heartbeat,
+    "WHEEL_ENCODERS": _wheel_encoders,
+    "MOTOR_FEEDBACK": _motor_feedback,
+    "RANGE": _range,
+    "FIRMWARE_HEARTBEAT": _firmware_heartbeat,
+}
+"""The typed message of each DBC message, from its scales and raw values."""
+
+
 def _build(spec: MessageSpec, r: Mapping[str, int]) -> Message:
-    sc = spec.scale
-    n = spec.name
-    if n == "MOTOR_CMD":
-        return MotorCommand(voltage=r["VOLTAGE"] * sc["VOLTAGE"], enable=bool(r["ENABLE"]))
-    if n == "COMPANION_HEARTBEAT":
-        return CompanionHeartbeat(
-            state=_enum(CompanionState, r["STATE"], "COMPANION_HEARTBEAT.STATE"),
-            faults=r["FAULTS"],
-        )
-    if n == "WHEEL_ENCODERS":
-        return WheelEncoders(
-            ticks_left=r["TICKS_LEFT"],
-            ticks_right=r["TICKS_RIGHT"],
-            sample_time=r["SAMPLE_TIME"] * sc["SAMPLE_TIME"],
-            status=r["STATUS"],
-        )
-    if n == "MOTOR_FEEDBACK":
-        return MotorFeedback(
-            current=r["CURRENT"] * sc["CURRENT"],
-            vbat=r["VBAT"] * sc["VBAT"],
-            u_applied=r["U_APPLIED"] * sc["U_APPLIED"],
-            status=r["STATUS"],
-        )
-    if n == "RANGE":
-        return RangeReading(
-            distance=r["DISTANCE"] * sc["DISTANCE"],
-            status=_enum(RangeStatus, r["STATUS"], "RANGE.STATUS"),
-            sample_time=r["SAMPLE_TIME"] * sc["SAMPLE_TIME"],
-        )
-    if n == "FIRMWARE_HEARTBEAT":
-        return FirmwareHeartbeat(
-            state=_enum(FirmwareState, r["STATE"], "FIRMWARE_HEARTBEAT.STATE"),
-            faults=FirmwareFault(r["FAULTS"]),
-            cmd_errors=r["CMD_ERRORS"],
-        )
-    raise DecodeError("unknown_id", f"no typed message for {n}")  # pragma: no cover
+    build = _BUILDERS.get(spec.name)
+    if build is None:  # pragma: no cover
+        raise DecodeError("unknown_id", f"no typed message for {spec.name}")
+    return build(spec.scale, r)
 
 
 def decode(frame: Frame) -> Decoded:

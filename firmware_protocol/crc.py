@@ -62,8 +62,25 @@ def crc16_ccitt_table(data: bytes | bytearray | memoryview) -> int:
     return c
 
 
+_ID_STATE: dict[int, int] = {}
+"""The CRC-8 register after the 2 id bytes, per CAN id (the id prefix is constant)."""
+
+
+def _id_state(can_id: int) -> int:
+    c = 0xFF
+    for b in (can_id & 0xFF, (can_id >> 8) & 0xFF):
+        c = _T8[c ^ b]
+    _ID_STATE[can_id] = c
+    return c
+
+
 def message_checksum(can_id: int, payload_without_checksum: bytes | bytearray) -> int:
-    """The ``CHECKSUM`` signal value of a message: CRC-8 over id (2 bytes LE) + payload."""
-    return crc8_j1850(
-        bytes((can_id & 0xFF, (can_id >> 8) & 0xFF)) + bytes(payload_without_checksum)
-    )
+    """The ``CHECKSUM`` signal value of a message: CRC-8 over id (2 bytes LE) + payload
+    (the register after the id is cached per id: the same value, fewer steps)."""
+    c = _ID_STATE.get(can_id)
+    if c is None:
+        c = _id_state(can_id)
+    t = _T8
+    for b in payload_without_checksum:
+        c = t[c ^ b]
+    return c ^ 0xFF

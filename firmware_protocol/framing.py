@@ -34,6 +34,10 @@ class FramingError(ValueError):
 
 def cobs_encode(data: bytes) -> bytes:
     """Consistent Overhead Byte Stuffing of ``data`` (no 0x00 in the result)."""
+    if len(data) < 254:
+        # No zero-free run can reach 254 bytes: each run is its length + 1, then the run
+        # (the zero it ended at is implied).  Every frame takes this path.
+        return b"".join([bytes((len(run) + 1,)) + run for run in bytes(data).split(b"\x00")])
     out = bytearray(b"\x01")
     code_idx = 0
     code = 1
