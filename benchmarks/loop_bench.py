@@ -2,7 +2,7 @@
 recording on: wake lateness p50/p99/max, compute p50/p99/max, deadline misses.
 
     .venv/bin/python benchmarks/loop_bench.py [--duration 60] [--backend serial|sim] [--json FILE]
-        [--stages]
+        [--stages] [--cpu-latency-us US]
 
 ``serial`` (default) runs the daemon against the simulated firmware in its own process on
 a pty, as in the HIL tests (the loop's work is what it is on the car); ``sim`` steps the
@@ -51,11 +51,15 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
-def _config(tmp: Path, backend: str, pty: str, port: int) -> Path:
+def _config(
+    tmp: Path, backend: str, pty: str, port: int, cpu_latency_us: int | None = None
+) -> Path:
     data = yaml.safe_load(default_config_path().read_text())
     data["link"]["serial_device"] = pty
     rt = data["runtime"]
     rt["backend"] = backend
+    if cpu_latency_us is not None:
+        rt["cpu_latency_us"] = cpu_latency_us
     rt["telemetry"]["listen"] = [f"tcp/127.0.0.1:{port}"]
     rt["recorder"]["dir"] = str(tmp / "logs")
     p = tmp / "truck.yaml"
@@ -113,11 +117,13 @@ def _instrument(daemon: Daemon) -> dict[str, list[float]]:
     return times
 
 
-def run(duration: float, backend: str, stages: bool = False) -> dict[str, Any]:
+def run(
+    duration: float, backend: str, stages: bool = False, cpu_latency_us: int | None = None
+) -> dict[str, Any]:
     tmp = Path(tempfile.mkdtemp(prefix="loop_bench_"))
     pty = str(tmp / "ttyTRUCK")
     port = _free_port()
-    cfg_path = _config(tmp, backend, pty, port)
+    cfg_path = _config(tmp, backend, pty, port, cpu_latency_us)
     fw = None
     if backend == "serial":
         fw = subprocess.Popen(
@@ -212,8 +218,15 @@ def main() -> int:
     ap.add_argument("--backend", choices=("serial", "sim"), default="serial")
     ap.add_argument("--json", metavar="FILE")
     ap.add_argument("--stages", action="store_true", help="time each stage of the cycle")
+    ap.add_argument(
+        "--cpu-latency-us",
+        type=int,
+        metavar="US",
+        help="runtime.cpu_latency_us for the daemon (default: the shipped configuration's; "
+        "-1 leaves the CPU idle states alone)",
+    )
     args = ap.parse_args()
-    r = run(args.duration, args.backend, args.stages)
+    r = run(args.duration, args.backend, args.stages, args.cpu_latency_us)
     rows = [
         ("cycles", f"{r['cycles']}"),
         ("deadline misses", f"{r['deadline_misses']} ({r['skipped_periods']} periods skipped)"),
@@ -226,6 +239,7 @@ def main() -> int:
          f"{r['zenoh_messages_sent']} / {r['states_received']} / {r['zenoh_messages_dropped']}"),
         ("rows recorded", f"{r['rows_recorded']}"),
         ("SCHED_FIFO / mlockall", f"{r['realtime']['sched_fifo']} / {r['realtime']['mlock']}"),
+        ("CPU wake-up latency held", f"{r['realtime'].get('cpu_latency_us')} us"),
     ]  # fmt: skip
     print(f"loop_bench: {r['rate_hz']:.0f} Hz for {r['duration_s']:.0f} s, backend {r['backend']},"
           f" {r['machine']['cpus']} CPUs, kernel {r['machine']['kernel']}")  # fmt: skip

@@ -18,6 +18,7 @@ ORDER = (
     "firmware_bench",
     "mpc_bench",
     "loop_bench",
+    "cycle_work",
     "recorder_bench",
     "diagnose_bench",
     "closed_loop_gain",

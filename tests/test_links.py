@@ -3,8 +3,11 @@ backends by name, and the typed port on top."""
 
 from __future__ import annotations
 
+import array
+import fcntl
 import os
 import select
+import termios
 import time
 import uuid
 from pathlib import Path
@@ -278,3 +281,57 @@ def test_port_counters_checks_and_stats() -> None:
     assert comp.stats()["rx_timeouts"] == 1
     with pytest.raises(ValueError, match="finite"):
         comp.send(MotorCommand(float("nan"), True))
+
+
+def test_poll_reads_a_serial_device_once_when_that_read_empties_it(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``recv_all`` (the loop's poll): frames that are all there come back in order from
+    one read, without a second, empty read and its hang-up ``select``; frames that
+    arrive later come with the next poll; a device whose every read is full (a backlog)
+    is read until it is not."""
+    path = str(tmp_path / "ttyTRUCK")
+    dev = PtyDevice(path)
+    link = SerialLink(path, reconnect_interval=0.02)
+    reads: list[int] = []
+    real_read = os.read
+
+    def counted(fd: int, n: int) -> bytes:
+        data = real_read(fd, n)
+        reads.append(len(data))
+        return data
+
+    def wait_bytes(n: int) -> None:
+        """Until the tty holds ``n`` bytes for the link (FIONREAD)."""
+        assert link._fd is not None
+        deadline = time.monotonic() + 2.0
+        buf = array.array("i", [0])
+        while time.monotonic() < deadline:
+            fcntl.ioctl(link._fd, termios.FIONREAD, buf)
+            if buf[0] >= n:
+                return
+            time.sleep(0.001)
+        raise AssertionError(f"the tty holds {buf[0]} of {n} bytes")
+
+    monkeypatch.setattr("truckd.io.serial_link.os.read", counted)
+    try:
+        assert link.recv_all() == [] and link.connected
+        wire = frame_to_bytes(F1) + frame_to_bytes(F2)
+        dev.send_raw(wire)
+        wait_bytes(len(wire))
+        reads.clear()
+        assert link.recv_all() == [F1, F2]
+        assert reads == [len(wire)]  # one read; before: a second, empty one and a select
+        dev.send(F2)
+        wait_bytes(len(frame_to_bytes(F2)))
+        assert link.recv_all() == [F2]
+        # a backlog larger than one read: read until a read is short
+        monkeypatch.setattr("truckd.io.serial_link.READ_SIZE", len(frame_to_bytes(F1)))
+        dev.send_raw(frame_to_bytes(F1) * 3)
+        wait_bytes(3 * len(frame_to_bytes(F1)))
+        reads.clear()
+        assert link.recv_all() == [F1, F1, F1]
+        assert len(reads) >= 3
+    finally:
+        link.close()
+        dev.close()

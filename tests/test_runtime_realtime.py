@@ -127,3 +127,29 @@ def test_cpu_latency_not_permitted_logs_and_runs_on(
     assert rep.as_dict()["cpu_latency_us"] is None
     assert "CPU wake-up latency 0 us not requested" in caplog.text
     assert "No such file or directory" in caplog.text
+
+
+def test_helpers_and_zenoh_callback_threads_are_promoted_others_not() -> None:
+    """Every thread that takes the GIL for the daemon (its own ``truckd-*`` writers and
+    zenoh-python's callback threads) is raised to SCHED_FIFO; an unrelated thread is not."""
+    import threading
+
+    stop = threading.Event()
+    threads = [
+        threading.Thread(target=stop.wait, name=name, daemon=True)
+        for name in ("truckd-test", "Thread-9 (pyo3-closure)", "unrelated")
+    ]
+    for th in threads:
+        th.start()
+    rep = realtime.RealtimeReport()
+    try:
+        realtime.promote_helpers(5, rep)
+        policy = {th.name: os.sched_getscheduler(th.native_id or 0) for th in threads}
+    finally:
+        stop.set()
+        for th in threads:
+            th.join(5.0)
+    assert policy["unrelated"] == os.SCHED_OTHER
+    for name in ("truckd-test", "Thread-9 (pyo3-closure)"):
+        promoted = policy[name] == os.SCHED_FIFO
+        assert promoted or any(f"SCHED_FIFO for {name} failed" in n for n in rep.notes), rep.notes

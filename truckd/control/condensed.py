@@ -152,12 +152,11 @@ class CondensedQp:
         self._hi_state = hi_t[lay.r_gap :].copy()
         self._du = cfg.du_max * cfg.period
         # Everything per cycle in one matrix-vector product, bounds included:
-        # F [x0; v_lead; u_prev; v_ref; u_lo; u_hi; v_cap; 1] = [q; l; u] but the first
-        # block's bounds (each numpy call costs 5-10x its hot time in the loop: cold caches).
-        # One F per mode and lead/no lead (the gap rows' lower bound is d_min or none).
-        # The first block's bounds (the rate-limited first move, not linear in the inputs)
-        # are inputs too, so that F gives every bound: each numpy call in the loop costs
-        # 5-10x its hot time (cold caches after the period's sleep), so few calls.
+        # F [x0; v_lead; u_prev; v_ref; u_lo; u_hi; v_cap; 1; lo0; hi0] = [q; l; u], with
+        # the first block's bounds (the rate-limited first move, not linear in the inputs)
+        # passed in as lo0, hi0: each numpy call in the loop costs 5-10x its hot time (cold
+        # caches after the period's sleep), so few calls.  One F per mode and lead/no lead
+        # (the gap rows' lower bound is d_min or none).
         nw, m = self.nw, self.m
         r = 2 * nb - 1
         c_u, c_ref, c_lo, c_hi, c_cap, c_1, c_lo0, c_hi0 = range(NX + n, NX + n + N_SCALARS)

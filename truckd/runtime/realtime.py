@@ -6,8 +6,9 @@ The wake-up latency request is Linux's PM QoS interface (``/dev/cpu_dma_latency`
 ``cyclictest`` uses it): while the file stays open, no core enters an idle state whose
 exit takes longer than the value written (µs).  A control loop sleeps about 90 % of each
 period; from a deep idle state every cycle starts with cold caches and a slow wake-up.
-Measured here (2-vCPU VM, haltpoll idle driver): the daemon's cycle compute p50 fell from
-1141 µs to 793 µs with 0 µs (``benchmarks/loop_bench.py``).  It costs power (the cores
+Measured here (2-vCPU VM, haltpoll idle driver, ``benchmarks/loop_bench.py`` run
+alternately): the daemon's cycle compute p50 fell from 939-1047 µs to 775-827 µs with 0 µs.
+On a board without a cpuidle driver it changes nothing.  It costs power (the cores
 poll instead of sleeping), so it is applied with ``runtime.realtime`` only and can be
 switched off with ``runtime.cpu_latency_us: -1``.
 
@@ -137,7 +138,8 @@ def hold_cpu_latency(us: int, rep: RealtimeReport, device: str = CPU_LATENCY_DEV
 
 
 def release_cpu_latency() -> None:
-    """Drop the wake-up latency request (for tests and in-process runs)."""
+    """Drop the wake-up latency request (the daemon's shutdown; the kernel drops it too
+    when the process ends)."""
     global _latency_fd
     fd, _latency_fd = _latency_fd, None
     if fd is not None:
@@ -160,16 +162,30 @@ def setup_realtime(enabled: bool, priority: int, cpu_latency_us: int = -1) -> Re
     return rep
 
 
-def promote_helpers(priority: int, rep: RealtimeReport, prefix: str = "truckd-") -> None:
-    """SCHED_FIFO at ``priority`` for the daemon's own helper threads (named ``prefix``:
-    telemetry, recorder).  They take the GIL the loop needs: at normal priority a busy
-    host deschedules one while it holds the GIL and the real-time loop waits behind it
-    (priority inversion; measured: cycles waiting seconds at load 9 on 2 cores).  Their
-    work is short and event-driven, so they cannot starve the machine."""
+ZENOH_CALLBACK_THREAD = "pyo3-closure"
+"""Part of the name zenoh-python gives the Python threads that run our callbacks (the
+params queryable, the inject and plan subscribers)."""
+
+
+def promote_helpers(
+    priority: int,
+    rep: RealtimeReport,
+    prefix: str = "truckd-",
+    also: tuple[str, ...] = (ZENOH_CALLBACK_THREAD,),
+) -> None:
+    """SCHED_FIFO at ``priority`` for the daemon's helper threads: its own (named
+    ``prefix``: telemetry, recorder) and zenoh-python's callback threads (a name containing
+    one of ``also``).  Every one of them takes the GIL the loop needs: at normal priority a
+    busy host deschedules one while it holds the GIL and the real-time loop waits behind
+    it (priority inversion; measured: cycles waiting seconds at load 9 on 2 cores, and,
+    with only the zenoh callback threads left at normal priority, cycles of 12-216 ms that
+    spent 1.2 ms computing at load 3).  Their work is short and event-driven, so they
+    cannot starve the machine."""
     names = []
     for th in threading.enumerate():
         tid = th.native_id
-        if not th.name.startswith(prefix) or tid is None or not th.is_alive():
+        ours = th.name.startswith(prefix) or any(a in th.name for a in also)
+        if not ours or tid is None or not th.is_alive():
             continue
         try:
             os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(priority))
