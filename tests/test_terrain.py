@@ -8,6 +8,8 @@ the hit rate over more draws is measured by benchmarks/diagnose_bench.py.
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -21,7 +23,7 @@ from truckd.ident.synth import (
     hill_force_for,
     rolling_effects,
 )
-from truckd.ident.terrain import hill_problem, locate, rolling_problem
+from truckd.ident.terrain import both_ways_agree, hill_problem, locate, rolling_problem
 from truckd.model.effects import Effects
 from truckd.model.params import VehicleParams
 
@@ -104,3 +106,67 @@ def test_impossible_terrain_is_a_finding_not_a_cause(params: VehicleParams) -> N
     assert "shorter" in str(hill_problem(1.0, mid, 1e-4, params, runs))
     assert rolling_problem(0.2 * weight, 2.0, params, runs) is None
     assert "grade" in str(rolling_problem(0.5 * weight, 2.0, params, runs))
+
+
+def _hill_log(params: VehicleParams, rng: np.random.Generator) -> tuple[DrawnTruck, Effects, int]:
+    truck = draw_truck(params, rng)
+    seed = int(rng.integers(1 << 30))
+    sign = 1.0 if rng.random() < 0.5 else -1.0
+    return truck, hill_effects(truck, seed, sign * hill_force_for(truck, params)), seed
+
+
+@pytest.mark.parametrize("draw", [1789058713, 2349752339, 2350645654])
+def test_hill_is_located_through_speed_noise(params: VehicleParams, draw: int) -> None:
+    """Weak or heavy drawn trucks (motor constant 0.13x-0.8x, inertia 0.2x-3.7x: time
+    constants of 1-13 s): the speed noise differentiated into the equation error buries
+    the hill there; the output-error scan, with the truck's own time constant, finds it
+    (edges within 30 % of its length; the force, a start for the simulation-error fit,
+    within 30 %)."""
+    truck, eff, seed = _hill_log(params, np.random.default_rng(draw))
+    runs = [with_position(r) for r in runs_from_logs([drawn_log(truck, eff, seed)])]
+    s = locate(truck.params, runs)
+    assert s is not None
+    tol = 0.3 * eff.hill_length
+    assert abs(s.start - eff.hill_start) < tol
+    assert abs(s.start + s.length - (eff.hill_start + eff.hill_length)) < tol
+    assert abs(s.force - eff.hill_force) < 0.3 * abs(eff.hill_force)
+    assert both_ways_agree(truck.params, runs, s.start, s.start + s.length)
+
+
+def test_a_load_against_the_motion_is_no_hill(params: VehicleParams) -> None:
+    """A force that opposes the motion on a stretch (a brake, or a speed term's misfit)
+    has opposite signs in the two directions: not a hill (a truck that crosses the
+    stretch both ways)."""
+    truck, eff, seed = _hill_log(params, np.random.default_rng(1789058713))
+    runs = [with_position(r) for r in runs_from_logs([drawn_log(truck, eff, seed)])]
+    a, b = eff.hill_start, eff.hill_start + eff.hill_length
+    assert both_ways_agree(truck.params, runs, a, b)
+    flipped = []
+    for r in runs:
+        assert r.x is not None
+        on = (r.x >= a) & (r.x < b)
+        # The hill's force turned into one against the motion: seen from the command,
+        # the same voltage added in the direction of travel on the stretch.
+        volts = eff.hill_force * truck.params.R_m * truck.params.ratio / truck.params.K_T
+        flipped.append(
+            dataclasses.replace(r, inp=r.inp - np.where(on & (r.v < 0), 2.0 * volts, 0.0))
+        )
+    assert not both_ways_agree(truck.params, flipped, a, b)
+
+
+@pytest.mark.parametrize("draw", [3887557805, 3912143785])
+def test_hill_named_on_drawn_trucks_the_old_locator_missed(
+    params: VehicleParams, draw: int
+) -> None:
+    """Diagnosed from the default configuration: named ``load_force`` with profile hill,
+    edges within 30 % of its length, force within 25 %; fit raised."""
+    truck, eff, seed = _hill_log(params, np.random.default_rng(draw))
+    d = diagnose_log(drawn_log(truck, eff, seed), params)
+    assert [f.name for f in d.effects] == ["load_force"]
+    out = d.effects[0].to_json()
+    assert out["profile"] == "hill"
+    tol = 0.3 * eff.hill_length
+    assert abs(out["x_start_m"] - eff.hill_start) < tol
+    assert abs(out["x_end_m"] - (eff.hill_start + eff.hill_length)) < tol
+    assert abs(out["value"] - eff.hill_force) < 0.25 * abs(eff.hill_force)
+    assert d.extended.fit_percent > d.baseline.fit_percent

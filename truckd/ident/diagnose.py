@@ -28,6 +28,7 @@ from truckd.ident.candidates import (
     voltage_candidates,
 )
 from truckd.ident.data import (
+    MIN_RUN,
     Series,
     chunks_of_runs,
     merged,
@@ -46,7 +47,15 @@ from truckd.ident.result import (
     Rejected,
     Traces,
 )
-from truckd.ident.selection import close, delta_bic, passes, structured, white
+from truckd.ident.selection import (
+    BIC_MIN,
+    REL_MIN,
+    close,
+    delta_bic,
+    passes,
+    structured,
+    white,
+)
 from truckd.ident.terrain import hill_problem, locate, locate_wave, rolling_problem
 from truckd.ident.voltage import (
     FitResult,
@@ -78,6 +87,11 @@ VAL_BUDGET = 12000
 """Samples of the validation data used to select candidates."""
 MAX_EXTRA_ROUNDS = 2
 """Rounds of trying the remaining candidates on top of the accepted ones."""
+SETTLE = 3.0
+"""A hill acts on the speed while the truck is on its stretch and for about this many
+mechanical time constants after it left: its validation is judged on those samples."""
+MIN_SUPPORT = 50
+"""Fewest validation samples under a hill's influence to validate it at all."""
 
 SEED_NAMES = ("R_m", "L_m", "K_v", "K_T", "J_S", "K_coulomb", "K_stiction")
 
@@ -359,10 +373,100 @@ def _rival(
     return None
 
 
-def _passes(new: _Model, old: _Model, extra: int) -> tuple[bool, float]:
+def _hill_support(p: VehicleParams, e: Effects, data: Sequence[Series], w: Weights) -> np.ndarray:
+    """Which entries of :func:`residuals` over ``data`` the hill of ``e`` acts on: the
+    samples on its stretch and up to :data:`SETTLE` time constants after leaving it."""
+    ff = feedforward_of(p)
+    settle = SETTLE * ff.kA / ff.kV if ff.kV > 0.0 else 0.0
+    lo, hi = e.hill_start, e.hill_start + e.hill_length
+    parts = []
+    for s in data:
+        on = np.zeros(len(s), dtype=bool) if s.x is None else (s.x >= lo) & (s.x < hi)
+        last = np.maximum.accumulate(np.where(on, s.t, -np.inf))
+        near = s.t - last <= settle
+        parts.append(near)
+        if w.i and s.i is not None:
+            parts.append(near[1:])
+    return np.concatenate(parts) if parts else np.zeros(0, dtype=bool)
+
+
+def _hill_val_costs(
+    new: FitResult, old: FitResult, hill: Effects, val: Sequence[Series], w: Weights
+) -> tuple[float, float] | None:
+    """Validation costs of ``new`` and ``old`` where the hill of ``hill`` acts (None: the
+    validation data hardly reach its stretch)."""
+    mask = _hill_support(new.params, hill, val, w)
+    if int(mask.sum()) < MIN_SUPPORT:
+        return None
+    r_new = residuals(new.params, new.effects, val, w)[mask]
+    r_old = residuals(old.params, old.effects, val, w)[mask]
+    return float(r_new @ r_new), float(r_old @ r_old)
+
+
+def _crossings(p: VehicleParams, hill: Effects, runs: Sequence[Series]) -> list[Series]:
+    """The visits of ``runs`` to the hill's stretch, each a piece of its run from one
+    time constant before the truck reached the stretch (its measured state then) to
+    :data:`SETTLE` time constants after it left; overlapping visits are merged."""
+    ff = feedforward_of(p)
+    tau = ff.kA / ff.kV if ff.kV > 0.0 else 0.0
+    lo, hi = hill.hill_start, hill.hill_start + hill.hill_length
+    out: list[Series] = []
+    for r in runs:
+        if r.x is None or len(r) < 2:
+            continue
+        on = (r.x >= lo) & (r.x < hi)
+        if not on.any():
+            continue
+        h = float(np.median(np.diff(r.t)))
+        pre = max(5, int(np.ceil(tau / h)))
+        post = max(5, int(np.ceil(SETTLE * tau / h)))
+        edges = np.diff(np.concatenate([[0], on.astype(int), [0]]))
+        starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+        pieces: list[list[int]] = []
+        for k0, k1 in zip(starts, ends, strict=True):
+            a, b = max(0, int(k0) - pre), min(len(r), int(k1) + post)
+            if pieces and a <= pieces[-1][1]:
+                pieces[-1][1] = max(pieces[-1][1], b)
+            else:
+                pieces.append([a, b])
+        out.extend(r.slice(a, b) for a, b in pieces if b - a >= MIN_RUN)
+    return out
+
+
+def _held_out_crossings(
+    model: FitResult, hill: Effects, est: Sequence[Series], w: Weights
+) -> bool | None:
+    """A hill validated on held-out crossings of the estimation runs (when the
+    validation data do not reach its stretch): the visits to the stretch in two folds
+    (alternate visits), the hill's force fitted on one fold (the rest of ``model``
+    held; ``hill`` gives the stretch) must lower the other fold's cost by
+    :data:`REL_MIN`, both ways.  None: fewer than two visits."""
+    visits = _crossings(model.params, hill, est)
+    folds = [visits[0::2], visits[1::2]]
+    if not folds[1] or min(sum(len(v) for v in f) for f in folds) < MIN_SUPPORT:
+        return None
+    e = dataclasses.replace(model.effects, hill_start=hill.hill_start, hill_length=hill.hill_length)
+    grid = sorted(float(k) * hill.hill_force for k in np.linspace(0.0, 2.0, 21))
+    for own, other in ((0, 1), (1, 0)):
+        force, _ = scan(model.params, e, "hill_force", grid, folds[own], w)
+        r_new = residuals(model.params, dataclasses.replace(e, hill_force=force), folds[other], w)
+        r_old = residuals(model.params, dataclasses.replace(e, hill_force=0.0), folds[other], w)
+        if not float(r_new @ r_new) < (1.0 - REL_MIN) * float(r_old @ r_old):
+            return False
+    return True
+
+
+def _passes(
+    new: _Model, old: _Model, extra: int, hill_ok: bool | None = None
+) -> tuple[bool, float]:
+    """Whether ``new`` earns its place over ``old`` (:func:`selection.passes`) and the
+    change of the information criterion.  When the difference is a hill, ``hill_ok``
+    replaces the validation test (a load on a stretch of road changes nothing
+    elsewhere: it is validated where it acts)."""
     dbic = _delta_bic(new.fit, old.fit, extra)
-    ok = passes(dbic, new.val_cost, old.val_cost)
-    return ok, dbic
+    if hill_ok is None:
+        return passes(dbic, new.val_cost, old.val_cost), dbic
+    return dbic < -BIC_MIN and hill_ok, dbic
 
 
 def _summary(
@@ -427,6 +531,33 @@ def diagnose_voltage(
                     rejected.append(Rejected(n, {pn: float(getattr(m.effects, pn))}, why))
         return ok
 
+    def is_hill(name: str) -> bool:
+        return by_name[name].param.name == "hill_force"
+
+    held_out: dict[tuple[float, float, float], bool | None] = {}
+    hill_notes: dict[str, str] = {}
+
+    def hill_check(name: str, new: FitResult, old: FitResult, e: Effects) -> bool | None:
+        """The validation of the hill of ``e`` when ``name`` is the hill (else None):
+        ``new`` lowers the validation cost where the hill acts by :data:`REL_MIN` (and
+        raises it nowhere); when the validation data do not reach the stretch, its
+        held-out crossings decide."""
+        if not is_hill(name):
+            return None
+        if _val_cost(new, val_data, w) > _val_cost(old, val_data, w):
+            hill_notes[name] = "raises the validation cost"
+            return False  # the hill acts nowhere else: a worse validation is the rest's
+        costs = _hill_val_costs(new, old, e, val_data, w)
+        if costs is not None:
+            return costs[0] < (1.0 - REL_MIN) * costs[1]
+        key = (e.hill_force, e.hill_start, e.hill_length)
+        if key not in held_out:
+            held_out[key] = _held_out_crossings(new, e, est, w)
+        if held_out[key] is None:
+            hill_notes[name] = "not validated: no held-out data reach the stretch twice"
+            return False
+        return held_out[key]
+
     cands = voltage_candidates(base_fit.params, whole)
     stretch = locate(base_fit.params, runs)
     if stretch is not None:
@@ -447,8 +578,8 @@ def diagnose_voltage(
         progress(f"candidate {k + 1}/{len(cands)}: {cand.name}")
         f = _fit_candidate(base_fit, seed_free, [], cand, fit_data, w, grid, progress, val_data)
         m = _Model(f, (cand.name,), _val_cost(f, val_data, w))
-        ok, dbic = _passes(m, base, 1)
-        note = "passes alone" if ok else ""
+        ok, dbic = _passes(m, base, 1, hill_check(cand.name, f, base_fit, f.effects))
+        note = "passes alone" if ok else hill_notes.get(cand.name, "")
         if ok and not possible(f, [cand.name]):
             ok = False
             note = f"physically impossible: {rejected[-1].reason}"
@@ -481,7 +612,7 @@ def diagnose_voltage(
                 current.fit, seed_free, extra, cand, fit_data, w, grid, progress, val_data
             )
             new = _Model(f, (*current.names, name), _val_cost(f, val_data, w))
-        ok, _ = _passes(new, current, 1)
+        ok, _ = _passes(new, current, 1, hill_check(name, new.fit, current.fit, new.fit.effects))
         if ok and possible(new.fit, [*accepted, name]):
             accepted.append(name)
             current = new
@@ -522,7 +653,9 @@ def diagnose_voltage(
             )
             new = _Model(f, (*current.names, cand.name), _val_cost(f, val_data, w))
             if (
-                _passes(new, current, 1)[0]
+                _passes(
+                    new, current, 1, hill_check(cand.name, new.fit, current.fit, new.fit.effects)
+                )[0]
                 and possible(new.fit, new.names)
                 and (best is None or new.val_cost < best.val_cost)
             ):
@@ -548,7 +681,8 @@ def diagnose_voltage(
                 base_wo.params, off, [*seed_free, *extra], fit_data, w, grid, progress
             )
             reduced = _Model(f, tuple(others), _val_cost(f, val_data, w))
-            if not _passes(current, reduced, 1)[0]:
+            ok_hill = hill_check(name, current.fit, reduced.fit, current.fit.effects)
+            if not _passes(current, reduced, 1, ok_hill)[0]:
                 accepted.remove(name)
                 current = reduced
                 rows[name] = dataclasses.replace(

@@ -1,36 +1,61 @@
 """Locating a position-dependent load (a hill, a bump) from a log's residual.
 
-The seed model's equation error, as a force at the wheels (N), is binned by position
-(m).  A load that lives on a stretch of road shows as a run of bins whose median lies
-away from the rest; the stretch with the largest summed deviation is the hill's first
-guess.  The simulation-error fit then refines its force, start and length
-(:mod:`truckd.ident.diagnose`).  Rolling terrain is the sinusoid in position that best
-fits the same binned residual (:func:`locate_wave`).  Pure numerics.
+A hill is found by a linear output-error scan: with the seed model's mechanical time
+constant ``tau = kA/kV`` held, the simulated speed of every stretch of motion (started
+from its measured speed) is linear in the command gain, the Coulomb and constant loads
+and a force on any stretch of road ``[a, b)``, because the indicator of the stretch is
+known along the measured trajectory.  Each of these inputs is passed through the same
+first-order filter; the indicator of a stretch is a sum of per-bin filtered indicators,
+so every start and end on a grid of position bins is scored at once (the sum of squares
+it removes, by partial regression on the other inputs).  The stretch is chosen with a
+constant load allowed (where the level steps), then oriented without it (a load on the
+stretch, or on the rest of the road, whichever is a hill).  The simulation-error fit
+then refines its force, start and length (:mod:`truckd.ident.diagnose`).
 
-How it is told apart from time- or speed-dependent effects: the residual of an input
-delay, a sensor lag or aero drag follows the command or the speed, so binned by
-position it spreads over every place the truck drove at that speed; a hill's residual
-sits in one stretch of road.  A truck that crossed the stretch once at one speed leaves
-the two explanations close; the selection then reports them ``ambiguous``.
+Why output error and not the equation error (force = u - kS sign v - kV v - kA a): the
+equation error differentiates the measured speed, whose noise then grows as ``kA`` over
+the sample time; on a heavy, weak truck (long ``tau``) a hill's force is far below that
+noise, while the speed it costs lasts ``tau`` and is seen by every sample meanwhile.
+
+Rolling terrain is the sinusoid in position that best fits the equation error binned by
+position (:func:`locate_wave`).  Pure numerics.
+
+How a hill is told apart from time- or speed-dependent effects: the residual of an input
+delay, a sensor lag or aero drag follows the command or the speed, so binned by position
+it spreads over every place the truck drove at that speed; a hill's residual sits in one
+stretch of road.  A stretch the truck never leaves is a constant load (``load_force``):
+the scan needs data on and off the stretch.  A truck that crossed the stretch once at
+one speed leaves the explanations close; the selection then reports them ``ambiguous``.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.signal import lfilter
 
 from truckd.ident.data import Series
+from truckd.ident.linear import feedforward_of
 from truckd.model.params import VehicleParams
 
 MIN_SAMPLES_TRAVEL = 3
 """A stretch shorter than this many samples of travel at the median speed is not seen."""
 BINS = 120
 """Position bins over the driven range (at most)."""
-MAX_FRACTION = 0.6
-"""A stretch covering more than this fraction of the driven range is no hill (it is a
-constant load, which the ``load_force`` candidate covers)."""
+MIN_SHARE = 0.03
+"""A stretch is scored only with at least this share of the moving samples (and
+:data:`MIN_ROWS`) both on it and off it: one the truck never leaves is a constant load,
+one it hardly visits is not seen."""
+MIN_ROWS = 50
+GRID_MAX = 20000
+"""Most points of the uniform time grid the scan filters on (over all runs)."""
+ROWS_MAX = 8000
+"""Most grid points used as rows of the scan's regression."""
+MOVING = 0.1
+"""Samples slower than this fraction of the top speed are left out (stiction decides
+there, and near a reversal the Coulomb force flips)."""
 GRADE_MAX = 0.35
 """Steepest plausible grade (35 %, about 19 degrees): ``|hill_force| <= GRADE_MAX m g``
 (the grade force is ``m g sin(atan(grade))``, below ``GRADE_MAX m g``)."""
@@ -127,35 +152,270 @@ def profile(p: VehicleParams, runs: Sequence[Series]) -> Profile | None:
     return Profile(left, dev, have, width, span, min_len)
 
 
-def locate(p: VehicleParams, runs: Sequence[Series]) -> Stretch | None:
-    """The stretch of road where the residual force is localised, or None."""
-    prof = profile(p, runs)
-    if prof is None:
+@dataclass(frozen=True)
+class _Rows:
+    """The scan's regression: target (m/s), base inputs (u, sign v, 1) and per-bin
+    indicators, all filtered; moving samples per bin; the position grid."""
+
+    y: np.ndarray
+    base: np.ndarray
+    bins: np.ndarray
+    count: np.ndarray
+    lo: float
+    hi: float
+    width: float
+    min_len: float
+
+
+def _grid(s: Series, hg: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Run ``s`` on a uniform time grid of step ``hg``: the command averaged over each
+    step (it is held between samples), speed and position at the grid points, and the
+    position at the middle of each step."""
+    assert s.x is not None
+    t = s.t
+    m = max(int((t[-1] - t[0]) / hg), 1)
+    edges = t[0] + hg * np.arange(m + 1)
+    held = np.concatenate([[0.0], np.cumsum(s.inp[:-1] * np.diff(t))])
+
+    def integral(tq: np.ndarray) -> np.ndarray:
+        j = np.clip(np.searchsorted(t, tq, side="right") - 1, 0, len(t) - 1)
+        return np.asarray(held[j] + s.inp[j] * (tq - t[j]))
+
+    u = np.diff(integral(edges)) / hg
+    tg = edges[:-1]
+    return u, np.interp(tg, t, s.v), np.interp(tg, t, s.x), np.interp(tg + 0.5 * hg, t, s.x)
+
+
+def _tau(p: VehicleParams) -> float | None:
+    """The seed model's mechanical time constant ``kA/kV`` (s), None if not positive."""
+    ff = feedforward_of(p)
+    if not (ff.kV > 0.0 and ff.kA > 0.0):
         return None
-    dev, have, width, span = prof.dev, prof.have, prof.width, prof.span
-    nb = len(dev)
-    best = (0.0, 0, 0)
-    for sign in (1.0, -1.0):
-        run_sum, start = 0.0, 0
-        for b in range(nb):
-            if run_sum <= 0.0:
-                run_sum, start = 0.0, b
-            run_sum += sign * dev[b]
-            if run_sum > best[0]:
-                best = (run_sum, start, b + 1)
-    total, b0, b1 = best
-    if total <= 0.0 or (b1 - b0) * width > MAX_FRACTION * span:
-        return None
-    # Trim to the plateau: the bins carrying at least half the stretch's mean deviation.
-    sign = 1.0 if float(np.sum(dev[b0:b1])) > 0.0 else -1.0
-    mean = sign * float(np.mean(dev[b0:b1][have[b0:b1]]))
-    strong = np.flatnonzero(sign * dev[b0:b1] >= 0.5 * mean)
-    if strong.size:
-        b0, b1 = b0 + int(strong[0]), b0 + int(strong[-1]) + 1
-    force = float(np.mean(dev[b0:b1][have[b0:b1]]))
-    return Stretch(
-        start=float(prof.left[b0]), length=(b1 - b0) * width, force=force, bin_width=width
+    return ff.kA / ff.kV
+
+
+def _step(runs: Sequence[Series], r: Series) -> float:
+    """Grid step of run ``r``: its sample time, coarser for long logs (:data:`GRID_MAX`)."""
+    duration = sum(float(q.t[-1] - q.t[0]) for q in runs)
+    return max(float(np.median(np.diff(r.t))), duration / GRID_MAX)
+
+
+def _filtered(
+    r: Series, hg: float, tau: float, where: Callable[[np.ndarray, np.ndarray], np.ndarray]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Run ``r`` on the grid, each stretch of motion simulated from its measured speed by
+    the first-order filter of time constant ``tau``: ``(target speed, filtered inputs,
+    moving, position mid-step, direction)``.  The inputs are the command, ``sign v``, 1 and the
+    columns ``where(position mid-step, sign v)`` (indicators of places of the road)."""
+    u, v, _, x_mid = _grid(r, hg)
+    vs = _smooth(v, max(3, round(0.05 / hg)))
+    moving = np.abs(vs) > MOVING * max(float(np.max(np.abs(vs))), 1e-9)
+    sign = np.sign(vs)
+    inputs = np.column_stack([u, sign, np.ones_like(u), where(x_mid, sign)])
+    a = float(np.exp(-hg / tau))
+    filt = np.asarray(lfilter([0.0, 1.0 - a], [1.0, -a], inputs, axis=0))
+    target = v.copy()
+    new = np.flatnonzero(
+        np.concatenate([[True], (moving[1:] != moving[:-1]) | (sign[1:] != sign[:-1])])
     )
+    for i0, i1 in zip(new, [*new[1:], len(u)], strict=True):
+        if not moving[i0]:
+            continue
+        decay = a ** np.arange(i1 - i0)
+        filt[i0:i1] -= decay[:, None] * filt[i0][None, :]
+        target[i0:i1] -= decay * vs[i0]
+    return target, filt, moving, x_mid, sign
+
+
+def _rows(p: VehicleParams, runs: Sequence[Series]) -> _Rows | None:
+    """The filtered inputs of every stretch of motion, each started from its measured
+    speed (None: no usable time constant, too little motion or travel)."""
+    tau = _tau(p)
+    if tau is None:
+        return None
+    xs = [r.x for r in runs if r.x is not None]
+    if len(xs) != len(runs):
+        raise ValueError("a run needs a position (truckd.ident.data.with_position)")
+    lo = min(float(np.min(x)) for x in xs)
+    hi = max(float(np.max(x)) for x in xs)
+    span = hi - lo
+    travel = max(float(np.median(np.abs(r.v))) * float(np.median(np.diff(r.t))) for r in runs)
+    min_len = MIN_SAMPLES_TRAVEL * travel
+    if span <= 3.0 * min_len:
+        return None
+    width = max(span / BINS, min_len / 2.0)
+    nb = max(int(np.ceil(span / width)), 1)
+    stride = max(1, min(sum(len(r) for r in runs), GRID_MAX) // ROWS_MAX)
+
+    def bin_of(x: np.ndarray) -> np.ndarray:
+        return np.asarray(np.minimum(np.maximum(((x - lo) / width).astype(int), 0), nb - 1))
+
+    def onehot(x: np.ndarray, _: np.ndarray) -> np.ndarray:
+        out = np.zeros((len(x), nb))
+        out[np.arange(len(x)), bin_of(x)] = 1.0
+        return out
+
+    ys, bases, binss = [], [], []
+    count = np.zeros(nb)
+    for r in runs:
+        if len(r) < 10:
+            continue
+        target, filt, moving, x_mid, _ = _filtered(r, _step(runs, r), tau, onehot)
+        use = np.flatnonzero(moving)[::stride]
+        ys.append(target[use])
+        bases.append(filt[use, :3])
+        binss.append(filt[use, 3:])
+        count += np.bincount(bin_of(x_mid[use]), minlength=nb)
+    if not ys or sum(len(y) for y in ys) < 4 * MIN_ROWS:
+        return None
+    return _Rows(
+        y=np.concatenate(ys),
+        base=np.concatenate(bases),
+        bins=np.concatenate(binss),
+        count=count,
+        lo=lo,
+        hi=hi,
+        width=width,
+        min_len=min_len,
+    )
+
+
+def direction_forces(
+    p: VehicleParams, runs: Sequence[Series], start: float, end: float
+) -> tuple[tuple[float, float], tuple[float, float]] | None:
+    """The load (N) on ``[start, end)`` fitted separately for forward and backward
+    travel, each with its standard error: ``((f_fwd, se), (f_bwd, se))`` (se infinite
+    for a direction with too little data; None: no usable time constant).
+
+    A hill pushes the same way whichever way the truck drives over it; a misfit of a
+    speed-dependent term (back-EMF, drag, friction) pushes against the motion, so it
+    changes sign with the direction."""
+    tau = _tau(p)
+    if tau is None:
+        return None
+
+    def split(x: np.ndarray, sign: np.ndarray) -> np.ndarray:
+        on = (x >= start) & (x < end)
+        return np.column_stack([on & (sign > 0), on & (sign < 0)]).astype(float)
+
+    ys, cols, counts = [], [], []
+    for r in runs:
+        if len(r) < 10:
+            continue
+        target, filt, moving, x_mid, sign = _filtered(r, _step(runs, r), tau, split)
+        ys.append(target[moving])
+        cols.append(filt[moving][:, [0, 1, 3, 4]])
+        counts.append(split(x_mid, sign)[moving].sum(axis=0))
+    if not ys:
+        return None
+    y = np.concatenate(ys)
+    x_mat = np.concatenate(cols)
+    have = np.sum(counts, axis=0) >= MIN_ROWS
+    gram = x_mat.T @ x_mat
+    keep = [0, 1, *(2 + k for k in range(2) if have[k])]
+    sub = gram[np.ix_(keep, keep)]
+    if len(y) <= len(keep) or np.linalg.cond(sub) > 1e12:
+        return None
+    coef = np.linalg.solve(sub, x_mat[:, keep].T @ y)
+    resid = y - x_mat[:, keep] @ coef
+    var = float(resid @ resid) / (len(y) - len(keep)) * np.diag(np.linalg.inv(sub))
+    if not coef[0] > 0.0:
+        return None
+    per_unit = p.K_T / (p.R_m * p.ratio)
+    out: list[tuple[float, float]] = []
+    for k in range(2):
+        if not have[k]:
+            out.append((0.0, float("inf")))
+            continue
+        j = keep.index(2 + k)
+        out.append((-coef[j] / coef[0] * per_unit, float(np.sqrt(var[j])) / coef[0] * per_unit))
+    return out[0], out[1]
+
+
+def _scan(
+    rows: _Rows, base: np.ndarray, force_max: float, per_unit: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Every stretch of bins ``[i, j)``: the sum of squares a load on it removes from the
+    regression on ``base`` and that load (N; -inf and 0 where not allowed)."""
+    gram = base.T @ base
+    if np.linalg.cond(gram) > 1e12:
+        nb = rows.bins.shape[1] + 1
+        return np.full((nb, nb), -np.inf), np.zeros((nb, nb))
+    inv = np.linalg.inv(gram)
+    coef = inv @ (base.T @ rows.y)
+    resid = rows.y - base @ coef
+    nb = rows.bins.shape[1]
+    cum_g = np.concatenate([[0.0], np.cumsum(rows.bins.T @ resid)])
+    cum_p = np.hstack([np.zeros((base.shape[1], 1)), np.cumsum(base.T @ rows.bins, axis=1)])
+    cum_m = np.zeros((nb + 1, nb + 1))
+    cum_m[1:, 1:] = np.cumsum(np.cumsum(rows.bins.T @ rows.bins, axis=0), axis=1)
+    cum_n = np.concatenate([[0.0], np.cumsum(rows.count)])
+    g = cum_g[None, :] - cum_g[:, None]
+    q = cum_p[:, None, :] - cum_p[:, :, None]
+    diag = np.diag(cum_m)
+    own = diag[None, :] - cum_m - cum_m.T + diag[:, None]
+    denom = own - np.einsum("kij,kl,lij->ij", q, inv, q)
+    on = cum_n[None, :] - cum_n[:, None]
+    n_min = max(float(MIN_ROWS), MIN_SHARE * float(cum_n[-1]))
+    i, j = np.indices(g.shape)
+    ok = (j > i) & (denom > 1e-9 * max(float(np.max(own)), 1e-300))
+    ok &= (on >= n_min) & (cum_n[-1] - on >= n_min) & ((j - i) * rows.width >= rows.min_len)
+    gain = coef[0]
+    if not gain > 0.0:
+        return np.full(g.shape, -np.inf), np.zeros(g.shape)
+    load = np.where(ok, g / np.where(ok, denom, 1.0), 0.0)
+    force = -load / gain * per_unit
+    ok &= np.abs(force) <= force_max
+    return np.where(ok, g**2 / np.where(ok, denom, 1.0), -np.inf), np.where(ok, force, 0.0)
+
+
+def locate(p: VehicleParams, runs: Sequence[Series]) -> Stretch | None:
+    """The stretch of road where a load best explains the runs' speed, or None.
+
+    See the module docstring: scanned with a constant load allowed, oriented without.
+    """
+    rows = _rows(p, runs)
+    if rows is None:
+        return None
+    per_unit = p.K_T / (p.R_m * p.ratio)  # volts of command per newton at the wheels
+    force_max = GRADE_MAX * p.m * 9.81
+    with_load, _ = _scan(rows, rows.base, force_max, per_unit)
+    if not np.isfinite(np.max(with_load)):
+        return None
+    i, j = (int(k) for k in np.unravel_index(int(np.argmax(with_load)), with_load.shape))
+    nb = with_load.shape[0] - 1
+    options = [(i, j)]
+    if i == 0 and j < nb:
+        options.append((j, nb))
+    if j == nb and i > 0:
+        options.append((0, i))
+    alone, force = _scan(rows, rows.base[:, :2], force_max, per_unit)
+    i, j = max(options, key=lambda o: float(alone[o]))
+    if not np.isfinite(alone[i, j]):
+        return None
+    start = rows.lo + i * rows.width
+    end = min(rows.lo + j * rows.width, rows.hi)
+    if not both_ways_agree(p, runs, start, end):
+        return None
+    return Stretch(start=start, length=end - start, force=float(force[i, j]), bin_width=rows.width)
+
+
+AGREE = 0.5
+"""A load seen both ways is a hill when the two directions' forces have one sign and
+differ by at most this fraction of the larger (plus twice their standard error)."""
+
+
+def both_ways_agree(p: VehicleParams, runs: Sequence[Series], start: float, end: float) -> bool:
+    """Whether the load on ``[start, end)`` is the same for both directions of travel
+    (True too when the runs cross it in one direction only: nothing to compare)."""
+    dirs = direction_forces(p, runs, start, end)
+    if dirs is None:
+        return True
+    (f_fwd, se_fwd), (f_bwd, se_bwd) = dirs
+    if not (np.isfinite(se_fwd) and np.isfinite(se_bwd)):
+        return True
+    spread = AGREE * max(abs(f_fwd), abs(f_bwd)) + 2.0 * float(np.hypot(se_fwd, se_bwd))
+    return f_fwd * f_bwd > 0.0 and abs(f_fwd - f_bwd) <= spread
 
 
 @dataclass(frozen=True)
