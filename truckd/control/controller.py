@@ -88,6 +88,8 @@ class Controller:
         """Standstill hold active (see :meth:`_update_hold`)."""
         self._release_cycles = 0
         self._v_lead_buf = np.empty(self._delay_steps + self.mpc.horizon)
+        self._b_v = float(self.mpc.qp.pred.bu[1])
+        """Speed per volt over one step (m/s/V), for the offset-free action."""
         self.pipeline_v: list[float] = []
         """Speeds (m/s) predicted at ``now + k period`` for the commands already sent but
         not yet acting (the input delay): the QP's horizon starts after them.  Set by
@@ -293,8 +295,7 @@ class Controller:
         gain = self.cfg.disturbance_gain
         expected, self._v_expected = self._v_expected, math.nan
         if gain > 0.0 and math.isfinite(expected) and abs(v) > self.cfg.moving_speed:
-            b_v = float(self.mpc.qp.pred.bu[1])
-            self.disturbance_v += gain * (expected - v) / b_v
+            self.disturbance_v += gain * (expected - v) / self._b_v
             limit = self.cfg.disturbance_max
             self.disturbance_v = min(max(self.disturbance_v, -limit), limit)
         return self.disturbance_v
