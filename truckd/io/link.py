@@ -197,6 +197,17 @@ class Link:
         self.stats.tx_frames += 1
         return True
 
+    def _read_counted(self, timeout: float) -> list[Frame] | None:
+        """One read of the device: its frames (counted in ``rx_frames``), or None when
+        the link went down in it."""
+        try:
+            frames = self._read(timeout)
+        except LinkDownError as exc:
+            self._down(exc)
+            return None
+        self.stats.rx_frames += len(frames)
+        return frames
+
     def recv(self, timeout: float = 0.0) -> Frame | None:
         """The next received frame, waiting up to ``timeout`` s; None if none."""
         if self._pending:
@@ -204,14 +215,11 @@ class Link:
         if not self._ensure():
             self._idle(timeout)
             return None
-        try:
-            frames = self._read(timeout)
-        except LinkDownError as exc:
-            self._down(exc)
+        frames = self._read_counted(timeout)
+        if not frames:
             return None
-        self.stats.rx_frames += len(frames)
         self._pending.extend(frames)
-        return self._pending.popleft() if self._pending else None
+        return self._pending.popleft()
 
     def recv_all(self) -> list[Frame]:
         """Every frame available now, without waiting: those pending, then what the
@@ -221,19 +229,14 @@ class Link:
         self._pending.clear()
         if not self._ensure():
             return out
-        try:
-            while True:
-                self._drained = False
-                frames = self._read(0.0)
-                if not frames:
-                    break
-                self.stats.rx_frames += len(frames)
-                out.extend(frames)
-                if self._drained:
-                    break
-        except LinkDownError as exc:
-            self._down(exc)
-        return out
+        while True:
+            self._drained = False
+            frames = self._read_counted(0.0)
+            if not frames:
+                return out
+            out.extend(frames)
+            if self._drained:
+                return out
 
     def close(self) -> None:
         """Close for good (no reconnection)."""
