@@ -56,7 +56,13 @@ from truckd.ident.selection import (
     structured,
     white,
 )
-from truckd.ident.terrain import hill_problem, locate, locate_wave, rolling_problem
+from truckd.ident.terrain import (
+    hill_problem,
+    locate,
+    locate_wave,
+    rolling_problem,
+    time_constant,
+)
 from truckd.ident.voltage import (
     FitResult,
     Param,
@@ -376,8 +382,7 @@ def _rival(
 def _hill_support(p: VehicleParams, e: Effects, data: Sequence[Series], w: Weights) -> np.ndarray:
     """Which entries of :func:`residuals` over ``data`` the hill of ``e`` acts on: the
     samples on its stretch and up to :data:`SETTLE` time constants after leaving it."""
-    ff = feedforward_of(p)
-    settle = SETTLE * ff.kA / ff.kV if ff.kV > 0.0 else 0.0
+    settle = SETTLE * (time_constant(p) or 0.0)
     lo, hi = e.hill_start, e.hill_start + e.hill_length
     parts = []
     for s in data:
@@ -407,8 +412,7 @@ def _crossings(p: VehicleParams, hill: Effects, runs: Sequence[Series]) -> list[
     """The visits of ``runs`` to the hill's stretch, each a piece of its run from one
     time constant before the truck reached the stretch (its measured state then) to
     :data:`SETTLE` time constants after it left; overlapping visits are merged."""
-    ff = feedforward_of(p)
-    tau = ff.kA / ff.kV if ff.kV > 0.0 else 0.0
+    tau = time_constant(p) or 0.0
     lo, hi = hill.hill_start, hill.hill_start + hill.hill_length
     out: list[Series] = []
     for r in runs:
@@ -537,22 +541,23 @@ def diagnose_voltage(
     held_out: dict[tuple[float, float, float], bool | None] = {}
     hill_notes: dict[str, str] = {}
 
-    def hill_check(name: str, new: FitResult, old: FitResult, e: Effects) -> bool | None:
-        """The validation of the hill of ``e`` when ``name`` is the hill (else None):
+    def hill_check(name: str, new: _Model, old: _Model) -> bool | None:
+        """The validation of the hill of ``new`` when ``name`` is the hill (else None):
         ``new`` lowers the validation cost where the hill acts by :data:`REL_MIN` (and
         raises it nowhere); when the validation data do not reach the stretch, its
         held-out crossings decide."""
         if not is_hill(name):
             return None
-        if _val_cost(new, val_data, w) > _val_cost(old, val_data, w):
+        if new.val_cost > old.val_cost:
             hill_notes[name] = "raises the validation cost"
             return False  # the hill acts nowhere else: a worse validation is the rest's
-        costs = _hill_val_costs(new, old, e, val_data, w)
+        e = new.fit.effects
+        costs = _hill_val_costs(new.fit, old.fit, e, val_data, w)
         if costs is not None:
             return costs[0] < (1.0 - REL_MIN) * costs[1]
         key = (e.hill_force, e.hill_start, e.hill_length)
         if key not in held_out:
-            held_out[key] = _held_out_crossings(new, e, est, w)
+            held_out[key] = _held_out_crossings(new.fit, e, est, w)
         if held_out[key] is None:
             hill_notes[name] = "not validated: no held-out data reach the stretch twice"
             return False
@@ -578,7 +583,7 @@ def diagnose_voltage(
         progress(f"candidate {k + 1}/{len(cands)}: {cand.name}")
         f = _fit_candidate(base_fit, seed_free, [], cand, fit_data, w, grid, progress, val_data)
         m = _Model(f, (cand.name,), _val_cost(f, val_data, w))
-        ok, dbic = _passes(m, base, 1, hill_check(cand.name, f, base_fit, f.effects))
+        ok, dbic = _passes(m, base, 1, hill_check(cand.name, m, base))
         note = "passes alone" if ok else hill_notes.get(cand.name, "")
         if ok and not possible(f, [cand.name]):
             ok = False
@@ -612,7 +617,7 @@ def diagnose_voltage(
                 current.fit, seed_free, extra, cand, fit_data, w, grid, progress, val_data
             )
             new = _Model(f, (*current.names, name), _val_cost(f, val_data, w))
-        ok, _ = _passes(new, current, 1, hill_check(name, new.fit, current.fit, new.fit.effects))
+        ok, _ = _passes(new, current, 1, hill_check(name, new, current))
         if ok and possible(new.fit, [*accepted, name]):
             accepted.append(name)
             current = new
@@ -653,9 +658,7 @@ def diagnose_voltage(
             )
             new = _Model(f, (*current.names, cand.name), _val_cost(f, val_data, w))
             if (
-                _passes(
-                    new, current, 1, hill_check(cand.name, new.fit, current.fit, new.fit.effects)
-                )[0]
+                _passes(new, current, 1, hill_check(cand.name, new, current))[0]
                 and possible(new.fit, new.names)
                 and (best is None or new.val_cost < best.val_cost)
             ):
@@ -681,7 +684,7 @@ def diagnose_voltage(
                 base_wo.params, off, [*seed_free, *extra], fit_data, w, grid, progress
             )
             reduced = _Model(f, tuple(others), _val_cost(f, val_data, w))
-            ok_hill = hill_check(name, current.fit, reduced.fit, current.fit.effects)
+            ok_hill = hill_check(name, current, reduced)
             if not _passes(current, reduced, 1, ok_hill)[0]:
                 accepted.remove(name)
                 current = reduced

@@ -100,7 +100,7 @@ def residual_force(p: VehicleParams, s: Series) -> tuple[np.ndarray, np.ndarray,
         return s.x, np.zeros_like(v), usable
     coef, *_ = np.linalg.lstsq(x_mat[usable], _smooth(s.inp, k)[usable], rcond=None)
     volts = _smooth(s.inp, k) - x_mat @ coef
-    force = volts * p.K_T / (p.R_m * p.ratio)
+    force = volts * newtons_per_volt(p)
     return s.x, force, usable
 
 
@@ -186,12 +186,17 @@ def _grid(s: Series, hg: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.
     return u, np.interp(tg, t, s.v), np.interp(tg, t, s.x), np.interp(tg + 0.5 * hg, t, s.x)
 
 
-def _tau(p: VehicleParams) -> float | None:
-    """The seed model's mechanical time constant ``kA/kV`` (s), None if not positive."""
+def time_constant(p: VehicleParams) -> float | None:
+    """The model's mechanical time constant ``kA/kV`` (s), None if not positive."""
     ff = feedforward_of(p)
     if not (ff.kV > 0.0 and ff.kA > 0.0):
         return None
     return ff.kA / ff.kV
+
+
+def newtons_per_volt(p: VehicleParams) -> float:
+    """Force at the wheels (N) per volt of command at stall: ``K_T / (R_m ratio)``."""
+    return p.K_T / (p.R_m * p.ratio)
 
 
 def _step(runs: Sequence[Series], r: Series) -> float:
@@ -230,7 +235,7 @@ def _filtered(
 def _rows(p: VehicleParams, runs: Sequence[Series]) -> _Rows | None:
     """The filtered inputs of every stretch of motion, each started from its measured
     speed (None: no usable time constant, too little motion or travel)."""
-    tau = _tau(p)
+    tau = time_constant(p)
     if tau is None:
         return None
     xs = [r.x for r in runs if r.x is not None]
@@ -290,7 +295,7 @@ def direction_forces(
     A hill pushes the same way whichever way the truck drives over it; a misfit of a
     speed-dependent term (back-EMF, drag, friction) pushes against the motion, so it
     changes sign with the direction."""
-    tau = _tau(p)
+    tau = time_constant(p)
     if tau is None:
         return None
 
@@ -321,7 +326,7 @@ def direction_forces(
     var = float(resid @ resid) / (len(y) - len(keep)) * np.diag(np.linalg.inv(sub))
     if not coef[0] > 0.0:
         return None
-    per_unit = p.K_T / (p.R_m * p.ratio)
+    per_unit = newtons_per_volt(p)
     out: list[tuple[float, float]] = []
     for k in range(2):
         if not have[k]:
@@ -377,7 +382,7 @@ def locate(p: VehicleParams, runs: Sequence[Series]) -> Stretch | None:
     rows = _rows(p, runs)
     if rows is None:
         return None
-    per_unit = p.K_T / (p.R_m * p.ratio)  # volts of command per newton at the wheels
+    per_unit = newtons_per_volt(p)
     force_max = GRADE_MAX * p.m * 9.81
     with_load, _ = _scan(rows, rows.base, force_max, per_unit)
     if not np.isfinite(np.max(with_load)):
