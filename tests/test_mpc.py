@@ -379,3 +379,33 @@ def test_hold_thresholds_must_have_hysteresis() -> None:
     assert "hold_release_gap" in (bad_gap.validate() or "")
     bad_v = dataclasses.replace(ControlConfig(), hold_release_speed=0.05, hold_lead_speed=0.05)
     assert "hold_release_speed" in (bad_v.validate() or "")
+
+
+@pytest.mark.parametrize("blocks", [8, 0])
+@pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf, 1e308, 2e9])
+@pytest.mark.parametrize("field", ["x0", "v_lead", "u_prev", "v_ref", "v_cap", "u_lo", "u_hi"])
+def test_a_non_finite_or_huge_input_is_refused_before_the_solver(
+    params: VehicleParams, blocks: int, bad: float, field: str
+) -> None:
+    """Any input NaN, infinite or beyond anything physical (qp.INPUT_LIMIT; 1e308 values
+    whose sums overflow too) makes the solve fail with ``non-finite-input`` and no
+    solution; the solver is not run, and the next good input solves."""
+    cfg = ControlConfig(move_blocks=blocks).in_simulated_time()
+    solver = MpcSolver(ControlModel(params), cfg)
+    rng = np.random.default_rng(5)
+    good = random_inputs(rng, cfg, solver.horizon)
+    assert solver.solve("follow", good).ok
+    if field in ("x0", "v_lead"):
+        arr = getattr(good, field).copy()
+        arr[int(rng.integers(arr.size))] = bad
+        if bad == 1e308:  # every value: the sums overflow
+            arr[:] = bad
+        inp = dataclasses.replace(good, **{field: arr})
+    else:
+        inp = dataclasses.replace(good, **{field: bad})
+        if bad == 1e308:
+            inp = dataclasses.replace(inp, x0=np.full(3, bad))
+    res = solver.solve("follow", inp)  # and no numpy warning (errors in this suite)
+    assert (res.ok, res.status, res.z) == (False, "non-finite-input", None)
+    assert math.isnan(res.u0) and res.iterations == 0
+    assert solver.solve("follow", good).ok

@@ -24,7 +24,7 @@ import scipy.sparse as sp
 
 from truckd.control.condensed import CondensedQp, block_lengths
 from truckd.control.config import ControlConfig
-from truckd.control.qp import MODES, ControlModel, QpBuilder, QpInputs, Vec
+from truckd.control.qp import MODES, ControlModel, QpBuilder, QpInputs, Vec, inputs_ok
 
 
 @dataclass(frozen=True)
@@ -162,23 +162,14 @@ class MpcSolver:
         """Update the vectors, warm start, solve, check.  Never raises on solver trouble."""
         s = self._solvers[mode]
         qp, cq = self.qp, self.condensed
-        # One sum: a NaN or an infinity anywhere makes it non-finite (an overflow of huge
-        # finite inputs too, which is as well rejected).  The condensed QP's fill gathers
-        # every input into one vector first, so one reduction checks them all.
+        # Every input finite and physical (qp.inputs_ok): the condensed QP's fill checks
+        # the vector it gathers them into.
         if cq is not None:
-            cq.fill(mode, inp)
-            total = cq.input_sum()
+            finite = cq.fill(mode, inp)
         else:
-            total = (
-                inp.u_prev
-                + inp.v_ref
-                + inp.v_cap
-                + inp.u_lo
-                + inp.u_hi
-                + float(inp.x0.sum())
-                + float(inp.v_lead.sum())
-            )
-        if not math.isfinite(total):
+            scalars = (inp.u_prev, inp.v_ref, inp.v_cap, inp.u_lo, inp.u_hi)
+            finite = inputs_ok([*map(float, scalars), *inp.x0.tolist(), *inp.v_lead.tolist()])
+        if not finite:
             return MpcResult(False, math.nan, "non-finite-input", 0, 0.0, None)
         if cq is None:
             qp.vectors_into(mode, inp, self._q, self._lo, self._hi)
@@ -210,7 +201,9 @@ class MpcSolver:
         sol = ext.solution
         z: Vec = sol.x
         y: Vec = sol.y
-        finite = math.isfinite(float(z.sum()) + float(y.sum()))
+        # Python's sum (no numpy warning on an overflow; tolist runs every cycle anyway):
+        # a numpy reduction would be one more code path, cold after the period's sleep.
+        finite = math.isfinite(sum(z.tolist()) + sum(y.tolist()))
         if status_val not in _USABLE or not finite:
             status = str(info.status)
             # Out of time: the unfinished iterate still warm starts the next cycle (a cold

@@ -53,6 +53,19 @@ Vec = NDArray[np.float64]
 INF = 1e30
 """Unbounded constraint side (OSQP clips at its own infinity)."""
 
+INPUT_LIMIT = 1e9
+"""The QP's inputs (volts, metres, metres per second) summed in magnitude stay below this,
+far beyond anything physical on a model truck; more, or a NaN or an infinity, is refused
+(:func:`inputs_ok`) before it reaches the solver or overflows a product."""
+
+
+def inputs_ok(values: list[float]) -> bool:
+    """Every value finite and their magnitudes summing below :data:`INPUT_LIMIT` (a NaN
+    makes the sum NaN and the comparison false; a sum of Python floats overflows to inf
+    without a warning, numpy scalars would warn: pass Python floats)."""
+    return sum(map(abs, values)) < INPUT_LIMIT
+
+
 MODES: tuple[str, ...] = ("follow", "cruise")
 NX = 3
 I_CUR, I_V, I_D = 0, 1, 2
