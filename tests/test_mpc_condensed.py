@@ -64,14 +64,22 @@ def test_condensed_vectors_equal_the_sparse_ones_condensed(
         np.testing.assert_allclose(q, cq.ME.T @ (qs + qp.P[mode] @ c), rtol=1e-10, atol=1e-9)
         r = qp.lay.r_gap
         ac = a_sparse[r:] @ c
-        rows = slice(2 * cq.nb - 1, cq.m)
+        rows = cq.state_rows
         finite = ls[r:] > -1e20
         np.testing.assert_allclose(lo[rows][finite], (ls[r:] - ac)[finite], rtol=1e-12, atol=1e-12)
         assert np.all(lo[rows][~finite] < -1e20)
         finite = hs[r:] < 1e20
         np.testing.assert_allclose(hi[rows][finite], (hs[r:] - ac)[finite], rtol=1e-12, atol=1e-12)
         assert np.all(hi[rows][~finite] > 1e20)
-        assert (lo[0], hi[0]) == (ls[qp.lay.r_u], hs[qp.lay.r_u])
+        b0 = cq.block_rows[0]
+        assert (lo[b0], hi[b0]) == (ls[qp.lay.r_u], hs[qp.lay.r_u])
+        assert np.all(lo[cq.block_rows[1:]] == inp.u_lo)
+        assert np.all(hi[cq.block_rows[1:]] == inp.u_hi)
+        du = cfg.du_max * cfg.period
+        assert np.all(lo[cq.change_rows] == -du) and np.all(hi[cq.change_rows] == du)
+        # every row is one of these (the rows outside fill's product included)
+        every = np.concatenate([cq.state_rows, cq.block_rows, cq.change_rows])
+        assert np.array_equal(np.sort(every), np.arange(cq.m))
         # The cost of a blocked input sequence is the sparse cost of its expansion (up to
         # a constant): compare differences between two random sequences.
         w1, w2 = rng.normal(size=cq.nw), rng.normal(size=cq.nw)

@@ -178,7 +178,11 @@ class Telemetry:
         if len(self._q) == self._q.maxlen:
             self.dropped += 1
         self._q.append((kind, msg, extra))
-        self._event.set()
+        # One wake-up per batch: an Event.set is a Condition round trip (and a futex wake
+        # of the publisher thread).  Already set: the publisher clears it before it drains
+        # the queue, so what was just appended is drained in that pass.
+        if not self._event.is_set():
+            self._event.set()
 
     def publish_state(self, msg: dict[str, Any]) -> None:
         """Queue one state message (never blocks)."""
