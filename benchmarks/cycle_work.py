@@ -12,6 +12,12 @@ by ``loop_bench.py``.
   extra cycles is the step's own count (imports and set-up, the same in both, cancel).
   The same code and inputs give about the same count whatever the machine is doing
   (OpenBLAS held to one thread).
+* ``cold_lines_per_cycle``: ``valgrind --tool=cachegrind`` with its cache simulation
+  (32 kB L1s, a 2 MB last level) while a 4 MB array is written between the steps, so each
+  step starts with cold caches, as after the loop's sleep: the 64-byte lines of code
+  (``code``) and data (``data``, reads and writes) the step fetches from memory, the
+  same with and without the steps subtracted.  The cycle's time after the sleep goes
+  mostly into these fetches; unlike a time, the count repeats on a busy machine.
 * ``hot_us_p50``: wall time per step back to back (caches warm);
   ``paced_us_p50``: the same with a 10 ms sleep after each step: the caches and the
   branch predictors go cold in the sleep, as they do in the daemon's loop, and each numpy
@@ -67,6 +73,62 @@ for cyc in cycs[:reps]:
 print(json.dumps({"cycles": len(cycles), "times": times}))
 """
 
+COLD_CHILD = r"""
+import sys
+sys.path.insert(0, sys.argv[1])
+import numpy as np
+from truckd.runtime.rxlog import read_rx_log
+from truckd.runtime.replay import cycle_from_params
+from truckd.runtime.platoon_link import cycle_plan
+path, k, steps = sys.argv[2], int(sys.argv[3]), sys.argv[4] == "1"
+t0, params, cycles = read_rx_log(path)
+cycles = list(cycles)
+cyc = cycle_from_params(params, t0, path)
+sweep = np.zeros(4 * 1024 * 1024 // 8)  # twice the simulated last level
+def step(inp):
+    out = cyc.step(inp)
+    plan = cycle_plan(cyc, out, 0.0, "truck1")
+    if plan is not None:
+        plan.as_dict()
+    cyc.state_message(out)
+    cyc.log_row(out)
+for inp in cycles[:50]:  # warm start, as in the loop
+    step(inp)
+for inp in cycles[50 : 50 + k]:
+    sweep += 1.0
+    if steps:
+        step(inp)
+"""
+COLD_STEPS = 60
+CACHES = ["--I1=32768,8,64", "--D1=32768,8,64", "--LL=2097152,16,64"]
+
+
+def _cold_lines(root: Path) -> dict[str, int]:
+    """Lines fetched from memory per step with cold caches (cachegrind, module doc)."""
+    totals = []
+    with tempfile.TemporaryDirectory() as tmp:
+        script = Path(tmp) / "cold.py"
+        script.write_text(COLD_CHILD)
+        for steps in ("1", "0"):
+            out_file = Path(tmp) / f"cg.{steps}"
+            cmd = ["valgrind", "--tool=cachegrind", "--cache-sim=yes", *CACHES,
+                   f"--cachegrind-out-file={out_file}", sys.executable, str(script),
+                   str(root), str(LOG), str(COLD_STEPS), steps]  # fmt: skip
+            env = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "PYTHONHASHSEED": "0"}
+            proc = subprocess.run(cmd, capture_output=True, text=True, env=env, check=False)
+            if proc.returncode != 0:
+                raise RuntimeError(f"cold replay failed: {proc.stderr[-2000:]}")
+            events: list[str] = []
+            summary: list[int] = []
+            for line in out_file.read_text().splitlines():
+                if line.startswith("events:"):
+                    events = line.split()[1:]
+                elif line.startswith("summary:"):
+                    summary = [int(x) for x in line.split()[1:]]
+            totals.append(dict(zip(events, summary, strict=True)))
+    d = {e: (totals[0][e] - totals[1][e]) / COLD_STEPS for e in totals[0]}
+    return {"code": round(d["ILmr"]), "data": round(d["DLmr"] + d["DLmw"])}
+
 
 def _child(root: Path, reps: int, pace: float, valgrind: bool) -> tuple[dict[str, Any], int]:
     """Run the replay in a fresh process; (its JSON, instructions or 0)."""
@@ -101,8 +163,10 @@ def run(root: Path) -> dict[str, Any]:
         one, i1 = _child(root, 1, 0.0, True)
         _, i3 = _child(root, 3, 0.0, True)
         result["instructions_per_cycle"] = round((i3 - i1) / (2 * one["cycles"]))
+        result["cold_lines_per_cycle"] = _cold_lines(root)
     else:
         result["instructions_per_cycle"] = None
+        result["cold_lines_per_cycle"] = None
         result["note"] = "valgrind not found: no instruction count"
     hot, _ = _child(root, 3, 0.0, False)
     paced, _ = _child(root, 1, 0.01, False)
@@ -130,6 +194,9 @@ def main() -> int:
     ipc = r["instructions_per_cycle"]
     print(f"cycle_work: {r['cycles']} cycles of {r['log']} ({r['root']})")
     print(f"  instructions per cycle  {ipc if ipc is not None else 'n/a (no valgrind)'}")
+    cold = r["cold_lines_per_cycle"]
+    if cold is not None:
+        print(f"  cold lines per cycle    code {cold['code']}, data {cold['data']} (64 B each)")
     print(f"  hot p50 / paced p50     {r['hot_us_p50']:.0f} / {r['paced_us_p50']:.0f} us")
     print(f"  load average            {r['machine']['loadavg_1_5_15'][0]:.2f}")
     if args.json:
