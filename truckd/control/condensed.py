@@ -181,47 +181,48 @@ class CondensedQp:
         self._lo_state = lo_t[lay.r_gap :].copy()
         self._hi_state = hi_t[lay.r_gap :].copy()
         self._du = cfg.du_max * cfg.period
-        # Everything per cycle in one matrix-vector product, bounds included:
-        # F [x0; v_lead; u_prev; v_ref; u_lo; u_hi; v_cap; 1; lo0; hi0] = [q; l; u], with
+        # Everything per cycle in few matrix-vector products, bounds included:
+        # F [x0; u_prev; v_ref; u_lo; u_hi; v_cap; 1; lo0; hi0; v_lead] = [u; q; l], with
         # the first block's bounds (the rate-limited first move, not linear in the inputs)
-        # passed in as lo0, hi0: each numpy call in the loop costs 5-10x its hot time (cold
-        # caches after the period's sleep), so few calls.  One F per mode and lead/no lead
-        # (the gap rows' lower bound is d_min or none).
+        # passed in as lo0, hi0: each numpy call and each line of matrix costs several
+        # times more in the loop than back to back (cold caches after the period's sleep),
+        # so few calls and small matrices.  One F per mode and lead/no lead (the gap rows'
+        # lower bound is d_min or none).
         nw, m = self.nw, self.m
-        c_u, c_ref, c_lo, c_hi, c_cap, c_1, c_lo0, c_hi0 = range(NX + n, NX + n + N_SCALARS)
-        # One buffer [w; x0; v_lead; scalars]: fill() writes the inputs behind w, expand()
-        # puts the solution in front and maps all of it in one product.
+        c_u, c_ref, c_lo, c_hi, c_cap, c_1, c_lo0, c_hi0 = range(NX, NX + N_SCALARS)
+        c_vl = slice(NX + N_SCALARS, NX + N_SCALARS + n)
+        # One buffer [w; x0; scalars; v_lead]: fill() writes the inputs behind w, expand()
+        # puts the solution in front.
         self._ws = np.zeros(nw + NX + n + N_SCALARS)
         self._s = self._ws[nw:]
         self._s[c_1] = 1.0
         self._filled: QpInputs | None = None
-        # expand: z = [ME C0 Cl] [w; x0; v_lead], in two products because the lead's speed
-        # reaches only the gap states (Cl is zero elsewhere): the other rows read [w; x0]
-        # alone (30 instead of 70 kB of matrix per cycle), then one gather puts the rows
-        # in z's order.
+        # expand: z = [ME C0 0 Cl] [w; x0; scalars; v_lead], in two products: the speed
+        # of the lead reaches only the gap states (Cl is zero elsewhere): the other rows
+        # read [w; x0] alone (31 instead of 70 kB of matrix per cycle), then one gather
+        # puts the rows in z's order.
         on_lead = np.any(cl != 0.0, axis=1)
         rows_a, rows_b = np.flatnonzero(~on_lead), np.flatnonzero(on_lead)
         self._expand_a = np.ascontiguousarray(np.hstack([me, c0])[rows_a])
-        self._expand_b = np.ascontiguousarray(np.hstack([me, c0, cl])[rows_b])
+        zeros = np.zeros((lay.nz, N_SCALARS))
+        self._expand_b = np.ascontiguousarray(np.hstack([me, c0, zeros, cl])[rows_b])
         self._ws_a = self._ws[: nw + NX]
-        self._ws_b = self._ws[: nw + NX + n]
         self._zp = np.empty(lay.nz)
         self._zp_a, self._zp_b = self._zp[: rows_a.size], self._zp[rows_a.size :]
         self._z_order = np.argsort(np.concatenate([rows_a, rows_b]))
-        self._F: dict[tuple[str, bool], Vec] = {}
         full: dict[tuple[str, bool], Vec] = {}
         for mode in qp.P:
             for lead in (False, True):
                 f = np.zeros((nw + 2 * m, NX + n + N_SCALARS))  # rows [q; l; u], A's order
                 f[:nw, :NX] = self._hx[mode]
-                f[:nw, NX : NX + n] = self._hl[mode]
+                f[:nw, c_vl] = self._hl[mode]
                 f[:nw, c_u] = self._g_u
                 f[:nw, c_ref] = self._g_ref[mode] if mode != "follow" else 0.0
                 f[:nw, c_1] = self._g0[mode]
                 lo_rows, hi_rows = nw + np.arange(m), nw + m + np.arange(m)
                 for rows in (lo_rows, hi_rows):
                     f[rows[r:], :NX] = -self._a_c0
-                    f[rows[r:], NX : NX + n] = -self._a_cl
+                    f[rows[r:], c_vl] = -self._a_cl
                 f[lo_rows[0], c_lo0] = 1.0
                 f[hi_rows[0], c_hi0] = 1.0
                 f[lo_rows[1:nb], c_lo] = 1.0
@@ -260,9 +261,26 @@ class CondensedQp:
             raise AssertionError("the bounds outside the product must not depend on mode or lead")
         self._buf = np.empty(nw + 2 * m)
         self._buf[fixed] = consts[0]
-        self._buf_span = self._buf[self._span]
+        # The lead's speed reaches only q and the minimum-gap rows (one stretch of the
+        # buffer): the rows around them are products of [x0; scalars] alone (29 instead
+        # of 63 kB of matrix per cycle, three products instead of one).
+        on_lead = np.zeros(nw + 2 * m, dtype=bool)
+        for f in full.values():
+            on_lead |= np.any(f[:, c_vl] != 0.0, axis=1)
+        lead_idx = np.flatnonzero(on_lead)
+        lead_rows = slice(int(lead_idx[0]), int(lead_idx[-1]) + 1)
+        pieces = [
+            (slice(self._span.start, lead_rows.start), self._s[: NX + N_SCALARS]),
+            (lead_rows, self._s),
+            (slice(lead_rows.stop, self._span.stop), self._s[: NX + N_SCALARS]),
+        ]
+        pieces = [(rows, src) for rows, src in pieces if rows.stop > rows.start]
+        self._products: dict[tuple[str, bool], list[tuple[Vec, Vec, Vec]]] = {}
         for key, f in full.items():
-            self._F[key] = np.ascontiguousarray(f[self._span])
+            self._products[key] = [
+                (np.ascontiguousarray(f[rows, : src.size]), src, self._buf[rows])
+                for rows, src in pieces
+            ]
         self.hi_view, self.q_view, self.lo_view = (
             self._buf[:m],
             self._buf[m : m + nw],
@@ -280,13 +298,14 @@ class CondensedQp:
 
         Returns False, and leaves the vectors as they were, when the inputs (x0, v_lead,
         u_prev, v_ref, u_lo, u_hi, v_cap) fail :func:`~truckd.control.qp.inputs_ok`."""
-        n = self.qp.lay.N
         sv = self._s
         sv[:NX] = inp.x0
-        sv[NX : NX + n] = inp.v_lead
         # the first block: the sparse QP's first-move bounds (rate-limited)
         lo0, hi0 = self.qp.first_move_bounds(inp)
-        sv[NX + n :] = (inp.u_prev, inp.v_ref, inp.u_lo, inp.u_hi, inp.v_cap, 1.0, lo0, hi0)
+        sv[NX : NX + N_SCALARS] = (
+            inp.u_prev, inp.v_ref, inp.u_lo, inp.u_hi, inp.v_cap, 1.0, lo0, hi0
+        )  # fmt: skip
+        sv[NX + N_SCALARS :] = inp.v_lead
         self._filled = inp
         # Checked in Python on the gathered vector (tolist runs every cycle anyway for the
         # plan), before the product below could turn a NaN or a huge value into numpy
@@ -294,7 +313,8 @@ class CondensedQp:
         # the period's sleep: 20 us of the cycle (measured).
         if not inputs_ok(sv.tolist()):
             return False
-        np.dot(self._F[(mode, inp.lead)], sv, out=self._buf_span)
+        for f, src, dst in self._products[(mode, inp.lead)]:
+            np.dot(f, src, out=dst)
         return True
 
     def vectors_into(self, mode: str, inp: QpInputs, q: Vec, lo: Vec, hi: Vec) -> None:
@@ -310,13 +330,12 @@ class CondensedQp:
         came after them it is not read; else they are written again)."""
         ws, nw = self._ws, self.nw
         if inp is not self._filled:
-            n = self.qp.lay.N
             self._s[:NX] = inp.x0
-            self._s[NX : NX + n] = inp.v_lead
+            self._s[NX + N_SCALARS :] = inp.v_lead
         ws[:nw] = w
         # np.dot, not @: the same numpy code as fill's product (matmul's is other code,
         # cold after the period's sleep).
         np.dot(self._expand_a, self._ws_a, out=self._zp_a)
-        np.dot(self._expand_b, self._ws_b, out=self._zp_b)
+        np.dot(self._expand_b, ws, out=self._zp_b)
         z: Vec = self._zp.take(self._z_order)
         return z
