@@ -247,8 +247,8 @@ class CondensedQp:
         # qp.INPUT_LIMIT), the block changes and the slacks constant ones.  With the rows
         # ordered gap, no-reverse, blocks, speed limit, changes, slacks and the buffer
         # [u; q; l], every bound that changes lies in one stretch of 155 of its 284 rows
-        # (N = 40, 8 blocks): the product computes that stretch only (63 of 116 kB of
-        # matrix streamed per cycle), the rest is written once here.
+        # (N = 40, 8 blocks): the products compute that stretch only, the rest is written
+        # once here.
         moving = np.zeros(nw + 2 * m, dtype=bool)
         for f in full.values():
             moving |= np.any(f[:, np.arange(f.shape[1]) != c_1] != 0.0, axis=1)
