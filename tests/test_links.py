@@ -174,13 +174,15 @@ def test_serial_device_vanishing_is_seen_by_the_loops_non_blocking_poll(tmp_path
 def test_bytes_arriving_between_the_poll_and_its_hangup_check_are_data(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """The poll reads (b"" when empty), then asks select whether an empty read means a
-    hang-up.  A frame that arrives in between makes the descriptor readable too: it is
-    data, not a hang-up (this race once cut the motor: FAULT on link_down while the
-    firmware was streaming).  The race is made certain by writing inside select."""
+    """On a descriptor that cannot count its bytes (no FIONREAD), the poll reads (b"" when
+    empty), then asks select whether an empty read means a hang-up.  A frame that arrives
+    in between makes the descriptor readable too: it is data, not a hang-up (this race once
+    cut the motor: FAULT on link_down while the firmware was streaming).  The race is made
+    certain by writing inside select."""
     path = str(tmp_path / "ttyTRUCK")
     dev = PtyDevice(path)
     link = SerialLink(path, reconnect_interval=0.02)
+    monkeypatch.setattr(SerialLink, "_waiting", lambda self, fd: None)
     real_select = select.select
     pending = [F1]
 
@@ -196,6 +198,48 @@ def test_bytes_arriving_between_the_poll_and_its_hangup_check_are_data(
     try:
         assert link.recv(0.0) == F1
         assert link.connected and link.stats.disconnects == 0
+    finally:
+        link.close()
+        dev.close()
+
+
+def test_the_poll_never_reads_or_selects_an_empty_tty(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A read (or select) of a tty that holds no bytes waits in the kernel for the tty's
+    input work, run by a normal-priority kworker (n_tty_read -> flush_work): on a busy
+    machine the real-time loop sat there up to 627 ms.  So the poll asks FIONREAD first
+    and makes neither call on an empty tty; bytes that are there are read at once, and a
+    hung-up tty still takes the link down."""
+    path = str(tmp_path / "ttyTRUCK")
+    dev = PtyDevice(path)
+    link = SerialLink(path, reconnect_interval=0.02)
+    calls: list[str] = []
+    real_read, real_select = os.read, select.select
+
+    def read(fd: int, n: int) -> bytes:
+        calls.append("read")
+        return real_read(fd, n)
+
+    def sel(r: list[int], w: list[int], x: list[int], t: float) -> object:
+        calls.append("select")
+        return real_select(r, w, x, t)
+
+    monkeypatch.setattr("truckd.io.serial_link.os.read", read)
+    monkeypatch.setattr("truckd.io.serial_link.select.select", sel)
+    try:
+        for _ in range(3):
+            assert link.recv(0.0) is None and link.recv_all() == []
+        assert calls == [] and link.connected
+        dev.send(F1)
+        deadline = time.monotonic() + 2.0
+        got: list[Frame] = []
+        while not got and time.monotonic() < deadline:
+            got = link.recv_all()
+        assert got == [F1] and calls == ["read"]
+        dev.unplug()
+        assert link.recv_all() == [] and not link.connected
+        assert link.stats.disconnects == 1 and "Input/output error" in (link.last_error or "")
     finally:
         link.close()
         dev.close()

@@ -109,6 +109,25 @@ def test_adapter_vanishes_and_comes_back(bench: Bench) -> None:
     assert st["disconnects"] >= 1 and st["reconnects"] >= 1
 
 
+def test_the_poll_never_reads_an_empty_adapter_tty(
+    bench: Bench, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A read or select of a tty with no bytes waits in the kernel for a normal-priority
+    kworker (n_tty_read -> flush_work; up to 627 ms measured on a busy machine), so the
+    loop's poll calls python-can's slcan read only while the tty holds bytes."""
+    ser = bench.link._bus.serialPortOrig
+    real_read = ser.read
+    reads: list[int] = []  # bytes the tty held at each read
+
+    def read(n: int = 1) -> bytes:
+        reads.append(int(ser.in_waiting))
+        return bytes(real_read(n))
+
+    monkeypatch.setattr(ser, "read", read)
+    assert bench.until(lambda: len(bench.got) >= 50)
+    assert reads and min(reads) > 0 and bench.link.connected
+
+
 def test_adapter_commands(bench: Bench) -> None:
     assert bench.until(lambda: bench.dev.channel_open, 2.0)
     ser = bench.link._bus.serialPortOrig  # raw access, as a terminal would type

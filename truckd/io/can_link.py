@@ -73,10 +73,29 @@ class CanLink(Link):
                 raise LinkDownError(f"CAN {self.channel}: {exc}") from None
             raise FrameDroppedError(str(exc)) from None  # TX queue full: this frame is lost
 
+    def _tty_empty(self) -> bool:
+        """Whether a serial-line adapter's (slcan) tty holds no bytes for us (FIONREAD).
+
+        python-can's slcan reads such a tty with pyserial's ``select`` and ``read(1)``.  On
+        a tty with no bytes both wait in the kernel for the tty's input work (a
+        normal-priority kworker, ``n_tty_read``/``n_tty_poll`` -> ``flush_work``): measured
+        on the serial backend, the real-time loop waited there up to 627 ms on a busy
+        machine (``serial_link.SerialLink._read_bytes``).  So the loop's poll does not call
+        into python-can while the tty is empty.  A hung-up tty fails FIONREAD: link down."""
+        ser = getattr(self._bus, "serialPortOrig", None)
+        if ser is None:  # socketcan, virtual: no tty
+            return False
+        try:
+            return int(ser.in_waiting) == 0
+        except OSError as exc:  # pyserial's SerialException is an OSError too
+            raise LinkDownError(f"CAN {self.channel}: {exc}") from None
+
     def _read(self, timeout: float) -> list[Frame]:
         out: list[Frame] = []
         wait: float = timeout
         while True:
+            if wait == 0.0 and self._tty_empty():
+                return out
             try:
                 msg = self._bus.recv(wait)
             except (can.CanOperationError, OSError) as exc:

@@ -13,10 +13,15 @@ Never blocking: bytes go out with one ``os.write`` on the non-blocking descripto
 the kernel's buffer is full the frame is dropped (:class:`FrameDroppedError`, counted as
 dropped, not sent); when only part of a frame fits, the rest is kept and written before
 anything else, so no frame is ever cut in two on the wire.
+
+Never waiting on a read either: the loop's poll asks the tty how many bytes it holds
+(``FIONREAD``) and reads only when there are some; it never reads or selects an empty tty
+(see :meth:`SerialLink._read_bytes` for why).
 """
 
 from __future__ import annotations
 
+import array
 import contextlib
 import errno
 import fcntl
@@ -35,6 +40,7 @@ DEFAULT_BAUDRATE = 115200
 READ_SIZE = 4096
 """Bytes one non-blocking read of the loop's poll takes at most."""
 _BUSY = {errno.EBUSY, errno.EAGAIN, errno.EWOULDBLOCK}
+_NO_FIONREAD = {errno.ENOTTY, errno.EINVAL}
 
 
 class SerialLink(FramedStreamLink):
@@ -118,32 +124,48 @@ class SerialLink(FramedStreamLink):
             raise FrameDroppedError(f"{self.device}: transmit buffer full")
         self._tail = data[n:]
 
-    def _read_now(self, fd: int) -> bytes:
+    def _read_now(self, fd: int, n: int = READ_SIZE) -> bytes:
         """One non-blocking read of what is there (b"" when nothing is)."""
         try:
-            return os.read(fd, READ_SIZE)
+            return os.read(fd, n)
         except (BlockingIOError, InterruptedError):
             return b""
         except OSError as exc:
             raise LinkDownError(f"{self.device}: {exc}") from None
 
+    def _waiting(self, fd: int) -> int | None:
+        """Bytes the tty holds for us now (``FIONREAD``); None where the descriptor cannot
+        tell.  A hung-up tty (unplugged USB, closed pty) fails it with EIO: link down."""
+        buf = array.array("i", [0])
+        try:
+            fcntl.ioctl(fd, termios.FIONREAD, buf)
+        except OSError as exc:
+            if exc.errno in _NO_FIONREAD:
+                return None
+            raise LinkDownError(f"{self.device}: {exc}") from None
+        return buf[0]
+
     def _read_bytes(self, timeout: float) -> bytes:
         fd = self._fd
         if timeout == 0.0 and fd is not None:
-            # The loop's poll: one non-blocking read on the descriptor (pyserial opens it
-            # O_NONBLOCK) instead of pyserial's select, read(1), ioctl and read(n).
-            data = self._read_now(fd)
-            # a short read took everything the tty held: no second read needed this poll
-            self._drained = 0 < len(data) < READ_SIZE
-            if not data and select.select([fd], [], [], 0.0)[0]:
-                # A raw tty with VMIN 0 reads b"" when empty, and a hung-up one reads b""
-                # while select says readable.  Bytes that arrived between the read and the
-                # select also make it readable: read again, and only a second b"" from a
-                # readable descriptor is a hang-up (pyserial's "readiness to read but
-                # returned no data", which selects first and so has no such race).
-                data = self._read_now(fd)
-                if not data:
-                    raise LinkDownError(f"{self.device}: device returned no data (hung up)")
+            # The loop's poll never reads or selects an empty tty.  Linux's n_tty_read (and
+            # n_tty_poll, under select) on a tty with no bytes for the reader first waits,
+            # even on an O_NONBLOCK descriptor, for the tty's pending input work
+            # (flush_to_ldisc, run by a kworker of the unbound workqueue at normal
+            # priority) to finish: ``flush_work``.  Measured (HIL, second-daemon test, load
+            # 3-4 on 2 cores): the SCHED_FIFO loop thread sat in D state in
+            # n_tty_read -> __flush_work for 36-627 ms while that kworker was runnable but
+            # not running behind normal-priority processes, and the firmware counted
+            # command timeouts.  FIONREAD reads the count without that wait; a read that
+            # finds bytes there copies them and returns without waiting.
+            n = self._waiting(fd)
+            if n is None:  # not a tty (a plain file): as before, read and check hang-up
+                return self._read_unknown(fd)
+            if n == 0:
+                return b""
+            data = self._read_now(fd, min(n, READ_SIZE))
+            # took everything the tty held: no second read needed this poll
+            self._drained = n <= READ_SIZE
             return data
         ser = self._ser
         try:
@@ -157,3 +179,17 @@ class SerialLink(FramedStreamLink):
             return bytes(first + ser.read(n)) if n else bytes(first)
         except (serial.SerialException, OSError) as exc:
             raise LinkDownError(f"{self.device}: {exc}") from None
+
+    def _read_unknown(self, fd: int) -> bytes:
+        """The poll on a descriptor that cannot count its bytes: one non-blocking read."""
+        data = self._read_now(fd)
+        # a short read took everything there was: no second read needed this poll
+        self._drained = 0 < len(data) < READ_SIZE
+        if not data and select.select([fd], [], [], 0.0)[0]:
+            # A hung-up descriptor reads b"" while select says readable.  Bytes that
+            # arrived between the read and the select also make it readable: read again,
+            # and only a second b"" from a readable descriptor is a hang-up.
+            data = self._read_now(fd)
+            if not data:
+                raise LinkDownError(f"{self.device}: device returned no data (hung up)")
+        return data
