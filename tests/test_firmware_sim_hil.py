@@ -113,3 +113,26 @@ def test_hil_process_runs_a_scenario_lead(tmp_path: Path) -> None:
             assert sc.v0 > 0.5 and st["x"] > 0.05 and st["v"] < sc.v0
         finally:
             link.close()
+
+
+def test_the_rig_reports_its_own_stalls(tmp_path: Path) -> None:
+    """A firmware process held still (SIGSTOP, as a busy host or a waiting pty read would)
+    reports the stall in ``status`` on the shared monotonic clock, so the HIL tests can tell
+    a late rig from a daemon that stopped sending; running freely it reports none."""
+    import signal
+
+    with FirmwareProcess(tmp_path / "ttyTRUCK", []) as fw:
+        first = fw.control({"cmd": "status"})
+        assert first["ok"]
+        calm = [b - a for a, b in first["rig_stalls"]]
+        pid = fw.pid
+        t_stop = time.monotonic()
+        os.kill(pid, signal.SIGSTOP)
+        try:
+            time.sleep(0.3)  # the stall itself (the stimulus, not a wait for a condition)
+        finally:
+            os.kill(pid, signal.SIGCONT)
+        t_cont = time.monotonic()
+        st = fw.control({"cmd": "status"})
+        new = [(a, b) for a, b in st["rig_stalls"] if b >= t_stop]
+        assert any(a <= t_stop + 0.02 and b >= t_cont - 0.02 for a, b in new), (new, calm)

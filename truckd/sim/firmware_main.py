@@ -37,6 +37,7 @@ import signal
 import socket
 import sys
 import time
+from collections import deque
 from collections.abc import Sequence
 from typing import Any
 
@@ -92,8 +93,15 @@ class _Shifted:
         return self.x0 + self.gap + self.speed * (t - self.t0) - x
 
 
-def _handle(fw: SimulatedFirmware, cmd: Any) -> tuple[dict[str, Any], bool]:
-    """Apply one control command; (reply, stop)."""
+RIG_STALL_S = 0.02
+"""A firmware step taking longer than this (wall clock) is recorded as a stall of the rig."""
+
+
+def _handle(
+    fw: SimulatedFirmware, cmd: Any, stalls: Sequence[tuple[float, float]] = ()
+) -> tuple[dict[str, Any], bool]:
+    """Apply one control command; (reply, stop).  ``stalls``: the rig's own recent stalls
+    (reported by ``status``)."""
     if not isinstance(cmd, dict):
         return {"ok": False, "error": "expected a JSON object"}, False
     what = cmd.get("cmd")
@@ -114,6 +122,11 @@ def _handle(fw: SimulatedFirmware, cmd: Any) -> tuple[dict[str, Any], bool]:
             else {"voltage": last.voltage, "enable": last.enable},
             "firmware": vars(fw.stats),
             "rx": st,
+            # This process's own stalls (start, end on the shared monotonic clock): steps
+            # whose wall time exceeded RIG_STALL_S, e.g. a read of the pty waiting for the
+            # kernel's normal-priority tty worker on a busy host.  Tests use them to tell
+            # a late rig from a daemon that stopped sending.
+            "rig_stalls": [list(x) for x in stalls],
         }, False
     if what == "lead":
         gap, speed = cmd.get("gap"), cmd.get("speed", 0.0)
@@ -205,8 +218,14 @@ def _run(
 ) -> bool:
     start = time.monotonic()
     t_sim = 0.0
+    stalls: deque[tuple[float, float]] = deque(maxlen=64)
+    woke = start
     while not stopped():
-        now = time.monotonic() - start
+        # woken late (the host ran something else): a stall of the rig too
+        t_wake = time.monotonic()
+        if t_wake - woke > RIG_STALL_S:
+            stalls.append((woke, t_wake))
+        now = t_wake - start
         if duration and now >= duration:
             return True
         while True:
@@ -219,18 +238,23 @@ def _run(
             except ValueError:
                 reply, halt = {"ok": False, "error": "not JSON"}, False
             else:
-                reply, halt = _handle(fw, cmd)
+                reply, halt = _handle(fw, cmd, stalls)
             ctl.sendto(json.dumps(reply).encode(), addr)
             if halt:
                 return True
         dt = now - t_sim
         if dt > 0.0:
+            w0 = time.monotonic()
             fw.step(min(dt, 0.05))  # after a stall, catch up in bounded steps
             t_sim += min(dt, 0.05)
+            w1 = time.monotonic()
+            if w1 - w0 > RIG_STALL_S:
+                stalls.append((w0, w1))
         nxt = start + t_sim + tick
         pause = nxt - time.monotonic()
         if pause > 0:
             time.sleep(pause)
+        woke = nxt if pause > 0 else time.monotonic()  # when the next pass should start
     return True
 
 
