@@ -61,6 +61,7 @@ class SerialLink(FramedStreamLink):
         self._fd: int | None = None
         self._tail = b""
         self._timeout: float | None = -1.0
+        self._inq = array.array("i", [0])  # FIONREAD's answer, one buffer for every poll
         self.open()
 
     def _open(self) -> None:
@@ -136,7 +137,7 @@ class SerialLink(FramedStreamLink):
     def _waiting(self, fd: int) -> int | None:
         """Bytes the tty holds for us now (``FIONREAD``); None where the descriptor cannot
         tell.  A hung-up tty (unplugged USB, closed pty) fails it with EIO: link down."""
-        buf = array.array("i", [0])
+        buf = self._inq
         try:
             fcntl.ioctl(fd, termios.FIONREAD, buf)
         except OSError as exc:
