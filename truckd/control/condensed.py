@@ -37,7 +37,7 @@ import scipy.sparse as sp
 from truckd.control.qp import INF, NX, QpBuilder, QpInputs, Vec, inputs_ok
 
 N_SCALARS = 8
-"""Scalar inputs behind x0 and v_lead: u_prev, v_ref, u_lo, u_hi, v_cap, 1, and the first
+"""Scalar inputs between x0 and v_lead: u_prev, v_ref, u_lo, u_hi, v_cap, 1, and the first
 block's bounds."""
 
 
@@ -199,7 +199,7 @@ class CondensedQp:
         self._filled: QpInputs | None = None
         # expand: z = [ME C0 0 Cl] [w; x0; scalars; v_lead], in two products: the speed
         # of the lead reaches only the gap states (Cl is zero elsewhere): the other rows
-        # read [w; x0] alone (31 instead of 70 kB of matrix per cycle), then one gather
+        # read [w; x0] alone (33 instead of 70 kB of matrix per cycle), then one gather
         # puts the rows in z's order.
         on_lead = np.any(cl != 0.0, axis=1)
         rows_a, rows_b = np.flatnonzero(~on_lead), np.flatnonzero(on_lead)
