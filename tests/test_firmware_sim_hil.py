@@ -122,8 +122,12 @@ def test_the_rig_reports_its_own_stalls(tmp_path: Path) -> None:
     import signal
 
     with FirmwareProcess(tmp_path / "ttyTRUCK", []) as fw:
+        # its loop running (simulated time advancing), so the stop lands inside it
+        deadline = time.monotonic() + 30.0
         first = fw.control({"cmd": "status"})
-        assert first["ok"]
+        while first["t"] < 0.05 and time.monotonic() < deadline:
+            first = fw.control({"cmd": "status"})
+        assert first["ok"] and first["t"] >= 0.05, first
         before = first["rig_stalls"]
         pid = fw.pid
         t_stop = time.monotonic()

@@ -94,7 +94,8 @@ class _Shifted:
 
 
 RIG_STALL_S = 0.02
-"""A firmware step taking longer than this (wall clock) is recorded as a stall of the rig."""
+"""A pass of the firmware's loop that starts this much later than due (wall clock) is
+recorded as a stall of the rig."""
 
 
 def _handle(
@@ -122,10 +123,10 @@ def _handle(
             else {"voltage": last.voltage, "enable": last.enable},
             "firmware": vars(fw.stats),
             "rx": st,
-            # This process's own stalls (start, end on the shared monotonic clock): steps
-            # whose wall time exceeded RIG_STALL_S, e.g. a read of the pty waiting for the
-            # kernel's normal-priority tty worker on a busy host.  Tests use them to tell
-            # a late rig from a daemon that stopped sending.
+            # This process's own stalls (start, end on the shared monotonic clock): passes
+            # of its loop that began over RIG_STALL_S late, e.g. after a read of the pty
+            # waited for the kernel's normal-priority tty worker on a busy host.  Tests
+            # use them to tell a late rig from a daemon that stopped sending.
             "rig_stalls": [list(x) for x in stalls],
         }, False
     if what == "lead":
@@ -219,13 +220,22 @@ def _run(
     start = time.monotonic()
     t_sim = 0.0
     stalls: deque[tuple[float, float]] = deque(maxlen=64)
-    woke = start
+    top = start
+
+    def mark() -> float:
+        # Called at the start of each pass and before each control command: more than
+        # RIG_STALL_S past due (the last mark plus a tick) means the process was held up
+        # somewhere in between (a slow read of the pty, a late wake-up, the process
+        # stopped): a stall of the rig, wherever it happened.
+        nonlocal top
+        t = time.monotonic()
+        if t - top > tick + RIG_STALL_S:
+            stalls.append((top + tick, t))
+        top = t
+        return t
+
     while not stopped():
-        # woken late (the host ran something else): a stall of the rig too
-        t_wake = time.monotonic()
-        if t_wake - woke > RIG_STALL_S:
-            stalls.append((woke, t_wake))
-        now = t_wake - start
+        now = mark() - start
         if duration and now >= duration:
             return True
         while True:
@@ -233,6 +243,7 @@ def _run(
                 data, addr = ctl.recvfrom(65536)
             except BlockingIOError:
                 break
+            mark()  # a status reports a stall that ended just now
             try:
                 cmd = json.loads(data)
             except ValueError:
@@ -244,17 +255,12 @@ def _run(
                 return True
         dt = now - t_sim
         if dt > 0.0:
-            w0 = time.monotonic()
             fw.step(min(dt, 0.05))  # after a stall, catch up in bounded steps
             t_sim += min(dt, 0.05)
-            w1 = time.monotonic()
-            if w1 - w0 > RIG_STALL_S:
-                stalls.append((w0, w1))
         nxt = start + t_sim + tick
         pause = nxt - time.monotonic()
         if pause > 0:
             time.sleep(pause)
-        woke = nxt if pause > 0 else time.monotonic()  # when the next pass should start
     return True
 
 
