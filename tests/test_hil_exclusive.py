@@ -26,7 +26,7 @@ ERRORS = ("rx_counter_errors", "rx_counter_gaps", "rx_checksum_errors", "rx_leng
 HOST_STALL_S = 0.05
 """A stall this long (half the firmware's 100 ms command timeout) of the host (the probe's
 normal-priority process) or of the rig itself (the simulated firmware, also a normal
-process, reports its own late wake-ups and slow steps) excuses command timeouts at the
+process, reports the passes of its loop that began late) excuses command timeouts at the
 firmware: the daemon's commands were sent, the rig did not take them in time."""
 
 
