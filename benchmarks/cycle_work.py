@@ -22,6 +22,11 @@ by ``loop_bench.py``.
   ``paced_us_p50``: the same with a 10 ms sleep after each step: the caches and the
   branch predictors go cold in the sleep, as they do in the daemon's loop, and each numpy
   or OSQP call then costs several times its hot time.
+* ``busy_gap_us_p50``: the same with the gap spent busy instead of asleep (1, 3, 10 ms
+  of a Python loop that reads the clock and touches none of the step's memory).  Where
+  the step's cost grows with the gap although nothing in the process evicted its lines,
+  something outside the process does: on a virtual machine, the host's other tenants
+  and the host moving the virtual CPU between cores.  This machine: see README.
 
 ``--root DIR`` measures the truckd of another checkout (e.g. the previous release, for a
 side-by-side figure).
@@ -52,7 +57,7 @@ sys.path.insert(0, sys.argv[1])
 from truckd.runtime.rxlog import read_rx_log
 from truckd.runtime.replay import cycle_from_params
 from truckd.runtime.platoon_link import cycle_plan
-path, reps, pace = sys.argv[2], int(sys.argv[3]), float(sys.argv[4])
+path, reps, pace, spin = sys.argv[2], int(sys.argv[3]), float(sys.argv[4]), sys.argv[5] == "1"
 t0, params, cycles = read_rx_log(path)
 cycles = list(cycles)
 cycs = [cycle_from_params(params, t0, path) for _ in range(3)]  # set-up alike for any reps
@@ -68,7 +73,11 @@ for cyc in cycs[:reps]:
         cyc.state_message(out)
         cyc.log_row(out)
         times.append(pc() - a)
-        if pace > 0.0:
+        if pace > 0.0 and spin:  # busy, touching nothing of the step's
+            end = pc() + pace
+            while pc() < end:
+                pass
+        elif pace > 0.0:
             time.sleep(pace)
 print(json.dumps({"cycles": len(cycles), "times": times}))
 """
@@ -100,6 +109,7 @@ for inp in cycles[50 : 50 + k]:
         step(inp)
 """
 COLD_STEPS = 60
+BUSY_GAPS_S = (0.001, 0.003, 0.01)
 CACHES = ["--I1=32768,8,64", "--D1=32768,8,64", "--LL=2097152,16,64"]
 
 
@@ -130,12 +140,17 @@ def _cold_lines(root: Path) -> dict[str, int]:
     return {"code": round(d["ILmr"]), "data": round(d["DLmr"] + d["DLmw"])}
 
 
-def _child(root: Path, reps: int, pace: float, valgrind: bool) -> tuple[dict[str, Any], int]:
-    """Run the replay in a fresh process; (its JSON, instructions or 0)."""
+def _child(
+    root: Path, reps: int, pace: float, valgrind: bool, spin: bool = False
+) -> tuple[dict[str, Any], int]:
+    """Run the replay in a fresh process; (its JSON, instructions or 0).  ``pace`` s
+    between steps, asleep or (``spin``) busy in a loop that touches none of the step's
+    memory."""
     with tempfile.TemporaryDirectory() as tmp:
         script = Path(tmp) / "child.py"
         script.write_text(CHILD)
-        cmd = [sys.executable, str(script), str(root), str(LOG), str(reps), str(pace)]
+        cmd = [sys.executable, str(script), str(root), str(LOG), str(reps), str(pace),
+               "1" if spin else "0"]  # fmt: skip
         env = {**os.environ, "OPENBLAS_NUM_THREADS": "1"}
         if valgrind:
             out_file = Path(tmp) / "callgrind.out"
@@ -173,6 +188,10 @@ def run(root: Path) -> dict[str, Any]:
     result["cycles"] = hot["cycles"]
     result["hot_us_p50"] = _p50_us(hot["times"])
     result["paced_us_p50"] = _p50_us(paced["times"])
+    result["busy_gap_us_p50"] = {
+        f"{gap * 1e3:g} ms": _p50_us(_child(root, 1, gap, False, spin=True)[0]["times"])
+        for gap in BUSY_GAPS_S
+    }
     result["machine"] = {
         "cpus": os.cpu_count(),
         "kernel": platform.release(),
@@ -198,6 +217,8 @@ def main() -> int:
     if cold is not None:
         print(f"  cold lines per cycle    code {cold['code']}, data {cold['data']} (64 B each)")
     print(f"  hot p50 / paced p50     {r['hot_us_p50']:.0f} / {r['paced_us_p50']:.0f} us")
+    busy = ", ".join(f"{k} {v:.0f}" for k, v in r["busy_gap_us_p50"].items())
+    print(f"  p50 after a busy gap    {busy} us")
     print(f"  load average            {r['machine']['loadavg_1_5_15'][0]:.2f}")
     if args.json:
         Path(args.json).write_text(json.dumps(r, indent=2) + "\n")

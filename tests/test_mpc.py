@@ -406,6 +406,6 @@ def test_a_non_finite_or_huge_input_is_refused_before_the_solver(
         if bad == 1e308:
             inp = dataclasses.replace(inp, x0=np.full(3, bad))
     res = solver.solve("follow", inp)  # and no numpy warning (errors in this suite)
-    assert (res.ok, res.status, res.z) == (False, "non-finite-input", None)
+    assert (res.ok, res.status, res.u, res.v) == (False, "non-finite-input", None, None)
     assert math.isnan(res.u0) and res.iterations == 0
     assert solver.solve("follow", good).ok

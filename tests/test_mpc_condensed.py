@@ -85,7 +85,7 @@ def test_condensed_vectors_equal_the_sparse_ones_condensed(
         w1, w2 = rng.normal(size=cq.nw), rng.normal(size=cq.nw)
         p = cq.P[mode].toarray()
         costs_c = [float(0.5 * w @ p @ w + q @ w) for w in (w1, w2)]
-        zs = [cq.expand(w, inp) for w in (w1, w2)]
+        zs = [cq.expand(w, inp.x0, inp.v_lead) for w in (w1, w2)]
         costs_s = [float(0.5 * z @ (qp.P[mode] @ z) + qs @ z) for z in zs]
         assert costs_c[0] - costs_c[1] == pytest.approx(costs_s[0] - costs_s[1], rel=1e-9)
 
@@ -101,8 +101,12 @@ def test_blocked_solution_satisfies_the_sparse_qp(params: VehicleParams) -> None
     for k in range(10):
         inp = _inputs(rng, cfg, lead=k % 2 == 0)
         res = s.solve("follow" if k % 3 else "cruise", inp)
-        assert res.ok and res.z is not None
-        z = res.z
+        z = s.last_solution
+        assert res.ok and z is not None and res.u is not None and res.v is not None
+        # the plan the cycle uses is the expanded solution's inputs and speeds
+        n, u0 = qp.lay.N, qp.lay.u0
+        np.testing.assert_allclose(res.u, z[u0 : u0 + n], rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(res.v, qp.speeds(z), rtol=1e-12, atol=1e-12)
         _, lo, hi = qp.vectors("follow", inp)
         az = qp.A @ z
         dyn = slice(0, qp.lay.r_u)
@@ -126,11 +130,14 @@ def test_one_step_per_block_is_the_sparse_optimum(params: VehicleParams) -> None
         inp = _inputs(rng, base, lead=True)
         mode = "follow" if k % 2 else "cruise"
         a, b = sparse.solve(mode, inp), dense.solve(mode, inp)
-        assert a.ok and b.ok and a.z is not None and b.z is not None
+        za, zb = sparse.last_solution, dense.last_solution
+        assert a.ok and b.ok and za is not None and zb is not None
         assert a.u0 == pytest.approx(b.u0, abs=1e-4)
         np.testing.assert_allclose(
-            a.z[: 3 * (base.horizon + 1)], b.z[: 3 * (base.horizon + 1)], atol=1e-3
+            za[: 3 * (base.horizon + 1)], zb[: 3 * (base.horizon + 1)], atol=1e-3
         )
+        assert a.v is not None and b.v is not None
+        np.testing.assert_allclose(a.v, b.v, atol=1e-3)
 
 
 @pytest.mark.parametrize("blocks", [0, 8])
@@ -143,23 +150,31 @@ def test_a_kept_solution_is_not_overwritten_by_the_next_solve(
     s = MpcSolver(ControlModel(params), cfg)
     rng = np.random.default_rng(11)
     first = s.solve("follow", _inputs(rng, cfg, lead=True))
-    assert first.ok and first.z is not None
-    z1 = first.z.copy()
+    assert first.ok and first.u is not None and first.v is not None
+    u1, v1 = first.u.copy(), first.v.copy()
+    z1 = s.last_solution
     second = s.solve("cruise", _inputs(rng, cfg, lead=False))
-    assert second.ok and second.z is not None
-    assert not np.array_equal(second.z, z1)  # a different QP: the check can fail
-    np.testing.assert_array_equal(first.z, z1)
-    assert not np.shares_memory(s._warm[0], first.z)
+    assert second.ok and second.u is not None and second.v is not None
+    assert not np.array_equal(second.v, v1)  # a different QP: the check can fail
+    np.testing.assert_array_equal(first.u, u1)
+    np.testing.assert_array_equal(first.v, v1)
+    for kept in (first.u, first.v, z1):
+        assert not np.shares_memory(s._warm[0], kept)
 
 
-def test_expand_is_the_three_products(params: VehicleParams) -> None:
-    """``expand`` (one product with the stacked matrices) is ``M E w + C0 x0 + Cl v_lead``."""
+def test_the_plan_is_the_expanded_solutions_inputs_and_speeds(params: VehicleParams) -> None:
+    """``plan`` (one product for the speeds, a gather for the inputs) gives the inputs and
+    speeds of ``M E w + C0 x0 + Cl v_lead`` for the inputs of the last fill."""
     cfg = ControlConfig()
     qp = QpBuilder(ControlModel(params), cfg)
     cq = CondensedQp(qp, block_lengths(cfg.horizon, 8))
     rng = np.random.default_rng(12)
-    for _ in range(5):
-        inp = _inputs(rng, cfg, lead=True)
+    n, u0 = cfg.horizon, qp.lay.u0
+    for k in range(5):
+        inp = _inputs(rng, cfg, lead=k % 2 == 0)
+        assert cq.fill("follow" if k % 2 else "cruise", inp)
         w = rng.normal(size=cq.nw)
         ref = cq.ME @ w + cq.C0 @ inp.x0 + cq.Cl @ inp.v_lead
-        np.testing.assert_allclose(cq.expand(w, inp), ref, rtol=1e-13, atol=1e-13)
+        u, v = cq.plan(w)
+        np.testing.assert_allclose(u, ref[u0 : u0 + n], rtol=1e-13, atol=1e-13)
+        np.testing.assert_allclose(v, qp.speeds(ref), rtol=1e-13, atol=1e-13)

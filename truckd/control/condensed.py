@@ -34,7 +34,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from truckd.control.qp import INF, NX, QpBuilder, QpInputs, Vec, inputs_ok
+from truckd.control.qp import I_V, INF, NX, QpBuilder, QpInputs, Vec, inputs_ok
 
 N_SCALARS = 8
 """Scalar inputs between x0 and v_lead: u_prev, v_ref, u_lo, u_hi, v_cap, 1, and the first
@@ -191,25 +191,25 @@ class CondensedQp:
         nw, m = self.nw, self.m
         c_u, c_ref, c_lo, c_hi, c_cap, c_1, c_lo0, c_hi0 = range(NX, NX + N_SCALARS)
         c_vl = slice(NX + N_SCALARS, NX + N_SCALARS + n)
-        # One buffer [w; x0; scalars; v_lead]: fill() writes the inputs behind w, expand()
+        # One buffer [w; x0; scalars; v_lead]: fill() writes the inputs behind w, plan()
         # puts the solution in front.
         self._ws = np.zeros(nw + NX + n + N_SCALARS)
         self._s = self._ws[nw:]
         self._s[c_1] = 1.0
-        self._filled: QpInputs | None = None
-        # expand: z = [ME C0 0 Cl] [w; x0; scalars; v_lead], in two products: the speed
-        # of the lead reaches only the gap states (Cl is zero elsewhere): the other rows
-        # read [w; x0] alone (33 instead of 70 kB of matrix per cycle), then one gather
-        # puts the rows in z's order.
-        on_lead = np.any(cl != 0.0, axis=1)
-        rows_a, rows_b = np.flatnonzero(~on_lead), np.flatnonzero(on_lead)
-        self._expand_a = np.ascontiguousarray(np.hstack([me, c0])[rows_a])
-        zeros = np.zeros((lay.nz, N_SCALARS))
-        self._expand_b = np.ascontiguousarray(np.hstack([me, c0, zeros, cl])[rows_b])
+        self.filled: list[float] = []
+        """The inputs of the last :meth:`fill` as Python floats: ``[x0; u_prev, v_ref,
+        u_lo, u_hi, v_cap, 1, lo0, hi0; v_lead]``."""
+        # plan: what the cycle uses of the solution, the inputs (V: each step its block's,
+        # a gather from w) and the speeds (one product of 41 rows with [w; x0]; the speed
+        # of the lead reaches only the gap states).  The whole sparse vector (expand) is
+        # three times the matrix and is made only on request.
+        v_rows = np.arange(lay.x(0) + I_V, lay.x(n) + NX, NX)
+        if np.any(cl[v_rows] != 0.0):
+            raise AssertionError("the lead's speed must not reach the predicted speeds")
+        self._plan_v = np.ascontiguousarray(np.hstack([me, c0])[v_rows])
         self._ws_a = self._ws[: nw + NX]
-        self._zp = np.empty(lay.nz)
-        self._zp_a, self._zp_b = self._zp[: rows_a.size], self._zp[rows_a.size :]
-        self._z_order = np.argsort(np.concatenate([rows_a, rows_b]))
+        self._u_block = np.repeat(np.arange(nb), blocks)
+        """The block of each step: ``u_k = w[_u_block[k]]``."""
         full: dict[tuple[str, bool], Vec] = {}
         for mode in qp.P:
             for lead in (False, True):
@@ -306,12 +306,12 @@ class CondensedQp:
             inp.u_prev, inp.v_ref, inp.u_lo, inp.u_hi, inp.v_cap, 1.0, lo0, hi0
         )  # fmt: skip
         sv[NX + N_SCALARS :] = inp.v_lead
-        self._filled = inp
-        # Checked in Python on the gathered vector (tolist runs every cycle anyway for the
-        # plan), before the product below could turn a NaN or a huge value into numpy
-        # warnings.  A numpy reduction instead is one more code path that is cold after
-        # the period's sleep: 20 us of the cycle (measured).
-        if not inputs_ok(sv.tolist()):
+        # Checked in Python on the gathered vector (kept in ``filled``: the solution can be
+        # expanded later), before the product below could turn a NaN or a huge value into
+        # numpy warnings.  A numpy reduction instead is one more code path that is cold
+        # after the period's sleep: 20 us of the cycle (measured).
+        self.filled = values = sv.tolist()
+        if not inputs_ok(values):
             return False
         for f, src, dst in self._products[(mode, inp.lead)]:
             np.dot(f, src, out=dst)
@@ -324,18 +324,18 @@ class CondensedQp:
         lo[:] = self.lo_view
         hi[:] = self.hi_view
 
-    def expand(self, w: Vec, inp: QpInputs) -> Vec:
-        """The sparse QP's decision vector ``z = M E w + C0 x0 + Cl v_lead`` (a new array)
-        for the inputs of the last :meth:`fill` (``inp``: the same inputs, when no fill
-        came after them it is not read; else they are written again)."""
-        ws, nw = self._ws, self.nw
-        if inp is not self._filled:
-            self._s[:NX] = inp.x0
-            self._s[NX + N_SCALARS :] = inp.v_lead
-        ws[:nw] = w
-        # np.dot, not @: the same numpy code as fill's product (matmul's is other code,
-        # cold after the period's sleep).
-        np.dot(self._expand_a, self._ws_a, out=self._zp_a)
-        np.dot(self._expand_b, ws, out=self._zp_b)
-        z: Vec = self._zp.take(self._z_order)
+    def plan(self, w: Vec) -> tuple[Vec, Vec]:
+        """``(u (N,), v (N+1,))`` of a condensed solution ``w`` for the inputs of the last
+        :meth:`fill` (new arrays): the planned voltages (V) and the predicted speeds
+        ``v_0 .. v_N`` (m/s), as in the sparse layout's inputs and speed states."""
+        self._ws[: self.nw] = w
+        v: Vec = np.dot(self._plan_v, self._ws_a)
+        u: Vec = w.take(self._u_block)
+        return u, v
+
+    def expand(self, w: Vec, x0: Vec, v_lead: Vec) -> Vec:
+        """The sparse QP's decision vector ``z = M E w + C0 x0 + Cl v_lead`` (a new
+        array): every state, input and slack (tests, tools; the cycle needs only
+        :meth:`plan`)."""
+        z: Vec = self.ME @ w + self.C0 @ x0 + self.Cl @ v_lead
         return z

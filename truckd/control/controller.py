@@ -25,7 +25,7 @@ from truckd.control.feedforward import (
     moving_feedforward,
 )
 from truckd.control.mpc import MpcSolver
-from truckd.control.qp import I_V, NX, ControlModel, QpInputs, Vec
+from truckd.control.qp import ControlModel, QpInputs, Vec
 
 
 @dataclass(frozen=True)
@@ -235,12 +235,10 @@ class Controller:
                 res.run_time_s,
                 ff,
             )
-        z = res.z
-        assert z is not None
-        u0 = self.mpc.qp.lay.u0
-        self._plan = z[u0 : u0 + self.mpc.horizon].tolist()  # Python floats
+        assert res.u is not None and res.v is not None
+        self._plan = res.u.tolist()  # Python floats
         self._plan_age = 0
-        self._v_expected = float(z[NX + I_V])  # v_1
+        self._v_expected = float(res.v[1])
         return self._finish(
             est, v, res.u0, ff, mode, None, res.status, res.iterations, res.run_time_s, gap_ref
         )

@@ -22,9 +22,9 @@ import numpy as np
 import osqp
 import scipy.sparse as sp
 
-from truckd.control.condensed import CondensedQp, block_lengths
+from truckd.control.condensed import N_SCALARS, CondensedQp, block_lengths
 from truckd.control.config import ControlConfig
-from truckd.control.qp import MODES, ControlModel, QpBuilder, QpInputs, Vec, inputs_ok
+from truckd.control.qp import MODES, NX, ControlModel, QpBuilder, QpInputs, Vec, inputs_ok
 
 
 @dataclass(frozen=True)
@@ -33,7 +33,10 @@ class MpcResult:
 
     ``ok`` solved within budget with a finite solution; ``u0`` first move (V, NaN when
     not ok); ``status`` OSQP's status text (or ``"overrun"``/``"non-finite"``);
-    ``iterations``; ``run_time_s`` OSQP's own measured update+solve time (s).
+    ``iterations``; ``run_time_s`` OSQP's own measured update+solve time (s); when ok,
+    the plan: ``u`` the inputs ``u_0 .. u_{N-1}`` (V, ``u_0`` the first move) and ``v``
+    the predicted speeds ``v_0 .. v_N`` (m/s), else None.  The whole solution vector:
+    :attr:`MpcSolver.last_solution`.
     """
 
     ok: bool
@@ -41,7 +44,8 @@ class MpcResult:
     status: str
     iterations: int
     run_time_s: float
-    z: Vec | None
+    u: Vec | None = None
+    v: Vec | None = None
 
 
 _USABLE = (osqp.SolverStatus.OSQP_SOLVED, osqp.SolverStatus.OSQP_SOLVED_INACCURATE)
@@ -127,7 +131,10 @@ class MpcSolver:
                 p_triu, a = cq.p_triu(mode), cq.A
             s.setup(p_triu, self._q, a, self._lo, self._hi, **osqp_settings(cfg))
             self._solvers[mode] = s
-        self._last_z: Vec | None = None
+        self._last: tuple[Vec, list[float]] | None = None
+        """The last accepted solution: OSQP's primal vector and (condensed) the inputs it
+        was solved for."""
+        self._last_v: Vec | None = None
         self._warm: tuple[Vec, Vec] | None = None
         self.inaccurate = 0
         """Solutions used although OSQP reported ``solved inaccurate``."""
@@ -139,8 +146,22 @@ class MpcSolver:
 
     @property
     def last_solution(self) -> Vec | None:
-        """The last accepted solution vector (see :class:`~truckd.control.qp.Layout`)."""
-        return self._last_z
+        """The last accepted solution in the sparse layout (see
+        :class:`~truckd.control.qp.Layout`), a new array; None after a failure or a
+        reset.  Condensed: expanded now, from the blocked solution and its inputs."""
+        if self._last is None:
+            return None
+        x, inputs = self._last
+        cq = self.condensed
+        if cq is None:
+            return x.copy()
+        n0, n1 = NX, NX + N_SCALARS
+        return cq.expand(x, np.array(inputs[:n0]), np.array(inputs[n1:]))
+
+    @property
+    def last_speeds(self) -> Vec | None:
+        """The predicted speeds ``v_0 .. v_N`` (m/s) of the last accepted solution."""
+        return self._last_v
 
     @property
     def has_warm_start(self) -> bool:
@@ -155,7 +176,8 @@ class MpcSolver:
 
     def reset(self) -> None:
         """Forget the previous solution (no warm start next time)."""
-        self._last_z = None
+        self._last = None
+        self._last_v = None
         self._warm = None
 
     def solve(self, mode: str, inp: QpInputs, warm: bool = True) -> MpcResult:
@@ -170,7 +192,7 @@ class MpcSolver:
             scalars = (inp.u_prev, inp.v_ref, inp.v_cap, inp.u_lo, inp.u_hi)
             finite = inputs_ok([*map(float, scalars), *inp.x0.tolist(), *inp.v_lead.tolist()])
         if not finite:
-            return MpcResult(False, math.nan, "non-finite-input", 0, 0.0, None)
+            return MpcResult(False, math.nan, "non-finite-input", 0, 0.0)
         if cq is None:
             qp.vectors_into(mode, inp, self._q, self._lo, self._hi)
         # The binding directly (osqp.OSQP.update and .solve wrap it with copies, clipping
@@ -191,7 +213,7 @@ class MpcSolver:
             ext.solve()
         except (ValueError, RuntimeError, osqp.OSQPException) as exc:  # defensive
             self.reset()
-            return MpcResult(False, math.nan, f"error: {exc}", 0, 0.0, None)
+            return MpcResult(False, math.nan, f"error: {exc}", 0, 0.0)
         info = ext.info
         status_val = info.status_val
         run_time = float(info.run_time)
@@ -213,15 +235,18 @@ class MpcSolver:
                 self._warm = (z, y)
             else:
                 self.reset()
-            return MpcResult(
-                False, math.nan, status if finite else "non-finite", iters, run_time, None
-            )
+            return MpcResult(False, math.nan, status if finite else "non-finite", iters, run_time)
         self._warm = (z, y)
-        if cq is not None:
-            z = cq.expand(z, inp)
         if run_time > self.cfg.time_budget_s:
-            return MpcResult(False, math.nan, "overrun", iters, run_time, z)
-        self._last_z = z
+            return MpcResult(False, math.nan, "overrun", iters, run_time)
+        if cq is not None:
+            u, v = cq.plan(z)
+            self._last = (z, cq.filled)
+        else:
+            u0 = qp.lay.u0
+            u, v = z[u0 : u0 + qp.lay.N], qp.speeds(z)
+            self._last = (z, [])
+        self._last_v = v
         if status_val != osqp.SolverStatus.OSQP_SOLVED:
             self.inaccurate += 1
-        return MpcResult(True, float(z[qp.lay.u0]), str(info.status), iters, run_time, z)
+        return MpcResult(True, float(u[0]), str(info.status), iters, run_time, u, v)

@@ -205,11 +205,11 @@ class CompanionCycle:
         (input delay), then the QP's, whose step 0 lies that many periods ahead; None when
         that cycle's MPC did not solve (hold, fallback)."""
         c = out.control
-        z = self.controller.mpc.last_solution
-        if c is None or c.fallback_reason is not None or c.solve_iterations == 0 or z is None:
+        speeds = self.controller.mpc.last_speeds
+        if c is None or c.fallback_reason is not None or c.solve_iterations == 0 or speeds is None:
             return None
         pipe = self.controller.pipeline_v
-        v: list[float] = self.controller.mpc.qp.speeds(z).tolist()
+        v: list[float] = speeds.tolist()
         return [*pipe, *v] if pipe else v
 
     def plan(self, out: CycleOutputs) -> Plan | None:
