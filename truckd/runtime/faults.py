@@ -63,7 +63,7 @@ def wrap_solver(solve: Callable[..., MpcResult], faults: RuntimeFaults) -> Calla
 
     def solve_or_fail(*args: Any, **kwargs: Any) -> MpcResult:
         if faults.solver_fail:
-            return MpcResult(False, math.nan, "injected", 0, 0.0, None)
+            return MpcResult(False, math.nan, "injected", 0, 0.0)
         return solve(*args, **kwargs)
 
     return solve_or_fail
