@@ -51,12 +51,25 @@ from typing import Any
 ROOT = Path(__file__).resolve().parent.parent
 LOG = ROOT / "tests" / "data" / "replay" / "run.rx.jsonl"
 
-CHILD = r"""
-import json, sys, time
+STEP = r"""
+import sys
 sys.path.insert(0, sys.argv[1])
 from truckd.runtime.rxlog import read_rx_log
 from truckd.runtime.replay import cycle_from_params
 from truckd.runtime.platoon_link import cycle_plan
+def step(cyc, inp):  # the cycle's pure work: step, plan, state message, log row
+    out = cyc.step(inp)
+    plan = cycle_plan(cyc, out, 0.0, "truck1")
+    if plan is not None:
+        plan.as_dict()
+    cyc.state_message(out)
+    cyc.log_row(out)
+"""  # the step both replays run: each child script starts with it
+
+CHILD = (
+    STEP
+    + r"""
+import json, time
 path, reps, pace, spin = sys.argv[2], int(sys.argv[3]), float(sys.argv[4]), sys.argv[5] == "1"
 t0, params, cycles = read_rx_log(path)
 cycles = list(cycles)
@@ -66,12 +79,7 @@ pc = time.perf_counter
 for cyc in cycs[:reps]:
     for inp in cycles:
         a = pc()
-        out = cyc.step(inp)
-        plan = cycle_plan(cyc, out, 0.0, "truck1")
-        if plan is not None:
-            plan.as_dict()
-        cyc.state_message(out)
-        cyc.log_row(out)
+        step(cyc, inp)
         times.append(pc() - a)
         if pace > 0.0 and spin:  # busy, touching nothing of the step's
             end = pc() + pace
@@ -81,33 +89,25 @@ for cyc in cycs[:reps]:
             time.sleep(pace)
 print(json.dumps({"cycles": len(cycles), "times": times}))
 """
+)
 
-COLD_CHILD = r"""
-import sys
-sys.path.insert(0, sys.argv[1])
+COLD_CHILD = (
+    STEP
+    + r"""
 import numpy as np
-from truckd.runtime.rxlog import read_rx_log
-from truckd.runtime.replay import cycle_from_params
-from truckd.runtime.platoon_link import cycle_plan
 path, k, steps = sys.argv[2], int(sys.argv[3]), sys.argv[4] == "1"
 t0, params, cycles = read_rx_log(path)
 cycles = list(cycles)
 cyc = cycle_from_params(params, t0, path)
 sweep = np.zeros(4 * 1024 * 1024 // 8)  # twice the simulated last level
-def step(inp):
-    out = cyc.step(inp)
-    plan = cycle_plan(cyc, out, 0.0, "truck1")
-    if plan is not None:
-        plan.as_dict()
-    cyc.state_message(out)
-    cyc.log_row(out)
 for inp in cycles[:50]:  # warm start, as in the loop
-    step(inp)
+    step(cyc, inp)
 for inp in cycles[50 : 50 + k]:
     sweep += 1.0
     if steps:
-        step(inp)
+        step(cyc, inp)
 """
+)
 COLD_STEPS = 60
 BUSY_GAPS_S = (0.001, 0.003, 0.01)
 CACHES = ["--I1=32768,8,64", "--D1=32768,8,64", "--LL=2097152,16,64"]

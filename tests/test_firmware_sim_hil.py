@@ -4,6 +4,7 @@ socket: the path the daemon's HIL tests use."""
 from __future__ import annotations
 
 import os
+import signal
 import time
 from collections import Counter
 from pathlib import Path
@@ -119,8 +120,6 @@ def test_the_rig_reports_its_own_stalls(tmp_path: Path) -> None:
     """A firmware process held still (SIGSTOP, as a busy host or a waiting pty read would)
     reports the stall in ``status`` on the shared monotonic clock, so the HIL tests can tell
     a late rig from a daemon that stopped sending."""
-    import signal
-
     with FirmwareProcess(tmp_path / "ttyTRUCK", []) as fw:
         # its loop running (simulated time advancing), so the stop lands inside it
         deadline = time.monotonic() + 30.0

@@ -333,6 +333,10 @@ class CondensedQp:
         u: Vec = w.take(self._u_block)
         return u, v
 
+    def expand_filled(self, w: Vec, filled: list[float]) -> Vec:
+        """:meth:`expand` for inputs kept from a :meth:`fill` (its :attr:`filled`)."""
+        return self.expand(w, np.array(filled[:NX]), np.array(filled[NX + N_SCALARS :]))
+
     def expand(self, w: Vec, x0: Vec, v_lead: Vec) -> Vec:
         """The sparse QP's decision vector ``z = M E w + C0 x0 + Cl v_lead`` (a new
         array): every state, input and slack (tests, tools; the cycle needs only

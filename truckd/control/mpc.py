@@ -22,9 +22,9 @@ import numpy as np
 import osqp
 import scipy.sparse as sp
 
-from truckd.control.condensed import N_SCALARS, CondensedQp, block_lengths
+from truckd.control.condensed import CondensedQp, block_lengths
 from truckd.control.config import ControlConfig
-from truckd.control.qp import MODES, NX, ControlModel, QpBuilder, QpInputs, Vec, inputs_ok
+from truckd.control.qp import MODES, ControlModel, QpBuilder, QpInputs, Vec, inputs_ok
 
 
 @dataclass(frozen=True)
@@ -153,10 +153,7 @@ class MpcSolver:
             return None
         x, inputs = self._last
         cq = self.condensed
-        if cq is None:
-            return x.copy()
-        n0, n1 = NX, NX + N_SCALARS
-        return cq.expand(x, np.array(inputs[:n0]), np.array(inputs[n1:]))
+        return x.copy() if cq is None else cq.expand_filled(x, inputs)
 
     @property
     def last_speeds(self) -> Vec | None:
