@@ -67,7 +67,11 @@ def test_step_motor_off_until_sensors_are_fresh_then_drives() -> None:
     assert (out.command.voltage, out.command.enable) == (0.0, False)
     assert out.heartbeat is not None and out.heartbeat.state == CompanionState.INIT
     outs = [cyc.step(CycleInputs(k * 0.01, sensor_messages(k, 2.0))) for k in range(1, 30)]
-    assert outs[0].mode == Mode.ACTIVE and outs[0].decision.transition is not None
+    # one encoder sample is no speed yet (a difference needs two): INIT, motor off
+    assert outs[0].mode == Mode.INIT and "speed_stale" in outs[0].decision.causes
+    assert (outs[0].command.voltage, outs[0].command.enable) == (0.0, False)
+    assert outs[1].mode == Mode.ACTIVE and outs[1].decision.transition is not None
+    outs = outs[1:]
     assert all(o.command.enable for o in outs)
     assert max(o.command.voltage for o in outs) > 0.5  # a lead 2 m ahead at rest: go
     # the heartbeat every 100 ms (10 cycles), carrying the supervisor's mode
@@ -106,6 +110,25 @@ def test_step_lead_forecast_is_an_input() -> None:
     # weight r_du = 5 (issue 11's smooth command) lets build up in 0.4 s (0.64 V here;
     # 1.0 V held only with the former r_du = 0.3).
     assert ub > ua + 0.3
+
+
+@pytest.mark.parametrize(("distance", "mode"), [(-1.0, Mode.SAFE_STOP), (0.0, Mode.ACTIVE)])
+def test_a_valid_range_below_zero_is_a_fault_below_the_minimum_a_target(
+    distance: float, mode: Mode
+) -> None:
+    """A valid reading of a negative distance is no measurement: the supervisor stops
+    (before: "no target", and a truck whose lead-lost action is cruise drove into the truck
+    ahead).  0 m, closer than the sensor resolves, is a target right ahead: never a drive."""
+    tc = load_config()
+    cyc = companion(tc, time_budget=False)
+    for k in range(1, 60):
+        out = cyc.step(CycleInputs(k * 0.01, sensor_messages(k, 2.0 if k < 30 else distance)))
+    assert out.mode == mode
+    assert out.command.voltage <= 0.0
+    if mode == Mode.SAFE_STOP:
+        assert "range_fault" in out.decision.causes
+    else:
+        assert out.control is not None and out.control.estimate.lead_valid
 
 
 def test_rx_log_line_round_trips_exactly() -> None:

@@ -194,3 +194,87 @@ def test_a_sample_without_a_finite_time_is_ignored_not_poisoning_the_filters() -
     e = est.estimate(t)
     assert e.speed_valid and e.v == pytest.approx(1.0, abs=0.05)
     assert e.lead_valid and math.isfinite(e.gap) and math.isfinite(e.v_lead)
+
+
+def _samples(
+    v: float, n: int, t0: float, clock0: float, tick0: int, x0: float = 0.0
+) -> list[tuple[float, EncoderSample]]:
+    """n encoder samples of a truck at speed v (m/s): (caller time, sample)."""
+    out = []
+    for k in range(1, n + 1):
+        x = x0 + v * k * DT
+        ticks = (tick0 + math.floor(x / TICK_LEN)) % MOD
+        out.append((t0 + k * DT, EncoderSample(ticks, ticks, (clock0 + k * DT) % 6.5536)))
+    return out
+
+
+@pytest.mark.parametrize("clock_before", [1.0, 2.0, 4.0, 5.5, 6.5])
+def test_a_microcontroller_reset_restarts_the_speed_without_a_spike(clock_before: float) -> None:
+    """After 0.2 s of silence the firmware's sample clock and counters start again from 0
+    (a watchdog reset), wherever the old clock stood: behind it by more than half its wrap,
+    or ahead of it by more than the caller's clock says passed.  The filter restarts from
+    the new samples: valid again within three of them, never a speed the truck did not
+    have (before: the samples were refused until the clock caught up, or gave +30 m/s)."""
+    est = Estimator(EstimatorConfig(), R_W, TICKS)
+    n_before = round(clock_before / DT)
+    for t, s in _samples(1.0, n_before, 0.0, 0.0, 1000):
+        est.update_encoders(t, s)
+    t_reset = n_before * DT + 0.2
+    speeds = []
+    for t, s in _samples(0.5, 50, t_reset, 0.0, 0):
+        est.update_encoders(t, s)
+        v, ok = est.speed(t)
+        speeds.append((v, ok))
+    assert all(ok for _, ok in speeds[3:])
+    assert all(abs(v - 0.5) < 0.1 for v, ok in speeds[10:])
+    assert all(-0.1 < v < 1.1 for v, ok in speeds if ok)
+    assert est.estimate(t_reset + 0.5).speed_restarts == 1
+
+
+@pytest.mark.parametrize("jump", [20000, -20000, 32767])
+def test_a_counter_jump_is_a_restart_not_a_speed(jump: int) -> None:
+    est = Estimator(EstimatorConfig(), R_W, TICKS)
+    x, t = drive(est, 1.0, 100)
+    x, t = drive(est, 1.0, 30, x0=x, t0=t, tick0=jump)  # every count shifted from here on
+    v, ok = est.speed(t)
+    assert ok and v == pytest.approx(1.0, abs=0.1)
+    e = est.estimate(t)
+    assert e.speed_restarts == 1
+
+
+def test_one_sample_out_of_order_is_dropped_without_a_restart() -> None:
+    est = Estimator(EstimatorConfig(), R_W, TICKS)
+    x, t = drive(est, 1.0, 100)
+    old_ticks = math.floor((x - 0.05) / TICK_LEN) % MOD
+    est.update_encoders(t, EncoderSample(old_ticks, old_ticks, (t - 0.05) % 6.5536))
+    x, t = drive(est, 1.0, 5, x0=x, t0=t)
+    v, ok = est.speed(t)
+    assert ok and v == pytest.approx(1.0, abs=0.05)
+    assert est.estimate(t).speed_restarts == 0
+
+
+def test_wheels_failing_in_turn_leave_no_speed_and_its_age_grows() -> None:
+    """The left encoder healthy in one sample, the right in the next: no wheel is healthy
+    in two samples running, so no difference: the speed goes stale (the supervisor stops
+    on its age) instead of being held."""
+    est = Estimator(EstimatorConfig(), R_W, TICKS)
+    x, t = drive(est, 1.0, 50)
+    t_good = t + DT  # the first: the left wheel was healthy in the sample before as well
+    for k in range(20):
+        t += DT
+        x += DT
+        ticks = math.floor(x / TICK_LEN) % MOD
+        flap = EncoderSample(ticks, ticks, t, left_ok=k % 2 == 0, right_ok=k % 2 == 1)
+        est.update_encoders(t, flap)
+    e = est.estimate(t)
+    assert not e.speed_valid
+    assert e.speed_age == pytest.approx(t - t_good)
+
+
+def test_a_valid_reading_closer_than_the_minimum_range_is_a_target_at_it() -> None:
+    """Not "no target" (which would let the truck cruise into what is right ahead)."""
+    cfg = EstimatorConfig()
+    est = Estimator(cfg, R_W, TICKS)
+    est.update_range(0.0, RangeSample(0.0, 0.0), 0.0)
+    e = est.estimate(0.0)
+    assert e.lead_valid and e.gap == pytest.approx(cfg.range_min)

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 
 import cvxpy as cp
@@ -409,3 +410,20 @@ def test_a_non_finite_or_huge_input_is_refused_before_the_solver(
     assert (res.ok, res.status, res.u, res.v) == (False, "non-finite-input", None, None)
     assert math.isnan(res.u0) and res.iterations == 0
     assert solver.solve("follow", good).ok
+
+
+def test_a_stale_speed_ramps_to_zero_volts_never_brakes_on_it(params: VehicleParams) -> None:
+    """The last speed braked on, open loop, drove a truck that had stopped backwards (the
+    estimator refusing a rebooted microcontroller's samples): without a speed the command
+    goes to 0 V at the rate limit and stays there, never below."""
+    cfg = ControlConfig().in_simulated_time()
+    ctrl = Controller(ControlModel(params), cfg)
+    ctrl.u_prev = 3.0
+    stale = dataclasses.replace(_estimate(1.25, 1.0, 1.25), speed_valid=False)
+    outs = [ctrl.control(stale) for _ in range(300)]
+    assert all(o.fallback_reason == "speed_stale:zero" for o in outs)
+    du = cfg.du_max * cfg.period
+    us = [3.0] + [o.u for o in outs]
+    assert all(0.0 <= u <= 3.0 for u in us)
+    assert all(abs(b - a) <= du + 1e-12 for a, b in itertools.pairwise(us))
+    assert us[-1] == 0.0

@@ -64,13 +64,19 @@ def test_init_until_link_and_sensors_fresh() -> None:
 
 @pytest.mark.parametrize(
     ("field", "cause"),
-    [("encoder_age", "encoder_stale"), ("link_age", "link_stale"), ("range_age", "range_stale")],
+    [
+        ("encoder_age", "encoder_stale"),
+        ("speed_age", "speed_stale"),
+        ("link_age", "link_stale"),
+        ("range_age", "range_stale"),
+    ],
 )
 def test_stale_data_stops_on_the_detection_cycle(field: str, cause: str) -> None:
     sup, t = active_supervisor()
     cfg = sup.config
     timeout = {
         "encoder_age": cfg.encoder_timeout_s,
+        "speed_age": cfg.encoder_timeout_s,
         "link_age": cfg.link_timeout_s,
         "range_age": cfg.range_timeout_s,
     }[field]
@@ -176,17 +182,19 @@ ages = st.one_of(st.floats(0, 1.0), st.just(math.inf), st.just(math.nan))
 @settings(max_examples=300, deadline=None)
 @given(
     st.lists(
-        st.tuples(st.booleans(), ages, ages, ages, st.booleans(), st.booleans(), st.booleans()),
+        st.tuples(
+            st.booleans(), ages, ages, ages, ages, st.booleans(), st.booleans(), st.booleans()
+        ),
         min_size=1,
         max_size=40,
     )
 )
 def test_never_active_with_a_stale_or_missing_input(
-    seq: list[tuple[bool, float, float, float, bool, bool, bool]],
+    seq: list[tuple[bool, float, float, float, float, bool, bool, bool]],
 ) -> None:
     sup = Supervisor()
     cfg = sup.config
-    for k, (up, la, ea, ra, lead, solver, missed) in enumerate(seq):
+    for k, (up, la, ea, sa, ra, lead, solver, missed) in enumerate(seq):
         x = SupervisorInputs(
             t=k * P,
             link_up=up,
@@ -195,6 +203,7 @@ def test_never_active_with_a_stale_or_missing_input(
             range_age=ra,
             range_value=float(k),
             speed=1.0,
+            speed_age=sa,
             lead_valid=lead,
             solver_ok=solver,
             loop_missed=missed,
@@ -204,6 +213,7 @@ def test_never_active_with_a_stale_or_missing_input(
             up
             and la <= cfg.link_timeout_s
             and ea <= cfg.encoder_timeout_s
+            and sa <= cfg.encoder_timeout_s
             and ra <= cfg.range_timeout_s
         )
         if not fresh:

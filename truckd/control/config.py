@@ -48,6 +48,15 @@ class EstimatorConfig:
         hi=10.0,
         default=0.05,
     )
+    speed_max: float = spec(
+        "own-speed filter: a step between two encoder samples faster than this is no "
+        "motion but a discontinuity (counters reset or jumped): the filter restarts",
+        unit="m/s",
+        lo=0.0,
+        lo_open=True,
+        hi=1e3,
+        default=15.0,
+    )
     range_max: float = spec(
         "range sensor maximum range: beyond it there is no lead",
         unit="m",
@@ -57,7 +66,12 @@ class EstimatorConfig:
         default=4.0,
     )
     range_min: float = spec(
-        "range sensor minimum valid reading", unit="m", lo=0.0, hi=10.0, default=0.02
+        "range sensor minimum range: a valid reading below it is taken as this (a target "
+        "closer than the sensor resolves, not no target)",
+        unit="m",
+        lo=0.0,
+        hi=10.0,
+        default=0.02,
     )
     range_noise_std: float = spec(
         "range measurement noise (std)", unit="m", lo=0.0, lo_open=True, hi=1.0, default=0.01

@@ -364,6 +364,12 @@ class Controller:
                 gap_ref,
             )
         self.braking_cycles += 1
+        if reason == "speed_stale":
+            # No speed to brake against: braking on the last one, open loop, drives a
+            # truck that has stopped backwards.  0 V (at the rate limit).
+            return self._finish(
+                est, v, 0.0, 0.0, "fallback", reason + ":zero", status, iters, run_time, gap_ref
+            )
         u = braking_law(v, self.cfg.brake_gain, self.u_max)
         return self._finish(
             est, v, u, 0.0, "fallback", reason + ":brake", status, iters, run_time, gap_ref

@@ -4,7 +4,12 @@ Own speed: both wheels' 16-bit tick counters are unwrapped (modular difference),
 travelled distance is the mean of the healthy wheels, and a position/velocity Kalman
 filter (white-acceleration model, measurement noise = one tick's quantisation,
 ``tick^2 / 12``) turns the quantised distance into a speed.  Time steps come from the
-firmware's sample clock (which wraps), staleness from the caller's clock.
+firmware's sample clock (which wraps), staleness from the caller's clock.  A
+discontinuity restarts the filter from the next difference (the speed is stale until
+then): a step faster than ``speed_max`` (the counters reset or jumped), or two samples in
+a row behind the last one and in order among themselves (the firmware's clock restarted,
+e.g. a microcontroller reset).  A single sample behind the last one is dropped (out of
+order).
 
 Lead: a Kalman filter on ``[gap, v_lead]`` with ``gap' = v_lead - v_own`` and the lead's
 acceleration as white noise.  Readings outside the sensor's range or flagged invalid are
@@ -49,7 +54,8 @@ class Estimate:
 
     ``v`` own speed (m/s), ``speed_valid``; ``gap`` (m) and ``v_lead`` (m/s) predicted to
     the latest encoder sample, ``lead_valid``, ``lead_status`` (``tracking``,
-    ``no_target``, ``timeout``, ``none``); ``gap_std`` (m); counters.
+    ``no_target``, ``timeout``, ``none``); ``gap_std`` (m); counters
+    (``speed_restarts``: own-speed filter restarts on a discontinuity).
     """
 
     v: float
@@ -63,6 +69,15 @@ class Estimate:
     reinits: int
     encoder_samples: int
     range_samples: int
+    speed_restarts: int = 0
+    speed_age: float = math.inf
+    """Caller time since the own-speed filter last took a measurement (s; inf: never)."""
+
+
+CLOCK_SLACK_S = 0.25
+"""How far the firmware's sample clock may run ahead of the caller's between two encoder
+samples (s: the caller stamps a batch of samples with one time, late after a stall); more
+is a restart or a jump of that clock, not time that passed."""
 
 
 def wrap_delta(new: int, old: int, modulo: int) -> int:
@@ -114,9 +129,18 @@ class _Kf2:
 class _SpeedState:
     kf: _Kf2 = field(default_factory=_Kf2)
     last: EncoderSample | None = None
+    """The reference of the next difference."""
+    t_ref: float = -math.inf
+    """Caller time at which ``last`` arrived (s)."""
+    behind: EncoderSample | None = None
+    """The last sample dropped as behind ``last`` (None after one that was not)."""
     t_last: float = -math.inf
+    """Caller time of the last measurement the filter took (s)."""
     distance: float = 0.0
     samples: int = 0
+    run: int = 0
+    """Samples since the filter (re)started: a speed from the second on."""
+    restarts: int = 0
 
 
 @dataclass
@@ -153,24 +177,45 @@ class Estimator:
             return  # no time to place it at: a NaN would poison the filter for good
         st.samples += 1
         if st.last is None:
-            st.last, st.t_last = s, t
-            st.kf = _Kf2(0.0, 0.0, self._r_tick, 0.0, 1.0)
+            st.last, st.t_ref, st.run = s, t, 1
             return
-        dt = wrap_dt(s.sample_time, st.last.sample_time, self.cfg.sample_time_modulo)
-        if dt <= 0.0 or dt > 0.5 * self.cfg.sample_time_modulo:
-            return  # a repeated or out-of-order sample
+        modulo = self.cfg.sample_time_modulo
+        dt = wrap_dt(s.sample_time, st.last.sample_time, modulo)
+        if dt <= 0.0:
+            return  # the same sample again
+        if dt > 0.5 * modulo:  # behind the last one
+            prev, st.behind = st.behind, s
+            if prev is None:
+                return  # out of order: dropped
+            dt = wrap_dt(s.sample_time, prev.sample_time, modulo)
+            if not 0.0 < dt < 0.5 * modulo:
+                return  # out of order: dropped
+            # Two in a row, in order: the firmware's clock restarted.  Difference from the
+            # first of them.
+            self._restart(prev, t)
+        elif dt > (t - st.t_ref) + CLOCK_SLACK_S:
+            # The firmware's clock ran ahead of the caller's: it restarted (or jumped).
+            self._restart(s, t)
+            return
+        st.behind = None
         m = self.cfg.ticks_modulo
+        last = st.last
+        assert last is not None
         deltas = []
-        if s.left_ok and st.last.left_ok:
-            deltas.append(wrap_delta(s.ticks_left, st.last.ticks_left, m))
-        if s.right_ok and st.last.right_ok:
-            deltas.append(wrap_delta(s.ticks_right, st.last.ticks_right, m))
-        st.last = s
+        if s.left_ok and last.left_ok:
+            deltas.append(wrap_delta(s.ticks_left, last.ticks_left, m))
+        if s.right_ok and last.right_ok:
+            deltas.append(wrap_delta(s.ticks_right, last.ticks_right, m))
+        st.last, st.t_ref = s, t
         if not deltas:
             return  # no healthy wheel: the speed goes stale
         step = self.tick_len * sum(deltas) / len(deltas)
+        if abs(step) > self.cfg.speed_max * dt + 2.0 * self.tick_len:
+            self._restart(s, t)  # no motion: the counters reset or jumped
+            return
         st.distance += step
-        if st.samples == 2:
+        st.run += 1
+        if st.run == 2:
             # Start from the first finite difference, not from 0 (the truck may be moving).
             var_v = 2.0 * self._r_tick / (dt * dt)
             st.kf = _Kf2(st.distance, step / dt, self._r_tick, 0.0, var_v)
@@ -179,10 +224,16 @@ class Estimator:
             st.kf.update(st.distance, self._r_tick / len(deltas))
         st.t_last = t
 
+    def _restart(self, s: EncoderSample, t: float) -> None:
+        """The own-speed filter starts again from ``s`` (a speed from the next sample)."""
+        st = self._s
+        st.last, st.t_ref, st.run, st.behind = s, t, 1, None
+        st.restarts += 1
+
     def speed(self, t: float) -> tuple[float, bool]:
         """Own speed (m/s) and whether it is fresh at caller time t (s)."""
         st = self._s
-        fresh = st.samples >= 2 and (t - st.t_last) <= self.cfg.encoder_timeout_s
+        fresh = st.run >= 2 and (t - st.t_last) <= self.cfg.encoder_timeout_s
         return st.kf.x1, fresh
 
     # -- lead -------------------------------------------------------------------------
@@ -193,6 +244,8 @@ class Estimator:
             return  # no time (or own speed) to place it at: not a sample
         ld.samples += 1
         d = r.distance
+        if d is not None and 0.0 <= d < cfg.range_min:
+            d = cfg.range_min  # closer than the sensor resolves: as close as it can say
         if d is None or not math.isfinite(d) or not (cfg.range_min <= d <= cfg.range_max):
             if ld.active:
                 self._predict_lead(r.sample_time, v_own)
@@ -276,4 +329,6 @@ class Estimator:
             reinits=ld.reinits,
             encoder_samples=self._s.samples,
             range_samples=ld.samples,
+            speed_restarts=self._s.restarts,
+            speed_age=t - self._s.t_last,
         )

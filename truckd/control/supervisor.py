@@ -11,7 +11,9 @@ Modes (the daemon maps them to commands):
   use), the loop missed ``overrun_degrade_after`` deadlines in a row, or the lead is lost
   and the lead-lost action is ``cruise``.  Single failures and misses are only counted
   (the controller's held plan covers one failed solve).
-- ``SAFE_STOP``: a controlled stop (voltage ramped to zero): encoder or link stale, range
+- ``SAFE_STOP``: a controlled stop (voltage ramped to zero): encoder or link stale, no own
+  speed from the encoder data arriving (the estimator refused it, e.g. both wheels
+  faulty or the counters jumping: ``speed_stale``), range
   sensor stale, frozen or reporting a fault, the solver failing ``solver_fail_limit`` cycles
   in a row, the loop overrunning ``overrun_limit`` cycles in a row, or the lead lost with
   action ``stop``.
@@ -106,6 +108,8 @@ class SupervisorInputs:
     range_fault: bool = False
     """The range sensor reports a fault (not the same as no target in range)."""
     speed: float = 0.0
+    speed_age: float = 0.0
+    """Time since the estimator last took an encoder measurement (s; ``inf`` never)."""
     lead_valid: bool = True
     solver_ok: bool = True
     loop_missed: bool = False
@@ -189,6 +193,8 @@ class Supervisor:
             out["link_stale"] = Mode.SAFE_STOP
         if _stale(x.encoder_age, cfg.encoder_timeout_s):
             out["encoder_stale"] = Mode.SAFE_STOP
+        elif _stale(x.speed_age, cfg.encoder_timeout_s):
+            out["speed_stale"] = Mode.SAFE_STOP  # messages arrive, but no speed from them
         if _stale(x.range_age, cfg.range_timeout_s):
             out["range_stale"] = Mode.SAFE_STOP
         if self._frozen(x):

@@ -180,6 +180,8 @@ class CompanionCycle:
                 range_value=s.range_raw,
                 range_fault=s.range_fault,
                 speed=est.v if est is not None and est.speed_valid else 0.0,
+                # (an exception in the controller counts as a solver failure instead)
+                speed_age=est.speed_age if est is not None else 0.0,
                 lead_valid=est.lead_valid if est is not None else False,
                 solver_ok=out is not None and not (reason or "").startswith("solver_"),
                 loop_missed=inp.loop_missed,

@@ -76,7 +76,10 @@ class SensorState:
                     self.repeated += 1  # a frozen sensor: same sample again, not fresh
                     continue
                 self._range_sample_time = m.sample_time
-                self.range_fault = m.status == RangeStatus.SENSOR_FAULT
+                # A valid reading of a negative distance is no measurement: a fault.
+                self.range_fault = m.status == RangeStatus.SENSOR_FAULT or (
+                    m.valid and m.distance < 0.0
+                )
                 if self.range_fault:
                     self.range_faults += 1
                 else:
