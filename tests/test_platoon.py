@@ -158,3 +158,22 @@ def test_controller_headway_hook_sets_the_spacing_it_drives() -> None:
         ends[h] = float(max(ctrl.mpc.qp.plan(z)[1]))
     assert ends[1.1] == pytest.approx(v, abs=0.03)
     assert ends[None] > v + 0.1
+
+
+def test_a_plan_at_odds_with_the_range_sensor_is_not_followed() -> None:
+    """The plan says 1.5 m/s, the range sensor's filter says the lead is at 0.5: ACC (no
+    forecast), counted; within the tolerance plus three standard deviations of the
+    filter: CACC.  An uncertain filter (a target just found) is not overruled."""
+    cfg = PlatoonConfig()
+    m = PlatoonMode(cfg, 0.01, 10, initial=CACC)
+    plan = kinematic_plan(0.0, 0, 0.01, 1.5, 0.0, 40)
+    d = m.update(0.0, plan, 1.5, 1.0, 0.4, 1.5 - cfg.plan_speed_tolerance + 0.05, 0.01)
+    assert d.mode == CACC and d.forecast is not None
+    d = m.update(0.01, plan, 1.5, 1.0, 0.4, 0.5, 0.01)
+    assert d.mode == ACC and d.forecast is None and m.disagreements == 1
+    m2 = PlatoonMode(cfg, 0.01, 10, initial=CACC)
+    d = m2.update(0.0, plan, 1.5, 1.0, 0.4, 0.5, 1.0)  # 1 m/s uncertain: no verdict
+    assert d.mode == CACC and m2.disagreements == 0
+    m3 = PlatoonMode(cfg, 0.01, 10, initial=CACC)
+    d = m3.update(0.0, plan, 1.5, 1.0, 0.4, math.nan, math.nan)  # no lead in range
+    assert d.mode == CACC

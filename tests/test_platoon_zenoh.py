@@ -62,10 +62,26 @@ def test_plan_receiver_refuses_other_senders_and_bad_payloads() -> None:
     r.on_payload(encode_plan(kinematic_plan(1.2, 4, 0.01, 7.0, 0.0, 10, "truckA")))  # older
     p = r.latest()
     assert p is not None and p.seq == 5 and p.v[0] == 1.0
-    assert (r.accepted, r.refused) == (1, 2)
+    assert (r.accepted, r.refused) == (1, 3)
     r.on_payload(encode_plan(kinematic_plan(9.0, 0, 0.01, 2.0, 0.0, 10, "truckA")))  # restart
     p = r.latest()
     assert p is not None and p.seq == 0 and p.v[0] == 2.0
+
+
+def test_a_plan_stamped_in_the_future_is_refused_and_locks_nothing_out() -> None:
+    """One plan with a huge seq stamped 1e6 s ahead used to be held, and every genuine plan
+    after it dropped as older, uncounted: the follower stayed in ACC for good."""
+    now = [100.0]
+    r = PlanReceiver("truckA", lambda: now[0], 0.05)
+    r.on_payload(encode_plan(kinematic_plan(100.0, 5, 0.01, 1.0, 0.0, 10, "truckA")))
+    r.on_payload(encode_plan(kinematic_plan(1e6, 2**62, 0.01, 1.0, 0.0, 10, "truckA")))
+    assert r.refused == 1 and "future" in r.last_error
+    now[0] = 100.01
+    r.on_payload(encode_plan(kinematic_plan(100.01, 6, 0.01, 1.2, 0.0, 10, "truckA")))
+    p = r.latest()
+    assert p is not None and p.seq == 6 and r.accepted == 2
+    r.on_payload(encode_plan(kinematic_plan(100.04, 7, 0.01, 1.2, 0.0, 10, "truckA")))
+    assert r.accepted == 3  # within the allowed skew
 
 
 def test_follower_subscribes_to_its_predecessors_key_only() -> None:

@@ -207,3 +207,23 @@ def test_a_platoon_followers_recorded_inputs_replay_its_commands(
     )
     replayed = [again.step(i).command.voltage for i in inputs]
     assert np.max(np.abs(np.array(replayed) - np.array(outs[key]))) < 1e-9
+
+
+def test_a_predecessor_whose_plan_lies_is_not_run_into(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The lead brakes to a stop while its plan keeps saying the speed it started with:
+    the follower's range sensor disagrees, it drops to ACC and keeps the minimum gap (it
+    stayed in CACC on the plan and hit the lead before the cross-check)."""
+    import truckd.sim.platoon as sim_platoon
+
+    real = sim_platoon.kinematic_plan
+    sc = make_platoon_scenario("platoon-brake")
+
+    def lying(t: float, seq: int, dt: float, v: float, a: float, n: int, vid: str = "") -> Plan:
+        return real(t, seq, dt, sc.v0, 0.0, n, vid)
+
+    monkeypatch.setattr(sim_platoon, "kinematic_plan", lying)
+    m, tr = run_platoon(sc, _setup(), load_config().platoon, 2)
+    assert not m["collision"]
+    assert m["min_gap_m"] >= load_config().control.d_min
+    modes = np.asarray(tr.mode)[:, 1]
+    assert np.any(modes == ACC)

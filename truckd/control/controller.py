@@ -198,7 +198,9 @@ class Controller:
         if lead:
             # Never follow faster than the set speed: a faster lead is taken as driving at
             # v_set (conservative, the predicted gap is smaller than the real one).
-            cap = cfg.v_set if mode == "follow" else math.inf
+            # Cruising, a lead faster than v_max is taken as driving at v_max (a forecast
+            # of a wrong plan can say anything: it never reaches the QP beyond that).
+            cap = cfg.v_set if mode == "follow" else cfg.v_max
             v_lead_all = self._lead_horizon(est, forecast, n_all, cap)
         else:
             v_lead_all = self._v_lead_buf[:n_all]

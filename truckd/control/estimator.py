@@ -72,6 +72,8 @@ class Estimate:
     speed_restarts: int = 0
     speed_age: float = math.inf
     """Caller time since the own-speed filter last took a measurement (s; inf: never)."""
+    v_lead_std: float = math.nan
+    """The lead-speed estimate's standard deviation (m/s; NaN without a lead)."""
 
 
 CLOCK_SLACK_S = 0.25
@@ -308,7 +310,7 @@ class Estimator:
         if ld.active and lost:
             ld.active = False
         status = ld.status if valid else ("timeout" if ld.status == "tracking" else ld.status)
-        gap, v_lead, std = math.nan, math.nan, math.nan
+        gap, v_lead, std, v_lead_std = math.nan, math.nan, math.nan, math.nan
         if valid:
             gap, v_lead = ld.kf.x0, ld.kf.x1
             last = self._s.last
@@ -317,6 +319,7 @@ class Estimator:
                 if dt < 0.5:
                     gap += dt * (v_lead - v)
             std = math.sqrt(max(ld.kf.p00, 0.0))
+            v_lead_std = math.sqrt(max(ld.kf.p11, 0.0))
         return Estimate(
             v=v,
             speed_valid=speed_ok,
@@ -331,4 +334,5 @@ class Estimator:
             range_samples=ld.samples,
             speed_restarts=self._s.restarts,
             speed_age=t - self._s.t_last,
+            v_lead_std=v_lead_std,
         )

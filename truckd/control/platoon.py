@@ -5,10 +5,11 @@ the speeds its MPC predicts over the horizon, sampled every ``dt`` from the send
 ``t``.  A follower turns its predecessor's latest plan into the lead-speed forecast of its
 own MPC (:func:`lead_forecast`: shifted by the plan's age, the last speed held past the
 plan's end, a braking plan extrapolated to standstill) and drives the CACC headway while
-the plan is fresh; when the plan is older than ``plan_timeout_s`` or missing it falls back
-to ACC on the range sensor alone, ramping the headway up to the ACC headway (the gap opens
-smoothly, no hard braking), and back to CACC once plans have been fresh for
-``cacc_return_s`` (:class:`PlatoonMode`).
+the plan is fresh; when the plan is older than ``plan_timeout_s``, missing, or at odds
+with the lead speed the range sensor measures (by more than ``plan_speed_tolerance``) it
+falls back to ACC on the range sensor alone, ramping the headway up to the ACC headway
+(the gap opens smoothly, no hard braking), and back to CACC once plans have been fresh
+for ``cacc_return_s`` (:class:`PlatoonMode`).
 
 Clocks: a plan's ``t`` is the sender's time on a clock shared by the platoon (simulated
 time in ``truckd sim``; the system clock, seconds since the Unix epoch, in ``truckd run``,
@@ -79,6 +80,16 @@ class PlatoonConfig:
         lo=0.0,
         hi=10.0,
         default=0.05,
+    )
+    plan_speed_tolerance: float = spec(
+        "a plan whose speed now differs more than this from the lead speed the range "
+        "sensor measures is not followed (ACC): it is wrong, or describes another vehicle "
+        "than the one ahead (a cut-in)",
+        unit="m/s",
+        lo=0.0,
+        lo_open=True,
+        hi=100.0,
+        default=0.7,
     )
 
     def validate(self) -> str | None:
@@ -250,6 +261,8 @@ class PlatoonMode:
         self._fresh_since = math.inf
         self._t_start = math.nan
         self.switches = 0
+        self.disagreements = 0
+        """Cycles whose fresh plan was not followed: at odds with the range sensor."""
 
     def fresh(self, plan: Plan | None, t: float) -> bool:
         """Whether ``plan`` is usable at time t (s): not older than the timeout, not from
@@ -266,17 +279,33 @@ class PlatoonMode:
         v: float = math.nan,
         gap: float = math.nan,
         d_0: float = 0.0,
+        v_lead: float = math.nan,
+        v_lead_std: float = 0.0,
     ) -> PlatoonDecision:
         """Decide this cycle's mode, headway and forecast at time t (s).
 
         ``v`` own speed (m/s), ``gap`` measured gap (m) and ``d_0`` the standstill gap (m):
         when falling back to ACC the ramp starts from the time gap actually driven
         (``(gap - d_0) / v``, within the two headways), so the reference does not jump.
+        ``v_lead`` (m/s) the lead speed the range sensor measures (NaN: no lead in range)
+        and its standard deviation ``v_lead_std`` (m/s): a plan whose speed now differs
+        from it by more than ``plan_speed_tolerance`` plus three of those is not followed
+        (counted in :attr:`disagreements`; the filter is uncertain when it has just found
+        its target).
         """
         cfg = self.cfg
         if math.isnan(self._t_start):
             self._t_start = t
         fresh = self.fresh(plan, t)
+        if (
+            fresh
+            and plan is not None
+            and math.isfinite(v_lead)
+            and abs(plan_speed(plan, t) - v_lead)
+            > cfg.plan_speed_tolerance + 3.0 * (v_lead_std if math.isfinite(v_lead_std) else 0.0)
+        ):
+            fresh = False
+            self.disagreements += 1
         if plan is None and t - self._t_start <= cfg.plan_timeout_s:
             # Just started: the first plan may still be on its way (no forecast yet).
             fresh = self.mode == CACC

@@ -55,7 +55,8 @@ def follower_inputs(
     """The platoon part of a follower's cycle, before the step: the CACC/ACC decision
     from the latest plan received (``now`` on the platoon's shared clock, s), with the
     previous cycle's estimate (``last``) for the time gap actually driven (``d_0`` the
-    standstill gap, m)."""
+    standstill gap, m) and the lead speed the range sensor measures (a plan that disagrees
+    with it is not followed)."""
     est = last.control.estimate if last is not None and last.control is not None else None
     return mode.update(
         now,
@@ -63,17 +64,28 @@ def follower_inputs(
         est.v if est is not None and est.speed_valid else math.nan,
         est.gap if est is not None and est.lead_valid else math.nan,
         d_0,
+        est.v_lead if est is not None and est.lead_valid else math.nan,
+        est.v_lead_std if est is not None and est.lead_valid else math.nan,
     )
 
 
 class PlanReceiver:
     """The newest valid plan from one predecessor (fed on Zenoh's thread, read by the
     loop; thread-safe).  Refused and counted: payloads that do not parse, plans naming
-    another sender, plans older (by ``seq``) than the one held unless the sender
-    restarted (its clock moved on by more than a second)."""
+    another sender, plans stamped more than ``max_skew_s`` in the future of ``clock``
+    (when given: one such plan held would lock out every genuine one after it), plans
+    older (by ``seq``) than the one held unless the sender restarted (its clock moved on
+    by more than a second)."""
 
-    def __init__(self, predecessor: str) -> None:
+    def __init__(
+        self,
+        predecessor: str,
+        clock: Callable[[], float] | None = None,
+        max_skew_s: float = math.inf,
+    ) -> None:
         self.predecessor = predecessor
+        self.clock = clock
+        self.max_skew_s = max_skew_s
         self.key = plan_key(predecessor)
         self._lock = threading.Lock()
         self._latest: Plan | None = None
@@ -98,11 +110,18 @@ class PlanReceiver:
             self.refused += 1
             self.last_error = f"plan from {plan.vehicle_id!r}, expected {self.predecessor!r}"
             return
+        if self.clock is not None and plan.t - self.clock() > self.max_skew_s:
+            self.refused += 1
+            self.last_error = f"plan stamped {plan.t - self.clock():.3f} s in the future"
+            return
         with self._lock:
             old = self._latest
             if old is None or plan.seq > old.seq or plan.t > old.t + 1.0:
                 self._latest = plan
                 self.accepted += 1
+                return
+        self.refused += 1
+        self.last_error = f"plan seq {plan.seq} not newer than the one held ({old.seq})"
 
     def latest(self) -> Plan | None:
         with self._lock:
@@ -125,7 +144,9 @@ class DaemonPlatoon:
         self.cfg = cfg
         self.cyc = cyc
         self.wall = wall
-        self.receiver = PlanReceiver(cfg.predecessor) if cfg.predecessor else None
+        self.receiver = (
+            PlanReceiver(cfg.predecessor, wall, cfg.max_clock_skew_s) if cfg.predecessor else None
+        )
         self.mode = (
             PlatoonMode(cfg, cyc.period, cyc.controller.forecast_steps) if cfg.predecessor else None
         )
@@ -196,4 +217,5 @@ class DaemonPlatoon:
             "plans_refused": r.refused if r is not None else 0,
             "plans_dropped": r.dropped if r is not None else 0,
             "switches": m.switches if m is not None else 0,
+            "plans_disagreeing": m.disagreements if m is not None else 0,
         }
