@@ -192,6 +192,11 @@ def test_device_lock_names_the_holder_and_is_released(
             claim_backend("can", cfg)
         can_lock.release()
         claim_backend("can", cfg).release()  # free again
+        # slcan on the same tty, through its alias and at another bit rate: the same device
+        for channel in (f"{dev}@115200", f"{alias}@921600", str(alias)):
+            slcan = LinkConfig(can_interface="slcan", can_channel=channel)
+            with pytest.raises(DeviceBusyError):
+                claim_backend("can", slcan)
     finally:
         first.release()
     assert list(tmp_path.glob("*.lock")) == []

@@ -59,11 +59,22 @@ def serial_keys(device: str) -> list[str]:
     return [given] if given == real else [given, real]
 
 
+SERIAL_LINE_CAN = frozenset({"slcan", "serial", "robotell", "seeedstudio"})
+"""python-can interfaces whose channel is a serial device (``/dev/ttyACM0@115200``)."""
+
+
 def can_keys(interface: str, channel: str) -> list[str]:
-    """Lock key of a CAN interface + channel; none for python-can's ``virtual`` buses,
-    which live inside one process."""
+    """Lock keys of a CAN interface + channel; none for python-can's ``virtual`` buses,
+    which live inside one process.  A CAN adapter on a serial line (slcan and the like)
+    is its serial device: the keys of :func:`serial_keys` for the channel without its
+    ``@bitrate`` (a symlink, the same path with another rate, or the serial backend on
+    the same tty share the lock)."""
     if interface == "virtual":
         return []
+    if interface in SERIAL_LINE_CAN:
+        keys = serial_keys(channel.split("@", 1)[0])
+        if keys:
+            return keys
     return [f"can:{interface}:{channel}"]
 
 
