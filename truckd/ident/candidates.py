@@ -120,7 +120,9 @@ def voltage_candidates(p0: VehicleParams, data: Series) -> list[Candidate]:
         ),
     ]
     with_current = data.i is not None
-    return [c for c in out if with_current or not c.needs_current]
+    # A candidate without a start grid cannot be located in these data (a dead zone needs
+    # two command levels below 0.8 u_max to lie between: a single step has none).
+    return [c for c in out if (with_current or not c.needs_current) and c.grid]
 
 
 def rolling_candidate(p0: VehicleParams, wave: Wave) -> Candidate:

@@ -113,10 +113,31 @@ def _quiet(_: str) -> None:
     return None
 
 
+def supply_for(p0: VehicleParams, runs: Sequence[Series]) -> tuple[VehicleParams, str | None]:
+    """The configured truck with its supply ``V_batt`` raised to the largest command the
+    runs hold (V), and a note saying so (None when it was high enough).  The driver cannot
+    apply more than its supply, so a simulation on the configured one would clip every
+    command above it and the fit would explain the clipping by wrong parameters and
+    effects (a log recorded on a larger battery)."""
+    u_top = max((float(np.max(np.abs(r.inp))) for r in runs if len(r)), default=0.0)
+    if not u_top > p0.V_batt * (1.0 + 1e-9):
+        return p0, None
+    note = (
+        f"commands reach {u_top:.4g} V, above the configured supply V_batt = "
+        f"{p0.V_batt:.4g} V: the supply is taken as {u_top:.4g} V (set vehicle.V_batt "
+        "to the truck's battery voltage)"
+    )
+    return p0.replace(V_batt=u_top), note
+
+
 def identify_voltage(
     p0: VehicleParams, runs: Sequence[Series], progress: Progress = _quiet
 ) -> FitResult:
-    """Seed model fitted to all runs of voltage-input logs (no effects)."""
+    """Seed model fitted to all runs of voltage-input logs (no effects); the supply raised
+    to the largest command when the configured one is lower (:func:`supply_for`)."""
+    p0, supply_note = supply_for(p0, runs)
+    if supply_note is not None:
+        progress(supply_note)
     whole = merged(runs)
     fit_data = chunks_of_runs(runs, FIT_BUDGET)
     w = weights_for(fit_data)
@@ -496,7 +517,12 @@ def diagnose_voltage(
     validate: Sequence[Series] | None = None,
     progress: Progress = _quiet,
 ) -> Diagnosis:
-    """Diagnose voltage-input runs (see module docstring); ``validate`` runs when given."""
+    """Diagnose voltage-input runs (see module docstring); ``validate`` runs when given.
+    The supply is raised to the largest command when the configured one is lower
+    (:func:`supply_for`, noted)."""
+    p0, supply_note = supply_for(p0, [*runs, *(validate or [])])
+    if supply_note is not None:
+        progress(supply_note)
     runs = [with_position(r) for r in runs]
     validate = [with_position(r) for r in validate] if validate else None
     if validate:
@@ -747,6 +773,8 @@ def diagnose_voltage(
     y_all = np.concatenate([r.v for r in report])
     wt, unexplained = _whiteness_of(y_all - y_ext, report)
     notes = [*_notes(runs, ff), *vehicle_problems(ext_params, runs)]
+    if supply_note is not None:
+        notes.insert(0, supply_note)
     rep = merged(report)
     return Diagnosis(
         input="voltage",
