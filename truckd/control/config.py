@@ -190,7 +190,7 @@ class ControlConfig:
         hi=1.0,
         default=0.004,
     )
-    max_iter: int = spec("OSQP iteration limit per solve", lo=1, hi=100_000, default=400)
+    max_iter: int = spec("OSQP iteration limit per solve", lo=1, hi=100_000, default=1000)
     eps: float = spec(
         "OSQP absolute and relative tolerance", lo=0.0, lo_open=True, hi=1.0, default=5e-5
     )
