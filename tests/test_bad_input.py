@@ -362,3 +362,47 @@ def test_zenoh_config_must_be_a_regular_file(
     """``/dev/zero`` as the Zenoh file hung the monitor (zenoh read it forever)."""
     line = bad_input(["monitor", "--zenoh-config", target, "--duration", "0"], capsys)
     assert f"{target}: " in line and "Zenoh configuration file" in line
+
+
+def test_an_unforeseen_exception_is_one_line_exit_1(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Not a traceback (a firmware core that cannot be built, a full disk on stdout, a
+    bug): one line naming the command and the exception, exit 1; TRUCKD_DEBUG lets the
+    traceback through."""
+    import truckd.cli.params as cli_params
+    from truckd.cli.main import main
+
+    def run(_args: object) -> int:
+        raise RuntimeError("gcc: not found")
+
+    monkeypatch.setattr(cli_params, "run", run)
+    monkeypatch.delenv("TRUCKD_DEBUG", raising=False)
+    assert main(["params"]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "truckd params: failed: RuntimeError: gcc: not found" in err
+    monkeypatch.setenv("TRUCKD_DEBUG", "1")
+    with pytest.raises(RuntimeError):
+        main(["params"])
+
+
+def test_a_closed_output_pipe_is_quiet() -> None:
+    """`truckd params --json | head -c0`: the reader is gone before anything is written."""
+    import os
+    import subprocess
+    import sys
+
+    r, w = os.pipe()
+    os.close(r)  # every write to w fails with EPIPE
+    try:
+        p = subprocess.run(
+            [sys.executable, "-m", "truckd.cli.main", "params", "--json"],
+            stdout=w,
+            stderr=subprocess.PIPE,
+            timeout=120,
+            check=False,
+        )
+    finally:
+        os.close(w)
+    assert p.returncode == 1
+    assert p.stderr == b""

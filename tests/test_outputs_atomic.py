@@ -105,3 +105,45 @@ def test_sim_json_and_plot_are_written_as_a_set(tmp_path: Path) -> None:
     assert r.returncode == 1 and "s.png: cannot write: File too large" in line
     assert (tmp_path / "s.json").read_text() == "old\n"
     assert listing(tmp_path) == ["s.json"]
+
+
+def test_sigterm_while_writing_leaves_nothing_half_written(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A tool stopped by SIGTERM (systemd, `kill`) unwinds as on Ctrl-C: the file being
+    written is removed, the old one kept, the exit code is 128 + 15 (before: the default
+    action killed the process and left the temporary file)."""
+    import os
+    import signal
+
+    import truckd.cli.params as cli_params
+    from truckd.cli.main import main
+    from truckd.outputs import atomic_text
+
+    out = tmp_path / "out.json"
+    out.write_text("old")
+
+    def run(_args: object) -> int:
+        with atomic_text(out) as f:
+            f.write("half")
+            os.kill(os.getpid(), signal.SIGTERM)  # delivered before the next bytecode
+            f.write("never")
+        return 0
+
+    monkeypatch.setattr(cli_params, "run", run)
+    seen: list[int] = []
+
+    def fallback(signum: int, _frame: object) -> None:  # only if main installed nothing
+        seen.append(signum)
+
+    before = signal.signal(signal.SIGTERM, fallback)
+    try:
+        with pytest.raises(SystemExit) as exc:
+            main(["params"])
+        assert exc.value.code == 128 + signal.SIGTERM
+        assert seen == []
+        assert out.read_text() == "old"
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["out.json"]
+        assert signal.getsignal(signal.SIGTERM) is fallback  # restored
+    finally:
+        signal.signal(signal.SIGTERM, before)

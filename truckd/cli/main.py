@@ -11,9 +11,14 @@ the file, line or key and what was expected), 1 other failures.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
+import os
+import signal
 import sys
-from collections.abc import Sequence
+import threading
+from collections.abc import Iterator, Sequence
+from types import FrameType
 
 from truckd.errors import InputError, TruckdError
 
@@ -49,6 +54,35 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     return parser
 
 
+DEBUG_ENV = "TRUCKD_DEBUG"
+"""Set (to anything) to let an unexpected exception's traceback through."""
+
+_OWN_SIGNALS = ("run", "monitor")
+"""Commands that handle SIGTERM themselves (the daemon stops its loop and the motor)."""
+
+
+def _terminated(signum: int, _frame: FrameType | None) -> None:
+    raise SystemExit(128 + signum)
+
+
+@contextlib.contextmanager
+def _term_unwinds(command: str) -> Iterator[None]:
+    """SIGTERM and SIGHUP raise SystemExit(128 + signal) in the main thread while a tool
+    runs, so its cleanup runs as on Ctrl-C (no temporary file left half-written; the
+    default action kills the process on the spot).  The previous handlers come back
+    after."""
+    if command in _OWN_SIGNALS or threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    sigs = (signal.SIGTERM, signal.SIGHUP)
+    old = {s: signal.signal(s, _terminated) for s in sigs}
+    try:
+        yield
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     args_list = list(sys.argv[1:] if argv is None else argv)
     parser = build_parser(args_list[0] if args_list else None)
@@ -57,7 +91,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except SystemExit as exc:  # bad usage (one line printed) or --help: a code, not a raise
         return exc.code if isinstance(exc.code, int) else 2
     try:
-        code = int(args.run(args))
+        with _term_unwinds(args.command):
+            code = int(args.run(args))
     except InputError as exc:
         print(f"truckd {args.command}: error: {exc}", file=sys.stderr)
         return 2
@@ -66,6 +101,21 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 1
     except KeyboardInterrupt:
         return 130
+    except BrokenPipeError:
+        # The reader went away (`truckd params --json | head -1`): nothing more to say, and
+        # nothing for the interpreter to flush into the closed pipe at exit.
+        with contextlib.suppress(OSError, ValueError):
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 1
+    except Exception as exc:  # a bug, or a failure nobody foresaw: one line, not a traceback
+        if os.environ.get(DEBUG_ENV):
+            raise
+        print(
+            f"truckd {args.command}: failed: {type(exc).__name__}: {exc} "
+            f"(set {DEBUG_ENV}=1 for the traceback)",
+            file=sys.stderr,
+        )
+        return 1
     return code
 
 
