@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -406,3 +407,44 @@ def test_a_closed_output_pipe_is_quiet() -> None:
         os.close(w)
     assert p.returncode == 1
     assert p.stderr == b""
+
+
+@pytest.mark.parametrize(
+    ("overrides", "says"),
+    [
+        ({"vehicle": {"J_S": 1e-300}}, "mechanical time constant"),
+        ({"vehicle": {"R_m": 1e-300}}, "electrical time constant"),
+        ({"vehicle": {"L_m": 1e-12}}, "electrical time constant"),
+        ({"vehicle": {"n_g": 1e-300}}, "no-load speed"),
+        ({"vehicle": {"r_w": 1e-300}}, "no-load speed"),
+        ({"vehicle": {"K_v": 1e-300}}, "mechanical time constant"),
+        ({"control": {"v_set": 0.0}}, "control.v_set"),
+        ({"control": {"estimator": {"range_min": 10.0}}}, "range_min (10.0) must be below"),
+    ],
+)
+def test_values_each_allowed_but_not_a_machine_together_exit_2(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], overrides: dict[str, Any], says: str
+) -> None:
+    """Each value passed its own positive check; together they made the controller's
+    Riccati equation overflow, the plant NaN, the scenarios refuse to build, or no range
+    reading a target (a collision): the configuration is refused, naming what is wrong."""
+    from runtime_support import write_config
+
+    cfg = write_config(tmp_path / "truck.yaml", overrides)
+    line = bad_input(
+        ["sim", "--scenario", "follow", "--duration", "1", "--config", str(cfg)], capsys
+    )
+    assert "truck.yaml" in line and says in line
+
+
+def test_outputs_over_an_input_or_each_other_exit_2(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    log = write(tmp_path, "run.csv", GOOD)
+    line = bad_input(["simulate", str(log), "--out", str(log)], capsys)
+    assert "run.csv" in line and "--out" in line
+    assert log.read_text() == GOOD  # the measured log is untouched
+    same = tmp_path / "d.json"
+    line = bad_input(["diagnose", str(log), "--json", str(same), "--report", str(same)], capsys)
+    assert "--json" in line and "--report" in line
+    assert not same.exists()

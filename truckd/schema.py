@@ -10,6 +10,7 @@ object is only built once every field has passed.
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import math
 import types
 import typing
@@ -137,9 +138,15 @@ def load_dataclass(cls: type[T], data: Any, source: str, prefix: str = "") -> T:
     fields = {f.name: f for f in dataclasses.fields(cls)}
     for k in data:
         if k not in fields:
-            known = ", ".join(sorted(fields))
             name = short(f"{prefix}.{k}" if prefix else str(k))[1:-1]
-            raise InputError(f"{source}: unknown key '{name}'; allowed here: {known}")
+            close = difflib.get_close_matches(str(k), fields, n=3, cutoff=0.6)
+            if close:
+                hint = "did you mean " + " or ".join(f"'{c}'" for c in close)
+            elif len(fields) <= 12:
+                hint = "allowed here: " + ", ".join(sorted(fields))
+            else:  # one line: the section's keys are in the shipped configuration
+                hint = f"{len(fields)} keys are allowed here (see the shipped truck.yaml)"
+            raise InputError(f"{source}: unknown key '{name}'; {hint}")
     hints = get_type_hints(cls)
     kwargs: dict[str, Any] = {}
     for name, f in fields.items():

@@ -46,7 +46,7 @@ def _progress(msg: str) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    check_distinct([("--out", args.out), ("--json", args.json)])
+    check_distinct([("--out", args.out), ("--json", args.json), ("--report", args.report)])
     check_gap(args.gap)
     cfg = load_config(args.config)
     logs = read_logs(args.logs, args.vbat)

@@ -10,6 +10,7 @@ from truckd.config.truck import load_config
 from truckd.errors import InputError
 from truckd.logfile import read_log, write_log
 from truckd.modelfile import load_model_into
+from truckd.outputs import check_distinct
 from truckd.sim.plant import simulate_open_loop
 
 
@@ -26,6 +27,7 @@ def add_subparser(sub: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    check_distinct([("INPUT.csv", args.input), ("--out", args.out)])  # never over the input
     cfg = load_config(args.config)
     if args.model:
         cfg = load_model_into(cfg, args.model)

@@ -18,6 +18,15 @@ from truckd.schema import spec
 class EstimatorConfig:
     """Own speed from encoder ticks; gap and lead speed from the range sensor."""
 
+    def validate(self) -> str | None:
+        """Cross-field checks."""
+        if self.range_min >= self.range_max:
+            return (
+                f"range_min ({self.range_min}) must be below range_max ({self.range_max}): "
+                "else no reading is ever a target"
+            )
+        return None
+
     ticks_modulo: int = spec(
         "encoder counters wrap at this value (2^16 in the firmware protocol)",
         lo=2,
@@ -138,7 +147,9 @@ class ControlConfig:
         hi=10.0,
         default=0.15,
     )
-    v_set: float = spec("set speed (cruise)", unit="m/s", lo=0.0, hi=50.0, default=1.8)
+    v_set: float = spec(
+        "set speed (cruise)", unit="m/s", lo=0.0, lo_open=True, hi=50.0, default=1.8
+    )
     v_max: float = spec("speed limit", unit="m/s", lo=0.0, lo_open=True, hi=50.0, default=2.4)
     u_max: float = spec(
         "armature voltage limit |u| (at most the battery voltage)",

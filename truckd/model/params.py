@@ -44,11 +44,36 @@ class VehicleParams:
     )
 
     def validate(self) -> str | None:
-        """Cross-field checks; a message when the set is not physical."""
+        """Cross-field checks; a message when the set is not physical.
+
+        Besides the friction order, the motor's two time constants and its top speed must
+        be those of a machine (each parameter alone only has to be positive): the
+        electrical ``L_m / R_m`` within [1e-7, 10] s, the mechanical ``J_S R_m / (K_T
+        K_v)`` within [1e-5, 1e4] s, the no-load speed ``V_batt / K_v`` at the wheels within
+        [1e-4, 1000] m/s.  Beyond them the controller's Riccati equation and the simulation
+        overflow or lose every digit (a value of 1e-300 passed the positive check)."""
         if self.K_stiction < self.K_coulomb:
             return (
                 f"K_stiction ({self.K_stiction}) must be >= K_coulomb ({self.K_coulomb}): "
                 "breakaway friction is never below sliding friction"
+            )
+        tau_e = self.L_m / self.R_m
+        if not 1e-7 <= tau_e <= 10.0:
+            return (
+                f"L_m / R_m = {tau_e:.3g} s: the electrical time constant of a motor lies "
+                "within [1e-7, 10] s"
+            )
+        tau_m = self.J_S * self.R_m / (self.K_T * self.K_v)
+        if not 1e-5 <= tau_m <= 1e4:
+            return (
+                f"J_S R_m / (K_T K_v) = {tau_m:.3g} s: the mechanical time constant of a "
+                "motor and its load lies within [1e-5, 1e4] s"
+            )
+        v_top = self.V_batt / self.K_v * self.r_w / (self.n_g * self.n_fd)
+        if not 1e-4 <= v_top <= 1e3:
+            return (
+                f"V_batt / K_v r_w / (n_g n_fd) = {v_top:.3g} m/s: the no-load speed at the "
+                "wheels lies within [1e-4, 1000] m/s"
             )
         return None
 
