@@ -107,6 +107,22 @@ def test_sim_json_and_plot_are_written_as_a_set(tmp_path: Path) -> None:
     assert listing(tmp_path) == ["s.json"]
 
 
+def test_sim_json_mcap_and_traces_are_one_set(tmp_path: Path) -> None:
+    """A trace too large for the size limit: no JSON, no MCAP, no trace (before: the JSON
+    and every MCAP file were written, then one trace of six)."""
+    (tmp_path / "s.json").write_text("old\n")
+    argv = ["sim", "--scenario", "cruise", "--duration", "5", "--json", "s.json"]
+    r = run_limited([*argv, "--mcap", "mc", "--trace", "tr"], tmp_path, fsize=64 * 1024)
+    line = assert_one_line(r.stderr)
+    assert r.returncode == 1 and "cruise.csv: cannot write: File too large" in line
+    assert (tmp_path / "s.json").read_text() == "old\n"
+    assert [p.name for p in tmp_path.rglob("*") if p.is_file()] == ["s.json"]
+    r = run_limited([*argv, "--mcap", "mc", "--trace", "tr"], tmp_path)  # no limit: all three
+    assert r.returncode == 0, r.stderr
+    assert (tmp_path / "mc" / "cruise.mcap").stat().st_size > 0
+    assert (tmp_path / "tr" / "cruise.csv").stat().st_size > 64 * 1024
+
+
 def test_sigterm_while_writing_leaves_nothing_half_written(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

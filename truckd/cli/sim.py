@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from pathlib import Path
 from typing import Any
 
 from truckd.cli.args import image_file, json_file, output_dir, plot_format, sim_duration
@@ -15,9 +16,9 @@ from truckd.errors import TruckdError
 from truckd.modelfile import read_model
 from truckd.outputs import check_distinct, ensure_dir, write_set
 from truckd.sim.closed_loop import SimSetup, run_scenario
-from truckd.sim.mcap_export import mcap_paths, write_trace_mcap
+from truckd.sim.mcap_export import mcap_paths, trace_mcap_bytes
 from truckd.sim.platoon import PLATOON_SCENARIOS
-from truckd.sim.report import json_safe, plot_image, table, write_trace
+from truckd.sim.report import json_safe, plot_image, table, trace_text
 from truckd.sim.scenarios import SCENARIO_NAMES, make_scenario
 
 
@@ -87,18 +88,18 @@ def run(args: argparse.Namespace) -> int:
         f"{', '.join(cfg.plant.effects.active()) or 'none'}"
     )
     print(table(results))
-    files: list[tuple[str, str | bytes]] = []
+    files: list[tuple[str | Path, str | bytes]] = []
     if args.json:
         doc: object = results if args.scenario == "all" else results[0]
         files.append((args.json, json.dumps(doc, indent=2, allow_nan=False) + "\n"))
     if args.plot:
         files.append((args.plot, plot_image(traces, plot_format(args.plot))))
-    write_set(files)  # all or nothing
     for name, trace in traces if mcaps else ():
-        write_trace_mcap(mcaps[name], cfg.vehicle_id, name, trace)
+        files.append((mcaps[name], trace_mcap_bytes(cfg.vehicle_id, name, trace)))
     if trace_dir is not None:
         for name, trace in traces:
-            write_trace(trace_dir / f"{name}.csv", trace)
+            files.append((trace_dir / f"{name}.csv", trace_text(trace)))
+    write_set(files)  # all or nothing: JSON, plot, MCAP files and traces
     crashed = [r["scenario"] for r in results if r["collision"]]
     if crashed:
         raise TruckdError(f"collision in: {', '.join(crashed)}")

@@ -13,11 +13,13 @@ scenario name.  ``plan`` stays empty until the trace carries plans.
 from __future__ import annotations
 
 import math
+import tempfile
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
 from truckd.errors import InputError, TruckdError
+from truckd.outputs import check_output_dir, check_output_file
 from truckd.runtime.cycle import LOG_COLUMNS
 from truckd.runtime.mcap_log import write_messages
 from truckd.sim.closed_loop import Trace
@@ -79,6 +81,7 @@ def mcap_paths(target: str, scenarios: tuple[str, ...]) -> dict[str, Path]:
             raise InputError(f"--mcap {target}: is a directory; expected a file name")
         if not p.parent.is_dir():
             raise InputError(f"--mcap {target}: directory {p.parent} does not exist")
+        check_output_file(p, "MCAP file")  # writable, before any scenario runs
         return {scenarios[0]: p}
     if p.suffix and not p.exists():
         raise InputError(
@@ -87,11 +90,20 @@ def mcap_paths(target: str, scenarios: tuple[str, ...]) -> dict[str, Path]:
         )
     if p.exists() and not p.is_dir():
         raise InputError(f"--mcap {target}: not a directory; expected a directory or *.mcap")
+    check_output_dir(p, "MCAP directory")
     try:
         p.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise TruckdError(f"--mcap {target}: cannot create: {exc.strerror}") from None
     return {s: p / f"{s}.mcap" for s in scenarios}
+
+
+def trace_mcap_bytes(vehicle_id: str, scenario: str, tr: Trace) -> bytes:
+    """One run as an MCAP file's bytes (to be written with the other outputs as a set)."""
+    with tempfile.TemporaryDirectory(prefix="truckd-mcap-") as tmp:
+        path = Path(tmp) / f"{scenario}.mcap"
+        write_trace_mcap(path, vehicle_id, scenario, tr)
+        return path.read_bytes()
 
 
 def write_trace_mcap(path: Path, vehicle_id: str, scenario: str, tr: Trace) -> int:

@@ -99,13 +99,19 @@ def trace_columns() -> tuple[str, ...]:
     return (*LOG_COLUMNS, *TRUTH_COLUMNS)
 
 
-def write_trace(path: str | Path, tr: Trace) -> None:
+def trace_text(tr: Trace) -> str:
     """A run's time series in the log format (CONTRACTS.md section 3, the daemon's own
-    columns plus the truth), written whole or not at all (TruckdError when impossible)."""
+    columns plus the truth), as the file's text."""
     names = trace_columns()
+    lines = [",".join(names)]
+    for row in tr.rows:
+        if len(row) != len(names):
+            raise ValueError(f"trace row of {len(row)} values, expected {len(names)}")
+        lines.append(",".join(repr(float(x)) for x in row))
+    return "\n".join(lines) + "\n"
+
+
+def write_trace(path: str | Path, tr: Trace) -> None:
+    """:func:`trace_text` written whole or not at all (TruckdError when impossible)."""
     with atomic_text(path) as fh:
-        fh.write(",".join(names) + "\n")
-        for row in tr.rows:
-            if len(row) != len(names):
-                raise ValueError(f"trace row of {len(row)} values, expected {len(names)}")
-            fh.write(",".join(repr(float(x)) for x in row) + "\n")
+        fh.write(trace_text(tr))
