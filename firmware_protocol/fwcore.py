@@ -22,6 +22,7 @@ import fcntl
 import os
 import shutil
 import subprocess
+import tempfile
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cache
@@ -190,7 +191,14 @@ def _build_dir() -> Path:
     if os.access(FIRMWARE_DIR, os.W_OK):
         return local
     cache_home = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
-    return cache_home / "truckd" / "firmware"
+    cached = cache_home / "truckd" / "firmware"
+    base = cached
+    while not base.exists() and base != base.parent:
+        base = base.parent
+    if os.access(base, os.W_OK | os.X_OK):
+        return cached
+    # A service user without a writable home: a directory of this user's in /tmp.
+    return Path(tempfile.gettempdir()) / f"truckd-{os.getuid()}" / "firmware"
 
 
 def _stale(lib: Path) -> bool:
@@ -212,8 +220,15 @@ def build_library(force: bool = False) -> Path:
             "is missing: install them (Debian: apt-get install -y make gcc) or set "
             "TRUCKD_FW_LIB to a prebuilt libtruckfw.so"
         )
-    build.mkdir(parents=True, exist_ok=True)
-    with open(build / ".lock", "w") as lock:
+    try:
+        build.mkdir(parents=True, exist_ok=True)
+        lock = open(build / ".lock", "w")  # noqa: SIM115 - closed below
+    except OSError as exc:
+        raise FirmwareBuildError(
+            f"cannot build the C firmware core in {build}: {exc.strerror}; set "
+            "TRUCKD_FW_BUILD_DIR to a writable directory"
+        ) from None
+    with lock:
         fcntl.flock(lock, fcntl.LOCK_EX)  # one build at a time, across processes
         if force or _stale(lib):
             cmd = ["make", "-s", "-C", str(FIRMWARE_DIR), f"BUILD={build}", "host"]

@@ -494,3 +494,24 @@ def test_the_simulated_truck_runs_the_c_core(params: VehicleParams) -> None:
     assert core["fw"]["commands_applied"] == fw.stats.commands_applied == 30
     assert core["framing"]["frames_ok"] == 30  # the C deframer read the serial bytes
     assert fw.core.voltage_mv == 2500 and plant.v > 0.0
+
+
+def test_build_dir_falls_back_to_tmp_without_a_writable_home(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    """A service user whose home cannot be written (systemd's DynamicUser, nobody with
+    HOME=/root): the core is built in a directory of the user's under the temporary
+    directory, not failed with a PermissionError."""
+    import os
+    import tempfile
+
+    from firmware_protocol import fwcore
+
+    monkeypatch.delenv("TRUCKD_FW_BUILD_DIR", raising=False)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "home" / ".cache"))
+    writable = {Path(tempfile.gettempdir())}
+    monkeypatch.setattr(fwcore.os, "access", lambda p, _mode: Path(p) in writable)
+    d = fwcore._build_dir()
+    assert d == Path(tempfile.gettempdir()) / f"truckd-{os.getuid()}" / "firmware"
+    writable.add(tmp_path)  # a home that can be created: its cache
+    assert fwcore._build_dir() == tmp_path / "home" / ".cache" / "truckd" / "firmware"

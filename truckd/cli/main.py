@@ -110,8 +110,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except Exception as exc:  # a bug, or a failure nobody foresaw: one line, not a traceback
         if os.environ.get(DEBUG_ENV):
             raise
+        first = (str(exc).strip().splitlines() or [""])[0]  # one line (a build log follows)
         print(
-            f"truckd {args.command}: failed: {type(exc).__name__}: {exc} "
+            f"truckd {args.command}: failed: {type(exc).__name__}: {first} "
             f"(set {DEBUG_ENV}=1 for the traceback)",
             file=sys.stderr,
         )
