@@ -201,6 +201,22 @@ def _build_dir() -> Path:
     return Path(tempfile.gettempdir()) / f"truckd-{os.getuid()}" / "firmware"
 
 
+def _own_dir_only(build: Path) -> None:
+    """Under the shared temporary directory, the build directory and its parent must be
+    this user's and writable by no one else: a library loaded from a directory another
+    user made could be theirs."""
+    tmp = Path(tempfile.gettempdir())
+    if tmp not in build.parents:
+        return
+    for d in (build.parent, build):
+        st = d.stat()
+        if st.st_uid != os.getuid() or st.st_mode & 0o022:
+            raise FirmwareBuildError(
+                f"{d} belongs to another user or others may write it: not building the "
+                "C firmware core there; set TRUCKD_FW_BUILD_DIR to a directory of yours"
+            )
+
+
 def _stale(lib: Path) -> bool:
     if not lib.exists():
         return True
@@ -221,7 +237,8 @@ def build_library(force: bool = False) -> Path:
             "TRUCKD_FW_LIB to a prebuilt libtruckfw.so"
         )
     try:
-        build.mkdir(parents=True, exist_ok=True)
+        build.mkdir(mode=0o700, parents=True, exist_ok=True)
+        _own_dir_only(build)
         lock = open(build / ".lock", "w")  # noqa: SIM115 - closed below
     except OSError as exc:
         raise FirmwareBuildError(

@@ -515,3 +515,15 @@ def test_build_dir_falls_back_to_tmp_without_a_writable_home(
     assert d == Path(tempfile.gettempdir()) / f"truckd-{os.getuid()}" / "firmware"
     writable.add(tmp_path)  # a home that can be created: its cache
     assert fwcore._build_dir() == tmp_path / "home" / ".cache" / "truckd" / "firmware"
+
+
+def test_a_build_dir_under_tmp_that_others_may_write_is_refused(tmp_path: Path) -> None:
+    from firmware_protocol import fwcore
+
+    build = tmp_path / "shared" / "firmware"
+    build.mkdir(parents=True)
+    build.parent.chmod(0o777)  # as if another user had made it for us
+    with pytest.raises(fwcore.FirmwareBuildError, match="others may write"):
+        fwcore._own_dir_only(build)
+    build.parent.chmod(0o700)
+    fwcore._own_dir_only(build)  # ours alone: fine
