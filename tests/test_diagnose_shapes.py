@@ -49,3 +49,52 @@ def test_commands_above_the_configured_supply_are_not_clipped(params: VehiclePar
     model = identify_log(log, params).vehicle
     assert model.V_batt == pytest.approx(float(np.max(np.abs(u))))
     assert model.K_v == pytest.approx(truck.K_v, rel=0.03)
+
+
+def _levels(rng: np.random.Generator, seconds: float, h: float) -> tuple[np.ndarray, np.ndarray]:
+    """Random command levels in [-7, 7] V (some 0) held 0.3-2 s, sampled every h."""
+    n = int(seconds / h)
+    t = np.arange(n) * h
+    u = np.zeros(n)
+    k = 0
+    while k < n:
+        length = int(rng.uniform(0.3, 2.0) / h)
+        u[k : k + length] = 0.0 if rng.random() < 0.15 else rng.uniform(-7.0, 7.0)
+        k += length
+    return t, u
+
+
+def _drawn(p: VehicleParams, effects: Effects, seconds: float, h: float, seed: int) -> Log:
+    t, u = _levels(np.random.default_rng(seed), seconds, h)
+    cfg = PlantConfig(effects=effects, noise_v=0.01, seed=seed)
+    return Log({"t": t, "u": u, "v": simulate_open_loop(p, t, u, cfg).v}, f"<seed {seed}>")
+
+
+def test_a_stiction_far_from_the_configured_one_is_found(params: VehicleParams) -> None:
+    """Breakaway three times the configured one: the seed fit started from the configured
+    stiction, moved Coulomb friction and K_v to absorb it (K_coulomb 0.026 for 0.015) and
+    stayed there; a start with the breakaway scanned first finds both frictions."""
+    truck = params.replace(K_stiction=0.07)
+    model = identify_log(_drawn(truck, Effects(), 60.0, 0.01, 15), params).vehicle
+    assert model.K_coulomb == pytest.approx(truck.K_coulomb, rel=0.05)
+    assert model.K_stiction == pytest.approx(truck.K_stiction, rel=0.15)
+    assert model.K_v == pytest.approx(truck.K_v, rel=0.02)
+
+
+def test_a_drag_stronger_than_the_friction_is_found(params: VehicleParams) -> None:
+    """A fast truck (gear ratio 5) with a drag of 0.6 N s^2/m^2, 20 times its friction at
+    top speed: the drag's bound was 50 times the Coulomb force there (0.16 came out, with
+    a false saturation and load beside it); now what takes the whole stall force."""
+    truck = params.replace(n_g=5.0)
+    d = diagnose_log(_drawn(truck, Effects(aero_drag=0.6), 60.0, 0.01, 18), truck)
+    assert [e.name for e in d.effects] == ["aero_drag"]
+    assert d.effects[0].params["aero_drag"] == pytest.approx(0.6, rel=0.05)
+
+
+def test_a_sensor_lag_in_a_1khz_log_is_found(params: VehicleParams) -> None:
+    """At 1 kHz the fixed sample budgets made 1 s chunks, shorter than the truck's
+    response: the lag was taken for inertia (J_S a third, a false battery sag).  The
+    budgets now hold the same time as at 100 Hz (up to five times the samples)."""
+    d = diagnose_log(_drawn(params, Effects(sensor_lag=0.1), 20.0, 0.001, 21), params)
+    assert [e.name for e in d.effects] == ["sensor_lag"]
+    assert d.effects[0].params["sensor_lag"] == pytest.approx(0.1, rel=0.05)

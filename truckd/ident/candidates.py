@@ -62,6 +62,8 @@ def voltage_candidates(p0: VehicleParams, data: Series) -> list[Candidate]:
     f_c = max(f_c, 0.1)
     b_emf = p0.K_T * p0.K_v / p0.R_m  # back-EMF damping, N m s/rad
     c_drag = f_c / v_max**2
+    f_stall = p0.K_T * u_max / p0.R_m / p0.ratio  # N at the wheels
+    drag_hi = min(max(50.0 * c_drag, f_stall / v_max**2), 100.0)
     h = float(np.median(np.diff(data.t)))
     levels = np.unique(np.round(u_abs[u_abs > 0], 6))
     levels = levels[levels < 0.8 * u_max]
@@ -78,8 +80,13 @@ def voltage_candidates(p0: VehicleParams, data: Series) -> list[Candidate]:
         ),
         Candidate(
             "aero_drag",
-            Param("aero_drag", c_drag, 0.0, min(50.0 * c_drag, 100.0)),
-            (0.1 * c_drag, 0.5 * c_drag, 1.0 * c_drag),
+            # At most what takes the whole stall force at the top speed seen (50 times the
+            # Coulomb force there was the bound: a drag of 0.6 on a fast truck came out
+            # 0.16, at that bound, with false effects beside it).
+            Param("aero_drag", c_drag, 0.0, drag_hi),
+            tuple(
+                x for x in c_drag * np.array([0.1, 0.5, 1.0, 3.0, 10.0, 30.0, 100.0]) if x < drag_hi
+            ),
         ),
         Candidate(
             "load_force",

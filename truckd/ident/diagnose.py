@@ -84,13 +84,32 @@ from truckd.model.params import VehicleParams
 Progress = Callable[[str], None]
 
 FIT_BUDGET = 4000
-"""Samples of the estimation data used in the fitting loop (spread over chunks)."""
+"""Samples of the estimation data used in the fitting loop (spread over chunks): at
+least, and at least 40 s of it (a faster log gets more samples, up to five times: at
+1 kHz 4000 samples were 1 s chunks, shorter than a slow truck's response, and the fit
+took a sensor lag for inertia)."""
 FINAL_BUDGET = 8000
-"""Samples used by the final joint refit of the extended model."""
+"""Samples used by the final joint refit of the extended model (at least 80 s, as above)."""
 FINAL_NFEV = 80
 """Evaluations of the final joint refit (R_m and battery sag correlate: they need room)."""
 VAL_BUDGET = 12000
-"""Samples of the validation data used to select candidates."""
+"""Samples of the validation data used to select candidates (at least 120 s, as above)."""
+BUDGET_RATE_HZ = 100.0
+"""The sample rate the budgets above are counted at: a faster log gets the same time."""
+BUDGET_MAX_FACTOR = 5
+"""A faster log's budgets grow at most this much (run time grows with them)."""
+
+
+def _budget(runs: Sequence[Series], samples: int) -> int:
+    """``samples`` at :data:`BUDGET_RATE_HZ`, as samples of ``runs`` at their rate."""
+    steps = [float(np.median(np.diff(r.t))) for r in runs if len(r) > 1]
+    h = float(np.median(steps)) if steps else 1.0 / BUDGET_RATE_HZ
+    if not h > 0.0:
+        return samples
+    per_time = round(samples / (BUDGET_RATE_HZ * h))
+    return int(min(max(samples, per_time), BUDGET_MAX_FACTOR * samples))
+
+
 MAX_EXTRA_ROUNDS = 2
 """Rounds of trying the remaining candidates on top of the accepted ones."""
 SETTLE = 3.0
@@ -139,7 +158,7 @@ def identify_voltage(
     if supply_note is not None:
         progress(supply_note)
     whole = merged(runs)
-    fit_data = chunks_of_runs(runs, FIT_BUDGET)
+    fit_data = chunks_of_runs(runs, _budget(runs, FIT_BUDGET))
     w = weights_for(fit_data)
     p_lin, _ = _linear_start(p0, runs, progress)
     free = seed_params(p_lin, whole.i is not None)
@@ -182,7 +201,16 @@ def _fit_seed(
     alt = p0 if p0 != p_lin else p0.replace(J_S=p0.J_S * 2.0, K_coulomb=p0.K_coulomb * 0.5)
     alt = alt.replace(K_stiction=max(alt.K_stiction, alt.K_coulomb))
     second = fit_with_stiction(alt, Effects(), free, fit_data, w, grid, progress, max_nfev=80)
-    return min((first, second, start), key=lambda m: m.sse)
+    fits = [first, second, start]
+    # Third start: the linear start with its breakaway scanned first.  A stiction far from
+    # the configured one made the first fit move Coulomb friction and K_v to absorb it (a
+    # local minimum the later scan could not leave: K_coulomb 0.026 for 0.015).
+    p_st, _ = scan_stiction(p_lin, Effects(), grid, fit_data, w)
+    if p_st.K_stiction != p_lin.K_stiction:
+        fits.append(
+            fit_with_stiction(p_st, Effects(), free, fit_data, w, grid, progress, max_nfev=80)
+        )
+    return min(fits, key=lambda m: m.sse)
 
 
 def _restick(m: FitResult, grid: Sequence[float], data: list[Series], w: Weights) -> FitResult:
@@ -531,8 +559,8 @@ def diagnose_voltage(
         est, val = split_runs_for_validation(runs)
     report = list(validate) if validate else list(runs)
     whole = merged(runs)
-    fit_data = chunks_of_runs(est, FIT_BUDGET)
-    val_data = chunks_of_runs(val, VAL_BUDGET)
+    fit_data = chunks_of_runs(est, _budget(est, FIT_BUDGET))
+    val_data = chunks_of_runs(val, _budget(val, VAL_BUDGET))
     w = weights_for(fit_data)
     p_lin, ff = _linear_start(p0, est, progress)
     seed_free = seed_params(p_lin, whole.i is not None)
@@ -721,7 +749,7 @@ def diagnose_voltage(
     # Final joint refit of the extended model on more of the data; stiction shows only
     # at the breakaways, which chunks may miss: a last look at it on all the data.
     fit_runs = est if validate else list(runs)  # selection done: use all the data
-    polish_data = chunks_of_runs(fit_runs, FINAL_BUDGET, pieces=8)
+    polish_data = chunks_of_runs(fit_runs, _budget(fit_runs, FINAL_BUDGET), pieces=8)
     base_pol = _restick(base_fit, grid, fit_runs, w)
     final = base_pol
     if accepted:
