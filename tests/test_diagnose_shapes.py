@@ -98,3 +98,35 @@ def test_a_sensor_lag_in_a_1khz_log_is_found(params: VehicleParams) -> None:
     d = diagnose_log(_drawn(params, Effects(sensor_lag=0.1), 20.0, 0.001, 21), params)
     assert [e.name for e in d.effects] == ["sensor_lag"]
     assert d.effects[0].params["sensor_lag"] == pytest.approx(0.1, rel=0.05)
+
+
+def test_a_force_offset_under_viscous_friction_is_found(params: VehicleParams) -> None:
+    """A position-controlled stage (force input, as EMPS): viscous friction 20 N s/m,
+    Coulomb 2 N and an offset of 1.5 N that does not pass on its own.  Only candidates
+    that passed alone competed after the first round: the offset went unnamed and Coulomb
+    friction came out 1.45 N; every candidate now competes in every round."""
+    rng = np.random.default_rng(81)
+    mass, f_c, f_v, off = 5.0, 2.0, 20.0, 1.5
+    h, sub = 0.005, 20
+    n = int(40.0 / h)
+    target = np.zeros(n)
+    k = 0
+    while k < n:
+        length = int(rng.uniform(0.5, 2.0) / h)
+        target[k : k + length] = rng.uniform(-0.3, 0.3)
+        k += length
+    x = v = 0.0
+    xs, fs = np.zeros(n), np.zeros(n)
+    for j in range(n):
+        f = 400.0 * (target[j] - x) - 60.0 * v + rng.normal(0.0, 0.5)
+        fs[j], xs[j] = f, x
+        for _ in range(sub):
+            a = (f - f_c * np.tanh(v / 0.002) - f_v * v - off) / mass
+            v += a * h / sub
+            x += v * h / sub
+    log = Log({"t": np.arange(n) * h, "F": fs, "x": np.round(xs / 1e-5) * 1e-5}, "<stage>")
+    d = diagnose_log(log, params)
+    found = {e.name: e.params for e in d.effects}
+    assert set(found) == {"viscous_friction", "load_force"}
+    assert next(iter(found["load_force"].values())) == pytest.approx(off, rel=0.05)
+    assert next(iter(found["viscous_friction"].values())) == pytest.approx(f_v, rel=0.05)

@@ -192,7 +192,9 @@ def diagnose_force(
     accepted: list[str] = []
     steps = [base]
     ambiguous: list[tuple[str, str]] = []
-    remaining = [n for n in FORCE_CANDIDATES if rows[n].note == "passes alone"]
+    # Every candidate of a physical sign alone competes in each round, not only those that
+    # pass alone: an offset hidden under viscous friction passes only on top of it.
+    remaining = [n for n in FORCE_CANDIDATES if rows[n].note != "unphysical sign"]
     while remaining:
         trials = {n: fit_idm(d_est, (*accepted, n)) for n in remaining}
         scored = sorted(remaining, key=lambda n: _val_sse(d_val, trials[n]))
@@ -202,7 +204,8 @@ def diagnose_force(
         physical = all(f.theta[2 + k] > 0.0 for k, n in enumerate(f.names) if n != "load_force")
         if not (physical and passes(dbic(f, current), vs, cur_val)):
             for n in remaining:
-                rows[n] = _note(rows[n], "adds nothing once others are in")
+                if rows[n].note == "passes alone":
+                    rows[n] = _note(rows[n], "adds nothing once others are in")
             break
         for n in scored[1:]:
             if close(_val_sse(d_val, trials[n]), vs, absolute=0.0):
