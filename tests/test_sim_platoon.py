@@ -159,6 +159,8 @@ def test_cli_json_keys(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> No
         ("--platoon", "3", "--scenario", "cruise"),
         ("--platoon", "3", "--plan-loss", "1.5"),
         ("--platoon", "3", "--plan-delay", "-1"),
+        ("--scenario", "cruise", "--plan-loss", "0.3"),  # a platoon's option: not ignored
+        ("--scenario", "cruise", "--seed", "4"),
     ],
 )
 def test_cli_bad_platoon_options_exit_2(

@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from truckd.cli.args import image_file, json_file, output_dir, plot_format, sim_duration
-from truckd.cli.sim_platoon import add_platoon_arguments, run_platoon_cli
+from truckd.cli.sim_platoon import add_platoon_arguments, check_platoon_only, run_platoon_cli
 from truckd.config.truck import load_config
 from truckd.control.qp import ControlModel
 from truckd.errors import TruckdError
@@ -56,6 +56,7 @@ def add_subparser(sub: Any) -> None:
 def run(args: argparse.Namespace) -> int:
     if args.platoon is not None or args.scenario in PLATOON_SCENARIOS:
         return run_platoon_cli(args)
+    check_platoon_only(args)
     check_distinct([("--json", args.json), ("--plot", args.plot)])
     cfg = load_config(args.config)
     if args.model:

@@ -23,15 +23,30 @@ def add_platoon_arguments(p: argparse.ArgumentParser) -> None:
         "--platoon", type=int, metavar="N", help=f"N trucks (2..{MAX_TRUCKS}), truck 0 leads"
     )
     p.add_argument(
-        "--plan-delay", type=float, default=0.02, metavar="S", help="plan delivery delay (s)"
+        "--plan-delay", type=float, metavar="S", help="plan delivery delay (s, default 0.02)"
     )
     p.add_argument(
-        "--plan-loss", type=float, default=0.0, metavar="P", help="share of plans lost (0..1)"
+        "--plan-loss", type=float, metavar="P", help="share of plans lost (0..1, default 0)"
     )
-    p.add_argument("--seed", type=int, default=0, help="random seed of the plan loss")
+    p.add_argument("--seed", type=int, help="random seed of the plan loss (default 0)")
+
+
+PLATOON_ONLY = {"plan_delay": 0.02, "plan_loss": 0.0, "seed": 0}
+"""Options of a platoon run and their defaults: given without ``--platoon``, refused."""
+
+
+def check_platoon_only(args: argparse.Namespace) -> None:
+    """A single-truck run refuses the platoon's options (they would be ignored)."""
+    for name in PLATOON_ONLY:
+        if getattr(args, name) is not None:
+            opt = "--" + name.replace("_", "-")
+            raise InputError(f"{opt}: applies to a platoon run only (--platoon N)")
 
 
 def _check(args: argparse.Namespace) -> None:
+    for name, default in PLATOON_ONLY.items():
+        if getattr(args, name) is None:
+            setattr(args, name, default)
     if args.platoon is None:
         raise InputError(f"--scenario {args.scenario}: a platoon scenario needs --platoon N")
     if not 2 <= args.platoon <= MAX_TRUCKS:
