@@ -186,7 +186,7 @@ def test_range_readings(params: VehicleParams) -> None:
     def lead(t: float, x: float) -> float | None:
         return None if t > 0.5 else (9.0 if t > 0.3 else 2.0 + t - x)
 
-    rig = Rig(params, lead, cfg=FirmwareSimConfig(range_max=4.0))
+    rig = Rig(params, lead, cfg=FirmwareSimConfig(range_max=4.0, range_noise=0.0))
     rig.run(0.8, drive(3.0))
     for r in rig.of("RANGE"):
         m = r.msg

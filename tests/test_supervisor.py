@@ -76,7 +76,7 @@ def test_stale_data_stops_on_the_detection_cycle(field: str, cause: str) -> None
     cfg = sup.config
     timeout = {
         "encoder_age": cfg.encoder_timeout_s,
-        "speed_age": cfg.encoder_timeout_s,
+        "speed_age": 2.0 * cfg.encoder_timeout_s,
         "link_age": cfg.link_timeout_s,
         "range_age": cfg.range_timeout_s,
     }[field]
@@ -213,7 +213,7 @@ def test_never_active_with_a_stale_or_missing_input(
             up
             and la <= cfg.link_timeout_s
             and ea <= cfg.encoder_timeout_s
-            and sa <= cfg.encoder_timeout_s
+            and sa <= 2.0 * cfg.encoder_timeout_s
             and ra <= cfg.range_timeout_s
         )
         if not fresh:
@@ -222,7 +222,15 @@ def test_never_active_with_a_stale_or_missing_input(
             assert fresh and lead  # isolated solver failures and misses are only counted
 
 
-def test_frozen_value_check_off_by_default() -> None:
+def test_frozen_value_check_on_by_default_and_off_at_zero() -> None:
+    """A stuck sensor whose firmware still stamps new sample times ran the truck into a
+    braking lead (the check was off by default): one second of driving on one value stops
+    it; 0 turns the check off (a noise-free sensor)."""
     sup, t = active_supervisor()
+    ds = run(sup, t, t + 2.0, lambda tk: healthy(tk, range_value=1.234, speed=1.0))
+    first = next(k for k, d in enumerate(ds) if d.mode != Mode.ACTIVE)
+    assert ds[first].mode == Mode.SAFE_STOP and "range_frozen" in ds[first].causes
+    assert first * P == pytest.approx(sup.config.range_frozen_s, abs=P + 1e-9)
+    sup, t = active_supervisor(range_frozen_s=0.0)
     ds = run(sup, t, t + 5.0, lambda tk: healthy(tk, range_value=1.234, speed=1.0))
     assert all(d.mode == Mode.ACTIVE for d in ds)

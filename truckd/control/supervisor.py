@@ -12,8 +12,8 @@ Modes (the daemon maps them to commands):
   and the lead-lost action is ``cruise``.  Single failures and misses are only counted
   (the controller's held plan covers one failed solve).
 - ``SAFE_STOP``: a controlled stop (voltage ramped to zero): encoder or link stale, no own
-  speed from the encoder data arriving (the estimator refused it, e.g. both wheels
-  faulty or the counters jumping: ``speed_stale``), range
+  speed from the encoder data arriving for twice the encoder timeout (the estimator
+  refused it, e.g. both wheels faulty or the counters jumping: ``speed_stale``), range
   sensor stale, frozen or reporting a fault, the solver failing ``solver_fail_limit`` cycles
   in a row, the loop overrunning ``overrun_limit`` cycles in a row, or the lead lost with
   action ``stop``.
@@ -61,12 +61,12 @@ class SupervisorConfig:
         "no valid message for this long: link stale", unit="s", lo=0.0, lo_open=True, default=0.05
     )
     range_frozen_s: float = spec(
-        "range value bit-identical for this much driving time: frozen sensor; 0 = off "
-        "(a repeated sample time already makes the range stale; a noise-free sensor, as "
-        "in simulation, holds one value while following steadily)",
+        "range value bit-identical for this much driving time: frozen sensor (a stuck "
+        "sensor whose firmware still stamps new sample times); 0 = off (only for a "
+        "noise-free sensor, which holds one value while following steadily)",
         unit="s",
         lo=0.0,
-        default=0.0,
+        default=1.0,
     )
     frozen_min_speed: float = spec(
         "frozen-range check only while faster than this", unit="m/s", lo=0.0, default=0.05
@@ -193,8 +193,11 @@ class Supervisor:
             out["link_stale"] = Mode.SAFE_STOP
         if _stale(x.encoder_age, cfg.encoder_timeout_s):
             out["encoder_stale"] = Mode.SAFE_STOP
-        elif _stale(x.speed_age, cfg.encoder_timeout_s):
-            out["speed_stale"] = Mode.SAFE_STOP  # messages arrive, but no speed from them
+        elif _stale(x.speed_age, 2.0 * cfg.encoder_timeout_s):
+            # Messages arrive, but no speed from them.  Twice the timeout: the estimator's
+            # clock is the cycle's, a little before the messages' receipt stamps, so on
+            # silence the root cause, encoder_stale, is named first.
+            out["speed_stale"] = Mode.SAFE_STOP
         if _stale(x.range_age, cfg.range_timeout_s):
             out["range_stale"] = Mode.SAFE_STOP
         if self._frozen(x):

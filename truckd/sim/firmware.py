@@ -79,7 +79,14 @@ class FirmwareSimConfig:
     range_max: float = spec(
         "range sensor maximum distance (beyond: NO_TARGET)", unit="m", lo=0.1, hi=65.0, default=4.0
     )
-    range_noise: float = spec("range noise (std)", unit="m", lo=0.0, hi=1.0, default=0.0)
+    range_noise: float = spec(
+        "range noise (std; a real time-of-flight sensor has a few mm, and a value that "
+        "never changes is a frozen sensor to the supervisor)",
+        unit="m",
+        lo=0.0,
+        hi=1.0,
+        default=0.002,
+    )
     undervoltage: float = spec(
         "battery voltage below which UNDERVOLTAGE is set", unit="V", lo=0.0, hi=100.0, default=5.5
     )
