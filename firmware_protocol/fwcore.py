@@ -198,16 +198,18 @@ def _build_dir() -> Path:
     if os.access(base, os.W_OK | os.X_OK):
         return cached
     # A service user without a writable home: a directory of this user's in /tmp.
+    return _tmp_build_dir()
+
+
+def _tmp_build_dir() -> Path:
     return Path(tempfile.gettempdir()) / f"truckd-{os.getuid()}" / "firmware"
 
 
 def _own_dir_only(build: Path) -> None:
-    """Under the shared temporary directory, the build directory and its parent must be
-    this user's and writable by no one else: a library loaded from a directory another
-    user made could be theirs."""
-    tmp = Path(tempfile.gettempdir())
-    if tmp not in build.parents:
-        return
+    """The fallback build directory under the shared temporary directory and its parent
+    must be this user's and writable by no one else: a library loaded from a directory
+    another user made could be theirs.  (An explicit ``TRUCKD_FW_BUILD_DIR`` is the
+    user's choice and not checked.)"""
     for d in (build.parent, build):
         st = d.stat()
         if st.st_uid != os.getuid() or st.st_mode & 0o022:
@@ -237,8 +239,14 @@ def build_library(force: bool = False) -> Path:
             "TRUCKD_FW_LIB to a prebuilt libtruckfw.so"
         )
     try:
-        build.mkdir(mode=0o700, parents=True, exist_ok=True)
-        _own_dir_only(build)
+        if build == _tmp_build_dir():
+            for d in (build.parent, build):  # 0o700 whatever the umask (mkdir's parents)
+                if not d.exists():
+                    d.mkdir(mode=0o700)
+                    d.chmod(0o700)
+            _own_dir_only(build)
+        else:
+            build.mkdir(parents=True, exist_ok=True)
         lock = open(build / ".lock", "w")  # noqa: SIM115 - closed below
     except OSError as exc:
         raise FirmwareBuildError(

@@ -278,3 +278,23 @@ def test_a_valid_reading_closer_than_the_minimum_range_is_a_target_at_it() -> No
     est.update_range(0.0, RangeSample(0.0, 0.0), 0.0)
     e = est.estimate(0.0)
     assert e.lead_valid and e.gap == pytest.approx(cfg.range_min)
+
+
+def test_a_reset_that_looks_like_an_ordinary_step_is_still_a_restart() -> None:
+    """The old clock just below its wrap (the new one looks 0.1 s ahead, as a stalled
+    link's would) and the old count 2000 ticks: under the speed bound the reset read as
+    -19 m/s, valid.  The step lies far from the filter's speed: a restart."""
+    est = Estimator(EstimatorConfig(), R_W, TICKS)
+    x0 = 2000 * TICK_LEN - 300 * DT
+    clock0 = 6.45 - 300 * DT
+    for k in range(1, 301):
+        ticks = math.floor((x0 + k * DT) / TICK_LEN) % MOD
+        est.update_encoders(k * DT, EncoderSample(ticks, ticks, (clock0 + k * DT) % 6.5536))
+    t_reset = 300 * DT + 0.2
+    for k in range(1, 11):
+        ticks = math.floor(0.5 * k * DT / TICK_LEN)
+        t = t_reset + k * DT
+        est.update_encoders(t, EncoderSample(ticks, ticks, k * DT))
+        v, ok = est.speed(t)
+        assert not ok or abs(v - 0.5) < 0.1, (k, v)
+    assert est.estimate(t).speed_restarts == 1

@@ -527,3 +527,37 @@ def test_a_build_dir_under_tmp_that_others_may_write_is_refused(tmp_path: Path) 
         fwcore._own_dir_only(build)
     build.parent.chmod(0o700)
     fwcore._own_dir_only(build)  # ours alone: fine
+
+
+def test_the_tmp_build_dir_is_private_whatever_the_umask(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    """Under umask 002 (Debian's default for users) mkdir's parents came out 0775 and the
+    fallback refused its own directory; it is made 0700, checked, and the core builds."""
+    import os
+    import stat
+    import tempfile
+
+    from firmware_protocol import fwcore
+
+    monkeypatch.delenv("TRUCKD_FW_BUILD_DIR", raising=False)
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    monkeypatch.setenv("XDG_CACHE_HOME", "/proc/no-cache")  # not writable: the fallback
+    real_access = os.access
+    monkeypatch.setattr(
+        fwcore.os,
+        "access",
+        lambda p, m: (
+            False
+            if str(p) == str(fwcore.FIRMWARE_DIR) or str(p).startswith("/proc")
+            else real_access(p, m)
+        ),
+    )
+    old = os.umask(0o002)
+    try:
+        lib = fwcore.build_library()
+    finally:
+        os.umask(old)
+    assert lib.exists() and lib.parent == tmp_path / f"truckd-{os.getuid()}" / "firmware"
+    for d in (lib.parent, lib.parent.parent):
+        assert stat.S_IMODE(d.stat().st_mode) == 0o700

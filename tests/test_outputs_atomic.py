@@ -163,3 +163,26 @@ def test_sigterm_while_writing_leaves_nothing_half_written(
         assert signal.getsignal(signal.SIGTERM) is fallback  # restored
     finally:
         signal.signal(signal.SIGTERM, before)
+
+
+def test_an_ignored_sighup_stays_ignored(monkeypatch: pytest.MonkeyPatch) -> None:
+    """`nohup truckd diagnose ...`: SIGHUP is ignored by nohup and must stay so (the tool
+    ran on after the terminal closed; unwinding on it would end the run)."""
+    import signal
+
+    import truckd.cli.params as cli_params
+    from truckd.cli.main import main
+
+    seen: list[object] = []
+
+    def run(_args: object) -> int:
+        seen.append(signal.getsignal(signal.SIGHUP))
+        return 0
+
+    monkeypatch.setattr(cli_params, "run", run)
+    before = signal.signal(signal.SIGHUP, signal.SIG_IGN)
+    try:
+        assert main(["params"]) == 0
+        assert seen == [signal.SIG_IGN]
+    finally:
+        signal.signal(signal.SIGHUP, before)

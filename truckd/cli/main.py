@@ -69,12 +69,13 @@ def _terminated(signum: int, _frame: FrameType | None) -> None:
 def _term_unwinds(command: str) -> Iterator[None]:
     """SIGTERM and SIGHUP raise SystemExit(128 + signal) in the main thread while a tool
     runs, so its cleanup runs as on Ctrl-C (no temporary file left half-written; the
-    default action kills the process on the spot).  The previous handlers come back
-    after."""
+    default action kills the process on the spot).  Only where the default action is in
+    place: a signal ignored (``nohup`` ignores SIGHUP) stays ignored.  The previous
+    handlers come back after."""
     if command in _OWN_SIGNALS or threading.current_thread() is not threading.main_thread():
         yield
         return
-    sigs = (signal.SIGTERM, signal.SIGHUP)
+    sigs = [s for s in (signal.SIGTERM, signal.SIGHUP) if signal.getsignal(s) is signal.SIG_DFL]
     old = {s: signal.signal(s, _terminated) for s in sigs}
     try:
         yield

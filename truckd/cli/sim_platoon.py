@@ -5,16 +5,17 @@ from __future__ import annotations
 import argparse
 import json
 import math
+from pathlib import Path
 from typing import Any
 
 from truckd.config.truck import load_config
 from truckd.control.qp import ControlModel
 from truckd.errors import InputError, TruckdError
 from truckd.modelfile import read_model
-from truckd.outputs import ensure_dir, write_text
+from truckd.outputs import ensure_dir, write_set
 from truckd.sim.closed_loop import SimSetup, Trace
 from truckd.sim.platoon import MAX_TRUCKS, PLATOON_SCENARIOS, make_platoon_scenario, run_platoon
-from truckd.sim.report import json_safe, write_trace
+from truckd.sim.report import json_safe, trace_text
 
 
 def add_platoon_arguments(p: argparse.ArgumentParser) -> None:
@@ -62,7 +63,7 @@ def _check(args: argparse.Namespace) -> None:
         raise InputError(f"--plan-loss: expected a share from 0 to 1, got {args.plan_loss}")
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
         raise InputError(f"--duration: expected a positive number of seconds, got {args.duration}")
-    for opt in ("realtime", "plot"):
+    for opt in ("realtime", "plot", "mcap"):  # --mcap was silently ignored
         if getattr(args, opt, None):
             raise InputError(f"--{opt}: not available with --platoon")
 
@@ -90,6 +91,7 @@ def run_platoon_cli(args: argparse.Namespace) -> int:
     names = PLATOON_SCENARIOS if args.scenario == "all" else (args.scenario,)
     trace_dir = ensure_dir(args.trace, "trace directory") if getattr(args, "trace", None) else None
     results: list[dict[str, Any]] = []
+    files: list[tuple[str | Path, str | bytes]] = []
     for name in names:
         m, tr = run_platoon(
             make_platoon_scenario(name),
@@ -104,7 +106,7 @@ def run_platoon_cli(args: argparse.Namespace) -> int:
         results.append(json_safe(m))
         if trace_dir is not None:  # one log per follower (truck 0, the lead, is scripted)
             for i, rows in enumerate(tr.rows, start=1):
-                write_trace(trace_dir / f"{name}-truck{i}.csv", Trace(rows=rows))
+                files.append((trace_dir / f"{name}-truck{i}.csv", trace_text(Trace(rows=rows))))
         print(
             f"{name}: {args.platoon} trucks, collision {m['collision']}, "
             f"min gap {m['min_gap_m']:.3f} m, string ratio l2 [{_fmt(m['string_ratio_l2'])}] "
@@ -112,7 +114,8 @@ def run_platoon_cli(args: argparse.Namespace) -> int:
         )
     if args.json:
         doc: object = results if args.scenario == "all" else results[0]
-        write_text(args.json, json.dumps(doc, indent=2, allow_nan=False) + "\n")
+        files.append((args.json, json.dumps(doc, indent=2, allow_nan=False) + "\n"))
+    write_set(files)  # all or nothing: JSON and traces
     crashed = [r["scenario"] for r in results if r["collision"]]
     if crashed:
         raise TruckdError(f"collision in: {', '.join(crashed)}")

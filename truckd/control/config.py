@@ -66,6 +66,16 @@ class EstimatorConfig:
         hi=1e3,
         default=15.0,
     )
+    accel_max: float = spec(
+        "own-speed filter: a step between two encoder samples whose speed differs from the "
+        "filter's by more than this acceleration allows (plus the ticks' quantisation) is a "
+        "discontinuity, not motion: the filter restarts",
+        unit="m/s^2",
+        lo=0.0,
+        lo_open=True,
+        hi=1e4,
+        default=30.0,
+    )
     range_max: float = spec(
         "range sensor maximum range: beyond it there is no lead",
         unit="m",

@@ -212,7 +212,9 @@ class Estimator:
         if not deltas:
             return  # no healthy wheel: the speed goes stale
         step = self.tick_len * sum(deltas) / len(deltas)
-        if abs(step) > self.cfg.speed_max * dt + 2.0 * self.tick_len:
+        if abs(step) > self.cfg.speed_max * dt + 2.0 * self.tick_len or (
+            st.run >= 2 and abs(step - st.kf.x1 * dt) > self._speed_room(dt)
+        ):
             self._restart(s, t)  # no motion: the counters reset or jumped
             return
         st.distance += step
@@ -225,6 +227,14 @@ class Estimator:
             st.kf.predict(dt, self.cfg.speed_accel_std)
             st.kf.update(st.distance, self._r_tick / len(deltas))
         st.t_last = t
+
+    def _speed_room(self, dt: float) -> float:
+        """How far (m) a step over ``dt`` (s) may lie from the filter's speed: what
+        ``accel_max`` allows, two ticks of quantisation and four standard deviations of the
+        speed estimate.  A counter reset that looked like an ordinary step under the speed
+        bound (0.1 s, 2000 ticks back: -19 m/s) lies far outside it."""
+        sd = math.sqrt(max(self._s.kf.p11, 0.0))
+        return (self.cfg.accel_max * dt + 4.0 * sd) * dt + 2.0 * self.tick_len
 
     def _restart(self, s: EncoderSample, t: float) -> None:
         """The own-speed filter starts again from ``s`` (a speed from the next sample)."""
@@ -299,6 +309,10 @@ class Estimator:
         if 0.0 < dt < 0.5 * self.cfg.sample_time_modulo:
             ld.kf.predict(dt, self.cfg.lead_accel_std, -v_own)
             ld.kf.x1 = max(ld.kf.x1, 0.0)  # the lead does not reverse
+            ld.t_mcu = t_mcu
+        elif dt > 0.0:
+            # Behind the last one: the firmware's clock restarted (or one sample came out
+            # of order): predict from here on, not never again.
             ld.t_mcu = t_mcu
 
     def estimate(self, t: float) -> Estimate:

@@ -13,7 +13,7 @@ Modes (the daemon maps them to commands):
   (the controller's held plan covers one failed solve).
 - ``SAFE_STOP``: a controlled stop (voltage ramped to zero): encoder or link stale, no own
   speed from the encoder data arriving for twice the encoder timeout (the estimator
-  refused it, e.g. both wheels faulty or the counters jumping: ``speed_stale``), range
+  refused it, e.g. the wheels failing in turn or the counters jumping: ``speed_stale``), range
   sensor stale, frozen or reporting a fault, the solver failing ``solver_fail_limit`` cycles
   in a row, the loop overrunning ``overrun_limit`` cycles in a row, or the lead lost with
   action ``stop``.
