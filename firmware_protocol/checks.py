@@ -4,11 +4,22 @@ continuity and freshness per message, with error statistics.
 A frame that fails a check is never handed on as data.  Counter rules (per message):
 a frame whose counter equals the last accepted one (a stuck sender or a replay) is
 always rejected; otherwise the first frame, or the first after a timeout, is accepted
-as is; a jump counts the
-missing frames in ``counter_gaps`` and adds 1 to a per-message score (capped at twice
+as is; a forward jump of up to :data:`MAX_DELTA` counts the missing frames in
+``counter_gaps`` and adds 1 to a per-message score (capped at twice
 ``max_wrong_counters``), an in-sequence frame subtracts 1; frames are accepted only
 while the score is at most ``max_wrong_counters`` (a broken counter is rejected until
-enough in-sequence frames have arrived).
+enough in-sequence frames have arrived).  On the side that drives the motor
+(``resync`` = :data:`RESYNC`, the microcontroller's receive of commands; the C firmware
+does the same), a larger jump, forward or back, while the message is fresh is a replay
+or a broken sender: rejected, and so is every frame after it until ``resync`` frames in
+a row have run in sequence (each within :data:`MAX_DELTA` of the one before), timeouts
+included.  (The companion's receive of sensor data keeps the tolerant rule: a burst of
+lost frames must not blind it for 160 ms; a replayed sensor sample repeats its sample
+time and goes stale there.)  The last frames replayed in a
+loop (counters 6, 7, 6, 7, ...) were accepted before, every in-sequence one refreshing
+the command timeout: the motor stayed driven.  A loop of 13 frames or more cannot be
+told from a sender with a 4-bit counter that lost a few (its wrap is a jump of at most
+:data:`MAX_DELTA`).
 
 Time is passed in (``now``, s, any monotonic clock or simulated time): no clock here.
 """
@@ -19,6 +30,12 @@ from collections.abc import Iterable
 from dataclasses import asdict, dataclass, field
 
 from firmware_protocol.codec import Decoded, DecodeError, Frame, decode, specs
+
+MAX_DELTA = 3
+"""The largest forward counter jump taken as lost frames (two lost in a row)."""
+RESYNC = 16
+"""In-sequence frames needed after a larger jump before frames are accepted again (more
+than any replay loop a 4-bit counter can tell)."""
 
 
 @dataclass
@@ -53,6 +70,10 @@ class _MsgState:
     wrong_counters: int = 0
     stale: bool = True
     count: int = 0
+    resync: int = 0
+    """Frames still to run in sequence before one is accepted (after a large jump)."""
+    chain: int = 0
+    """The counter of the last frame of that run."""
 
 
 @dataclass
@@ -67,6 +88,8 @@ class RxChecker:
     timeout_periods: float = 5.0
     max_wrong_counters: int = 5
     stats: RxStats = field(default_factory=RxStats)
+    resync: int = 0
+    """In-sequence frames needed after a jump beyond :data:`MAX_DELTA` (0: no such rule)."""
 
     def __post_init__(self) -> None:
         all_specs = specs()
@@ -100,7 +123,19 @@ class RxChecker:
         if ms.last_counter is not None and dec.counter == ms.last_counter:
             st.counter_errors += 1  # stuck sender or replay, even after a timeout
             return None
-        if ms.last_counter is not None and not ms.stale:
+        if ms.resync > 0:  # after a large jump: a run of in-sequence frames first
+            step = (dec.counter - ms.chain) % 16
+            ms.resync = ms.resync - 1 if 1 <= step <= MAX_DELTA else self.resync
+            ms.chain = dec.counter
+            if ms.resync > 0:
+                st.counter_errors += 1
+                return None
+            ms.stale = True  # the run restarts the sequence: accepted as after a timeout
+        elif ms.last_counter is not None and not ms.stale:
+            if self.resync and (dec.counter - ms.last_counter) % 16 > MAX_DELTA:
+                ms.resync, ms.chain = self.resync, dec.counter
+                st.counter_errors += 1
+                return None
             jump = (dec.counter - ms.last_counter) % 16
             ms.last_counter = dec.counter
             if jump != 1:

@@ -228,6 +228,28 @@ void truck_fw_rx_frame(struct truck_fw *fw, uint16_t can_id, const uint8_t *data
         fw->sticky |= TRUCK_FW_FAULT_CMD_COUNTER;
         return;
     }
+    if (ms->resync > 0u) {
+        /* After a jump beyond TRUCK_FW_MAX_DELTA (a replayed loop of the last frames, or a
+         * broken sender): a run of in-sequence frames first, timeouts included.  The loop
+         * 6, 7, 6, 7, ... was accepted before and kept the motor driven. */
+        unsigned step = ((unsigned)counter - ms->chain) & 0xFu;
+        ms->resync = (step >= 1u && step <= TRUCK_FW_MAX_DELTA) ? (uint8_t)(ms->resync - 1u)
+                                                                 : TRUCK_FW_RESYNC;
+        ms->chain = (uint8_t)counter;
+        if (ms->resync > 0u) {
+            st->counter_errors++;
+            fw->sticky |= TRUCK_FW_FAULT_CMD_COUNTER;
+            return;
+        }
+        ms->stale = 1u; /* the run restarts the sequence, as after a timeout */
+    } else if (ms->has_counter && !ms->stale &&
+               (((unsigned)counter - ms->last_counter) & 0xFu) > TRUCK_FW_MAX_DELTA) {
+        ms->resync = TRUCK_FW_RESYNC;
+        ms->chain = (uint8_t)counter;
+        st->counter_errors++;
+        fw->sticky |= TRUCK_FW_FAULT_CMD_COUNTER;
+        return;
+    }
     if (ms->has_counter && !ms->stale) {
         unsigned jump = ((unsigned)counter - ms->last_counter) & 0xFu;
         ms->last_counter = (uint8_t)counter;

@@ -33,6 +33,12 @@ extern "C" {
 
 #define TRUCK_FW_ABI_VERSION 1u
 
+/** The largest forward counter jump taken as lost frames (two lost in a row). */
+#define TRUCK_FW_MAX_DELTA 3u
+/** In-sequence frames needed after a larger jump before commands are accepted again (more
+ *  than any replay loop a 4-bit counter can tell). */
+#define TRUCK_FW_RESYNC 16u
+
 /* Link kinds. */
 #define TRUCK_FW_LINK_SERIAL 0u
 #define TRUCK_FW_LINK_CAN 1u
@@ -113,6 +119,8 @@ struct truck_fw_rx_state {
     uint8_t has_counter;
     uint8_t wrong_counters;
     uint8_t stale;
+    uint8_t resync; /**< frames still to run in sequence after a large jump (a replay) */
+    uint8_t chain;  /**< counter of the last frame of that run */
 };
 
 /** The last values of a published message (the freeze hook repeats them). */

@@ -12,7 +12,7 @@ import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
-from firmware_protocol.checks import RxChecker
+from firmware_protocol.checks import RESYNC, RxChecker
 from firmware_protocol.codec import encode, message_name
 from firmware_protocol.messages import Message
 from truckd.io.link import Link
@@ -42,10 +42,13 @@ class Port:
         expect: Iterable[str],
         clock: Callable[[], float] = time.monotonic,
         timeout_periods: float = 5.0,
+        resync: int = 0,
     ) -> None:
         self.link = link
         self.clock = clock
-        self.checker = RxChecker(expect=tuple(expect), timeout_periods=timeout_periods)
+        self.checker = RxChecker(
+            expect=tuple(expect), timeout_periods=timeout_periods, resync=resync
+        )
         self._counters: dict[str, int] = {}
 
     def send(self, msg: Message) -> bool:
@@ -114,5 +117,6 @@ def companion_port(
 def firmware_port(
     link: Link, clock: Callable[[], float] = time.monotonic, timeout_periods: float = 5.0
 ) -> Port:
-    """The microcontroller's end: receives motor commands and the companion heartbeat."""
-    return Port(link, FIRMWARE_RX, clock, timeout_periods)
+    """The microcontroller's end: receives motor commands and the companion heartbeat
+    (a replayed loop of commands is rejected: ``RESYNC``, see :mod:`firmware_protocol.checks`)."""
+    return Port(link, FIRMWARE_RX, clock, timeout_periods, resync=RESYNC)
