@@ -32,6 +32,15 @@ def test_arm_build_compiles_and_fits(tmp_path: Path) -> None:
     elf = tmp_path / "stm32f4" / "truck_fw.elf"
     head = elf.read_bytes()[:20]
     assert head[:4] == b"\x7fELF" and head[18] == 40  # e_machine EM_ARM
+    # A fault switches the motor off (the fault handler used to spin with the last duty on
+    # the motor), and the watchdog runs: its reload key is written in the main loop.
+    dis = subprocess.run(
+        ["arm-none-eabi-objdump", "-d", str(elf)], capture_output=True, text=True, check=True
+    ).stdout
+    handler = dis.split("<Default_Handler>:", 1)[1].split("\n\n", 1)[0]
+    assert "board_motor_off" in handler, handler
+    assert "<board_motor_off>:" in dis
+    assert "0xcccc" in dis and "0xaaaa" in dis  # IWDG start and reload keys
 
 
 def test_missing_toolchain_is_an_error_naming_the_install(tmp_path: Path) -> None:

@@ -35,6 +35,10 @@
 #define TIM1 0x40010000u
 #define TIM2 0x40000000u
 #define TIM3 0x40000400u
+#define IWDG_KR REG(0x40003000u)
+#define IWDG_PR REG(0x40003004u)
+#define IWDG_RLR REG(0x40003008u)
+#define TIM_BDTR_MOE (1u << 15)
 #define TIM_CR1(t) REG((t) + 0x00u)
 #define TIM_SMCR(t) REG((t) + 0x08u)
 #define TIM_CCMR1(t) REG((t) + 0x18u)
@@ -360,6 +364,27 @@ static void board_init(uint8_t can)
     }
 }
 
+/* Motor off at once: zero duty, the timer's outputs off, the driver disabled.  Called by
+ * the fault handlers (startup.c): a fault must not leave the last duty on the motor. */
+void board_motor_off(void)
+{
+    TIM_CCR1(TIM1) = 0u;
+    TIM_BDTR(TIM1) &= ~TIM_BDTR_MOE;
+    GPIO_BSRR(GPIOB) = (1u << 17); /* PB1 low: driver enable off */
+}
+
+/* The independent watchdog: 50 ms (LSI 32 kHz / 4, reload 400).  A hung main loop resets
+ * the chip, and a reset leaves PB1 an input: the board's pull-down on the driver's enable
+ * keeps the motor off until the firmware runs again. */
+static void watchdog_start(void)
+{
+    IWDG_KR = 0xCCCCu; /* start */
+    IWDG_KR = 0x5555u; /* unlock PR and RLR */
+    IWDG_PR = 0u;      /* /4 */
+    IWDG_RLR = 400u;
+    IWDG_KR = 0xAAAAu; /* reload */
+}
+
 int main(void)
 {
 #ifdef BOARD_LINK_CAN
@@ -383,7 +408,9 @@ int main(void)
     static struct truck_fw fw;
     board_init(can);
     truck_fw_init(&fw, &cfg, &hal);
+    watchdog_start();
     for (;;) {
+        IWDG_KR = 0xAAAAu; /* the loop runs: feed the watchdog */
         uint8_t chunk[32];
         size_t n = 0;
         while (rx_tail != rx_head && n < sizeof(chunk)) {

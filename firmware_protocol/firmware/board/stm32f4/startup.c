@@ -11,8 +11,13 @@ void SysTick_Handler(void);
 void USART2_IRQHandler(void);
 void CAN1_RX0_IRQHandler(void);
 
+void board_motor_off(void);
+
 void Default_Handler(void)
 {
+    /* A fault (HardFault, NMI, ...): the motor off first, then wait for the watchdog to
+     * reset the chip (the timer would otherwise keep the last duty on the motor). */
+    board_motor_off();
     for (;;) {
     }
 }
