@@ -41,6 +41,10 @@ def test_clean_payload() -> None:
         "w": [None],
     }
     assert clean_payload(b"[NaN]") is None and clean_payload(b"NaN garbage") is None
+    # Not JSON objects, without a NaN to make them looked at: refused all the same (they
+    # went to a JSON channel unchanged)
+    for bad in (b"\xff\xfe not json", b"[1, 2, 3]", b"42", b'{"v": 1.0', b"[" * 100_000):
+        assert clean_payload(bad) is None, bad[:20]
 
 
 def _state(seq: int) -> dict[str, Any]:

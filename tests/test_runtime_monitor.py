@@ -34,6 +34,28 @@ def test_fleet_view_rows() -> None:
     assert "vehicle" in v.render()
 
 
+def test_a_huge_integer_or_deep_nesting_from_a_peer_is_no_crash() -> None:
+    """A 400-digit integer in a state (OverflowError in every later render: the monitor
+    exited) or JSON nested beyond the stack (RecursionError out of the callback)."""
+    v = FleetView()
+    v.on_alive("truckd/a/alive", True)
+    big = "9" * 400
+    v.on_sample(
+        "truckd/a/state",
+        f'{{"mode": "ACTIVE", "v": {big}, "gap": {big}, "gap_ref": 1}}'.encode(),
+        1.0,
+    )
+    v.on_sample(
+        "truckd/a/health",
+        f'{{"loop": {{"lateness_us_p99": {big}}}, "state_rate_hz": {big}}}'.encode(),
+        1.0,
+    )
+    v.on_sample("truckd/b/state", b"[" * 100_000, 1.0)
+    text = v.render()
+    assert "a" in text
+    assert v.rows()[0][3] == "-"  # not a speed
+
+
 def _wait_output(lines: list[str], pred: Callable[[str], bool], timeout: float) -> bool:
     t_end = time.monotonic() + timeout
     while time.monotonic() < t_end:

@@ -28,6 +28,7 @@ import zenoh
 
 from truckd.errors import TruckdError
 from truckd.runtime.mcap_log import to_json
+from truckd.runtime.monitor import MAX_VEHICLES
 from truckd.runtime.msg_schemas import KINDS, MESSAGE_ENCODING, SCHEMA_ENCODING, schema_bytes
 from truckd.runtime.msg_schemas import topic as topic_of
 from truckd.runtime.telemetry import open_session, zenoh_config
@@ -51,14 +52,18 @@ def _split(key: str) -> tuple[str, str] | None:
 
 
 def clean_payload(payload: bytes) -> bytes | None:
-    """The payload as strict JSON (NaN/inf -> null); None when it is not a JSON object."""
-    if b"NaN" not in payload and b"Infinity" not in payload:
-        return payload
+    """The payload as strict JSON (NaN/inf -> null); None when it is not a JSON object
+    (checked for every payload: bytes that are not JSON, a list or a number used to pass
+    unchanged to a JSON channel when they held no NaN)."""
     try:
         msg = json.loads(payload)
-    except ValueError:
+    except (ValueError, RecursionError):  # not JSON, or nested beyond the stack
         return None
-    return to_json(msg) if isinstance(msg, dict) else None
+    if not isinstance(msg, dict):
+        return None
+    if b"NaN" not in payload and b"Infinity" not in payload:
+        return payload
+    return to_json(msg)
 
 
 @dataclass
@@ -156,6 +161,11 @@ class FoxgloveRelay:
         if data is None:
             self.stats.rejected += 1
             return
+        with self._lock:
+            new_vehicle = all(v != vk[0] for v, _ in self._channels)
+            if new_vehicle and len({v for v, _ in self._channels}) >= MAX_VEHICLES:
+                self.stats.rejected += 1  # a flood of vehicle ids: channels are bounded
+                return
         ch = self._channel(*vk)
         ch.log(data, log_time=self._clock_ns())
         t = ch.topic()

@@ -112,8 +112,10 @@ class FleetView:
         if vid is None:
             return
         try:
-            msg = json.loads(payload)
-        except ValueError:
+            # Integers as floats: a 400-digit one from a peer became inf, not an
+            # OverflowError in every later render (it killed the monitor).
+            msg = json.loads(payload, parse_int=float)
+        except (ValueError, RecursionError):  # not JSON, or nested beyond the stack
             return
         if not isinstance(msg, dict):
             return
