@@ -618,3 +618,43 @@ def test_python_checks_refuse_the_replayed_loop_on_the_motor_side_only() -> None
         if k >= len(frames):
             assert a is None
     assert tolerant.stats.frames_ok > len(frames) + 10  # the old rule let the loop in
+
+
+def test_an_event_fault_bit_waits_for_a_heartbeat_that_is_sent() -> None:
+    """A CMD_CHECKSUM event, then a heartbeat the HAL could not send: the next heartbeat
+    that goes out still reports it (the bits were cleared when the heartbeat was built)."""
+    core, hal = make()
+    run_to(core, 150)
+    good = encode(MotorCommand(1.0, True), 1)
+    core.rx_frame(good.can_id, good.data[:-1] + bytes((good.data[-1] ^ 0x10,)))  # bad CRC
+    fail = {"on": True}
+    real = hal.send_frame
+
+    def flaky(can_id: int, data: bytes) -> bool:
+        if fail["on"] and decode(Frame(can_id, data)).name == "FIRMWARE_HEARTBEAT":
+            fail["on"] = False
+            return False  # this heartbeat is lost
+        return real(can_id, data)
+
+    hal.send_frame = flaky  # type: ignore[method-assign]
+    run_to(core, 450)
+    beats = [m for ms, m in sent(hal, "FIRMWARE_HEARTBEAT") if ms > 150]
+    assert beats and isinstance(beats[0], FirmwareHeartbeat)
+    assert beats[0].faults & FirmwareFault.CMD_CHECKSUM
+
+
+def test_extreme_current_and_a_month_without_commands() -> None:
+    """A current at the int32 ends saturates the right way (an overflow, undefined
+    behaviour, made INT32_MAX read -32768); CMD_TIMEOUT before any command stays set past
+    2^31 ms (the elapsed time since start wrapped after 24.9 days)."""
+    core, hal = make()
+    for ma, want in ((2**31 - 1, 327.67), (-(2**31), -327.68)):
+        hal.current_ma = ma
+        core.now_ms += 100
+        core.poll()
+        fb = sent(hal, "MOTOR_FEEDBACK")[-1][1]
+        assert isinstance(fb, MotorFeedback) and fb.current == pytest.approx(want)
+    for now in (1000, 2**31 - 1, 2**31 + 20, 2**32 - 10):
+        core.now_ms = now
+        core.poll()
+        assert core.fault_bits() & FirmwareFault.CMD_TIMEOUT, now

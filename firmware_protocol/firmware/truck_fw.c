@@ -97,7 +97,7 @@ int truck_fw_rx_fresh(struct truck_fw *fw, unsigned msg)
 
 static int32_t read_vbat(struct truck_fw *fw)
 {
-    struct truck_hal_power p;
+    struct truck_hal_power p = {0}; /* a HAL that returns early leaves zeros, not garbage */
     fw->hal.read_power(fw->hal.ctx, &p);
     return p.vbat_mv;
 }
@@ -314,8 +314,8 @@ uint16_t truck_fw_fault_bits(struct truck_fw *fw)
 {
     uint32_t now = now_ms(fw);
     uint16_t bits = (uint16_t)(fw->sticky | fw->sensor_faults);
-    if (fw->timed_out ||
-        (!fw->have_cmd && elapsed(now, fw->t0) > (int32_t)fw->cfg.cmd_timeout_ms)) {
+    if (fw->timed_out || (!fw->have_cmd && (fw->boot_timed_out ||
+                                            elapsed(now, fw->t0) > (int32_t)fw->cfg.cmd_timeout_ms))) {
         bits |= TRUCK_FW_FAULT_CMD_TIMEOUT;
     }
     if (!truck_fw_rx_fresh(fw, TRUCK_FW_RX_COMPANION_HEARTBEAT)) {
@@ -361,6 +361,10 @@ void truck_fw_get_stats(const struct truck_fw *fw, struct truck_fw_stats *out)
 
 static void check_timeout(struct truck_fw *fw, uint32_t now)
 {
+    if (!fw->have_cmd && !fw->boot_timed_out &&
+        elapsed(now, fw->t0) > (int32_t)fw->cfg.cmd_timeout_ms) {
+        fw->boot_timed_out = 1u;
+    }
     if (!fw->timed_out && fw->have_cmd &&
         elapsed(now, fw->last_cmd) >= (int32_t)fw->cfg.cmd_timeout_ms) {
         fw->timed_out = 1u;
@@ -383,6 +387,14 @@ static uint16_t satu16(int32_t v)
 /* x / d rounded half away from zero (d > 0) */
 static int32_t div_round(int32_t x, int32_t d)
 {
+    /* x within d of INT32_MAX or INT32_MIN overflowed (undefined behaviour): the ends
+     * saturate (the caller saturates the result to 16 bits anyway) */
+    if (x > INT32_MAX - d) {
+        return INT32_MAX / d;
+    }
+    if (x < INT32_MIN + d) {
+        return INT32_MIN / d;
+    }
     return (x >= 0) ? (x + d / 2) / d : -((-x + d / 2) / d);
 }
 
@@ -403,7 +415,7 @@ static void make(struct truck_fw *fw, unsigned i, uint32_t now, union truck_fw_t
         break;
     }
     case TRUCK_FW_MSG_MOTOR_FEEDBACK: {
-        struct truck_hal_power p;
+        struct truck_hal_power p = {0};
         fw->hal.read_power(fw->hal.ctx, &p);
         m->fb.current = sat16(div_round(p.current_ma, 10));
         m->fb.vbat = satu16(p.vbat_mv);
@@ -435,8 +447,7 @@ static void make(struct truck_fw *fw, unsigned i, uint32_t now, union truck_fw_t
         m->hb.state = truck_fw_state(fw);
         m->hb.faults = truck_fw_fault_bits(fw);
         m->hb.cmd_errors = truck_fw_cmd_errors(fw);
-        fw->sticky = 0u;
-        break;
+        break; /* the event bits are cleared once this heartbeat is sent (publish) */
     }
 }
 
@@ -470,7 +481,11 @@ static void publish(struct truck_fw *fw, unsigned i, uint32_t now)
 #ifdef TRUCK_FW_FAULT_HOOKS
     hooks = tx->fault;
 #endif
+    uint16_t reported = 0u; /* event fault bits this message carries */
     if (!((hooks & TRUCK_FW_TX_FREEZE) && tx->has_last)) {
+        if (i == TRUCK_FW_MSG_FIRMWARE_HEARTBEAT) {
+            reported = fw->sticky;
+        }
         make(fw, i, now, &tx->last);
         tx->has_last = 1u;
     }
@@ -509,6 +524,7 @@ static void publish(struct truck_fw *fw, unsigned i, uint32_t now)
     }
     if (rc == 0) {
         fw->stats.frames_sent++;
+        fw->sticky &= (uint16_t)~reported; /* reported: an event unsent stays for the next */
     } else {
         fw->stats.tx_failed++;
     }

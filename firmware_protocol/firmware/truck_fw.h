@@ -158,6 +158,8 @@ struct truck_fw {
     uint8_t have_cmd;
     uint8_t enabled;
     uint8_t timed_out;
+    uint8_t boot_timed_out; /**< no command within the timeout after start (latched: the
+                                 elapsed time since start wraps after 24.9 days) */
     uint16_t sticky;       /**< event fault bits not yet reported */
     uint16_t sensor_faults; /**< RANGE_SENSOR / ENCODER as last read */
 #ifdef TRUCK_FW_FAULT_HOOKS
