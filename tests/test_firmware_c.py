@@ -303,7 +303,7 @@ def test_bad_commands_are_not_applied_and_do_not_feed_the_timeout() -> None:
 def test_garbage_bytes_on_the_serial_line(seed: int) -> None:
     """Random bytes between (and inside) framed commands: the C deframer counts what the
     Python one counts, and the C receive checks apply what the Python ones accept: every
-    intact command but those after a run of four or more lost (a jump the replay rule
+    intact command but those after a run of three or more lost (a jump the replay rule
     refuses until 16 frames have run in sequence)."""
     rng = random.Random(seed)
     core, _ = make(link="serial")
