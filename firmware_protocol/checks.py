@@ -130,13 +130,13 @@ class RxChecker:
             if ms.resync > 0:
                 st.counter_errors += 1
                 return None
-            ms.stale = True  # the run restarts the sequence: accepted as after a timeout
+            # the run restarts the sequence, as after a timeout: accepted below, unscored
         elif ms.last_counter is not None and not ms.stale:
-            if self.resync and (dec.counter - ms.last_counter) % 16 > MAX_DELTA:
+            jump = (dec.counter - ms.last_counter) % 16
+            if self.resync and jump > MAX_DELTA:
                 ms.resync, ms.chain = self.resync, dec.counter
                 st.counter_errors += 1
                 return None
-            jump = (dec.counter - ms.last_counter) % 16
             ms.last_counter = dec.counter
             if jump != 1:
                 st.counter_gaps += jump - 1

@@ -241,17 +241,16 @@ void truck_fw_rx_frame(struct truck_fw *fw, uint16_t can_id, const uint8_t *data
             fw->sticky |= TRUCK_FW_FAULT_CMD_COUNTER;
             return;
         }
-        ms->stale = 1u; /* the run restarts the sequence, as after a timeout */
-    } else if (ms->has_counter && !ms->stale &&
-               (((unsigned)counter - ms->last_counter) & 0xFu) > TRUCK_FW_MAX_DELTA) {
-        ms->resync = TRUCK_FW_RESYNC;
-        ms->chain = (uint8_t)counter;
-        st->counter_errors++;
-        fw->sticky |= TRUCK_FW_FAULT_CMD_COUNTER;
-        return;
-    }
-    if (ms->has_counter && !ms->stale) {
+        /* the run restarts the sequence, as after a timeout: accepted below, unscored */
+    } else if (ms->has_counter && !ms->stale) {
         unsigned jump = ((unsigned)counter - ms->last_counter) & 0xFu;
+        if (jump > TRUCK_FW_MAX_DELTA) {
+            ms->resync = TRUCK_FW_RESYNC;
+            ms->chain = (uint8_t)counter;
+            st->counter_errors++;
+            fw->sticky |= TRUCK_FW_FAULT_CMD_COUNTER;
+            return;
+        }
         ms->last_counter = (uint8_t)counter;
         if (jump != 1u) {
             st->counter_gaps += jump - 1u;
