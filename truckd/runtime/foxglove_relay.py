@@ -136,10 +136,15 @@ class FoxgloveRelay:
     def url(self) -> str:
         return f"ws://{self.host}:{self.port}"
 
-    def _channel(self, vid: str, kind: str) -> foxglove.Channel:
+    def _channel(self, vid: str, kind: str) -> foxglove.Channel | None:
+        """The channel of a vehicle's kind, advertised on first use; None for a vehicle
+        beyond :data:`MAX_VEHICLES` (a flood of vehicle ids: channels are bounded)."""
         with self._lock:
             ch = self._channels.get((vid, kind))
             if ch is None:
+                vehicles = {v for v, _ in self._channels}
+                if vid not in vehicles and len(vehicles) >= MAX_VEHICLES:
+                    return None
                 fg = self._fg
                 ch = fg.Channel(
                     topic_of(vid, kind),
@@ -161,12 +166,10 @@ class FoxgloveRelay:
         if data is None:
             self.stats.rejected += 1
             return
-        with self._lock:
-            new_vehicle = all(v != vk[0] for v, _ in self._channels)
-            if new_vehicle and len({v for v, _ in self._channels}) >= MAX_VEHICLES:
-                self.stats.rejected += 1  # a flood of vehicle ids: channels are bounded
-                return
         ch = self._channel(*vk)
+        if ch is None:
+            self.stats.rejected += 1
+            return
         ch.log(data, log_time=self._clock_ns())
         t = ch.topic()
         self.stats.messages[t] = self.stats.messages.get(t, 0) + 1

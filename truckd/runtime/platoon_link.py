@@ -110,9 +110,10 @@ class PlanReceiver:
             self.refused += 1
             self.last_error = f"plan from {plan.vehicle_id!r}, expected {self.predecessor!r}"
             return
-        if self.clock is not None and plan.t - self.clock() > self.max_skew_s:
+        ahead = plan.t - self.clock() if self.clock is not None else -math.inf
+        if ahead > self.max_skew_s:
             self.refused += 1
-            self.last_error = f"plan stamped {plan.t - self.clock():.3f} s in the future"
+            self.last_error = f"plan stamped {ahead:.3f} s in the future"
             return
         with self._lock:
             old = self._latest
