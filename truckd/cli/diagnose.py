@@ -14,8 +14,7 @@ from typing import Any
 from truckd.cli.args import json_file, model_file, report_dir, report_notes, volts
 from truckd.cli.identify import add_gap_option, check_gap
 from truckd.config.truck import load_config
-from truckd.errors import TruckdError
-from truckd.ident.api import diagnose_log, model_of, read_logs
+from truckd.ident.api import diagnose_log, model_of, read_logs, require_physical
 from truckd.modelfile import model_text
 from truckd.outputs import atomic_dir, check_distinct, write_set
 
@@ -57,13 +56,7 @@ def run(args: argparse.Namespace) -> int:
     name = " ".join(args.logs)
     files: list[tuple[str, str | bytes]] = []
     if args.out:
-        model = model_of(diag, name)
-        why = model.vehicle.validate()
-        if why is not None:  # a model no command could load: nothing written
-            raise TruckdError(
-                f"{name}: the extended model is not physical ({why}); check the log's units "
-                "(t in s, u in V, v in m/s); nothing written"
-            )
+        model = require_physical(model_of(diag, name), name, "extended model")
         files.append((args.out, model_text(model)))
     if args.json:
         files.append((args.json, json.dumps(diag.to_json(), indent=2) + "\n"))

@@ -9,8 +9,8 @@ from typing import Any
 
 from truckd.cli.args import model_file, report_notes, seconds, volts
 from truckd.config.truck import load_config
-from truckd.errors import InputError, TruckdError
-from truckd.ident.api import identify_log, read_logs
+from truckd.errors import InputError
+from truckd.ident.api import identify_log, read_logs, require_physical
 from truckd.ident.data import runs_from_logs
 from truckd.ident.physics import vehicle_problems
 from truckd.modelfile import write_model
@@ -59,12 +59,7 @@ def run(args: argparse.Namespace) -> int:
     logs = read_logs(args.logs, args.vbat)
     report_notes([n for lg in logs for n in lg.notes])
     model = identify_log(logs, cfg.vehicle, _progress, args.gap)
-    why = model.vehicle.validate()
-    if why is not None:  # a model no command could load: not written
-        raise TruckdError(
-            f"{' '.join(args.logs)}: the fitted model is not physical ({why}); check the "
-            "log's units (t in s, u in V, v in m/s); nothing written"
-        )
+    require_physical(model, " ".join(args.logs), "fitted model")
     report_notes(
         f"the fitted model may not be physical: {p}"
         for p in vehicle_problems(model.vehicle, runs_from_logs(logs, args.gap))

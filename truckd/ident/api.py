@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 
-from truckd.errors import InputError
+from truckd.errors import InputError, TruckdError
 from truckd.ident.data import runs_from_logs, series_from_log
 from truckd.ident.diagnose import diagnose_voltage, identify_voltage
 from truckd.ident.force import diagnose_force
@@ -87,6 +87,19 @@ def identify_log(
     fit = identify_voltage(p0, runs_from_logs(logs, gap), progress)
     names = " ".join(one.source for one in logs)
     return ModelFile(vehicle=fit.params, effects=Effects(), source=f"identify {names}")
+
+
+def require_physical(model: ModelFile, source: str, what: str) -> ModelFile:
+    """``model`` when its vehicle passes :meth:`VehicleParams.validate`; else TruckdError
+    naming ``what`` (e.g. "fitted model"): a model no command could load is not written
+    (a log in the wrong units fits one)."""
+    why = model.vehicle.validate()
+    if why is not None:
+        raise TruckdError(
+            f"{source}: the {what} is not physical ({why}); check the log's units "
+            "(t in s, u in V, v in m/s); nothing written"
+        )
+    return model
 
 
 def model_of(diag: Diagnosis, source: str) -> ModelFile:
