@@ -6,10 +6,11 @@ filter (white-acceleration model, measurement noise = one tick's quantisation,
 ``tick^2 / 12``) turns the quantised distance into a speed.  Time steps come from the
 firmware's sample clock (which wraps), staleness from the caller's clock.  A
 discontinuity restarts the filter from the next difference (the speed is stale until
-then): a step faster than ``speed_max`` (the counters reset or jumped), or two samples in
-a row behind the last one and in order among themselves (the firmware's clock restarted,
-e.g. a microcontroller reset).  A single sample behind the last one is dropped (out of
-order).
+then): a step faster than ``speed_max`` or farther from the filter's speed than
+``accel_max`` allows (the counters reset or jumped), the firmware's clock running ahead of
+the caller's by more than :data:`CLOCK_SLACK_S`, or two samples in a row behind the last
+one and in order among themselves (the firmware's clock restarted, e.g. a microcontroller
+reset).  A single sample behind the last one is dropped (out of order).
 
 Lead: a Kalman filter on ``[gap, v_lead]`` with ``gap' = v_lead - v_own`` and the lead's
 acceleration as white noise.  Readings outside the sensor's range or flagged invalid are
