@@ -56,8 +56,9 @@ def test_state_health_params_and_liveliness_over_zenoh() -> None:
             history=True,
         )
         assert _wait(lambda: ("truckd/truckT/alive", True) in alive)
-        # the subscriber is matched once the publisher sees it
-        assert _wait(lambda: tel._pubs["state"].matching_status)
+        # the subscriber is matched once the publisher sees it (MatchingStatus is truthy
+        # whatever it says: ask .matching)
+        assert _wait(lambda: tel._pubs["state"].matching_status.matching)
         for k in range(20):
             tel.publish_state({"seq": k, "mode": "ACTIVE"})
         tel.publish_health({"faults": []}, lambda: {"loop": {"misses": 0}})

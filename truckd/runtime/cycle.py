@@ -119,6 +119,33 @@ def _j(x: float) -> float | None:
     return x if math.isfinite(x) else None
 
 
+def state_message(out: CycleOutputs, lateness_s: float = 0.0) -> dict[str, Any]:
+    """The published state of the cycle ``out`` (CONTRACTS.md section 5); ``lateness_s``
+    the loop's.  Reads only ``out`` (frozen): safe on another thread, later."""
+    c = out.control
+    est = c.estimate if c is not None else None
+    nan = math.nan
+    return {
+        "seq": out.seq,
+        "t": out.t,
+        "mode": out.decision.mode.value,
+        "v": _j(est.v if est is not None else nan),
+        "gap": _j(est.gap if est is not None else nan),
+        "gap_ref": _j(c.gap_ref if c is not None else nan),
+        "v_lead": _j(est.v_lead if est is not None else nan),
+        "u": out.command.voltage,
+        "u_ff": _j(c.u_ff if c is not None else nan),
+        "solve_us": _j(c.solve_time_s * 1e6 if c is not None else nan),
+        "enable": out.command.enable,
+        "ctrl": c.mode if c is not None else None,
+        "fallback": c.fallback_reason if c is not None else "exception",
+        "lead_valid": bool(est.lead_valid) if est is not None else False,
+        "lateness_us": lateness_s * 1e6,
+        "faults": list(out.decision.causes),
+        "ages_ms": {k: _j(a * 1e3) for k, a in out.ages.items()},
+    }
+
+
 class CompanionCycle:
     """The companion's state across cycles and the step between them (module docstring).
 
@@ -224,29 +251,8 @@ class CompanionCycle:
         return Plan(dt, tuple(vs), tuple((b - a) / dt for a, b in itertools.pairwise(vs)))
 
     def state_message(self, out: CycleOutputs, lateness_s: float = 0.0) -> dict[str, Any]:
-        """The published state (CONTRACTS.md section 5); ``lateness_s`` the loop's."""
-        c = out.control
-        est = c.estimate if c is not None else None
-        nan = math.nan
-        return {
-            "seq": out.seq,
-            "t": out.t,
-            "mode": out.decision.mode.value,
-            "v": _j(est.v if est is not None else nan),
-            "gap": _j(est.gap if est is not None else nan),
-            "gap_ref": _j(c.gap_ref if c is not None else nan),
-            "v_lead": _j(est.v_lead if est is not None else nan),
-            "u": out.command.voltage,
-            "u_ff": _j(c.u_ff if c is not None else nan),
-            "solve_us": _j(c.solve_time_s * 1e6 if c is not None else nan),
-            "enable": out.command.enable,
-            "ctrl": c.mode if c is not None else None,
-            "fallback": c.fallback_reason if c is not None else "exception",
-            "lead_valid": bool(est.lead_valid) if est is not None else False,
-            "lateness_us": lateness_s * 1e6,
-            "faults": list(out.decision.causes),
-            "ages_ms": {k: _j(a * 1e3) for k, a in out.ages.items()},
-        }
+        """The published state of the cycle ``out``: :func:`state_message`."""
+        return state_message(out, lateness_s)
 
     def log_row(self, out: CycleOutputs) -> tuple[float, ...]:
         """The recorded row, in :data:`LOG_COLUMNS` order (sensor values as of this cycle)."""

@@ -22,7 +22,7 @@ from typing import Any
 from firmware_protocol.messages import CompanionHeartbeat, CompanionState, MotorCommand
 from truckd.config.truck import TruckConfig
 from truckd.control.controller import ControlOutput
-from truckd.control.platoon import platoon_control
+from truckd.control.platoon import PlatoonDecision, platoon_control
 from truckd.control.qp import ControlModel
 from truckd.control.supervisor import Decision, Mode
 from truckd.io.devlock import DeviceLock
@@ -30,11 +30,12 @@ from truckd.io.port import Port, companion_port
 from truckd.runtime.backend import Backend, claim_backend, open_backend
 from truckd.runtime.cycle import LOG_COLUMNS as STEP_COLUMNS
 from truckd.runtime.cycle import MODE_CODE as MODE_CODE
-from truckd.runtime.cycle import CompanionCycle, CycleInputs, CycleOutputs
+from truckd.runtime.cycle import CompanionCycle, CycleInputs, CycleOutputs, state_message
+from truckd.runtime.deferred import Deferred
 from truckd.runtime.faults import RuntimeFaults, wrap_solver
 from truckd.runtime.mcap_log import McapLog
 from truckd.runtime.notify import Notifier
-from truckd.runtime.platoon_link import DaemonPlatoon
+from truckd.runtime.platoon_link import DaemonPlatoon, platoon_state_fields
 from truckd.runtime.ratekeeper import RateKeeper
 from truckd.runtime.realtime import (
     RealtimeReport,
@@ -55,6 +56,14 @@ loop's timing (us): this cycle's wake-up lateness, the previous cycle's wall-clo
 time and the CPU time the loop thread used in it (``time.thread_time``).  Compute minus
 CPU is time the loop waited for the host (descheduled, the GIL, blocking I/O): the host's
 stall as the OS accounts it, as opposed to the code's own work."""
+
+
+def _state_message(
+    out: CycleOutputs, lateness_s: float, platoon: PlatoonDecision | None
+) -> dict[str, Any]:
+    """The state message (CONTRACTS.md section 5) of the cycle ``out``, with the platoon's
+    fields of that cycle's decision (all frozen: built later, on another thread)."""
+    return {**state_message(out, lateness_s), **platoon_state_fields(platoon)}
 
 
 def _j(x: float) -> float | None:
@@ -356,10 +365,9 @@ class Daemon:
         to_tel = tel is not None and out.seq % self.rt.telemetry.state_every == 0
         to_mcap = mc is not None and mc.wants_state(out.seq)
         if to_tel or to_mcap:
-            msg = {
-                **self.companion.state_message(out, self.rk.last_lateness),
-                **self.platoon.state_fields(),
-            }
+            # Built on the publisher or the recorder thread, whichever needs it first: the
+            # loop's cycle only hands over its frozen outputs (docs/runtime.md, "Timing").
+            msg = Deferred(_state_message, out, self.rk.last_lateness, self.platoon.decision)
             if mc is not None and to_mcap:
                 mc.record_state(out.t, msg)
             if tel is not None and to_tel:
@@ -418,7 +426,7 @@ class Daemon:
         }
         extra = lambda: {"loop": rk.stats().as_dict()}  # noqa: E731
         if self.mcap is not None:
-            self.mcap.record_health(t, dict(msg), extra)  # a copy: telemetry updates msg
+            self.mcap.record_health(t, msg, extra)
         if tel is not None:
             tel.publish_health(msg, extra)
 

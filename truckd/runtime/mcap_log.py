@@ -10,7 +10,8 @@ The log time of a message is the time of the cycle that made it, in ns: wall-clo
 :class:`McapFile` writes one file.  :class:`McapLog` is the daemon's: the loop thread only
 appends to a bounded deque (``record_state``/``record_health``/``record_plan``: no JSON, no
 I/O; the oldest message is dropped and counted when full); the CSV recorder's writer thread
-(:class:`truckd.runtime.recorder.Recorder`, which it is a sidecar of) encodes and writes,
+(:class:`truckd.runtime.recorder.Recorder`, which it is a sidecar of) builds the deferred
+state messages (:class:`truckd.runtime.deferred.Deferred`), encodes and writes,
 releasing the GIL every ``YIELD_S`` (so the loop thread, waking, waits about that long at
 most, not the interpreter's 5 ms switch interval),
 closes a chunk at least every ``flush_period_s`` (so a SIGKILL loses at most that much: the
@@ -40,6 +41,7 @@ from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
 from truckd.runtime.config import RecorderConfig
+from truckd.runtime.deferred import MessageSource
 from truckd.runtime.msg_schemas import KINDS, MESSAGE_ENCODING, SCHEMA_ENCODING, schema_bytes
 from truckd.runtime.msg_schemas import topic as topic_of
 
@@ -131,7 +133,7 @@ class McapFile:
             self._fh = None
 
 
-_Pending = tuple[str, float, Mapping[str, Any], Extra]
+_Pending = tuple[str, float, MessageSource, Extra]
 """A queued message: kind, cycle time (s), message, extra."""
 
 
@@ -210,15 +212,16 @@ class McapLog:
         """Whether cycle ``seq``'s state is recorded (decimation)."""
         return seq % self.state_every == 0
 
-    def _put(self, kind: str, t: float, msg: Mapping[str, Any], extra: Extra = None) -> None:
+    def _put(self, kind: str, t: float, msg: MessageSource, extra: Extra = None) -> None:
         if self.origin_ns is None:
             self.origin_ns = self._clock_ns() - round(t * 1e9)
         if len(self._q) == self._q.maxlen:
             self.dropped += 1
         self._q.append((kind, t, msg, extra))
 
-    def record_state(self, t: float, msg: Mapping[str, Any]) -> None:
-        """Queue one state message (cycle time ``t`` in s)."""
+    def record_state(self, t: float, msg: MessageSource) -> None:
+        """Queue one state message (cycle time ``t`` in s), or a
+        :class:`~truckd.runtime.deferred.Deferred` that builds it on the writer thread."""
         self._put("state", t, msg)
 
     def record_health(self, t: float, msg: Mapping[str, Any], extra: Extra = None) -> None:
@@ -279,6 +282,8 @@ class McapLog:
                     continue
                 kind, t, msg, extra = p
                 try:
+                    if callable(msg):  # deferred: built here, off the control loop
+                        msg = msg()
                     if extra is not None:
                         msg = {**msg, **extra()}
                     f.write(kind, origin + round(t * 1e9), to_json(msg))

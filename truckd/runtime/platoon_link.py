@@ -129,6 +129,15 @@ class PlanReceiver:
             return self._latest
 
 
+def platoon_state_fields(d: PlatoonDecision | None) -> dict[str, Any]:
+    """Merged into the state message: ``platoon`` CACC/ACC (None: not following) and the
+    headway driven (s), of the cycle's decision ``d``."""
+    return {
+        "platoon": d.mode if d is not None else None,
+        "headway": d.headway if d is not None else None,
+    }
+
+
 class DaemonPlatoon:
     """``truckd run``'s platoon part.  Every truck publishes its plan each cycle; a truck
     with ``platoon.predecessor`` set also follows that truck's plan (CACC/ACC).  Plans are
@@ -197,13 +206,8 @@ class DaemonPlatoon:
         return p.as_dict() if p is not None else None
 
     def state_fields(self) -> dict[str, Any]:
-        """Merged into the state message: ``platoon`` CACC/ACC (None: not following) and
-        the headway driven (s)."""
-        d = self.decision
-        return {
-            "platoon": d.mode if d is not None else None,
-            "headway": d.headway if d is not None else None,
-        }
+        """Merged into the state message: :func:`platoon_state_fields` of this cycle."""
+        return platoon_state_fields(self.decision)
 
     def health(self) -> dict[str, Any]:
         """The ``platoon`` entry of the health message."""

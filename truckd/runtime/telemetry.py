@@ -1,9 +1,11 @@
 """Zenoh telemetry (CONTRACTS.md section 5) that never blocks the control loop.
 
-The loop hands plain dicts to :meth:`Telemetry.publish_state` / :meth:`publish_health`,
-which only append to a bounded deque (the oldest message is dropped and counted when it is
-full) and set an event.  A worker thread encodes JSON and puts to Zenoh with congestion
-control ``DROP``, so a slow or absent subscriber costs the loop nothing.
+The loop hands dicts, or state messages still to be built
+(:class:`~truckd.runtime.deferred.Deferred`), to :meth:`Telemetry.publish_state` /
+:meth:`publish_health`, which only append to a bounded deque (the oldest message is dropped
+and counted when it is full) and set an event.  A worker thread builds what is deferred,
+encodes JSON and puts to Zenoh with congestion control ``DROP``, so a slow or absent
+subscriber costs the loop nothing.
 
 Keys, for ``vehicle_id`` V: ``truckd/V/state``, ``truckd/V/health``, liveliness token
 ``truckd/V/alive``, queryable ``truckd/V/params``.
@@ -25,6 +27,7 @@ import zenoh
 from truckd.errors import InputError, TruckdError
 from truckd.inputs import open_regular
 from truckd.runtime.config import TelemetryConfig
+from truckd.runtime.deferred import MessageSource
 
 log = logging.getLogger("truckd.telemetry")
 
@@ -112,7 +115,7 @@ class Telemetry:
         self.cfg = cfg
         self.keys = keys(vehicle_id)
         self._params = params
-        self._q: deque[tuple[str, dict[str, Any], Extra]] = deque(maxlen=cfg.queue_size)
+        self._q: deque[tuple[str, MessageSource, Extra]] = deque(maxlen=cfg.queue_size)
         self._event = threading.Event()
         self._stop = False
         self._thread: threading.Thread | None = None
@@ -174,7 +177,7 @@ class Telemetry:
         except Exception as exc:  # a bad query must not kill zenoh's callback thread
             log.warning("params query failed: %s", exc)
 
-    def _enqueue(self, kind: str, msg: dict[str, Any], extra: Extra = None) -> None:
+    def _enqueue(self, kind: str, msg: MessageSource, extra: Extra = None) -> None:
         if len(self._q) == self._q.maxlen:
             self.dropped += 1
         self._q.append((kind, msg, extra))
@@ -184,8 +187,9 @@ class Telemetry:
         if not self._event.is_set():
             self._event.set()
 
-    def publish_state(self, msg: dict[str, Any]) -> None:
-        """Queue one state message (never blocks)."""
+    def publish_state(self, msg: MessageSource) -> None:
+        """Queue one state message, or a :class:`~truckd.runtime.deferred.Deferred` that
+        builds it on the publisher thread (never blocks)."""
         self._enqueue("state", msg)
 
     def publish_plan(self, msg: dict[str, Any]) -> None:
@@ -207,8 +211,10 @@ class Telemetry:
                 except IndexError:
                     break
                 try:
+                    if callable(msg):  # deferred: built here, off the control loop
+                        msg = msg()
                     if extra is not None:
-                        msg.update(extra())
+                        msg = {**msg, **extra()}
                     self._pubs[kind].put(_encode(msg))
                     self.sent += 1
                 except Exception as exc:
