@@ -261,6 +261,31 @@ def test_lead_forecast_hook_changes_the_plan(params: VehicleParams) -> None:
     assert end_speeds[1] < end_speeds[0] - 0.3
 
 
+def test_a_lead_forecast_is_padded_capped_and_refused_when_not_finite(
+    params: VehicleParams,
+) -> None:
+    """What the QP is given as the lead's speed: a short forecast holds its last value, a
+    forecast above the cap or below zero is clipped, and one with a NaN or an infinity is
+    not used at all (the estimate held constant instead)."""
+    cfg = ControlConfig().in_simulated_time()
+    n = cfg.horizon
+    est = _estimate(1.2, 1.12, 1.0)
+    cap = cfg.v_set
+    horizon = Controller._lead_horizon
+    assert horizon(est, [0.5, 0.4], n, cap) == [0.5] + [0.4] * (n - 1)
+    assert horizon(est, [9.0, -1.0, 0.7], n, cap) == [cap, 0.0] + [0.7] * (n - 2)
+    for bad in (math.nan, math.inf, -math.inf):
+        assert horizon(est, [0.5, bad, 0.4], n, cap) == [min(1.0, cap)] * n
+    assert horizon(est, None, n, 0.8) == [0.8] * n
+    assert all(type(x) is float for x in horizon(est, list(np.linspace(1, 0, n)), n, cap))
+    # and what the solver then saw: the filled inputs end with the capped forecast
+    ctrl = Controller(ControlModel(params), cfg)
+    ctrl.u_prev = params.K_v * params.omega(1.2)
+    assert ctrl.control(est, [0.5, math.nan]).fallback_reason is None
+    cq = ctrl.mpc.condensed
+    assert cq is not None and cq.filled[-n:] == [min(1.0, cap)] * n
+
+
 def _inputs(
     cfg: ControlConfig,
     x0: tuple[float, float, float] = (0.0, 1.2, 1.0),

@@ -5,6 +5,7 @@ and bounds, and one step per block gives the sparse QP's optimum."""
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 import pytest
@@ -178,3 +179,33 @@ def test_the_plan_is_the_expanded_solutions_inputs_and_speeds(params: VehiclePar
         u, v = cq.plan(w)
         np.testing.assert_allclose(u, ref[u0 : u0 + n], rtol=1e-13, atol=1e-13)
         np.testing.assert_allclose(v, qp.speeds(ref), rtol=1e-13, atol=1e-13)
+
+
+def test_lists_and_arrays_fill_alike_and_bad_inputs_leave_the_vectors(
+    params: VehicleParams,
+) -> None:
+    """The controller passes x0 and v_lead as lists (no numpy call per cycle): the same
+    vectors as arrays give; a non-finite input is refused before anything is written; a
+    wrong count is an error, not a silently shifted input."""
+    cfg = ControlConfig()
+    cq = CondensedQp(QpBuilder(ControlModel(params), cfg), block_lengths(cfg.horizon, 8))
+    rng = np.random.default_rng(5)
+    for lead in (True, False):
+        inp = _inputs(rng, cfg, lead)
+        as_lists = dataclasses.replace(inp, x0=inp.x0.tolist(), v_lead=inp.v_lead.tolist())
+        assert cq.fill("follow", inp)
+        ref = (cq.q_view.copy(), cq.lo_view.copy(), cq.hi_view.copy())
+        filled = list(cq.filled)
+        assert all(type(x) is float for x in filled)
+        cq.fill("cruise", _inputs(rng, cfg, not lead))  # something else in between
+        assert cq.fill("follow", as_lists)
+        assert cq.filled == filled
+        for got, want in zip((cq.q_view, cq.lo_view, cq.hi_view), ref, strict=True):
+            np.testing.assert_array_equal(got, want)
+        for bad in (math.nan, math.inf, 1e12):
+            v_lead = [*as_lists.v_lead[:-1], bad]
+            assert not cq.fill("follow", dataclasses.replace(as_lists, v_lead=v_lead))
+            assert cq.filled == filled
+            np.testing.assert_array_equal(cq.q_view, ref[0])
+        with pytest.raises(ValueError, match="inputs"):
+            cq.fill("follow", dataclasses.replace(as_lists, v_lead=as_lists.v_lead[1:]))

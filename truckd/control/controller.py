@@ -87,7 +87,6 @@ class Controller:
         self.holding = False
         """Standstill hold active (see :meth:`_update_hold`)."""
         self._release_cycles = 0
-        self._v_lead_buf = np.empty(self._delay_steps + self.mpc.horizon)
         self._b_v = float(self.mpc.qp.pred.bu[1])
         """Speed per volt over one step (m/s/V), for the offset-free action."""
         self.pipeline_v: list[float] = []
@@ -130,23 +129,20 @@ class Controller:
             self.estimator.update_range(t, r, v_now)
         return self.control(self.estimator.estimate(t), v_lead_forecast, headway)
 
+    @staticmethod
     def _lead_horizon(
-        self, est: Estimate, forecast: Sequence[float] | None, n: int, cap: float
-    ) -> Vec:
+        est: Estimate, forecast: Sequence[float] | None, n: int, cap: float
+    ) -> list[float]:
         """Lead speed (m/s) from now over the pipeline and the QP's horizon (``n`` =
-        :meth:`_pipeline_steps` + horizon values), at most ``cap``: the forecast when given
-        and finite (its last value held past its end), else the estimate held constant
-        (written into a work array reused every cycle: the QP copies it)."""
+        :meth:`_pipeline_steps` + horizon values), in [0, ``cap``]: the forecast when given
+        and finite (its last value held past its end), else the estimate held constant.
+        Python floats, no numpy: the QP gathers them with its other inputs."""
         if forecast is not None and len(forecast) > 0:
-            f: Vec = np.asarray(forecast, dtype=float)[:n]
-            if f.size < n:
-                f = np.concatenate([f, np.full(n - f.size, f[-1])])
-            if np.all(np.isfinite(f)):
-                out: Vec = np.clip(f, 0.0, cap)
-                return out
-        buf = self._v_lead_buf[:n]
-        buf.fill(min(max(est.v_lead, 0.0), cap))
-        return buf
+            f = [float(x) for x in forecast[:n]]
+            f += [f[-1]] * (n - len(f))
+            if math.isfinite(sum(f)):  # any NaN or infinity makes the sum non-finite
+                return [min(max(x, 0.0), cap) for x in f]
+        return [min(max(est.v_lead, 0.0), cap)] * n
 
     def control(
         self,
@@ -203,8 +199,7 @@ class Controller:
             cap = cfg.v_set if mode == "follow" else cfg.v_max
             v_lead_all = self._lead_horizon(est, forecast, n_all, cap)
         else:
-            v_lead_all = self._v_lead_buf[:n_all]
-            v_lead_all.fill(0.0)
+            v_lead_all = [0.0] * n_all
         v_lead_h = v_lead_all[n_pipe:]
         inp = QpInputs(
             x0=self._initial_state(
@@ -301,8 +296,8 @@ class Controller:
         return self.disturbance_v
 
     def _initial_state(
-        self, v: float, gap: float, ff: float, v_lead: Vec, held: bool = False
-    ) -> Vec:
+        self, v: float, gap: float, ff: float, v_lead: Sequence[float], held: bool = False
+    ) -> list[float]:
         """The QP's ``x_0``: the current ``R_m i`` after the electrical transient (about
         0.5 ms, so settled within a cycle) from the voltage acting now; with a known input
         delay, the state predicted over the commands sent but not yet acting, with the
@@ -314,15 +309,19 @@ class Controller:
             acting = self.u_prev
         if held:
             acting = ff  # no current beyond what the feedforward accounts for
-        x: Vec = np.array([acting - ff - p.K_v * p.omega(v), v, gap])
+        x0 = [acting - ff - p.K_v * p.omega(v), v, gap]
         speeds = [v]
-        if self._delay_steps > 0:
-            pred = self.mpc.qp.pred
-            for k, u in enumerate(list(sent)[1:]):
-                x = pred.Ad @ x + pred.bu * (u - ff) + pred.bl * float(v_lead[k])
-                speeds.append(float(x[1]))
+        if self._delay_steps == 0:
+            self.pipeline_v = []
+            return x0  # a list: the QP gathers its inputs without numpy
+        pred = self.mpc.qp.pred
+        x: Vec = np.array(x0)
+        for k, u in enumerate(list(sent)[1:]):
+            x = pred.Ad @ x + pred.bu * (u - ff) + pred.bl * float(v_lead[k])
+            speeds.append(float(x[1]))
         self.pipeline_v = speeds[:-1]
-        return x
+        out: list[float] = x.tolist()
+        return out
 
     def _fallback(
         self,

@@ -187,7 +187,7 @@ class MpcSolver:
             finite = cq.fill(mode, inp)
         else:
             scalars = (inp.u_prev, inp.v_ref, inp.v_cap, inp.u_lo, inp.u_hi)
-            finite = inputs_ok([*map(float, scalars), *inp.x0.tolist(), *inp.v_lead.tolist()])
+            finite = inputs_ok([*map(float, (*scalars, *inp.x0, *inp.v_lead))])
         if not finite:
             return MpcResult(False, math.nan, "non-finite-input", 0, 0.0)
         if cq is None:

@@ -37,6 +37,7 @@ never infeasible.  Only ``q``, ``l`` and ``u`` change from cycle to cycle.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -50,6 +51,8 @@ from truckd.model.linear import state_space, zoh
 from truckd.model.params import VehicleParams
 
 Vec = NDArray[np.float64]
+Floats = Sequence[float] | Vec
+"""Values as a list of floats or an array."""
 INF = 1e30
 """Unbounded constraint side (OSQP clips at its own infinity)."""
 
@@ -250,12 +253,14 @@ class QpInputs:
     ``x0`` = [R_m i (V), v (m/s), d (m)]; ``u_prev`` the previous command's MPC part (V);
     ``v_lead`` lead speed over the horizon (N values, m/s); ``lead`` whether a lead is
     tracked (enables the minimum gap); ``v_ref`` cruise speed (m/s); ``v_cap`` speed limit
-    (m/s); ``u_lo``/``u_hi`` bounds on the MPC part of the voltage (V).
+    (m/s); ``u_lo``/``u_hi`` bounds on the MPC part of the voltage (V).  ``x0`` and
+    ``v_lead`` are lists of floats or arrays (the controller passes lists: the condensed
+    QP gathers its inputs without a numpy call).
     """
 
-    x0: Vec
+    x0: Floats
     u_prev: float
-    v_lead: Vec
+    v_lead: Floats
     lead: bool
     v_ref: float
     v_cap: float
