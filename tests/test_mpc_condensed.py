@@ -48,9 +48,12 @@ def test_block_lengths(horizon: int, blocks: int, expected: tuple[int, ...]) -> 
 
 @pytest.mark.parametrize("mode", ["follow", "cruise"])
 @pytest.mark.parametrize("lead", [True, False])
+@pytest.mark.parametrize("one_speed", [False, True])
 def test_condensed_vectors_equal_the_sparse_ones_condensed(
-    params: VehicleParams, mode: str, lead: bool
+    params: VehicleParams, mode: str, lead: bool, one_speed: bool
 ) -> None:
+    """``one_speed``: the lead at one speed over the horizon (no forecast), which fill
+    computes with the lead's columns summed."""
     cfg = ControlConfig()
     qp = QpBuilder(ControlModel(params), cfg)
     cq = CondensedQp(qp, block_lengths(cfg.horizon, 8))
@@ -58,6 +61,8 @@ def test_condensed_vectors_equal_the_sparse_ones_condensed(
     a_sparse = qp.A.toarray()
     for _ in range(5):
         inp = _inputs(rng, cfg, lead)
+        if one_speed:
+            inp = dataclasses.replace(inp, v_lead=np.full(cfg.horizon, rng.uniform(0, 2)))
         q, lo, hi = np.empty(cq.nw), np.empty(cq.m), np.empty(cq.m)
         cq.vectors_into(mode, inp, q, lo, hi)
         qs, ls, hs = qp.vectors(mode, inp)

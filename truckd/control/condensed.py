@@ -281,6 +281,19 @@ class CondensedQp:
                 (np.ascontiguousarray(f[rows, : src.size]), src, self._buf[rows])
                 for rows, src in pieces
             ]
+        # A lead at one speed over the whole horizon (every cycle without a forecast, and
+        # with no lead): the lead speed's columns summed into one, and the whole stretch in
+        # one product of 12 columns (15 instead of 29 kB of matrix, one call instead of 3).
+        n_const = NX + N_SCALARS + 1
+        self._s_const = self._s[:n_const]
+        """``[x0; scalars; v_lead[0]]``: a view of the inputs :meth:`fill` writes."""
+        self._products_const: dict[tuple[str, bool], tuple[Vec, Vec]] = {}
+        for key, f in full.items():
+            g = f[self._span]
+            fc = np.empty((g.shape[0], n_const))
+            fc[:, : NX + N_SCALARS] = g[:, : NX + N_SCALARS]
+            fc[:, -1] = g[:, c_vl].sum(axis=1)
+            self._products_const[key] = (fc, self._buf[self._span])
         self.hi_view, self.q_view, self.lo_view = (
             self._buf[:m],
             self._buf[m : m + nw],
@@ -312,6 +325,11 @@ class CondensedQp:
             return False
         self.filled = values  # kept: the solution can be expanded later
         self._s[:] = values
+        v_lead = values[NX + N_SCALARS :]
+        if v_lead.count(v_lead[0]) == len(v_lead):  # one speed: one short product
+            f_c, dst = self._products_const[(mode, inp.lead)]
+            np.dot(f_c, self._s_const, out=dst)
+            return True
         for f, src, dst in self._products[(mode, inp.lead)]:
             np.dot(f, src, out=dst)
         return True
