@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 import socket
-from collections.abc import Mapping
+import time
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -40,3 +41,14 @@ def write_config(path: Path, overrides: Mapping[str, Any]) -> Path:
     base = yaml.safe_load(default_config_path().read_text())
     path.write_text(yaml.safe_dump(deep_merge(base, overrides)))
     return path
+
+
+def wait_for(pred: Callable[[], object], timeout: float) -> bool:
+    """Poll ``pred`` every 10 ms until it is true or ``timeout`` s have passed; its last
+    value (a condition to wait on, not a fixed sleep)."""
+    t_end = time.monotonic() + timeout
+    while time.monotonic() < t_end:
+        if pred():
+            return True
+        time.sleep(0.01)
+    return bool(pred())

@@ -9,12 +9,11 @@ from __future__ import annotations
 
 import json
 import threading
-import time
 from pathlib import Path
 from typing import Any
 
 import zenoh
-from runtime_support import endpoint, free_port
+from runtime_support import endpoint, free_port, wait_for
 
 from truckd.control.platoon import PlatoonDecision
 from truckd.runtime.config import RecorderConfig, TelemetryConfig
@@ -31,12 +30,7 @@ REPLAY_LOG = Path(__file__).parent / "data" / "replay" / "run.rx.jsonl"
 
 
 def _wait(pred: Any, timeout: float = 10.0) -> bool:
-    t_end = time.monotonic() + timeout
-    while time.monotonic() < t_end:
-        if pred():
-            return True
-        time.sleep(0.01)
-    return bool(pred())
+    return wait_for(pred, timeout)
 
 
 def test_builds_once_and_keeps_it() -> None:

@@ -11,7 +11,7 @@ from typing import Any
 
 import pytest
 import zenoh
-from runtime_support import endpoint, free_port, write_config
+from runtime_support import endpoint, free_port, wait_for, write_config
 
 from truckd.config.truck import load_config
 from truckd.control.platoon import encode_plan, kinematic_plan
@@ -22,12 +22,7 @@ from truckd.runtime.telemetry import Telemetry, zenoh_config
 
 
 def _wait(pred: Any, timeout: float = 10.0) -> bool:
-    t_end = time.monotonic() + timeout
-    while time.monotonic() < t_end:
-        if pred():
-            return True
-        time.sleep(0.01)
-    return bool(pred())
+    return wait_for(pred, timeout)
 
 
 @pytest.mark.parametrize("acl", [True, False])

@@ -6,13 +6,12 @@ import json
 import subprocess
 import sys
 import threading
-import time
 from pathlib import Path
 from typing import Any
 
 import pytest
 import zenoh
-from runtime_support import endpoint, free_port, write_config
+from runtime_support import endpoint, free_port, wait_for, write_config
 
 from truckd.errors import InputError
 from truckd.runtime.config import TelemetryConfig
@@ -20,12 +19,7 @@ from truckd.runtime.telemetry import Telemetry, keys, zenoh_config
 
 
 def _wait(pred: Any, timeout: float = 5.0) -> bool:
-    t_end = time.monotonic() + timeout
-    while time.monotonic() < t_end:
-        if pred():
-            return True
-        time.sleep(0.01)
-    return bool(pred())
+    return wait_for(pred, timeout)
 
 
 def test_shipped_zenoh_config_is_loopback_only() -> None:
