@@ -41,7 +41,7 @@ from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
 from truckd.runtime.config import RecorderConfig
-from truckd.runtime.deferred import MessageSource
+from truckd.runtime.deferred import MessageSource, resolve
 from truckd.runtime.msg_schemas import KINDS, MESSAGE_ENCODING, SCHEMA_ENCODING, schema_bytes
 from truckd.runtime.msg_schemas import topic as topic_of
 
@@ -282,8 +282,7 @@ class McapLog:
                     continue
                 kind, t, msg, extra = p
                 try:
-                    if callable(msg):  # deferred: built here, off the control loop
-                        msg = msg()
+                    msg = resolve(msg)  # a deferred one is built here, off the control loop
                     if extra is not None:
                         msg = {**msg, **extra()}
                     f.write(kind, origin + round(t * 1e9), to_json(msg))

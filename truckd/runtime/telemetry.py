@@ -27,7 +27,7 @@ import zenoh
 from truckd.errors import InputError, TruckdError
 from truckd.inputs import open_regular
 from truckd.runtime.config import TelemetryConfig
-from truckd.runtime.deferred import MessageSource
+from truckd.runtime.deferred import MessageSource, resolve
 
 log = logging.getLogger("truckd.telemetry")
 
@@ -211,8 +211,7 @@ class Telemetry:
                 except IndexError:
                     break
                 try:
-                    if callable(msg):  # deferred: built here, off the control loop
-                        msg = msg()
+                    msg = resolve(msg)  # a deferred one is built here, off the control loop
                     if extra is not None:
                         msg = {**msg, **extra()}
                     self._pubs[kind].put(_encode(msg))
