@@ -205,10 +205,6 @@ class DaemonPlatoon:
         p = cycle_plan(self.cyc, out, t, self.vehicle_id)
         return p.as_dict() if p is not None else None
 
-    def state_fields(self) -> dict[str, Any]:
-        """Merged into the state message: :func:`platoon_state_fields` of this cycle."""
-        return platoon_state_fields(self.decision)
-
     def health(self) -> dict[str, Any]:
         """The ``platoon`` entry of the health message."""
         d, r, m = self.decision, self.receiver, self.mode
