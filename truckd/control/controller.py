@@ -17,13 +17,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from truckd.control.config import ControlConfig
+from truckd.control.effect_use import DeadZoneLaw, sag_command, sag_limit, startup_line
 from truckd.control.estimator import EncoderSample, Estimate, Estimator, RangeSample
 from truckd.control.fallback import braking_law, held_plan_move, limit_command
-from truckd.control.feedforward import (
-    breakaway_feedforward,
-    dead_zone_command,
-    moving_feedforward,
-)
+from truckd.control.feedforward import breakaway_feedforward, moving_feedforward
 from truckd.control.mpc import MpcSolver
 from truckd.control.qp import ControlModel, QpInputs, Vec
 
@@ -75,6 +72,21 @@ class Controller:
         self._sent: deque[float] = deque(maxlen=self._delay_steps + 1)
         self._du = cfg.du_max * cfg.period
         self.u_prev = 0.0
+        eff = model.effects
+        self.dead_zone = DeadZoneLaw(eff.dead_zone, eff.dead_zone_offset)
+        """The command map of a driver dead zone (see :mod:`truckd.control.effect_use`)."""
+        self.startup_note = startup_line(eff)
+        """One line naming the effects of the model the controller cannot use (None: all
+        used); the daemon and ``truckd sim`` log it at start-up."""
+        self.current = math.nan
+        """The motor current (A) last measured (NaN: none), for the battery sag map."""
+        self.vbat = math.nan
+        """The battery voltage (V) last measured (NaN: none), for the battery sag map."""
+        self._wanted = 0.0
+        """The motor voltage (V) the last command was meant to apply (before the maps)."""
+        self._out = 0.0
+        """The last command returned (V): while :attr:`u_prev` equals it, the voltage at
+        the motor is :attr:`_wanted`."""
         self._plan: list[float] | None = None
         self._plan_age = 0
         self.solver_failures = 0
@@ -111,6 +123,8 @@ class Controller:
         ranges: Sequence[RangeSample] = (),
         v_lead_forecast: Sequence[float] | None = None,
         headway: float | None = None,
+        current: float = math.nan,
+        vbat: float = math.nan,
     ) -> ControlOutput:
         """One cycle at caller time t (s) with the samples received since the last one
         (oldest first).
@@ -120,8 +134,10 @@ class Controller:
         plan received from the truck ahead: with an input delay its first values cover
         the commands already in the pipeline, the rest the QP's horizon.  ``headway``
         (s, optional) replaces the configured time headway (platooning, see
-        :meth:`control`).
+        :meth:`control`).  ``current`` (A) and ``vbat`` (V): the motor driver's last
+        feedback (NaN: none), used by the battery sag map.
         """
+        self.current, self.vbat = current, vbat
         for e in encoders:
             self.estimator.update_encoders(t, e)
         for r in ranges:
@@ -177,13 +193,15 @@ class Controller:
             mode, v_ref = "cruise", cfg.v_set
         else:
             mode, v_ref = "stop", 0.0
+        # The command acts after the input delay: the terrain's load where the truck is then.
+        x_act = est.x + v * self._delay_steps * cfg.period
         ff = (
-            moving_feedforward(p, self.model.effects, v, cfg.moving_speed)
+            moving_feedforward(p, self.model.effects, v, cfg.moving_speed, x_act)
             if cfg.feedforward
             else 0.0
         )
         ff += self._update_disturbance(v)
-        u_prev_mpc = self.u_prev - ff
+        u_prev_mpc = self._applied_prev() - ff
         if abs(v) <= cfg.moving_speed:
             # At rest the previous voltage moved nothing (stiction), so to the friction-free
             # model it is 0 V: else the rate penalty keeps asking for it and the breakaway
@@ -215,7 +233,7 @@ class Controller:
             v_ref=v_ref,
             v_cap=cfg.v_max,
             u_lo=-self.u_max - ff,
-            u_hi=self.u_max - ff,
+            u_hi=self._u_hi() - ff,
         )
         res = self.mpc.solve("follow" if mode == "follow" else "cruise", inp)
         if not res.ok:
@@ -239,6 +257,26 @@ class Controller:
         return self._finish(
             est, v, res.u0, ff, mode, None, res.status, res.iterations, res.run_time_s, gap_ref
         )
+
+    def _applied_prev(self) -> float:
+        """The voltage the previous command applies at the motor (V): what it was meant to
+        apply when the caller sent it unchanged, else the caller's command itself."""
+        return self._wanted if self.u_prev == self._out else self.u_prev
+
+    def _u_hi(self) -> float:
+        """The highest motor voltage (V) the driver can apply now (the battery sag lowers
+        it under load): the plan's real upper bound, so it never asks for more."""
+        eff, p = self.model.effects, self.model.params
+        return sag_limit(self.u_max, eff.battery_sag, p.V_batt, self.current)
+
+    def _command(self, u: float) -> float:
+        """The command map: the wanted motor voltage ``u`` (V) -> the command (V) the
+        driver turns into it (battery sag, then the dead zone), within ``u_max``."""
+        eff, p = self.model.effects, self.model.params
+        c = sag_command(u, eff.battery_sag, p.V_batt, self.current, self.vbat)
+        c = min(max(c, -self.u_max), self.u_max)
+        c = self.dead_zone.command(c)
+        return min(max(c, -self.u_max), self.u_max)
 
     def _update_hold(self, est: Estimate, v: float, lead: bool) -> bool:
         """Standstill hold, as an ACC holds the car behind a stopped lead.
@@ -306,7 +344,7 @@ class Controller:
         sent = self._sent
         acting = sent[0] if len(sent) == sent.maxlen else 0.0
         if self._delay_steps == 0:
-            acting = self.u_prev
+            acting = self._applied_prev()
         if held:
             acting = ff  # no current beyond what the feedforward accounts for
         x0 = [acting - ff - p.K_v * p.omega(v), v, gap]
@@ -355,7 +393,7 @@ class Controller:
             return self._finish(
                 est,
                 v,
-                self.u_prev - ff,
+                self._applied_prev() - ff,
                 ff,
                 mode,
                 reason + ":hold",
@@ -392,18 +430,20 @@ class Controller:
         cfg = self.cfg
         at_rest = abs(v) <= cfg.moving_speed
         if cfg.feedforward and at_rest and u_mpc > cfg.start_voltage and mode != "fallback":
-            ff = breakaway_feedforward(self.model.params, self.model.effects, cfg.stiction_margin)
+            ff = breakaway_feedforward(
+                self.model.params, self.model.effects, cfg.stiction_margin, est.x
+            )
         u = u_mpc + ff
         if at_rest and u < 0.0:
             u = 0.0  # never drive backwards from rest
-        u = limit_command(u, self.u_prev, self.u_max, self._du)
-        # A known driver dead zone: a voltage inside it cannot be applied; send the nearest
-        # one that can (may exceed the rate limit by the zone's width, never the voltage limit).
-        eff = self.model.effects
-        u = dead_zone_command(u, eff.dead_zone, eff.dead_zone_offset)
-        u = min(max(u, -self.u_max), self.u_max)
-        self.u_prev = u
-        self._sent.append(u)
+        wanted = limit_command(u, self._applied_prev(), self.u_max, self._du)
+        # The known driver effects (battery sag, dead zone): the command that makes the
+        # driver apply the wanted voltage, as near as it can (a dead zone may exceed the
+        # rate limit by its width, never the voltage limit).
+        u = self._command(wanted)
+        self.u_prev = self._out = u
+        self._wanted = wanted
+        self._sent.append(wanted)
         return ControlOutput(
             u=u,
             u_ff=ff,
