@@ -126,14 +126,18 @@ def sag_command(
     ``i`` (A): the root of ``a c^2 - c + u = 0`` (``a = R_b i / V_batt^2``) nearest ``u``.
     Without a finite current, a measured battery voltage ``vbat`` (V) in
     ``(0.5, 1] V_batt`` scales the command by ``V_batt / vbat``; without either, ``u``.
+    A voltage beyond what the driver can give at that current (``4 a u >= 1``) gets the
+    command that gives the most, ``1 / (2 a)`` (the caller clips it to its limit).
     """
     if not math.isfinite(u) or r_batt <= 0.0:
         return u
     if math.isfinite(current):
         a = r_batt * current / (v_batt * v_batt)
         disc = 1.0 - 4.0 * a * u
-        if a == 0.0 or disc <= 0.0:
-            return u if a == 0.0 else 2.0 * u  # beyond the driver's reach: the most it has
+        if a == 0.0:
+            return u
+        if disc <= 0.0:
+            return 0.5 / a  # beyond the driver's reach: the command that gives the most
         return 2.0 * u / (1.0 + math.sqrt(disc))
     if math.isfinite(vbat) and 0.5 * v_batt < vbat <= v_batt:
         return u * v_batt / vbat
