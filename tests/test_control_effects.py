@@ -213,15 +213,15 @@ def test_delay_predictor_predicts_the_plants_speed_when_the_command_acts() -> No
     plant.reset(v=0.8)
     commands = [2.6] * 40 + [4.5, 5.0, 5.5, 5.5, 5.5, 3.0, 2.0, 2.0]
     for u in commands:
-        ctrl._sent.append(u)  # noqa: SLF001 - the pipeline as the controller records it
-        ctrl._wanted = ctrl._out = ctrl.u_prev = u  # noqa: SLF001
+        ctrl._sent.append(u)
+        ctrl._wanted = ctrl._out = ctrl.u_prev = u
         plant.command(u)
         plant.advance(dt)
     v_now = plant.v
     est = Estimate(v_now, True, 2.0, v_now, True, "tracking", 0.01, 0, 0, 0, 0, x=plant.x)
-    ff = ctrl._feedforward(v_now, plant.x)  # noqa: SLF001
+    ff = ctrl._feedforward(v_now, plant.x)
     steps = round(delay / dt)
-    x0, _ = ctrl._initial_state(v_now, 2.0, ff, [v_now] * steps, x_pos=est.x)  # noqa: SLF001
+    x0, _ = ctrl._initial_state(v_now, 2.0, ff, [v_now] * steps, x_pos=est.x)
     plant.command(0.0)  # after the pipeline; nothing of it acts within the delay
     plant.advance(delay - 1e-9)
     v_then = plant.v
@@ -233,5 +233,5 @@ def test_clean_truck_gap_error_unchanged_by_an_empty_model() -> None:
     """No effect in the model: the maps are identities (the default controller)."""
     ctrl = Controller(ControlModel(_truck()), load_config().control)
     assert not ctrl.dead_zone.active
-    assert ctrl._command(3.3) == 3.3  # noqa: SLF001
+    assert ctrl._command(3.3) == 3.3
     assert np.isnan(ctrl.current)
