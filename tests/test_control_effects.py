@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from truckd.config.truck import load_config
-from truckd.control.controller import Controller
+from truckd.control.controller import SATURATED_V, Controller
 from truckd.control.effect_use import (
     EFFECT_USES,
     DeadZoneLaw,
@@ -235,3 +235,22 @@ def test_clean_truck_gap_error_unchanged_by_an_empty_model() -> None:
     assert not ctrl.dead_zone.active
     assert ctrl._command(3.3) == 3.3
     assert np.isnan(ctrl.current)
+
+
+def test_saturated_plan_stays_within_the_drivers_limit_without_wind_up() -> None:
+    """A truck that does not speed up (here: held at 0.5 m/s) while the plan asks for the
+    driver's limit: every command within the diagnosed saturation, and the offset-free
+    integrator (which grows while the command ramps up) does not wind up at the limit."""
+    tc = load_config()
+    cfg = dataclasses.replace(tc.control, disturbance_gain=0.05)
+    ctrl = Controller(ControlModel(_truck(), Effects(voltage_saturation=3.0)), cfg)
+    assert ctrl.u_max == 3.0
+    est = Estimate(0.5, True, math.nan, math.nan, False, "none", math.nan, 0, 0, 0, 0)
+    us, dist = [], []
+    for _ in range(200):
+        us.append(ctrl.control(est).u)
+        dist.append(ctrl.disturbance_v)
+    assert all(abs(u) <= 3.0 for u in us)
+    first = next(k for k, u in enumerate(us) if u > 3.0 - SATURATED_V)
+    assert min(us[first:]) > 3.0 - SATURATED_V  # at the limit from here on
+    assert dist[first + 1 :] == [dist[first]] * (len(us) - first - 1)

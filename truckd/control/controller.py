@@ -24,6 +24,9 @@ from truckd.control.feedforward import breakaway_feedforward, moving_feedforward
 from truckd.control.mpc import MpcSolver
 from truckd.control.qp import ControlModel, QpInputs, Vec
 
+SATURATED_V = 0.01
+"""A command this close to the driver's limit (V, the QP's accuracy) is at the limit."""
+
 LEAD_ACCEL_TAU_S = 0.1
 """Time constant (s) of the lead acceleration's filter (used over an input delay only)."""
 
@@ -351,11 +354,19 @@ class Controller:
         The speed the last plan expected now minus the speed measured, divided by the
         model's speed-per-volt over one step, is an input-voltage disturbance; a slow
         integrator (gain per cycle) estimates it and the feedforward adds it.  Frozen at
-        rest (stiction, not a disturbance) and after fallbacks (no plan expected anything).
+        rest (stiction, not a disturbance), after fallbacks (no plan expected anything) and
+        while the last command was at the driver's limit (no wind-up).
         """
         gain = self.cfg.disturbance_gain
         expected, self._v_expected = self._v_expected, math.nan
-        if gain > 0.0 and math.isfinite(expected) and abs(v) > self.cfg.moving_speed:
+        w = self._wanted  # at the driver's limit the model's error is no disturbance
+        saturated = w >= self._u_hi() - SATURATED_V or w <= -self.u_max + SATURATED_V
+        if (
+            gain > 0.0
+            and math.isfinite(expected)
+            and abs(v) > self.cfg.moving_speed
+            and not saturated
+        ):
             self.disturbance_v += gain * (expected - v) / self._b_v
             limit = self.cfg.disturbance_max
             self.disturbance_v = min(max(self.disturbance_v, -limit), limit)
