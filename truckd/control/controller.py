@@ -17,7 +17,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from truckd.control.config import ControlConfig
-from truckd.control.effect_use import DeadZoneLaw, sag_command, sag_limit, startup_line
+from truckd.control.effect_use import (
+    DeadZoneLaw,
+    sag_command,
+    sag_limit,
+    startup_line,
+    torque_terms,
+)
 from truckd.control.estimator import EncoderSample, Estimate, Estimator, RangeSample
 from truckd.control.fallback import braking_law, held_plan_move, limit_command
 from truckd.control.feedforward import breakaway_feedforward, moving_feedforward
@@ -81,6 +87,8 @@ class Controller:
         eff = model.effects
         self.dead_zone = DeadZoneLaw(eff.dead_zone, eff.dead_zone_offset)
         """The command map of a driver dead zone (see :mod:`truckd.control.effect_use`)."""
+        self._terms = torque_terms(eff)
+        """The feedforward torque terms of the model's effects (fixed: found once)."""
         self.startup_note = startup_line(eff)
         """One line naming the effects of the model the controller cannot use (None: all
         used); the daemon and ``truckd sim`` log it at start-up."""
@@ -377,7 +385,9 @@ class Controller:
         and the known loads (:mod:`truckd.control.effect_use`) plus the disturbance."""
         cfg = self.cfg
         ff = (
-            moving_feedforward(self.model.params, self.model.effects, v, cfg.moving_speed, x)
+            moving_feedforward(
+                self.model.params, self.model.effects, v, cfg.moving_speed, x, self._terms
+            )
             if cfg.feedforward
             else 0.0
         )

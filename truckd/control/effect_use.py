@@ -106,13 +106,29 @@ def startup_line(eff: Effects) -> str | None:
     )
 
 
-def feedforward_torque(p: VehicleParams, eff: Effects, v: float, x: float) -> float:
-    """Sum of the table's feedforward torques (N m) for the effects present."""
-    total = 0.0
+def torque_terms(eff: Effects) -> tuple[Torque, ...]:
+    """The table's feedforward torque functions of the effects present in ``eff`` (the
+    terrain's once although two fields switch it on)."""
+    terms: list[Torque] = []
     for name in present_effects(eff):
         use = EFFECT_USES.get(name)
-        if use is not None and use.torque is not None:
-            total += use.torque(p, eff, v, x)
+        if use is not None and use.torque is not None and use.torque not in terms:
+            terms.append(use.torque)
+    return tuple(terms)
+
+
+def feedforward_torque(
+    p: VehicleParams,
+    eff: Effects,
+    v: float,
+    x: float,
+    terms: tuple[Torque, ...] | None = None,
+) -> float:
+    """Sum of the table's feedforward torques (N m) for the effects present (``terms``:
+    :func:`torque_terms` of ``eff`` when the caller keeps them, as the controller does)."""
+    total = 0.0
+    for term in torque_terms(eff) if terms is None else terms:
+        total += term(p, eff, v, x)
     return total
 
 

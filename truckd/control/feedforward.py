@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import math
 
-from truckd.control.effect_use import feedforward_torque
+from truckd.control.effect_use import Torque, feedforward_torque
 from truckd.model.effects import Effects
 from truckd.model.params import VehicleParams
 
@@ -41,14 +41,19 @@ def load_torque_known(p: VehicleParams, eff: Effects, v: float) -> float:
 
 
 def moving_feedforward(
-    p: VehicleParams, eff: Effects, v: float, moving_speed: float, x: float = 0.0
+    p: VehicleParams,
+    eff: Effects,
+    v: float,
+    moving_speed: float,
+    x: float = 0.0,
+    terms: tuple[Torque, ...] | None = None,
 ) -> float:
     """Feedforward voltage (V) while moving at v (m/s), the command acting at road
-    position x (m); 0 at rest."""
+    position x (m); 0 at rest.  ``terms``: see :func:`feedforward_torque`."""
     if abs(v) <= moving_speed:
         return 0.0
     s = math.copysign(1.0, v)
-    torque = s * p.K_coulomb + feedforward_torque(p, eff, v, x)
+    torque = s * p.K_coulomb + feedforward_torque(p, eff, v, x, terms)
     return torque_to_voltage(p, torque)
 
 
