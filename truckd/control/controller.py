@@ -368,12 +368,11 @@ class Controller:
         gain = self.cfg.disturbance_gain
         expected, self._v_expected = self._v_expected, math.nan
         w = self._wanted  # at the driver's limit the model's error is no disturbance
-        saturated = w >= self._u_hi() - SATURATED_V or w <= -self.u_max + SATURATED_V
         if (
             gain > 0.0
             and math.isfinite(expected)
             and abs(v) > self.cfg.moving_speed
-            and not saturated
+            and -self.u_max + SATURATED_V < w < self._u_hi() - SATURATED_V
         ):
             self.disturbance_v += gain * (expected - v) / self._b_v
             limit = self.cfg.disturbance_max
