@@ -177,7 +177,9 @@ def main() -> int:
                     print(f"{tag}: found {[f['name'] for f in found]}", flush=True)
                     continue
                 # A terrain is reported under its family's name with its own parameters.
-                named = [n for f in found for n in (f["name"], *f.get("params", {}))]
+                named = list(
+                    dict.fromkeys(n for f in found for n in (f["name"], *f.get("params", {})))
+                )
                 for sc in scenarios:
                     seed_m = _sim(cfg_path, sc, d / "a.json", None)
                     ext_m = _sim(cfg_path, sc, d / "b.json", model)
