@@ -158,10 +158,10 @@ def test_sag_limit_is_the_most_the_driver_applies() -> None:
 def test_dead_zone_law_is_a_right_inverse_outside_the_zone(
     threshold: float, offset: float, wanted: float
 ) -> None:
-    smallest = max(threshold - offset, 0.0)
-    if abs(wanted) < smallest:
-        return  # inside: see the hysteresis test
     law = DeadZoneLaw(threshold, offset)
+    assert law.smallest >= threshold - offset  # never below what the driver gives
+    if abs(wanted) < law.smallest:
+        return  # inside: see the hysteresis test
     applied, _ = driver_output(
         law.command(wanted), Effects(dead_zone=threshold, dead_zone_offset=offset), 7.2
     )
@@ -171,16 +171,22 @@ def test_dead_zone_law_is_a_right_inverse_outside_the_zone(
 def test_dead_zone_law_holds_its_state_inside_the_zone() -> None:
     """A wanted voltage hovering in the zone's middle (as at creep speed) does not flip the
     command every cycle; the nearest-value rounding would."""
-    law = DeadZoneLaw(1.2)
+    law = DeadZoneLaw(1.2, margin=0.1)
+    c = 1.32  # the zone with its 10 % margin
     wanted = [0.8, 0.5, 0.7, 0.45, 0.75, 0.5, 0.65, 0.55]  # around half the zone, 0.6 V
     sent = [law.command(w) for w in wanted]
-    assert sent == [1.2] * len(wanted)
+    assert sent == pytest.approx([c] * len(wanted))
     rounded = [dead_zone_command(w, 1.2) for w in wanted]
     assert len(set(rounded)) == 2  # what the hysteresis avoids
     # Off below 30 % of the zone, on again above 60 %, holding in between.
-    assert [law.command(w) for w in (0.3, 0.5, 0.8, 0.5, 0.0)] == [0.0, 0.0, 1.2, 1.2, 0.0]
+    got = [law.command(w) for w in (0.3, 0.5, 0.8, 0.5, 0.0)]
+    assert got == pytest.approx([0.0, 0.0, c, c, 0.0])
     # The other direction, and a sign change switches off first.
-    assert [law.command(w) for w in (-0.8, -0.5, 0.5)] == [-1.2, -1.2, 0.0]
+    assert [law.command(w) for w in (-0.8, -0.5, 0.5)] == pytest.approx([-c, -c, 0.0])
+    # A wanted voltage just above the zone is sent with the margin: an underestimated
+    # zone (the true one 1.3 V) still applies it.
+    applied, _ = driver_output(law.command(1.25), Effects(dead_zone=1.3), 7.2)
+    assert applied == pytest.approx(c)
 
 
 def test_unknown_effect_is_named_at_start_up() -> None:

@@ -174,8 +174,10 @@ class DeadZoneLaw:
 
     ``threshold`` (V, ``dead_zone``): the driver outputs 0 for ``|c| < threshold`` and ``c``
     above; ``offset`` (V, ``dead_zone_offset``): it outputs ``c - sign(c) offset`` beyond
-    the offset.  The smallest non-zero output is ``m = max(threshold - offset, 0)``, made
-    by the command ``c_min = max(threshold, offset) + ...``.  For a wanted output ``w``:
+    the offset.  The threshold is taken ``margin`` larger than the model says (a diagnosed
+    zone is an estimate: a command just above an underestimated threshold gives 0 V); the
+    smallest non-zero output relied on is ``m = max(threshold (1 + margin) - offset, 0)``
+    (:attr:`smallest`).  For a wanted output ``w``:
 
     * ``|w| >= m``: the right inverse (``w + sign(w) offset``), exact;
     * ``|w| < m``: only 0 or ``m`` can be had.  The command switches on (to ``sign(w) m``'s
@@ -188,6 +190,9 @@ class DeadZoneLaw:
     offset: float = 0.0
     on: float = 0.6
     off: float = 0.3
+    margin: float = 0.08
+    """Relative margin on the threshold (a diagnosed 1.2 V zone came out as 1.12 V, a
+    0.6 V one as 0.67 V; see docs/controller.md)."""
     _state: float = 0.0
     """The sign of the output inside the zone last cycle (0: off)."""
 
@@ -195,27 +200,28 @@ class DeadZoneLaw:
     def active(self) -> bool:
         return self.threshold > 0.0 or self.offset > 0.0
 
+    @property
+    def smallest(self) -> float:
+        """The smallest non-zero output (V) the law relies on."""
+        return max(self.threshold * (1.0 + self.margin) - self.offset, 0.0)
+
     def command(self, w: float) -> float:
         """The command (V) for the wanted driver output ``w`` (V)."""
         if not self.active or not math.isfinite(w):
             return w
-        smallest = max(self.threshold - self.offset, 0.0)
+        smallest = self.smallest
         s = math.copysign(1.0, w)
         if w == 0.0 or abs(w) < self.off * smallest:
             self._state = 0.0
             return 0.0
         if abs(w) >= smallest:
             self._state = s
-            return (
-                w + s * self.offset
-                if abs(w) + self.offset >= self.threshold
-                else s * (self.threshold)
-            )
+            return w + s * self.offset
         if self._state != s and abs(w) < self.on * smallest:
             self._state = 0.0
             return 0.0
         self._state = s
-        return s * max(self.threshold, smallest + self.offset)
+        return s * (smallest + self.offset)
 
     def reset(self) -> None:
         self._state = 0.0
