@@ -14,10 +14,11 @@ collisions, ``found`` (the diagnosis named the effect) and ``recovered = (seed -
     .venv/bin/python benchmarks/closed_loop_gain.py [--json FILE] [--scenarios a,b]
         [--effects NAME[,NAME]] [--value NAME=VALUE ...] [--true] [--models DIR]
 
-``--true`` skips the diagnosis and gives the controller the plant's true effects (fast,
-for development; rows say ``"diagnosed": false``).  ``--models DIR`` keeps the diagnosed
-model files in DIR and reuses those already there (the diagnosis does not depend on the
-controller).  ``--value NAME=VALUE`` replaces an effect's values by one.
+``--json FILE`` writes ``{date, machine, argv, rows}``.  ``--true`` skips the diagnosis
+and gives the controller the plant's true effects (fast, for development; rows say
+``"diagnosed": false``).  ``--models DIR`` keeps the diagnosed model files in DIR and
+reuses those already there (the diagnosis does not depend on the controller).  ``--value
+NAME=VALUE`` replaces an effect's values by one.
 """
 
 from __future__ import annotations
@@ -25,9 +26,11 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import datetime
 import io
 import json
 import math
+import os
 import sys
 import tempfile
 from pathlib import Path
@@ -163,7 +166,8 @@ def main() -> int:
                 )
                 cfg = dict(base)
                 cfg["plant"] = dict(base["plant"])
-                plain = {k: v for k, v in dataclasses.asdict(eff).items() if v != 0.0}
+                off = Effects()
+                plain = {k: v for k, v in dataclasses.asdict(eff).items() if v != getattr(off, k)}
                 cfg["plant"]["effects"] = dict(base["plant"]["effects"], **plain)
                 cfg_path = d / f"{tag}.yaml"
                 cfg_path.write_text(yaml.safe_dump(cfg))
@@ -222,7 +226,13 @@ def main() -> int:
                         flush=True,
                     )
     if args.json:
-        Path(args.json).write_text(json.dumps(rows, indent=1))
+        doc = {
+            "date": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d"),
+            "machine": {"cpus": os.cpu_count(), "loadavg_1_5_15": list(os.getloadavg())},
+            "argv": sys.argv[1:],
+            "rows": rows,
+        }
+        Path(args.json).write_text(json.dumps(doc, indent=1))
     return 0
 
 
