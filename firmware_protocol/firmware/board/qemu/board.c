@@ -271,7 +271,9 @@ void board_motor_off(void)
 {
     const char line[] = "M 0 0 0\n";
     for (unsigned i = 0; i + 1u < sizeof(line); i++) {
-        while (!(USART_SR(USART1) & SR_TXE)) {
+        uint32_t spins = 100000u; /* bounded: a fault handler must not hang on the UART */
+        while (!(USART_SR(USART1) & SR_TXE) && spins > 0u) {
+            spins--;
         }
         USART_DR(USART1) = (uint8_t)line[i];
     }
