@@ -161,3 +161,54 @@ def test_bad_port_is_exit_2(port: str, capsys: pytest.CaptureFixture[str]) -> No
     assert main(["monitor", "--foxglove", port]) == 2
     err = capsys.readouterr().err
     assert "--foxglove" in err and err.count("\n") == 1
+
+
+def test_server_protocol_details() -> None:
+    """The server alone: both subprotocol names accepted, any other refused at the
+    handshake; channels open before a client connects are advertised to it; a request
+    it does not serve, or a subscription to no channel, gets a status warning; message
+    data goes only to a subscription, with its id and the log time; an unsubscribed or
+    unadvertised channel sends nothing more."""
+    from websockets.exceptions import InvalidHandshake
+
+    from truckd.runtime.foxglove_ws import FoxgloveServer
+
+    srv = FoxgloveServer(port=0)
+    port = srv.start()
+    try:
+        url = f"ws://127.0.0.1:{port}"
+        with pytest.raises(InvalidHandshake):
+            connect(url, subprotocols=["foxglove.other.v9"], open_timeout=10).close()  # type: ignore[list-item]
+        a = srv.add_channel("/a", "json", "truckd.state", b"{}", "jsonschema")
+        with connect(url, subprotocols=["foxglove.websocket.v1"], open_timeout=10) as ws:  # type: ignore[list-item]
+            assert json.loads(ws.recv(timeout=10))["op"] == "serverInfo"
+            adv = json.loads(ws.recv(timeout=10))
+            assert adv["op"] == "advertise" and [c["id"] for c in adv["channels"]] == [a]
+            ws.send(json.dumps({"op": "publish"}))
+            assert json.loads(ws.recv(timeout=10))["op"] == "status"
+            ws.send(json.dumps({"op": "subscribe", "subscriptions": [{"id": 7, "channelId": 99}]}))
+            assert json.loads(ws.recv(timeout=10))["op"] == "status"
+            ws.send(json.dumps({"op": "subscribe", "subscriptions": [{"id": 5, "channelId": a}]}))
+            got = None
+            for k in range(200):  # the subscription is taken on the server's thread
+                srv.log(a, b'{"k": %d}' % k, 123456789)
+                try:
+                    got = ws.recv(timeout=0.05)
+                    break
+                except TimeoutError:
+                    continue
+            assert isinstance(got, bytes)
+            op, sub, t = struct.unpack_from("<BIQ", got)
+            assert (op, sub, t) == (OP_MESSAGE_DATA, 5, 123456789)
+            assert "k" in json.loads(got[13:])
+            srv.remove_channel(a)
+            while True:  # the rest of the burst, then the unadvertise
+                frame = ws.recv(timeout=10)
+                if isinstance(frame, str):
+                    assert json.loads(frame) == {"op": "unadvertise", "channelIds": [a]}
+                    break
+            srv.log(a, b"{}", 1)
+            with pytest.raises(TimeoutError):
+                ws.recv(timeout=0.3)
+    finally:
+        srv.stop()

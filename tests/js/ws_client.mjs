@@ -24,11 +24,14 @@ const out = {
 };
 const subs = new Map(); // subscription id -> topic
 
+let finished = false;
 function done(code) {
+  if (finished) return;
+  finished = true;
   clearTimeout(timer);
-  process.stdout.write(JSON.stringify(out));
   client.close();
-  process.exit(code);
+  // exit only once stdout is flushed (a pipe takes 64 kB at a time)
+  process.stdout.write(JSON.stringify(out), () => process.exit(code));
 }
 const timer = setTimeout(() => done(3), Number(timeoutArg) * 1000);
 

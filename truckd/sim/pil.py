@@ -85,9 +85,23 @@ class MotorLine:
     enable: bool
 
 
+def count_frames(data: bytes, in_frame: bool) -> tuple[int, bool]:
+    """Frames that end in ``data`` (a 0x00 delimiter after at least one other byte; the
+    framing puts a delimiter before and after each frame) and whether a frame is open at
+    its end."""
+    n = 0
+    for seg in data.split(b"\x00")[:-1]:
+        if seg or in_frame:
+            n += 1
+        in_frame = False
+    if data and not data.endswith(b"\x00"):
+        in_frame = True
+    return n, in_frame
+
+
 @dataclass
 class RelayCounts:
-    """What the link relay moved (bytes; frames = 0x00 delimiters seen)."""
+    """What the link relay moved (bytes, whole frames)."""
 
     to_board_bytes: int = 0
     to_board_frames: int = 0
@@ -369,6 +383,7 @@ class EmulatedBoard:
         sel.register(conn, selectors.EVENT_READ, "board")
         sel.register(master, selectors.EVENT_READ, "daemon")
         pending = b""  # daemon bytes of the frame being corrupted
+        open_up = open_down = False  # a frame in progress, per direction
         try:
             while not self._stop.is_set():
                 for key, _ in sel.select(0.05):
@@ -378,9 +393,10 @@ class EmulatedBoard:
                             return
                         with contextlib.suppress(BlockingIOError, OSError):
                             os.write(master, data)  # nobody reading: the pty drops it
+                        n, open_up = count_frames(data, open_up)
                         with self._lock:
                             self.relay.to_daemon_bytes += len(data)
-                            self.relay.to_daemon_frames += data.count(0)
+                            self.relay.to_daemon_frames += n
                         continue
                     try:
                         data = os.read(master, 65536)
@@ -395,9 +411,10 @@ class EmulatedBoard:
                         data, pending = self._corrupt_frame(pending + data)
                     if data:
                         conn.sendall(data)
+                        n, open_down = count_frames(data, open_down)
                         with self._lock:
                             self.relay.to_board_bytes += len(data)
-                            self.relay.to_board_frames += data.count(0)
+                            self.relay.to_board_frames += n
         finally:
             sel.close()
 
