@@ -15,7 +15,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 RELATIVE = re.compile(r"(?:\.\./)+[A-Za-z0-9_.-]+")
-"""A relative path that climbs (``../x``); resolved from the file's own directory."""
+"""A relative path that climbs (``../x``): outside the repository when, resolved from the
+file's own directory, it leaves the root, or names nothing there while, resolved from the
+root (as a command run there would), it leaves the root."""
 
 CLIMB = re.compile(
     r"parents\[\d+\]\s*\.parent\b"  # the checkout's parent, in code
@@ -46,8 +48,10 @@ def outside_references(path: Path, text: str) -> list[str]:
     rel = path.relative_to(ROOT)
     for no, line in enumerate(text.splitlines(), 1):
         for m in RELATIVE.finditer(line):
-            target = (path.parent / m.group(0)).resolve()
-            if not target.is_relative_to(ROOT):
+            here = (path.parent / m.group(0)).resolve()
+            from_root = (ROOT / m.group(0)).resolve()
+            inside = here.is_relative_to(ROOT) and (here.exists() or from_root.is_relative_to(ROOT))
+            if not inside:
                 found.append(f"{rel}:{no}: {m.group(0)}")
         found.extend(f"{rel}:{no}: {m.group(0)}" for m in CLIMB.finditer(line))
     return found
@@ -71,6 +75,7 @@ def test_the_check_sees_each_kind_of_reference() -> None:
     doc = ROOT / "docs" / "page.md"
     assert outside_references(doc, "see [x](../README.md)") == []
     assert outside_references(doc, "see ../../shared/CONTRACTS.md") != []
+    assert outside_references(doc, "data in <repo>/../shared/data") != []
     top = ROOT / "README.md"
     assert outside_references(top, "the contract: ../shared/CONTRACTS.md") != []
     code = ROOT / "truckd" / "ident" / "x.py"
