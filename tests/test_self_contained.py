@@ -82,3 +82,53 @@ def test_the_check_sees_each_kind_of_reference() -> None:
     assert outside_references(code, 'Path(__file__).parents[2] / "tests"') == []
     assert outside_references(code, 'Path(__file__).parents[2].parent / "d"') != []
     assert outside_references(code, 'root.parent / "shared" / "data"') != []
+
+
+LINK = re.compile(r"\[[^\]]*\]\(([^)\s]+)\)")
+"""A Markdown link's target."""
+
+
+def anchors(markdown: str) -> set[str]:
+    """GitHub's anchors for the headings of a Markdown text (lower case, punctuation other
+    than ``-`` and ``_`` dropped, spaces to ``-``; links reduced to their text)."""
+    out = set()
+    for line in markdown.splitlines():
+        if line.startswith("#"):
+            title = LINK.sub(lambda m: m.group(0)[1 : m.group(0).index("]")], line.lstrip("#"))
+            slug = re.sub(r"[^\w\- ]", "", title.strip().lower()).replace(" ", "-")
+            out.add(slug)
+    return out
+
+
+def broken_links(path: Path, text: str) -> list[str]:
+    """``file:line: target`` for each relative link whose file or heading is missing."""
+    found = []
+    for no, line in enumerate(text.splitlines(), 1):
+        for m in LINK.finditer(line):
+            target = m.group(1)
+            if re.match(r"[a-z]+:", target):
+                continue  # https:, mailto:
+            file_part, _, anchor = target.partition("#")
+            dest = (path.parent / file_part).resolve() if file_part else path
+            ok = dest.exists() and dest.is_relative_to(ROOT)
+            if ok and anchor and dest.suffix == ".md":
+                ok = anchor in anchors(dest.read_text(encoding="utf-8"))
+            if not ok:
+                found.append(f"{path.relative_to(ROOT)}:{no}: {target}")
+    return found
+
+
+def test_markdown_links_resolve_inside_the_repository() -> None:
+    found: list[str] = []
+    for path in tracked_files():
+        if path.suffix == ".md" and path.is_file():
+            found.extend(broken_links(path, path.read_text(encoding="utf-8")))
+    assert not found, "broken links:\n" + "\n".join(found)
+
+
+def test_the_link_check_sees_a_missing_file_and_heading() -> None:
+    readme = ROOT / "README.md"
+    assert broken_links(readme, "[ref](docs/reference.md)") == []
+    assert broken_links(readme, "[x](docs/no-such-page.md)") != []
+    assert broken_links(readme, "[x](docs/reference.md#no-such-heading)") != []
+    assert broken_links(readme, "[x](docs/reference.md#1-command-line)") == []
