@@ -3,7 +3,7 @@
 (:class:`truckd.sim.pil.EmulatedBoard`), ``truckd run`` driving it over its serial
 backend on a pty; ``truckd monitor --foxglove`` serving the daemon's telemetry.
 
-    python benchmarks/pil_bench.py [--json FILE] [--seconds S] [--runs N]
+    python benchmarks/pil_bench.py [--json FILE [--key NAME]] [--seconds S] [--runs N]
 
 Figures (``pil``): ``boot_s`` (QEMU started -> the board's boot line, wall),
 ``frames_per_s`` (frames the board sent per second of its clock), ``collision``,
@@ -46,6 +46,7 @@ from typing import Any
 
 import yaml
 import zenoh
+from results import write_json
 
 from truckd.config.truck import default_config_path, load_config
 from truckd.control.qp import ControlModel
@@ -272,6 +273,11 @@ def run(seconds: float) -> dict[str, Any]:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--json", default=None, help="write the figures to this file")
+    ap.add_argument(
+        "--key",
+        metavar="NAME",
+        help="store the run under NAME in --json's file (what_YYYY-MM-DD), not at its top level",
+    )
     ap.add_argument("--seconds", type=float, default=10.0, help="length of the follow drive")
     ap.add_argument("--runs", type=int, default=1, help="boots of a fresh board (1..20)")
     args = ap.parse_args()
@@ -301,7 +307,7 @@ def main() -> int:
     res = {"median": median, "runs": runs}
     text = json.dumps(res, indent=2) + "\n"
     if args.json:
-        Path(args.json).write_text(text)
+        write_json(args.json, res, args.key)
     print(text, end="")
     return 0
 

@@ -1,7 +1,9 @@
-"""Tools the pip install does not bring: node with the reference readers in tests/js, and
+"""Tools the pip install does not bring, checked inside a test or fixture (the programs
+are also marked ``needs_tool``, tests/tool_markers.py): node with the reference readers
+installed in tests/js (not a program on PATH: ``npm ci --prefix tests/js``), and
 qemu-system-arm with the Cortex-M4 toolchain for the processor-in-the-loop tests.
 
-``.ci/run`` installs them and sets ``TRUCKD_REQUIRE_TOOLS=1``: there a missing tool fails
+``.ci/run`` installs them and sets ``TRUCKD_REQUIRE_TOOLS``: there a missing tool fails
 the test.  On a user's machine (``make test``) the test is skipped with a reason naming
 what is missing and how to install it.
 """
@@ -13,6 +15,7 @@ import shutil
 from pathlib import Path
 
 import pytest
+from tool_markers import REQUIRE_TOOLS_ENV
 
 ROOT = Path(__file__).resolve().parent.parent
 JS_DIR = ROOT / "tests" / "js"
@@ -20,9 +23,9 @@ JS_PACKAGES = ("@mcap/core", "@foxglove/ws-protocol", "fzstd", "ws")
 
 
 def missing(what: str) -> None:
-    """Skip (a user's machine) or fail (CI, ``TRUCKD_REQUIRE_TOOLS=1``) naming ``what``."""
-    if os.environ.get("TRUCKD_REQUIRE_TOOLS") == "1":
-        pytest.fail(f"required tool missing: {what}")
+    """Skip (a user's machine) or fail (CI, ``TRUCKD_REQUIRE_TOOLS`` set) naming ``what``."""
+    if os.environ.get(REQUIRE_TOOLS_ENV):
+        pytest.fail(f"required tool missing: {what} ({REQUIRE_TOOLS_ENV} is set)", pytrace=False)
     pytest.skip(f"missing: {what}")
 
 

@@ -40,7 +40,13 @@ from truckd.sim.firmware import constant_speed_lead
 from truckd.sim.pil import EmulatedBoard, build_pil_elf
 from truckd.sim.plant import Plant
 
-pytestmark = [pytest.mark.external, pytest.mark.hil]
+pytestmark = [
+    pytest.mark.hil,
+    pytest.mark.needs_tool("qemu-system-arm", install="apt-get install qemu-system-arm"),
+    pytest.mark.needs_tool(
+        "arm-none-eabi-gcc", install="apt-get install gcc-arm-none-eabi libnewlib-arm-none-eabi"
+    ),
+]
 
 LEAD_GAP, LEAD_SPEED = 1.5, 0.8  # m, m/s
 FW_DIR = Path(__file__).resolve().parent.parent / "firmware_protocol" / "firmware"

@@ -30,7 +30,7 @@ from truckd.sim.closed_loop import SimSetup, run_scenario
 from truckd.sim.mcap_export import write_trace_mcap
 from truckd.sim.scenarios import make_scenario
 
-pytestmark = pytest.mark.external
+pytestmark = pytest.mark.needs_tool("node", install="apt-get install nodejs npm")
 
 KIND_SCHEMA = {f"truckd.{k}": k for k in SCHEMAS}
 
