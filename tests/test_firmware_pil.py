@@ -8,9 +8,9 @@ it over its serial backend on a pty, relayed byte for byte to the board's USART2
   spacing policy's;
 - one corrupted frame from the daemon is rejected and counted by the board, and the
   commands after it are applied;
-- a stalled link: the firmware cuts the motor (0 V, driver disabled) exactly its command
-  timeout (100 ms of the board's clock) after the last command it received, and counts
-  the timeout; when the link flows again it drives again.
+- a stalled link: the firmware cuts the motor (0 V, driver disabled) its command timeout
+  (100 ms of the board's clock, at most one command period more) after the last command
+  it received, and counts the timeout; when the link flows again it drives again.
 
 Needs qemu-system-arm and arm-none-eabi-gcc (``.ci/run`` installs both); without them the
 tests are skipped naming what is missing (tests/external_tools.py).  About 20 s.
@@ -81,7 +81,10 @@ def rig(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Rig]:
     )
     board.start()
     port = new_port()
-    daemon = Daemon(hil_config(tmp, str(tmp / "ttyPIL"), port), tmp / "daemon.err")
+    # realtime off: the daemon's SCHED_FIFO threads would compete with the emulator and
+    # the plant for the 2 cores of a loaded CI machine
+    config = hil_config(tmp, str(tmp / "ttyPIL"), port, realtime=False)
+    daemon = Daemon(config, tmp / "daemon.err")
     watch = Watch(port)
     try:
         yield Rig(board, daemon, watch, cfg)
@@ -97,9 +100,9 @@ def _errors(st: dict[str, int]) -> int:
 
 def test_pil_truck_follows_and_frames_arrive(rig: Rig) -> None:
     b = rig.board
-    assert wait_for(lambda: b.boot_s() is not None, 30), "the board never reported its boot"
+    assert wait_for(lambda: b.boot_s() is not None, 30), b.diagnostics()
     active = rig.watch.wait_state(lambda m: m["mode"] == "ACTIVE", timeout=40)
-    assert active is not None, rig.daemon.stderr()[-2000:]
+    assert active is not None, f"{b.diagnostics()}\n{rig.daemon.stderr()[-2000:]}"
     assert wait_for(lambda: b.plant.t > 5.0, 60)
     st = b.last_stats()
     # frames actually arrive: the board decoded the daemon's commands and sent its own,
@@ -120,13 +123,13 @@ def test_pil_truck_follows_and_frames_arrive(rig: Rig) -> None:
         v_mean = math.fsum(v for _, v in last) / len(last)
         return abs(err) < 0.1 and abs(v_mean - LEAD_SPEED) < 0.15
 
-    assert wait_for(settled, 40), "the gap never settled near the spacing policy"
+    assert wait_for(settled, 40), f"the gap never settled: {b.diagnostics()}"
     assert b.min_gap > 0.0
 
 
 def test_pil_corrupted_frame_is_rejected_and_counted(rig: Rig) -> None:
     b = rig.board
-    assert rig.watch.wait_state(lambda m: m["mode"] == "ACTIVE", timeout=40) is not None
+    assert rig.watch.wait_state(lambda m: m["mode"] == "ACTIVE", timeout=40), b.diagnostics()
     before = b.last_stats()
     assert wait_for(lambda: b.last_stats()["ms"] > before["ms"], 5)
     before = b.last_stats()
@@ -141,8 +144,8 @@ def test_pil_corrupted_frame_is_rejected_and_counted(rig: Rig) -> None:
 
 def test_pil_stalled_link_cuts_the_motor_within_the_command_timeout(rig: Rig) -> None:
     b = rig.board
-    assert rig.watch.wait_state(lambda m: m["mode"] == "ACTIVE", timeout=40) is not None
-    assert wait_for(lambda: any(m.enable for m in b.motor_lines()[-5:]), 5)
+    assert rig.watch.wait_state(lambda m: m["mode"] == "ACTIVE", timeout=40), b.diagnostics()
+    assert wait_for(lambda: any(m.enable for m in b.motor_lines()[-5:]), 5), b.diagnostics()
     timeouts = b.last_stats()["cmd_timeouts"]
     n0 = len(b.motor_lines())
     b.stall(True)
@@ -156,8 +159,10 @@ def test_pil_stalled_link_cuts_the_motor_within_the_command_timeout(rig: Rig) ->
     cut = next(i for i in range(n0, len(lines)) if not lines[i].enable)
     last_cmd = lines[cut - 1]
     assert last_cmd.enable and lines[cut].mv == 0
-    # the board's own clock: exactly the command timeout after the last command applied
-    assert lines[cut].ms - last_cmd.ms == pytest.approx(CMD_TIMEOUT_MS, abs=1)
+    # the board's own clock: the command timeout after the last command applied (exact on
+    # the ctypes core, tests/test_firmware_c.py; here the emulated main loop can be held
+    # up a few ms while QEMU waits on a host socket: at most one command period late)
+    assert CMD_TIMEOUT_MS <= lines[cut].ms - last_cmd.ms <= CMD_TIMEOUT_MS + 10
     # the link flows again: the firmware drives again
     assert wait_for(lambda: any(m.enable for m in b.motor_lines()[cut + 1 :]), 10)
 

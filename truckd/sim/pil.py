@@ -163,6 +163,8 @@ class EmulatedBoard:
         self._t0 = 0.0
         self.min_gap = math.inf
         """Smallest true gap to the lead seen by the plant (m)."""
+        self.error = ""
+        """Why the plant thread ended, if it failed."""
         self.skipped_snapshots = 0
         """Sensor snapshots not sent because the previous one was still queued."""
         self.gaps: list[tuple[float, float, float]] = []
@@ -216,8 +218,15 @@ class EmulatedBoard:
         self._socks = [plant_conn, link_conn]
         self.plant_t0 = self.plant.t
         self._threads = [
-            threading.Thread(target=self._plant_loop, args=(plant_conn,), daemon=True),
-            threading.Thread(target=self._relay_loop, args=(link_conn, master), daemon=True),
+            threading.Thread(
+                target=self._plant_loop, args=(plant_conn,), name="pil-plant", daemon=True
+            ),
+            threading.Thread(
+                target=self._board_to_daemon, args=(link_conn, master), name="pil-up", daemon=True
+            ),
+            threading.Thread(
+                target=self._daemon_to_board, args=(link_conn, master), name="pil-down", daemon=True
+            ),
         ]
         for th in self._threads:
             th.start()
@@ -343,6 +352,12 @@ class EmulatedBoard:
         return False
 
     def _plant_loop(self, conn: socket.socket) -> None:
+        try:
+            self._plant_io(conn)
+        except Exception as exc:  # kept for diagnostics(): the board then waits on us
+            self.error = f"plant thread: {exc!r}"
+
+    def _plant_io(self, conn: socket.socket) -> None:
         buf = b""
         sel = selectors.DefaultSelector()
         sel.register(conn, selectors.EVENT_READ)
@@ -378,45 +393,77 @@ class EmulatedBoard:
         sel.close()
 
     # -- the link (USART2 <-> pty) -----------------------------------------------------
-    def _relay_loop(self, conn: socket.socket, master: int) -> None:
+    # One thread per direction: a send that waits (QEMU takes its UART's input a byte at
+    # a time) never keeps the other direction from being read, which would block QEMU's
+    # own writes and freeze the board.
+    def _board_to_daemon(self, conn: socket.socket, master: int) -> None:
+        open_frame = False
         sel = selectors.DefaultSelector()
-        sel.register(conn, selectors.EVENT_READ, "board")
-        sel.register(master, selectors.EVENT_READ, "daemon")
-        pending = b""  # daemon bytes of the frame being corrupted
-        open_up = open_down = False  # a frame in progress, per direction
+        sel.register(conn, selectors.EVENT_READ)
         try:
             while not self._stop.is_set():
-                for key, _ in sel.select(0.05):
-                    if key.data == "board":
-                        data = conn.recv(65536)
-                        if not data:
-                            return
-                        with contextlib.suppress(BlockingIOError, OSError):
-                            os.write(master, data)  # nobody reading: the pty drops it
-                        n, open_up = count_frames(data, open_up)
-                        with self._lock:
-                            self.relay.to_daemon_bytes += len(data)
-                            self.relay.to_daemon_frames += n
-                        continue
-                    try:
-                        data = os.read(master, 65536)
-                    except (BlockingIOError, OSError):
-                        continue
-                    with self._lock:
-                        if self._stalled:
-                            self.relay.held_bytes += len(data)
-                            continue
-                        corrupt = self._corrupt
-                    if corrupt:
-                        data, pending = self._corrupt_frame(pending + data)
-                    if data:
-                        conn.sendall(data)
-                        n, open_down = count_frames(data, open_down)
-                        with self._lock:
-                            self.relay.to_board_bytes += len(data)
-                            self.relay.to_board_frames += n
+                if not sel.select(0.05):
+                    continue
+                try:
+                    data = conn.recv(65536)
+                except OSError:
+                    return
+                if not data:
+                    return  # QEMU went
+                with contextlib.suppress(BlockingIOError, OSError):
+                    os.write(master, data)  # nobody reading: the pty drops it
+                n, open_frame = count_frames(data, open_frame)
+                with self._lock:
+                    self.relay.to_daemon_bytes += len(data)
+                    self.relay.to_daemon_frames += n
         finally:
             sel.close()
+
+    def _daemon_to_board(self, conn: socket.socket, master: int) -> None:
+        pending = b""  # daemon bytes of the frame being corrupted
+        open_frame = False
+        sel = selectors.DefaultSelector()
+        sel.register(master, selectors.EVENT_READ)
+        try:
+            while not self._stop.is_set():
+                if not sel.select(0.05):
+                    continue
+                try:
+                    data = os.read(master, 65536)
+                except (BlockingIOError, OSError):
+                    continue
+                with self._lock:
+                    if self._stalled:
+                        self.relay.held_bytes += len(data)
+                        continue
+                    corrupt = self._corrupt
+                if corrupt:
+                    data, pending = self._corrupt_frame(pending + data)
+                if not data:
+                    continue
+                try:
+                    conn.sendall(data)
+                except OSError:
+                    return  # QEMU went
+                n, open_frame = count_frames(data, open_frame)
+                with self._lock:
+                    self.relay.to_board_bytes += len(data)
+                    self.relay.to_board_frames += n
+        finally:
+            sel.close()
+
+    def diagnostics(self) -> str:
+        """One line for a failing test: QEMU, the threads, the board's last counters."""
+        with self._lock:
+            stats = self.log.stats[-1] if self.log.stats else {}
+            relay = dict(vars(self.relay))
+            bad = self.log.bad_lines
+        threads = {th.name: th.is_alive() for th in self._threads}
+        return (
+            f"qemu alive {self.alive()}, threads {threads}, board {stats}, relay {relay}, "
+            f"bad lines {bad}, skipped snapshots {self.skipped_snapshots}, "
+            f"plant t {self.plant.t:.3f} s {self.error}"
+        )
 
     def _corrupt_frame(self, data: bytes) -> tuple[bytes, bytes]:
         """Bytes to send now and bytes to keep: waits for a whole frame (between two
