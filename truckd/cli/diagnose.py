@@ -1,7 +1,7 @@
 """``truckd diagnose LOG.csv [LOG.csv ...] [--validate LOG.csv ...] [--gap S] [--config FILE]
 [--json FILE] [--report DIR] [--out MODEL.yaml]``: what the simulation gets wrong, and why.
 
-Logs are CSV (CONTRACTS.md section 3) or WPILib SysId ``FILE.json[:test,...]``."""
+Logs are CSV (reference section 3) or WPILib SysId ``FILE.json[:test,...]``."""
 
 from __future__ import annotations
 
@@ -30,7 +30,7 @@ def add_subparser(sub: Any) -> None:
     p.add_argument("--validate", nargs="+", metavar="LOG.csv", help="validation logs (same kind)")
     p.add_argument("--config", help="configuration file (starting values and bounds)")
     p.add_argument(
-        "--json", type=json_file, metavar="FILE", help="write the result (CONTRACTS.md section 4)"
+        "--json", type=json_file, metavar="FILE", help="write the result (docs/reference.md 4)"
     )
     p.add_argument(
         "--report", type=report_dir, metavar="DIR", help="write index.html with plots here"
