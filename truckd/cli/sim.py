@@ -91,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
     effects = ", ".join(present_effects(model.effects)) or "none"
     print(
         f"controller model: {source} (effects: {effects}); plant effects: "
-        f"{', '.join(cfg.plant.effects.active()) or 'none'}"
+        f"{', '.join(present_effects(cfg.plant.effects)) or 'none'}"
     )
     print(table(results))
     files: list[tuple[str | Path, str | bytes]] = []
