@@ -104,8 +104,8 @@ def run_platoon_cli(args: argparse.Namespace) -> int:
             duration=args.duration,
         )
         results.append(json_safe(m))
-        if trace_dir is not None:  # one log per follower (truck 0, the lead, is scripted)
-            for i, rows in enumerate(tr.rows, start=1):
+        if trace_dir is not None:  # one log per truck, the lead (truck 0) included
+            for i, rows in enumerate(tr.rows):
                 files.append((trace_dir / f"{name}-truck{i}.csv", trace_text(Trace(rows=rows))))
         print(
             f"{name}: {args.platoon} trucks, collision {m['collision']}, "

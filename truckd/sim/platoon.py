@@ -1,13 +1,15 @@
 """``truckd sim --platoon N``: N trucks in simulated time, truck 0 leads.
 
-The lead (truck 0) drives the scenario's speed profile (its driver) and publishes a
-constant-acceleration plan from its speed and acceleration.  Every follower is a full
-simulated truck (plant + simulated firmware + the real protocol on an in-process link)
+Every truck, the lead (truck 0) included, is a full simulated truck (plant + simulated
+firmware + the real protocol on an in-process link)
 driven by the daemon's own companion cycle (:class:`~truckd.runtime.cycle.CompanionCycle`:
 sensors, controller, supervisor, motor command) with the platoon's part around it
 (:func:`follower_inputs`: the CACC/ACC decision, forecast and headway from the latest
 plan received; :func:`cycle_plan`: the plan to publish); its range sensor sees the truck
-ahead.  Plans pass through a
+ahead.  The lead's driver is the scenario's speed profile: a virtual vehicle ahead of
+truck 0 on that profile, whose plan is the profile itself (a driver who knows what they
+will do), so the lead runs the same MPC as every follower and publishes its own MPC plan,
+the same plan message as every follower's.  Plans pass through a
 :class:`PlanChannel` as they would over Zenoh: a delay, random loss (seeded) and loss
 windows.
 
@@ -47,7 +49,7 @@ from truckd.control.platoon import (
     PlatoonConfig,
     PlatoonDecision,
     PlatoonMode,
-    kinematic_plan,
+    make_plan,
 )
 from truckd.io.port import companion_port
 from truckd.model.plant_config import encoder_ticks_per_rev
@@ -209,7 +211,7 @@ class PlatoonTrace:
     accel: list[list[float]] = field(default_factory=list)
     supervisor: list[list[str]] = field(default_factory=list)
     rows: list[list[tuple[float, ...]]] = field(default_factory=list)
-    """Per follower (truck 1 first): the daemon's log row each cycle with the truth
+    """Per truck (truck 0, the lead, first): the daemon's log row each cycle with the truth
     appended, as :class:`~truckd.sim.closed_loop.Trace` rows (``--trace``)."""
 
 
@@ -286,62 +288,59 @@ def run_platoon(
         model=replace(model, effects=replace(model.effects, input_delay=delay)),
     )
     dt = cfg.period
-    n = cfg.horizon
     dur = sc.duration if duration is None else duration
     rng = random.Random(seed)
     channels = [PlanChannel(delay_s, loss, sc.loss_windows, rng) for _ in range(n_trucks - 1)]
     gap0 = cfg.d_0 + pcfg.cacc_headway * sc.v0
-    xs = [0.0]  # truck 0's position; followers' are their plants'
-    followers: list[_Follower] = []
-    for i in range(1, n_trucks):
+    xv = [gap0]  # the lead's driver: a virtual vehicle on the scenario's profile
+    trucks: list[_Follower] = []
+    for i in range(n_trucks):
 
         def range_fn(t: float, ego_x: float, i: int = i) -> float | None:
-            ahead = xs[0] if i == 1 else followers[i - 2].plant.x
+            ahead = xv[0] if i == 0 else trucks[i - 1].plant.x
             return max(ahead - ego_x, 0.0)
 
-        followers.append(_Follower(setup, pcfg, -i * gap0, sc.v0, range_fn))
+        trucks.append(_Follower(setup, pcfg, -i * gap0, sc.v0, range_fn))
+    steps = trucks[0].cyc.controller.forecast_steps + 1
     tr = PlatoonTrace()
     cycles = max(1, round(dur / dt))
     for k in range(cycles):
         t = k * dt
-        v_lead, a_lead = sc.lead_v(t), sc.lead_a(t)
-        channels[0].send(t, kinematic_plan(t, k, dt, v_lead, a_lead, n, "truck0"))
-        for i, f in enumerate(followers, start=1):
-            f.cycle(t, channels[i - 1].receive(t))
+        driver = make_plan(t, k, dt, [sc.lead_v(t + j * dt) for j in range(steps)], "driver")
+        for i, f in enumerate(trucks):
+            f.cycle(t, driver if i == 0 else channels[i - 1].receive(t))
             if i < n_trucks - 1:
                 assert f.out is not None
                 own = cycle_plan(f.cyc, f.out, t, f"truck{i}")
                 if own is not None:
                     channels[i].send(t, own)
-        _record(tr, t, xs[0], v_lead, a_lead, followers, cfg.d_0)
-        xs[0] += 0.5 * (v_lead + sc.lead_v(t + dt)) * dt
-        for f in followers:
+        _record(tr, t, xv[0], sc.lead_v(t), cfg.d_0, trucks)
+        xv[0] += 0.5 * (sc.lead_v(t) + sc.lead_v(t + dt)) * dt
+        for f in trucks:
             f.fw.step(dt)
-    return platoon_metrics(sc.name, n_trucks, tr, followers, channels, pcfg), tr
+    return platoon_metrics(sc.name, n_trucks, tr, trucks[1:], channels, pcfg), tr
 
 
 def _record(
     tr: PlatoonTrace,
     t: float,
-    x_lead: float,
-    v_lead: float,
-    a_lead: float,
-    followers: list[_Follower],
+    x_driver: float,
+    v_driver: float,
     d_0: float,
+    trucks: list[_Follower],
 ) -> None:
     tr.t.append(t)
-    xs, vs, gaps, refs, hs, modes, us, acc = (
-        [x_lead], [v_lead], [math.nan], [math.nan], [math.nan], ["LEAD"], [0.0], [a_lead]
-    )  # fmt: skip
-    for f in followers:
+    xs, vs, gaps, refs, hs, modes, us, acc = [], [], [], [], [], [], [], []  # type: ignore[var-annotated]
+    ahead = x_driver
+    for i, f in enumerate(trucks):
         assert f.dec is not None and f.out is not None
-        gap = xs[-1] - f.plant.x
         xs.append(f.plant.x)
         vs.append(f.plant.v)
-        gaps.append(gap)
+        gaps.append(ahead - f.plant.x)
+        ahead = f.plant.x
         refs.append(d_0 + f.dec.headway * f.plant.v)
         hs.append(f.dec.headway)
-        modes.append(f.dec.mode)
+        modes.append(f.dec.mode if i else "LEAD")
         us.append(f.out.command.voltage)
         acc.append(math.nan)
     tr.x.append(xs)
@@ -352,13 +351,14 @@ def _record(
     tr.mode.append(modes)
     tr.u.append(us)
     tr.accel.append(acc)
-    tr.supervisor.append([f.out.mode.value for f in followers if f.out is not None])
+    tr.supervisor.append([f.out.mode.value for f in trucks[1:] if f.out is not None])
     if not tr.rows:
-        tr.rows = [[] for _ in followers]
-    for j, f in enumerate(followers):
+        tr.rows = [[] for _ in trucks]
+    v_ahead = [v_driver, *vs[:-1]]
+    for j, f in enumerate(trucks):
         assert f.out is not None
         tr.rows[j].append(
-            (*f.cyc.log_row(f.out), f.plant.v, gaps[j + 1], vs[j], f.plant.x, f.plant.motor.i)
+            (*f.cyc.log_row(f.out), f.plant.v, gaps[j], v_ahead[j], f.plant.x, f.plant.motor.i)
         )
 
 
