@@ -14,6 +14,7 @@ import math
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from typing import Any
 
 from truckd.control.platoon import (
@@ -212,7 +213,7 @@ class DaemonPlatoon:
         """After the cycle: the plan to publish (None when there is none this cycle)."""
         t = self._now if math.isfinite(self._now) else self.wall()
         p = cycle_plan(self.cyc, out, t, self.vehicle_id)
-        return p.as_dict() if p is not None else None
+        return replace(p, predecessor=self.cfg.predecessor).as_dict() if p is not None else None
 
     def health(self) -> dict[str, Any]:
         """The ``platoon`` entry of the health message."""
