@@ -30,7 +30,7 @@ from truckd.runtime.platoon_clock import PlanClock
 
 
 def plan_key(vehicle_id: str) -> str:
-    """The Zenoh key of a vehicle's plan (CONTRACTS.md section 5)."""
+    """The Zenoh key of a vehicle's plan (reference section 5)."""
     return f"truckd/{vehicle_id}/plan"
 
 
