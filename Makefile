@@ -17,9 +17,11 @@ setup: $(BIN)/python
 setup-dev: $(BIN)/python
 	$(BIN)/pip install -q -e '.[dev]'
 
-# the C firmware core as the shared library the simulated truck loads (docs/firmware.md)
+# the C firmware core as the shared library the simulated truck loads (docs/firmware.md),
+# and the identification's C free-run kernel (docs/diagnosis.md)
 firmware:
 	@$(MAKE) -s -C $(FW) host
+	@$(MAKE) -s -C truckd/ident/kernel
 
 # the Cortex-M4 toolchain for the arm build test: installed quietly when missing and we
 # may (root with apt, as in CI); otherwise that test fails and names the install command

@@ -36,8 +36,19 @@ from truckd.ident.data import (
     split_runs_for_validation,
     with_position,
 )
-from truckd.ident.linear import Feedforward, feedforward_of, start_model
-from truckd.ident.physics import effect_problem, effects_problems, vehicle_problems
+from truckd.ident.linear import (
+    Feedforward,
+    LeastSquares,
+    feedforward_of,
+    least_squares_model,
+    start_model,
+)
+from truckd.ident.physics import (
+    configuration_notes,
+    effect_problem,
+    effects_problems,
+    vehicle_problems,
+)
 from truckd.ident.residuals import Whiteness, whiteness
 from truckd.ident.result import (
     CandidateRow,
@@ -163,7 +174,8 @@ def identify_voltage(
     p_lin, _ = _linear_start(p0, runs, progress)
     free = seed_params(p_lin, whole.i is not None)
     grid = stiction_grid(p0, whole)
-    best = _fit_seed(p0, p_lin, free, fit_data, w, grid, progress)
+    ls = least_squares_model(p0, runs)
+    best = _fit_seed(p0, p_lin, free, fit_data, w, grid, progress, ls)
     return _restick(best, grid, list(runs), w)
 
 
@@ -190,18 +202,25 @@ def _fit_seed(
     w: Weights,
     grid: Sequence[float],
     progress: Progress,
+    ls: LeastSquares | None = None,
+    val_data: list[Series] | None = None,
 ) -> FitResult:
     """Simulation-error refinement from the linear start ``p_lin`` (and from the
     configuration ``p0``, a second start); the best of the refined models and the
-    unrefined linear start (the refinement must beat where it started)."""
+    unrefined linear start and least-squares model ``ls`` (the refinement must beat
+    where it started)."""
     progress("fitting the seed model (motor, inertia, Coulomb, stiction)")
     r = residuals(p_lin, Effects(), fit_data, w)
     start = FitResult(p_lin, Effects(), float(r @ r), len(r), 0)
+    starts = [start]
+    if ls is not None:
+        r = residuals(ls.params, Effects(), fit_data, w)
+        starts.append(FitResult(ls.params, Effects(), float(r @ r), len(r), 0))
     first = fit_with_stiction(p_lin, Effects(), free, fit_data, w, grid, progress, max_nfev=80)
     alt = p0 if p0 != p_lin else p0.replace(J_S=p0.J_S * 2.0, K_coulomb=p0.K_coulomb * 0.5)
     alt = alt.replace(K_stiction=max(alt.K_stiction, alt.K_coulomb))
     second = fit_with_stiction(alt, Effects(), free, fit_data, w, grid, progress, max_nfev=80)
-    fits = [first, second, start]
+    fits = [first, second, *starts]
     # Third start: the linear start with its breakaway scanned first.  A stiction far from
     # the configured one made the first fit move Coulomb friction and K_v to absorb it (a
     # local minimum the later scan could not leave: K_coulomb 0.026 for 0.015).
@@ -210,7 +229,18 @@ def _fit_seed(
         fits.append(
             fit_with_stiction(p_st, Effects(), free, fit_data, w, grid, progress, max_nfev=80)
         )
-    return min(fits, key=lambda m: m.sse)
+    if val_data is None:
+        return min(fits, key=lambda m: m.sse)
+    # Estimation data that hardly show one constant (slow symmetric ramps and kA) leave
+    # fits of nearly equal cost there and far apart elsewhere: among the fits within a
+    # few noise units of the best, the validation data choose.
+    low = min(m.sse for m in fits)
+    near = [m for m in fits if m.sse <= low + max(NEAR_SSE * low, 2.0 * BIC_MIN)]
+    return min(near, key=lambda m: _val_cost(m, val_data, w))
+
+
+NEAR_SSE = 0.5
+"""Seed fits within this fraction of the best estimation cost go to the validation data."""
 
 
 def _restick(m: FitResult, grid: Sequence[float], data: list[Series], w: Weights) -> FitResult:
@@ -563,9 +593,10 @@ def diagnose_voltage(
     val_data = chunks_of_runs(val, _budget(val, VAL_BUDGET))
     w = weights_for(fit_data)
     p_lin, ff = _linear_start(p0, est, progress)
+    ls = least_squares_model(p0, est)
     seed_free = seed_params(p_lin, whole.i is not None)
     grid = stiction_grid(p0, whole)
-    base_fit = _fit_seed(p0, p_lin, seed_free, fit_data, w, grid, progress)
+    base_fit = _fit_seed(p0, p_lin, seed_free, fit_data, w, grid, progress, ls, val_data)
     base = _Model(base_fit, (), _val_cost(base_fit, val_data, w))
     rejected: list[Rejected] = []
 
@@ -798,9 +829,42 @@ def diagnose_voltage(
     switched_off = {by_name[a].param.name: 0.0 for a in accepted if a not in kept}
     ext_params = final.params if kept else base_pol.params
     ext_effects = dataclasses.replace(final.effects, **switched_off) if kept else base_pol.effects
+    notes = [*_notes(runs, ff)]
+    ls_json: dict[str, float | None] | None = None
+    if ls is not None:
+        ls_sum, y_ls = _summary(ls.params, Effects(), report)
+        ls_json = _least_squares_json(ls, ls_sum.fit_percent)
+        progress(f"least squares (SysId's model): fit {ls_sum.fit_percent:.2f} %")
+        if ext_sum.fit_percent < ls_sum.fit_percent:
+            notes.append(
+                f"the simulation-error fit ({ext_sum.fit_percent:.1f} %) does not beat the "
+                f"data's own least-squares model ({ls_sum.fit_percent:.1f} %) on the "
+                "validation data: the extended model is the least-squares model"
+            )
+            for name in kept:
+                rows[name] = dataclasses.replace(
+                    rows[name], accepted=False, note="below least squares: not accepted"
+                )
+            findings, kept = [], []
+            ext_sum, y_ext = ls_sum, y_ls
+            ext_params, ext_effects = ls.params, Effects()
+    binding = _binding_limits(
+        ext_params,
+        ext_effects,
+        [*seed_free, *[by_name[a].param for a in kept]],
+        polish_data,
+        report,
+        grid,
+        progress,
+    )
+    notes.extend(binding)
+    machine = configuration_notes(ext_params, p0)
+    notes.extend(machine)
+    alerts = [n for n in notes if n.startswith("the simulation-error fit")]
+    alerts.extend([*binding, *machine])
+    notes.extend(vehicle_problems(ext_params, runs))
     y_all = np.concatenate([r.v for r in report])
     wt, unexplained = _whiteness_of(y_all - y_ext, report)
-    notes = [*_notes(runs, ff), *vehicle_problems(ext_params, runs)]
     if supply_note is not None:
         notes.insert(0, supply_note)
     rep = merged(report)
@@ -834,9 +898,74 @@ def diagnose_voltage(
         },
         rejected=rejected,
         linear=None if ff is None else ff.to_json(),
+        least_squares=ls_json,
+        alerts=alerts,
         runs=len(runs),
         explains=not unexplained and white(wt),
     )
+
+
+def _least_squares_json(ls: LeastSquares, fit_pct: float) -> dict[str, float | None]:
+    """The ``least_squares`` object of the JSON (CONTRACTS.md)."""
+    se = ls.se
+    out: dict[str, float | None] = {"kS": ls.ff.kS, "kV": ls.ff.kV, "kA": ls.ff.kA}
+    for k, e in zip(("kS", "kV", "kA"), se, strict=True):
+        out[f"{k}_se"] = float(e) if np.isfinite(e) else None
+    out["fit_percent"] = float(fit_pct)
+    return out
+
+
+def _value_of(p: VehicleParams, e: Effects, name: str) -> float:
+    """A free parameter's value in a model (vehicle parameter or effect)."""
+    return float(getattr(p, name)) if hasattr(p, name) else float(getattr(e, name))
+
+
+BOUND_TOL = 1e-3
+"""A parameter within this fraction of a limit ends on that limit."""
+UNBOUND = 100.0
+"""The refit without a binding limit moves it this factor further out."""
+
+
+def _binding_limits(
+    p: VehicleParams,
+    e: Effects,
+    free: Sequence[Param],
+    fit_data: list[Series],
+    report: Sequence[Series],
+    grid: Sequence[float],
+    progress: Progress,
+) -> list[str]:
+    """One note per free parameter of the final model that ends on a limit of its range
+    (zero lower limits excepted: a sign, not a size), with the report fit with the
+    limit and after a refit with it moved :data:`UNBOUND` times further out."""
+    out = []
+    w = weights_for(fit_data)
+    for k, f in enumerate(free):
+        if f.name == "stiction_excess":
+            continue
+        val = _value_of(p, e, f.name)
+        at_lo = f.lo != 0.0 and abs(val - f.lo) <= BOUND_TOL * abs(f.lo)
+        at_hi = f.hi != 0.0 and abs(val - f.hi) <= BOUND_TOL * abs(f.hi)
+        if not (at_lo or at_hi):
+            continue
+        bound = f.lo if at_lo else f.hi
+        wider = (
+            dataclasses.replace(f, lo=f.lo / UNBOUND if f.lo > 0 else f.lo * UNBOUND)
+            if at_lo
+            else dataclasses.replace(f, hi=f.hi * UNBOUND if f.hi > 0 else f.hi / UNBOUND)
+        )
+        trial = [*free[:k], wider, *free[k + 1 :]]
+        progress(f"{f.name} ends on its limit {bound:.3g}: refit without it")
+        refit = fit_with_stiction(p, e, trial, fit_data, w, grid, progress)
+        with_pct = _summary(p, e, report)[0].fit_percent
+        without = _summary(refit.params, refit.effects, report)[0].fit_percent
+        new_val = _value_of(refit.params, refit.effects, f.name)
+        out.append(
+            f"limit binds: {f.name} = {val:.3g} ends on its {'lower' if at_lo else 'upper'} "
+            f"limit {bound:.3g}; fit {with_pct:.1f} % with the limit, {without:.1f} % "
+            f"without it ({f.name} = {new_val:.3g})"
+        )
+    return out
 
 
 DETERMINED = 0.1

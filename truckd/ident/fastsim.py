@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from truckd.ident import ckernel
 from truckd.model.effects import Effects, position_dependent, terrain_force
 from truckd.model.params import VehicleParams
 
@@ -173,15 +174,49 @@ def _segment(
     return w, dist
 
 
+KERNEL_FIELDS = frozenset(
+    ("a", "b", "a_idle", "b_idle", "c", "sigma", "d", "drag", "scale", "lag", "terrain")
+)
+"""The :class:`Kinetics` fields the C kernel (:mod:`truckd.ident.ckernel`) models."""
+
+
+def kernel_handles(kin: Kinetics) -> bool:
+    """Whether the C kernel models ``kin``: no position-dependent load, and every field
+    it does not know at its default (a newer model feature runs the Python loop)."""
+    if kin.terrain is not None:
+        return False
+    for f in dataclasses.fields(kin):
+        if f.name in KERNEL_FIELDS:
+            continue
+        if f.default is dataclasses.MISSING or getattr(kin, f.name) != f.default:
+            return False
+    return True
+
+
 def run(
-    kin: Kinetics, tl: Timeline, n: int, w0: float, sensor_lag: float = 0.0
+    kin: Kinetics,
+    tl: Timeline,
+    n: int,
+    w0: float,
+    sensor_lag: float = 0.0,
+    use_kernel: bool = True,
 ) -> tuple[Array, Array, Array]:
     """Free run from speed w0; returns per-sample (speed, mean speed, position).
+
+    The C kernel runs it when built and it models ``kin`` (:func:`kernel_handles`;
+    ``use_kernel=False``: always the Python loop, the reference).
 
     ``speed[k]`` at ``t[k]`` as the sensor reports it (low-pass ``sensor_lag`` s applied
     to the mean speed over each sample step, as the plant does), ``mean`` the raw
     instantaneous speed, ``pos`` the integral of speed.
     """
+    if use_kernel and kernel_handles(kin):
+        done = ckernel.run(
+            kin.a, kin.b, kin.a_idle, kin.b_idle, kin.c, kin.sigma, kin.d, kin.drag,
+            kin.scale, kin.lag, tl.dt, tl.cmd, tl.sample_end, n, w0, sensor_lag,
+        )  # fmt: skip
+        if done is not None:
+            return done
     out = np.empty(n)
     raw = np.empty(n)
     pos = np.empty(n)

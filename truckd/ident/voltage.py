@@ -30,6 +30,10 @@ from truckd.model.params import VehicleParams
 
 Array = NDArray[np.float64]
 
+SEED_ROOM = 1000.0
+"""The seed's smooth parameters may move this factor either way from their start (the
+data's own least-squares model): wide enough that the data, not the configuration,
+decide how big the machine is; a fit that still ends on one is reported as binding."""
 VEHICLE_FREE = ("K_v", "J_S", "K_coulomb", "stiction_excess", "R_m")
 """Names of the seed parameters the fit may free (``stiction_excess`` = Ks - Kc)."""
 
@@ -62,12 +66,12 @@ def seed_params(p0: VehicleParams, with_current: bool) -> list[Param]:
     """
     kc = max(p0.K_coulomb, 1e-3 * p0.K_T * p0.V_batt / p0.R_m)
     out = [
-        Param("K_v", p0.K_v, 0.1 * p0.K_v, 10.0 * p0.K_v),
-        Param("J_S", p0.J_S, 0.02 * p0.J_S, 50.0 * p0.J_S),
-        Param("K_coulomb", kc, 0.0, 10.0 * kc),
+        Param("K_v", p0.K_v, p0.K_v / SEED_ROOM, SEED_ROOM * p0.K_v),
+        Param("J_S", p0.J_S, p0.J_S / SEED_ROOM, SEED_ROOM * p0.J_S),
+        Param("K_coulomb", kc, 0.0, SEED_ROOM * kc),
     ]
     if with_current:
-        out.append(Param("R_m", p0.R_m, 0.1 * p0.R_m, 10.0 * p0.R_m))
+        out.append(Param("R_m", p0.R_m, p0.R_m / SEED_ROOM, SEED_ROOM * p0.R_m))
     return out
 
 
