@@ -222,8 +222,28 @@ def check_excitation(runs: Sequence[Series], source: str, kind: str) -> None:
         )
 
 
+HELD = 0.3
+"""A signal whose sample-to-sample change is exactly zero this often (and not always) is
+sampled and held: a sensor slower than the log."""
+
+
+def fresh_samples(y: Array) -> Array:
+    """The samples of ``y`` that carry a new reading: all of them, or for a sampled-and-
+    held signal (a speed that updates every 4th sample repeats its value,
+    :data:`HELD`) the first sample and each one that differs from the one before."""
+    if len(y) < 3:
+        return y
+    changed = np.diff(y) != 0.0
+    held = 1.0 - float(np.mean(changed))
+    if held < HELD or not changed.any():
+        return y
+    return np.asarray(y[np.concatenate([[0], np.flatnonzero(changed) + 1])], float)
+
+
 def noise_std(y: Array) -> float:
-    """Robust white-noise level of a smooth signal: MAD of its second difference."""
+    """Robust white-noise level of a smooth signal: MAD of its second difference, over
+    its fresh readings (:func:`fresh_samples`: a held value would give noise 0)."""
+    y = fresh_samples(np.asarray(y, float))
     if len(y) < 5:
         return 0.0
     d2 = np.diff(y, 2)

@@ -49,7 +49,7 @@ from truckd.ident.physics import (
     effects_problems,
     vehicle_problems,
 )
-from truckd.ident.residuals import Whiteness, whiteness
+from truckd.ident.residuals import Whiteness, looks_like, whiteness
 from truckd.ident.result import (
     CandidateRow,
     Diagnosis,
@@ -78,6 +78,7 @@ from truckd.ident.voltage import (
     FitResult,
     Param,
     Weights,
+    apply,
     fit_percent,
     fit_with_stiction,
     predict,
@@ -87,6 +88,7 @@ from truckd.ident.voltage import (
     scan_stiction,
     seed_params,
     stiction_grid,
+    theta_of,
     weights_for,
 )
 from truckd.model.effects import Effects
@@ -121,6 +123,8 @@ def _budget(runs: Sequence[Series], samples: int) -> int:
     return int(min(max(samples, per_time), BUDGET_MAX_FACTOR * samples))
 
 
+GAIN_MIN = 0.5
+"""Points of validation fit a cause must add to be accepted (the selection's test)."""
 MAX_EXTRA_ROUNDS = 2
 """Rounds of trying the remaining candidates on top of the accepted ones."""
 SETTLE = 3.0
@@ -229,12 +233,17 @@ def _fit_seed(
         fits.append(
             fit_with_stiction(p_st, Effects(), free, fit_data, w, grid, progress, max_nfev=80)
         )
+    best = min(fits, key=lambda m: m.sse)
     if val_data is None:
-        return min(fits, key=lambda m: m.sse)
+        return best
     # Estimation data that hardly show one constant (slow symmetric ramps and kA) leave
-    # fits of nearly equal cost there and far apart elsewhere: among the fits within a
-    # few noise units of the best, the validation data choose.
-    low = min(m.sse for m in fits)
+    # fits of nearly equal cost there and far apart elsewhere: when the best one's
+    # constants are not all determined (Fisher information), among the fits near the
+    # best the validation data choose.
+    rel = fisher_rel_se(best, free, fit_data, w)
+    if rel is None or max(rel[1:]) < DETERMINED:
+        return best
+    low = best.sse
     near = [m for m in fits if m.sse <= low + max(NEAR_SSE * low, 2.0 * BIC_MIN)]
     return min(near, key=lambda m: _val_cost(m, val_data, w))
 
@@ -411,6 +420,24 @@ def _free_run(
     """Measured and simulated speed of every run (each from its own start), end to end."""
     sims = [predict(p, e, r).v for r in runs]
     return np.concatenate([r.v for r in runs]), np.concatenate(sims)
+
+
+def _residual_signals(runs: Sequence[Series]) -> dict[str, np.ndarray]:
+    """The signals a residual over ``runs`` is compared with (same length, end to end)."""
+    sig: dict[str, list[np.ndarray]] = {
+        "speed": [],
+        "acceleration": [],
+        "command_sign": [],
+        "time": [],
+        "position": [],
+    }
+    for r in runs:
+        sig["speed"].append(r.v)
+        sig["acceleration"].append(np.gradient(r.v, r.t) if len(r) > 2 else np.zeros(len(r)))
+        sig["command_sign"].append(np.sign(r.inp))
+        sig["time"].append(r.t - r.t[0])
+        sig["position"].append(r.x if r.x is not None else np.zeros(len(r)))
+    return {k: np.concatenate(v) for k, v in sig.items()}
 
 
 def _whiteness_of(r: np.ndarray, runs: Sequence[Series]) -> tuple[Whiteness, bool]:
@@ -613,7 +640,7 @@ def diagnose_voltage(
                     e.load_force_amplitude, e.load_force_wavelength, m.params, runs
                 )
             else:
-                why = effect_problem(n, float(getattr(m.effects, pn)), m.params, runs)
+                why = effect_problem(n, float(getattr(m.effects, pn)), m.params, runs, p0)
             if why is not None:
                 ok = False
                 if all(r.reason != why for r in rejected):
@@ -622,6 +649,16 @@ def diagnose_voltage(
 
     def is_hill(name: str) -> bool:
         return by_name[name].param.name == "hill_force"
+
+    def val_fit(m: _Model) -> float:
+        return _summary(m.fit.params, m.fit.effects, val)[0].fit_percent
+
+    def earns(name: str, new: _Model, old: _Model) -> bool:
+        """``new`` (``old`` + ``name``) raises the validation fit by :data:`GAIN_MIN`
+        points (a hill is validated where it acts, :func:`hill_check`)."""
+        if is_hill(name):
+            return True
+        return val_fit(new) >= val_fit(old) + GAIN_MIN
 
     held_out: dict[tuple[float, float, float], bool | None] = {}
     hill_notes: dict[str, str] = {}
@@ -669,6 +706,7 @@ def diagnose_voltage(
         f = _fit_candidate(base_fit, seed_free, [], cand, fit_data, w, grid, progress, val_data)
         m = _Model(f, (cand.name,), _val_cost(f, val_data, w))
         ok, dbic = _passes(m, base, 1, hill_check(cand.name, m, base))
+        ok = ok and earns(cand.name, m, base)
         note = "passes alone" if ok else hill_notes.get(cand.name, "")
         if ok and not possible(f, [cand.name]):
             ok = False
@@ -703,6 +741,7 @@ def diagnose_voltage(
             )
             new = _Model(f, (*current.names, name), _val_cost(f, val_data, w))
         ok, _ = _passes(new, current, 1, hill_check(name, new, current))
+        ok = ok and earns(name, new, current)
         if ok and possible(new.fit, [*accepted, name]):
             accepted.append(name)
             current = new
@@ -744,6 +783,7 @@ def diagnose_voltage(
             new = _Model(f, (*current.names, cand.name), _val_cost(f, val_data, w))
             if (
                 _passes(new, current, 1, hill_check(cand.name, new, current))[0]
+                and earns(cand.name, new, current)
                 and possible(new.fit, new.names)
                 and (best is None or new.val_cost < best.val_cost)
             ):
@@ -797,39 +837,63 @@ def diagnose_voltage(
             max_nfev=FINAL_NFEV,
         )
         final = _restick(final, grid, fit_runs, w)
-        if effects_problems(final.effects, final.params, runs):
+        if effects_problems(final.effects, final.params, runs, p0):
             final = _restick(current.fit, grid, fit_runs, w)  # the refit left the limits
     base_sum, y_base = _summary(base_pol.params, base_pol.effects, report)
+
+    def keep(model: FitResult) -> tuple[list[Finding], list[str], ModelSummary, np.ndarray]:
+        """The accepted causes that earn their place in ``model`` on the report data,
+        in order: each must raise the report fit by :data:`GAIN_MIN` points (a hill, on
+        its stretch only, validated where it acts: by any gain)."""
+        found: list[Finding] = []
+        kept_: list[str] = []
+        y_e, e_sum = y_base, base_sum
+        for name in accepted:
+            later = {by_name[a].param.name: 0.0 for a in accepted if a not in (*kept_, name)}
+            trial = dataclasses.replace(model.effects, **later)
+            s_k, y_k = _summary(model.params, trial, report)
+            if s_k.fit_percent <= e_sum.fit_percent:
+                continue
+            found.append(
+                Finding(
+                    name=by_name[name].output or name,
+                    params=_params_of(by_name[name], model.effects),
+                    profile=_profile_of(by_name[name], model.effects),
+                    fit_percent=s_k.fit_percent,
+                    fit_gain_percent=s_k.fit_percent - e_sum.fit_percent,
+                )
+            )
+            kept_.append(name)
+            e_sum, y_e = s_k, y_k
+        return found, kept_, e_sum, y_e
+
     # Never worse: each accepted cause must raise the report fit; one that does not is
-    # switched off (a cause that lowers the validation fit is no cause).
-    findings: list[Finding] = []
-    y_ext, ext_sum = y_base, base_sum
-    kept: list[str] = []
+    # switched off (a cause that lowers the validation fit is no cause).  The final
+    # joint refit never drops a cause that earned its place in the selection's model:
+    # when it would, the selection's model stays.
+    findings, kept, ext_sum, y_ext = keep(final)
+    if accepted and final is not current.fit:
+        sel = _restick(current.fit, grid, fit_runs, w)
+        alt = keep(sel)
+        if len(alt[1]) > len(kept) or (
+            len(alt[1]) == len(kept) and alt[2].fit_percent > ext_sum.fit_percent
+        ):
+            progress("the final joint refit loses a cause: the selection's model stays")
+            final = sel
+            findings, kept, ext_sum, y_ext = alt
     for name in accepted:
-        later = {by_name[a].param.name: 0.0 for a in accepted if a not in (*kept, name)}
-        trial = dataclasses.replace(final.effects, **later)
-        s_k, y_k = _summary(final.params, trial, report)
-        if s_k.fit_percent <= ext_sum.fit_percent:
+        if name not in kept:
             progress(f"{name} does not raise the report fit: not accepted")
             rows[name] = dataclasses.replace(
-                rows[name], accepted=False, note="lowers the report fit: not accepted"
+                rows[name],
+                accepted=False,
+                note="lowers the report fit: not accepted",
             )
-            continue
-        findings.append(
-            Finding(
-                name=by_name[name].output or name,
-                params=_params_of(by_name[name], final.effects),
-                profile=_profile_of(by_name[name], final.effects),
-                fit_percent=s_k.fit_percent,
-                fit_gain_percent=s_k.fit_percent - ext_sum.fit_percent,
-            )
-        )
-        kept.append(name)
-        ext_sum, y_ext = s_k, y_k
     switched_off = {by_name[a].param.name: 0.0 for a in accepted if a not in kept}
     ext_params = final.params if kept else base_pol.params
     ext_effects = dataclasses.replace(final.effects, **switched_off) if kept else base_pol.effects
-    notes = [*_notes(runs, ff)]
+    fisher = fisher_rel_se(base_fit, seed_free, fit_data, w)
+    notes = [*_notes(runs, ff, fisher)]
     ls_json: dict[str, float | None] | None = None
     if ls is not None:
         ls_sum, y_ls = _summary(ls.params, Effects(), report)
@@ -865,9 +929,24 @@ def diagnose_voltage(
     notes.extend(vehicle_problems(ext_params, runs))
     y_all = np.concatenate([r.v for r in report])
     wt, unexplained = _whiteness_of(y_all - y_ext, report)
+    rep = merged(report)
+    looks = looks_like(y_all - y_ext, _residual_signals(report))
+    if unexplained:
+        what = (
+            ", ".join(f"{k} (r = {c:+.2f})" for k, c in looks.items())
+            if looks
+            else "none of speed, acceleration, the command's sign, time or position"
+        )
+        line = (
+            f"unexplained: the best model leaves structure in the residual (autocorrelation "
+            f"{wt.acf_outside:.0%} and cross-correlation with the input {wt.ccf_outside:.0%} "
+            f"of lags outside the band, RMS {wt.rms:.3g} against noise {wt.noise:.3g} m/s); "
+            f"it correlates with {what}"
+        )
+        notes.append(line)
+        alerts.append(line)
     if supply_note is not None:
         notes.insert(0, supply_note)
-    rep = merged(report)
     return Diagnosis(
         input="voltage",
         samples=sum(len(r) for r in runs),
@@ -895,6 +974,7 @@ def diagnose_voltage(
             "structure": wt.structure,
             "acf_outside_fraction": wt.acf_outside,
             "ccf_outside_fraction": wt.ccf_outside,
+            **{f"corr_{k}": c for k, c in looks.items()},
         },
         rejected=rejected,
         linear=None if ff is None else ff.to_json(),
@@ -973,7 +1053,58 @@ DETERMINED = 0.1
 error is below this."""
 
 
-def _notes(runs: Sequence[Series], ff: Feedforward | None) -> list[str]:
+def fisher_rel_se(
+    m: FitResult, free: Sequence[Param], data: list[Series], w: Weights
+) -> tuple[float, float, float] | None:
+    """Relative standard errors of (kS, kV, kA) of the simulation-error fit ``m`` on
+    ``data``, from the Fisher information (Gauss-Newton, finite differences in log
+    space), the residual's variance, and its lag-1 autocorrelation to count effectively
+    independent samples (an autocorrelated residual carries less information).  None
+    when the seed's ``K_v``, ``J_S`` or ``K_coulomb`` is not free."""
+    names = [f.name for f in free]
+    if not {"K_v", "J_S", "K_coulomb"} <= set(names):
+        return None
+    r0 = residuals(m.params, m.effects, data, w)
+    cols = []
+    step = 1e-3
+    for f in free:
+        val = _value_of(m.params, m.effects, f.name)
+        if f.name == "K_coulomb" and val <= 0.0:
+            val = 1e-3 * f.scale
+        th = theta_of(m.params, m.effects, free)
+        k = names.index(f.name)
+        th_up = th.copy()
+        th_up[k] = val * (1.0 + step) / f.scale
+        p_up, e_up = apply(m.params, m.effects, free, th_up)
+        r_up = residuals(p_up, e_up, data, w)
+        cols.append((r_up - r0) / step)  # per unit relative change (log space)
+    jac = np.column_stack(cols)
+    n = len(r0)
+    if n <= len(free):
+        return None
+    res = r0 - np.mean(r0)
+    rho = float(res[:-1] @ res[1:]) / max(float(res @ res), 1e-300)
+    rho = min(max(rho, 0.0), 0.99)
+    var = float(r0 @ r0) / (n - len(free)) * (1.0 + rho) / (1.0 - rho)
+    try:
+        cov = var * np.linalg.pinv(jac.T @ jac)
+    except np.linalg.LinAlgError:
+        return None
+    kv, js, kc = names.index("K_v"), names.index("J_S"), names.index("K_coulomb")
+    d = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    # kA = R_m J_S / (K_T ratio) with K_T tied to K_v: log kA = log J_S - log K_v + c.
+    ka = float(np.sqrt(max(cov[js, js] + cov[kv, kv] - 2.0 * cov[js, kv], 0.0)))
+    ks = float(np.sqrt(max(cov[kc, kc] + cov[kv, kv] - 2.0 * cov[kc, kv], 0.0)))
+    if m.params.K_coulomb <= 0.0:
+        ks = float("inf")
+    return ks, float(d[kv]), ka
+
+
+def _notes(
+    runs: Sequence[Series],
+    ff: Feedforward | None,
+    fisher: tuple[float, float, float] | None = None,
+) -> list[str]:
     """What these runs can and cannot determine."""
     whole = merged(runs)
     notes = [
@@ -998,7 +1129,10 @@ def _notes(runs: Sequence[Series], ff: Feedforward | None) -> list[str]:
         )
     else:
         names = {"kS": "K_coulomb", "kV": "K_v", "kA": "J_S"}
-        good = [k for k, e in zip(("kS", "kV", "kA"), ff.rel_se, strict=True) if e < DETERMINED]
+        # Determined: both the linear estimate and the simulation-error fit pin it down
+        # (the windowed OLS alone called kA determined from slow symmetric ramps).
+        rel = ff.rel_se if fisher is None else tuple(map(max, ff.rel_se, fisher))
+        good = [k for k, e in zip(("kS", "kV", "kA"), rel, strict=True) if e < DETERMINED]
         bad = [k for k in ("kS", "kV", "kA") if k not in good]
         if good:
             notes.append(

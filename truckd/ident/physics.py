@@ -55,9 +55,11 @@ def vehicle_problems(p: VehicleParams, runs: Sequence[Series]) -> list[str]:
     return out
 
 
-def fitted_mass(p: VehicleParams) -> float:
-    """The mass (kg) the inertia ``J_S`` of ``p`` stands for at the wheels."""
-    return p.J_S / p.ratio**2
+def fitted_mass(p: VehicleParams, p0: VehicleParams | None = None) -> float:
+    """The mass (kg) of the fitted machine ``p``: the configured mass scaled by its
+    inertia over the configured truck's ``p0`` (``p.m`` without ``p0``).  A machine with
+    its wheels off the ground (inertia 0.002x) weighs on nothing: its loads are small."""
+    return p.m if p0 is None else p.m * p.J_S / p0.J_S
 
 
 def configuration_notes(p: VehicleParams, p0: VehicleParams) -> list[str]:
@@ -82,11 +84,17 @@ def configuration_notes(p: VehicleParams, p0: VehicleParams) -> list[str]:
     return out
 
 
-def effect_problem(name: str, value: float, p: VehicleParams, runs: Sequence[Series]) -> str | None:
+def effect_problem(
+    name: str,
+    value: float,
+    p: VehicleParams,
+    runs: Sequence[Series],
+    p0: VehicleParams | None = None,
+) -> str | None:
     """Why ``name = value`` is physically impossible for ``p`` on these runs (None: fine).
     Limits are relative to the fitted machine: a load above the weight its inertia
-    implies (:func:`fitted_mass`) is impossible."""
-    weight = fitted_mass(p) * G
+    implies against the configured truck ``p0`` (:func:`fitted_mass`) is impossible."""
+    weight = fitted_mass(p, p0) * G
     v_max = max(float(np.max(np.abs(r.v))) for r in runs)
     u_max = max(float(np.max(np.abs(r.inp))) for r in runs)
     w_max = max(v_max / p.ratio, 1e-9)
@@ -120,11 +128,13 @@ def effect_problem(name: str, value: float, p: VehicleParams, runs: Sequence[Ser
     return None
 
 
-def effects_problems(e: Effects, p: VehicleParams, runs: Sequence[Series]) -> list[str]:
+def effects_problems(
+    e: Effects, p: VehicleParams, runs: Sequence[Series], p0: VehicleParams | None = None
+) -> list[str]:
     """Reasons for every active effect of ``e`` that is physically impossible."""
     out = []
     for name in e.active():
-        why = effect_problem(name, float(getattr(e, name)), p, runs)
+        why = effect_problem(name, float(getattr(e, name)), p, runs, p0)
         if why is not None:
             out.append(why)
     if e.hill_force != 0.0:
