@@ -422,6 +422,42 @@ def _free_run(
     return np.concatenate([r.v for r in runs]), np.concatenate(sims)
 
 
+def _gain_where_acting(
+    new: FitResult, old: FitResult, runs: Sequence[Series], noise: float
+) -> float:
+    """Points of free-run fit ``new`` gains over ``old`` on the samples of ``runs`` where
+    the two differ by more than twice the noise (where the added cause acts; all samples
+    when fewer than :data:`MIN_SUPPORT` do): of the speed, or of the current when logged
+    (a dead zone may show in the current only), whichever gains more."""
+    p_new = [predict(new.params, new.effects, r) for r in runs]
+    p_old = [predict(old.params, old.effects, r) for r in runs]
+    outputs = [
+        (
+            np.concatenate([r.v for r in runs]),
+            np.concatenate([q.v for q in p_new]),
+            np.concatenate([q.v for q in p_old]),
+            noise,
+        )
+    ]
+    if all(r.i is not None for r in runs):
+        cur = [r.i for r in runs if r.i is not None]
+        outputs.append(
+            (
+                np.concatenate(cur),
+                np.concatenate([q.i for q in p_new]),
+                np.concatenate([q.i for q in p_old]),
+                float(np.mean([noise_std(c) for c in cur])),
+            )
+        )
+    gains = []
+    for y, y_new, y_old, sd in outputs:
+        acts = np.abs(y_new - y_old) > 2.0 * sd
+        if int(acts.sum()) < MIN_SUPPORT:
+            acts = np.ones(len(y), dtype=bool)
+        gains.append(fit_percent(y[acts], y_new[acts]) - fit_percent(y[acts], y_old[acts]))
+    return max(gains)
+
+
 def _residual_signals(runs: Sequence[Series]) -> dict[str, np.ndarray]:
     """The signals a residual over ``runs`` is compared with (same length, end to end)."""
     sig: dict[str, list[np.ndarray]] = {
@@ -650,15 +686,14 @@ def diagnose_voltage(
     def is_hill(name: str) -> bool:
         return by_name[name].param.name == "hill_force"
 
-    def val_fit(m: _Model) -> float:
-        return _summary(m.fit.params, m.fit.effects, val)[0].fit_percent
+    noise_val = float(np.mean([noise_std(r.v) for r in val]))
 
     def earns(name: str, new: _Model, old: _Model) -> bool:
-        """``new`` (``old`` + ``name``) raises the validation fit by :data:`GAIN_MIN`
-        points (a hill is validated where it acts, :func:`hill_check`)."""
+        """``new`` (``old`` + ``name``) raises the validation fit where the cause acts
+        by :data:`GAIN_MIN` points (a hill: validated where it acts, :func:`hill_check`)."""
         if is_hill(name):
             return True
-        return val_fit(new) >= val_fit(old) + GAIN_MIN
+        return _gain_where_acting(new.fit, old.fit, val, noise_val) >= GAIN_MIN
 
     held_out: dict[tuple[float, float, float], bool | None] = {}
     hill_notes: dict[str, str] = {}
