@@ -39,7 +39,7 @@ def library() -> ctypes.CDLL | None:
         i = ctypes.c_int64
         fn = lib.truckd_fastrun
         fn.restype = ctypes.c_int
-        fn.argtypes = [dp, dp, d, d, d, d, d, d, dp, d, dp, ip, ip, i, i, d, d, dp, dp, dp]
+        fn.argtypes = [dp, dp, d, d, d, d, d, d, dp, d, dp, ip, ip, i, i, d, d, dp, dp, dp, dp]
     _state["lib"] = lib
     return lib
 
@@ -72,8 +72,13 @@ def run(
     n: int,
     w0: float,
     sensor_lag: float,
+    terrain: tuple[float, ...] | None = None,
 ) -> tuple[Array, Array, Array] | None:
-    """:func:`truckd.ident.fastsim.run` in C (None: the kernel is not built)."""
+    """:func:`truckd.ident.fastsim.run` in C (None: the kernel is not built).
+
+    ``terrain``: ``(per_newton, ratio, x0, amplitude, wavelength, phase, hill_force,
+    hill_start, hill_length)`` of a position-dependent load (see
+    :class:`truckd.ident.fastsim.Terrain`), None for none."""
     lib = library()
     if lib is None:
         return None
@@ -87,6 +92,7 @@ def run(
     raw = np.empty(n)
     pos = np.empty(n)
     ip = ctypes.POINTER(ctypes.c_int64)
+    ter = None if terrain is None else np.array(terrain, dtype=np.float64)
     lib.truckd_fastrun(
         _dp(a),
         _dp(b),
@@ -108,5 +114,6 @@ def run(
         _dp(out),
         _dp(raw),
         _dp(pos),
+        _dp(ter),
     )
     return out, raw, pos

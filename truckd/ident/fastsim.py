@@ -181,9 +181,10 @@ KERNEL_FIELDS = frozenset(
 
 
 def kernel_handles(kin: Kinetics) -> bool:
-    """Whether the C kernel models ``kin``: no position-dependent load, and every field
-    it does not know at its default (a newer model feature runs the Python loop)."""
-    if kin.terrain is not None:
+    """Whether the C kernel models ``kin``: a position-dependent load only as a
+    :class:`Terrain`, and every field it does not know at its default (a newer model
+    feature runs the Python loop)."""
+    if kin.terrain is not None and not isinstance(kin.terrain, Terrain):
         return False
     for f in dataclasses.fields(kin):
         if f.name in KERNEL_FIELDS:
@@ -211,9 +212,18 @@ def run(
     instantaneous speed, ``pos`` the integral of speed.
     """
     if use_kernel and kernel_handles(kin):
+        tr = kin.terrain
+        ter = None
+        if isinstance(tr, Terrain):
+            e = tr.eff
+            ter = (
+                tr.per_newton, tr.ratio, tr.x0, e.load_force_amplitude,
+                e.load_force_wavelength, e.load_force_phase, e.hill_force, e.hill_start,
+                e.hill_length,
+            )  # fmt: skip
         done = ckernel.run(
             kin.a, kin.b, kin.a_idle, kin.b_idle, kin.c, kin.sigma, kin.d, kin.drag,
-            kin.scale, kin.lag, tl.dt, tl.cmd, tl.sample_end, n, w0, sensor_lag,
+            kin.scale, kin.lag, tl.dt, tl.cmd, tl.sample_end, n, w0, sensor_lag, ter,
         )  # fmt: skip
         if done is not None:
             return done
@@ -407,20 +417,29 @@ def unsupported_effects(eff: Effects) -> list[str]:
     return out
 
 
+@dataclass(frozen=True)
+class Terrain:
+    """The position-dependent load per unit inertia as a function of the motor angle
+    travelled (rad) from ``x0`` (m): ``per_newton * terrain_force(eff, x0 + angle *
+    ratio)``; the C kernel computes the same from these fields."""
+
+    eff: Effects
+    per_newton: float
+    ratio: float
+    x0: float
+
+    def __call__(self, angle: float) -> float:
+        return self.per_newton * terrain_force(self.eff, self.x0 + angle * self.ratio)
+
+
 def _terrain(
     p: VehicleParams, eff: Effects, kappa: float, x0: float
 ) -> Callable[[float], float] | None:
-    """The position-dependent load per unit inertia as a function of the motor angle
-    travelled (rad) from ``x0`` (m); None when the load does not depend on position."""
+    """The position-dependent load per unit inertia (:class:`Terrain`); None when the
+    load does not depend on position."""
     if not position_dependent(eff):
         return None
-    per_newton = kappa * p.force_to_torque(1.0) / p.J_S
-    ratio = p.ratio
-
-    def extra(angle: float) -> float:
-        return per_newton * terrain_force(eff, x0 + angle * ratio)
-
-    return extra
+    return Terrain(eff, kappa * p.force_to_torque(1.0) / p.J_S, p.ratio, x0)
 
 
 def simulate_voltage(

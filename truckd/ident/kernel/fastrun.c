@@ -8,6 +8,10 @@
 #include <math.h>
 #include <stdint.h>
 
+#ifndef M_PI
+#define M_PI 3.14159265358979323846
+#endif
+
 static void phi(double b, double h, double *e, double *p1, double *p2)
 {
     double bh = b * h;
@@ -69,11 +73,29 @@ static double segment(double w, double a, double b, double c, double sigma, doub
     return w;
 }
 
-/* See fastsim.run.  scale may be NULL (1 everywhere).  Returns 0. */
+/* Position-dependent load per unit inertia at motor angle x (fastsim.Terrain): ter =
+ * {per_newton, ratio, x0, amplitude, wavelength, phase, hill_force, hill_start,
+ * hill_length}, as truckd.model.effects.terrain_force. */
+static double terrain(const double *ter, double angle)
+{
+    double x = ter[2] + angle * ter[1];
+    double force = 0.0;
+    if (ter[3] != 0.0) {
+        double ph = 2.0 * M_PI * x / ter[4] + ter[5];
+        force += ter[3] * sin(ph);
+    }
+    if (ter[6] != 0.0 && ter[7] <= x && x < ter[7] + ter[8]) {
+        force += ter[6];
+    }
+    return ter[0] * force;
+}
+
+/* See fastsim.run.  scale may be NULL (1 everywhere), ter NULL (no terrain).  Returns 0. */
 int truckd_fastrun(const double *a, const double *b, double a_idle, double b_idle, double kc,
                    double ksigma, double kd, double kdrag, const double *scale, double lag,
                    const double *dt, const int64_t *cmd, const int64_t *sample_end, int64_t m,
-                   int64_t n, double w0, double sensor_lag, double *out, double *raw, double *pos)
+                   int64_t n, double w0, double sensor_lag, double *out, double *raw, double *pos,
+                   const double *ter)
 {
     double w = w0, v_lag = w0, x = 0.0, x_step0 = 0.0, h_step = 0.0;
     double c = kc, sigma = ksigma, d = kd, drag = kdrag;
@@ -86,11 +108,12 @@ int truckd_fastrun(const double *a, const double *b, double a_idle, double b_idl
     for (int64_t j = 0; j < m; ++j) {
         double h = dt[j], aa, bb, b_eff, d_eff, bh;
         int64_t k = cmd[j], se = sample_end[j];
+        double f = 1.0;
         if (k >= 0) {
             aa = a[k];
             bb = b[k];
             if (scale != 0) {
-                double f = scale[k];
+                f = scale[k];
                 c = kc * f;
                 sigma = ksigma * f;
                 d = kd * f;
@@ -99,6 +122,9 @@ int truckd_fastrun(const double *a, const double *b, double a_idle, double b_idl
         } else {
             aa = a_idle;
             bb = b_idle;
+        }
+        if (ter != 0) {
+            d = (kd + terrain(ter, x)) * f;
         }
         if (drag != 0.0) {
             double aw = fabs(w);
