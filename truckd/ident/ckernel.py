@@ -33,8 +33,8 @@ def library() -> ctypes.CDLL | None:
         except OSError:
             lib = None
     if lib is not None:
-        dp = ctypes.POINTER(ctypes.c_double)
-        ip = ctypes.POINTER(ctypes.c_int64)
+        dp = ctypes.c_void_p  # double *, passed as an address
+        ip = ctypes.c_void_p  # int64_t *
         d = ctypes.c_double
         i = ctypes.c_int64
         fn = lib.truckd_fastrun
@@ -49,10 +49,9 @@ def available() -> bool:
     return library() is not None
 
 
-def _dp(a: NDArray[np.float64] | None) -> object:
-    if a is None:
-        return ctypes.POINTER(ctypes.c_double)()
-    return a.ctypes.data_as(ctypes.POINTER(ctypes.c_double))
+def _dp(a: NDArray[np.float64] | NDArray[np.int64] | None) -> int | None:
+    """The address of a contiguous array's data (None: a NULL pointer)."""
+    return None if a is None else int(a.ctypes.data)
 
 
 def run(
@@ -91,7 +90,6 @@ def run(
     out = np.empty(n)
     raw = np.empty(n)
     pos = np.empty(n)
-    ip = ctypes.POINTER(ctypes.c_int64)
     ter = None if terrain is None else np.array(terrain, dtype=np.float64)
     lib.truckd_fastrun(
         _dp(a),
@@ -105,8 +103,8 @@ def run(
         _dp(sc),
         float(lag),
         _dp(dt),
-        cmd.ctypes.data_as(ip),
-        se.ctypes.data_as(ip),
+        _dp(cmd),
+        _dp(se),
         len(dt),
         n,
         float(w0),

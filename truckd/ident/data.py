@@ -8,6 +8,7 @@ short, constant input, no motion) raises :class:`truckd.errors.InputError` namin
 from __future__ import annotations
 
 import dataclasses
+import functools
 import itertools
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -46,6 +47,11 @@ class Series:
 
     def __len__(self) -> int:
         return len(self.t)
+
+    @functools.cached_property
+    def start_speed(self) -> float:
+        """:func:`initial_speed` of ``v`` (computed once: every free run starts there)."""
+        return initial_speed(self.v)
 
     def slice(self, lo: int, hi: int) -> Series:
         """Samples ``lo:hi``, with up to :data:`HISTORY_S` of earlier inputs as history."""

@@ -23,7 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
-from truckd.ident.data import Series, initial_speed, noise_std
+from truckd.ident.data import Series, noise_std
 from truckd.ident.fastsim import VoltagePrediction, prelog_voltage, simulate_voltage
 from truckd.model.effects import Effects
 from truckd.model.params import VehicleParams
@@ -128,7 +128,7 @@ def weights_for(data: Sequence[Series]) -> Weights:
 def predict(p: VehicleParams, e: Effects, s: Series) -> VoltagePrediction:
     """Free run of the model over ``s`` from its measured start (speed, and current when
     logged: it tells which voltage acts before the log's first command does)."""
-    v0 = initial_speed(s.v)
+    v0 = s.start_speed
     i0 = None if s.i is None else float(s.i[0])
     v_pre = prelog_voltage(p, e, p.omega(v0), i0)
     x0 = 0.0 if s.x is None else float(s.x[0])
