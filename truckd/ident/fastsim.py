@@ -20,6 +20,7 @@ import dataclasses
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -442,6 +443,36 @@ def _terrain(
     return Terrain(eff, kappa * p.force_to_torque(1.0) / p.J_S, p.ratio, x0)
 
 
+PREP_CACHE = 64
+"""Series whose input-side preparation (driver voltage, coefficients, timeline) is kept:
+a stiction scan or a friction fit changes only what acts after it."""
+_PREP: dict[tuple[object, ...], tuple[Any, ...]] = {}
+_UNPREPARED = (
+    "load_force",
+    "aero_drag",
+    "sensor_lag",
+    "load_force_amplitude",
+    "load_force_wavelength",
+    "load_force_phase",
+    "hill_force",
+    "hill_start",
+    "hill_length",
+)
+"""Effects fields that do not enter the preparation (loads, drag, lag, terrain)."""
+
+
+def _prep_key(
+    p: VehicleParams, eff: Effects, t: Array, u: Array, t_hist: Array | None, u_hist: Array | None
+) -> tuple[object, ...]:
+    """Cache key of the preparation: the arrays' identities (the cache holds them, so an
+    identity cannot be reused while cached) and every parameter that enters it (the whole
+    vehicle but its friction, the whole effects but loads, drag, lag and terrain; a new
+    effect field is part of the key by construction)."""
+    q = p.replace(K_coulomb=0.0, K_stiction=0.0)
+    e = dataclasses.replace(eff, **dict.fromkeys(_UNPREPARED, 0.0))
+    return (id(t), id(u), id(t_hist), id(u_hist), q, e)
+
+
 def simulate_voltage(
     p: VehicleParams,
     eff: Effects,
@@ -472,14 +503,23 @@ def simulate_voltage(
     t = np.asarray(t, float)
     u_all = np.asarray(u, float) if not hist else np.concatenate([u_hist, u])
     t_cmd = t if not hist else np.concatenate([t_hist, t])
-    volts = driver_volts(u_all, eff, p.V_batt)
-    duty = volts / p.V_batt
-    r_tot = p.R_m + eff.battery_sag * duty * duty
-    k_arr, _ = electrical_correction(p, eff.viscous_friction, r_tot)
-    k0, l0 = electrical_correction(p, eff.viscous_friction)
-    kappa, lag_e = float(k0), float(l0)
-    a = k_arr * p.K_T / p.J_S * volts / r_tot
-    b = k_arr * (p.K_T * p.K_v / r_tot + eff.viscous_friction) / p.J_S
+    key = _prep_key(p, eff, t, u, t_hist, u_hist)
+    hit = _PREP.get(key)
+    if hit is not None and hit[0] is t and hit[1] is u and hit[2] is t_hist and hit[3] is u_hist:
+        volts, r_tot, k_arr, kappa, lag_e, a, b, tl = hit[4]
+    else:
+        volts = driver_volts(u_all, eff, p.V_batt)
+        duty = volts / p.V_batt
+        r_tot = p.R_m + eff.battery_sag * duty * duty
+        k_arr, _ = electrical_correction(p, eff.viscous_friction, r_tot)
+        k0, l0 = electrical_correction(p, eff.viscous_friction)
+        kappa, lag_e = float(k0), float(l0)
+        a = k_arr * p.K_T / p.J_S * volts / r_tot
+        b = k_arr * (p.K_T * p.K_v / r_tot + eff.viscous_friction) / p.J_S
+        tl = _merge_equal(timeline(t, eff.input_delay + lag_e, hist, t_cmd), a, b)
+        if len(_PREP) >= PREP_CACHE:
+            del _PREP[next(iter(_PREP))]
+        _PREP[key] = (t, u, t_hist, u_hist, (volts, r_tot, k_arr, kappa, lag_e, a, b, tl))
     load = p.force_to_torque(eff.load_force)
     kin = Kinetics(
         a=a,
@@ -494,7 +534,6 @@ def simulate_voltage(
         lag=lag_e,
         terrain=_terrain(p, eff, kappa, x0),
     )
-    tl = _merge_equal(timeline(t, eff.input_delay + lag_e, hist, t_cmd), a, b)
     w0 = p.omega(v0)
     meas, raw, pos = run(kin, tl, n, w0, eff.sensor_lag)
     # Active command at each sample instant (for the quasi-static current).
