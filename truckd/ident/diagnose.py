@@ -221,10 +221,15 @@ def _fit_seed(
         r = residuals(ls.params, Effects(), fit_data, w)
         starts.append(FitResult(ls.params, Effects(), float(r @ r), len(r), 0))
     first = fit_with_stiction(p_lin, Effects(), free, fit_data, w, grid, progress, max_nfev=80)
-    alt = p0 if p0 != p_lin else p0.replace(J_S=p0.J_S * 2.0, K_coulomb=p0.K_coulomb * 0.5)
-    alt = alt.replace(K_stiction=max(alt.K_stiction, alt.K_coulomb))
-    second = fit_with_stiction(alt, Effects(), free, fit_data, w, grid, progress, max_nfev=80)
-    fits = [first, second, *starts]
+    fits = [first, *starts]
+    # Second start: the configuration, unless the data's machine is far from it (then a
+    # start there costs evaluations and finds nothing the data's start does not).
+    if not configuration_notes(p_lin, p0):
+        alt = p0 if p0 != p_lin else p0.replace(J_S=p0.J_S * 2.0, K_coulomb=p0.K_coulomb * 0.5)
+        alt = alt.replace(K_stiction=max(alt.K_stiction, alt.K_coulomb))
+        fits.append(
+            fit_with_stiction(alt, Effects(), free, fit_data, w, grid, progress, max_nfev=80)
+        )
     # Third start: the linear start with its breakaway scanned first.  A stiction far from
     # the configured one made the first fit move Coulomb friction and K_v to absorb it (a
     # local minimum the later scan could not leave: K_coulomb 0.026 for 0.015).
