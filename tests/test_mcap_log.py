@@ -1,4 +1,4 @@
-"""MCAP beside the CSV (CONTRACTS.md section 5): read back with the ``mcap`` reader,
+"""MCAP beside the CSV (reference section 5): read back with the ``mcap`` reader,
 counts per channel, every message validated against its channel's JSON schema (the
 ``jsonschema`` package), rotation with the CSV, a file cut by SIGKILL, ``truckd sim --mcap``.
 """

@@ -1,5 +1,5 @@
 """``truckd sim``: the controller drives the simulated truck through the simulated
-firmware and the real protocol (CONTRACTS.md section 1)."""
+firmware and the real protocol (reference section 1)."""
 
 from __future__ import annotations
 

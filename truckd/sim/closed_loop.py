@@ -38,7 +38,7 @@ from truckd.sim.plant import Plant, PlantConfig
 from truckd.sim.scenarios import Scenario, World
 
 STEADY_AFTER_S = 5.0
-"""``gap_error_rms_m`` is taken after this time (CONTRACTS.md section 1)."""
+"""``gap_error_rms_m`` is taken after this time (reference section 1)."""
 
 TRUTH_COLUMNS = ("v_true", "gap_true", "v_lead_true", "x_true", "i_true")
 """The plant's truth, appended to each log row of a trace (m/s, m, m/s, m, A)."""
@@ -86,7 +86,7 @@ def _percentile(xs: list[float], q: float) -> float:
 def run_scenario(
     sc: Scenario, setup: SimSetup, duration: float | None = None, realtime: bool = False
 ) -> tuple[dict[str, Any], Trace]:
-    """Run one scenario; returns the contract metrics (CONTRACTS.md section 1) and a trace."""
+    """Run one scenario; returns the contract metrics (reference section 1) and a trace."""
     cfg = setup.control
     dt = cfg.period
     dur = sc.duration if duration is None else duration
