@@ -68,3 +68,27 @@ def test_an_unknown_unit_system_is_refused(tmp_path: Path) -> None:
     path.write_text(json.dumps({"units": "Furlongs", "slow-forward": rows}), encoding="utf-8")
     with pytest.raises(InputError, match="Rotations"):
         read_sysid(str(path))
+
+
+@pytest.mark.parametrize("hold", [4, 10])
+def test_a_sampled_and_held_speed_is_explained_by_the_clean_model(hold: int) -> None:
+    """A clean truck whose speed sensor updates every ``hold``-th sample: compared at its
+    fresh readings, the model explains it (nothing named, not unexplained) and beats the
+    least squares, which the staircase biases (a held value is a stale one)."""
+    from truckd.config.truck import load_config
+    from truckd.ident.api import diagnose_log
+    from truckd.ident.synth import plant_log
+    from truckd.logfile import Log
+    from truckd.model.effects import Effects
+
+    p = load_config().vehicle
+    log = plant_log(p, Effects(), seed=9, n=3000, with_current=False)
+    cols = dict(log.columns)
+    v = np.asarray(cols["v"])
+    cols["v"] = np.repeat(v[::hold], hold)[: len(v)]
+    d = diagnose_log(Log(cols, f"<held every {hold}>"), p)
+    assert [f.name for f in d.effects] == []
+    assert not d.unexplained
+    ls = d.least_squares
+    assert ls is not None and ls["fit_percent"] is not None
+    assert d.extended.fit_percent >= ls["fit_percent"]

@@ -31,6 +31,7 @@ from truckd.ident.data import (
     MIN_RUN,
     Series,
     chunks_of_runs,
+    fresh_mask,
     merged,
     noise_std,
     split_runs_for_validation,
@@ -482,11 +483,15 @@ def _residual_signals(runs: Sequence[Series]) -> dict[str, np.ndarray]:
 
 
 def _whiteness_of(r: np.ndarray, runs: Sequence[Series]) -> tuple[Whiteness, bool]:
-    """Whiteness statistics of a residual over ``runs`` and whether it is structured."""
+    """Whiteness statistics of a residual over ``runs`` and whether it is structured.
+    A sampled-and-held speed is judged at its fresh readings only (between them the
+    held value is stale by construction, a staircase no model of the truck explains)."""
     whole = merged(runs)
     noise = float(np.mean([noise_std(x.v) for x in runs]))
-    h = float(np.median(np.diff(whole.t)))
-    wt = whiteness(r, whole.inp, noise, max_lag=max(10, round(1.0 / h)))
+    fresh = np.concatenate([fresh_mask(x.v) for x in runs])
+    r, inp, t = r[fresh], whole.inp[fresh], whole.t[fresh]
+    h = float(np.median(np.diff(t))) if len(t) > 1 else 1.0
+    wt = whiteness(r, inp, noise, max_lag=max(10, round(1.0 / h)))
     return wt, structured(wt, noise, 2e-3 * float(np.std(whole.v)))
 
 
@@ -634,7 +639,12 @@ def _summary(
         for n in ("load_force_amplitude", "load_force_wavelength", "load_force_phase"):
             params[n] = float(getattr(e, n))
     ff = feedforward_of(p).to_json()
-    return ModelSummary(fit_percent(y, y_sim), rmse(y, y_sim), params, feedforward=ff), y_sim
+    # A sampled-and-held speed is compared at its fresh readings (the held ones are stale).
+    m = np.concatenate([r.fresh for r in runs])
+    summary = ModelSummary(
+        fit_percent(y[m], y_sim[m]), rmse(y[m], y_sim[m]), params, feedforward=ff
+    )
+    return summary, y_sim
 
 
 def diagnose_voltage(

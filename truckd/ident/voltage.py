@@ -140,7 +140,8 @@ def residuals(p: VehicleParams, e: Effects, data: Sequence[Series], w: Weights) 
     parts = []
     for s in data:
         pred = predict(p, e, s)
-        parts.append((s.v - pred.v) * w.v)
+        dv = (s.v - pred.v) * w.v
+        parts.append(dv if s.fresh.all() else dv[s.fresh])  # a held speed: fresh readings
         if w.i and s.i is not None:
             parts.append((s.i[1:] - pred.i[1:]) * w.i)
     r = np.concatenate(parts)
