@@ -27,12 +27,14 @@ import numpy as np
 
 from truckd.control.config import ControlConfig
 from truckd.control.controller import Controller
+from truckd.control.platoon import Plan
 from truckd.control.qp import ControlModel
 from truckd.control.supervisor import Mode, SupervisorConfig
 from truckd.io.port import companion_port
 from truckd.model.params import VehicleParams
 from truckd.model.plant_config import encoder_ticks_per_rev
 from truckd.runtime.cycle import CompanionCycle, CycleInputs
+from truckd.runtime.platoon_link import cycle_plan
 from truckd.sim.firmware import FirmwareSimConfig, simulated_truck
 from truckd.sim.plant import Plant, PlantConfig
 from truckd.sim.scenarios import Scenario, World
@@ -62,6 +64,10 @@ class Trace:
     rows: list[tuple[float, ...]] = field(default_factory=list)
     """The daemon's log row each cycle (:data:`~truckd.runtime.cycle.LOG_COLUMNS`) with
     the truth appended (:data:`TRUTH_COLUMNS`)."""
+    plans: list[Plan | None] = field(default_factory=list)
+    """The plan the daemon would publish after each cycle (the MPC's predicted speeds,
+    standstill while holding, None on a fallback), stamped with the simulated time and
+    without a vehicle id (:func:`truckd.runtime.platoon_link.cycle_plan`)."""
 
 
 @dataclass(frozen=True)
@@ -141,6 +147,7 @@ def run_scenario(
         tr.rows.append(
             (*cyc.log_row(out), plant.v, tr.gap[-1], tr.v_lead[-1], plant.x, plant.motor.i)
         )
+        tr.plans.append(cycle_plan(cyc, out, t))
         fw.step(dt)
         if realtime:
             delay = wall0 + (k + 1) * dt - time.monotonic()
