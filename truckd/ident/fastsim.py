@@ -24,7 +24,15 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from truckd.model.effects import Effects, position_dependent, terrain_force
+from truckd.model.effects import (
+    Effects,
+    limited_torque,
+    position_dependent,
+    stribeck_torque,
+    terrain_force,
+    winding_resistance,
+    winding_rise_step,
+)
 from truckd.model.params import VehicleParams
 
 Array = NDArray[np.float64]
@@ -112,6 +120,59 @@ class Kinetics:
     terrain: Callable[[float], float] | None = None
     """Extra load per unit inertia at position ``x`` (integral of speed from the start),
     evaluated at the start of each sub-interval as the plant does (None = none)."""
+    a_max: float = math.inf
+    """Largest drive acceleration (per unit inertia) a current limit allows."""
+    b_mech: float = 0.0
+    """The part of ``b`` that is mechanical (viscous), kept while the current limit binds
+    (the back-EMF part of ``b`` then no longer acts: the current is held)."""
+    stribeck: Callable[[float], float] | None = None
+    """Sliding friction above ``c`` per unit inertia at speed ``w`` (None = none),
+    evaluated at the start of each sub-interval as the plant does."""
+
+
+def _limited(
+    w: float,
+    a: float,
+    b: float,
+    b_mech: float,
+    kin: Kinetics,
+    c: float,
+    sigma: float,
+    d: float,
+    h: float,
+) -> tuple[float, float] | None:
+    """A sub-interval that starts with the current limit binding: ``(end speed, integral
+    of speed)``, or None when the limit does not bind at its start.
+
+    While it binds the drive is the constant ``+-a_max`` (damping ``b_mech`` only); when
+    the speed reaches where the unlimited drive ``a - (b - b_mech) w`` falls within the
+    limit, the rest is solved unlimited (the driver's drive only shrinks in magnitude
+    under a constant command: the speed approaches its steady value)."""
+    b_emf = b - b_mech
+    drive = a - b_emf * w
+    if abs(drive) <= kin.a_max:
+        return None
+    s_l = 1.0 if drive > 0.0 else -1.0
+    a_l = s_l * kin.a_max
+    w_end, dist = _segment(w, a_l, b_mech, c, sigma, d, h, kin.lag)
+    if b_emf <= 0.0 or abs(a - b_emf * w_end) >= kin.a_max:
+        return w_end, dist
+    # The limit releases inside: at w* where a - b_emf w* = a_l.  Find when (bisection on
+    # the exact limited solution; it is monotone in time up to w*).
+    w_star = (a - a_l) / b_emf
+    lo, hi = 0.0, h
+    for _ in range(40):
+        mid = 0.5 * (lo + hi)
+        wm, _ = _segment(w, a_l, b_mech, c, sigma, d, mid, kin.lag)
+        if (wm - w_star) * s_l < 0.0:
+            lo = mid
+        else:
+            hi = mid
+        if hi - lo <= 1e-9 * h:
+            break
+    w1, d1 = _segment(w, a_l, b_mech, c, sigma, d, hi, kin.lag)
+    w2, d2 = _segment(w1, a, b, c, sigma, d, h - hi, kin.lag)
+    return w2, d1 + d2
 
 
 def _phi(b: float, h: float) -> tuple[float, float, float]:
@@ -199,6 +260,8 @@ def run(
     terrain = kin.terrain
     sc_list = kin.scale.tolist() if kin.scale is not None else None
     lag_alpha_cache: dict[float, float] = {}
+    limit = kin.a_max < math.inf
+    stribeck = kin.stribeck
     for dt, k, se in zip(tl.dt.tolist(), tl.cmd.tolist(), tl.sample_end.tolist(), strict=True):
         f = 1.0
         if k >= 0:
@@ -210,12 +273,33 @@ def run(
             a, b = kin.a_idle, kin.b_idle
         if terrain is not None:
             d = (kin.d + terrain(x)) * f
+        if stribeck is not None:
+            # Breakaway takes at least the sliding friction at zero speed.
+            sigma = max(kin.sigma, kin.c + stribeck(0.0)) * f
+            c = (kin.c + stribeck(w)) * f
+            if dt > 0.0:
+                # Midpoint: the friction at the speed halfway through the sub-interval
+                # (predicted with the friction at its start).
+                w_half, _ = _segment(w, a, b, c, sigma, d, 0.5 * dt, lag)
+                c = (kin.c + stribeck(0.5 * (w + w_half) if w != 0.0 else w_half)) * f
         if drag != 0.0:
             aw = abs(w)
             b_eff = b + 2.0 * drag * aw
             d_eff = d - drag * w * aw
         else:
             b_eff, d_eff = b, d
+        if limit:
+            b_m = kin.b_mech * f + (b_eff - b)
+            done = _limited(w, a, b_eff, b_m, kin, c, sigma, d_eff, dt)
+            if done is not None:
+                w, dx = done
+                x += dx
+                h_step += dt
+                if se >= 0:
+                    out[se], raw[se], pos[se], v_lag, x_step0, h_step = _sampled(
+                        w, x, x_step0, h_step, v_lag, sensor_lag
+                    )
+                continue
         # Fast path (inlined): sliding on, no zero crossing, not a tiny b*dt.
         bh = b_eff * dt
         if w != 0.0 and bh >= 1e-5:
@@ -249,6 +333,17 @@ def run(
             x_step0 = x
             h_step = 0.0
     return out, raw, pos
+
+
+def _sampled(
+    w: float, x: float, x_step0: float, h_step: float, v_lag: float, sensor_lag: float
+) -> tuple[float, float, float, float, float, float]:
+    """What :func:`run` records at a sample instant (the slow path of its loop):
+    ``(sensor speed, speed, position, sensor state, position at the step's start, 0)``."""
+    if sensor_lag > 0.0:
+        v_lag += (1.0 - math.exp(-h_step / sensor_lag)) * ((x - x_step0) / h_step - v_lag)
+        return v_lag, w, x, v_lag, x, 0.0
+    return w, w, x, v_lag, x, 0.0
 
 
 def driver_volts(u: Array, eff: Effects, v_batt: float) -> Array:
@@ -357,6 +452,11 @@ HANDLED = (
     "hill_force",
     "hill_start",
     "hill_length",
+    "current_limit",
+    "stribeck_friction",
+    "stribeck_speed",
+    "resistance_drift",
+    "winding_time_constant",
 )
 """Effects fields :func:`simulate_voltage` models; any other active field is refused."""
 
@@ -398,6 +498,7 @@ def simulate_voltage(
     u_hist: Array | None = None,
     v_pre: float = 0.0,
     x0: float = 0.0,
+    rise0: float = 0.0,
 ) -> VoltagePrediction:
     """Fast free run of the plant model on a log's input (``u[k]`` from ``t[k]``).
 
@@ -407,26 +508,89 @@ def simulate_voltage(
     still act after ``t[0]`` when there is an input delay.  ``v_pre``: the motor
     voltage (V) until the first known command acts; 0 as in a plant started by
     :func:`truckd.sim.plant.simulate_open_loop`, see :func:`prelog_voltage` for a log.
+    ``rise0``: the winding's temperature rise (K) at ``t[0]`` (``resistance_drift``).
+
+    A resistance drift is slow (a thermal time constant of seconds to minutes): the run
+    is simulated cold, the winding's heating computed from that run's copper loss, and
+    the run simulated again with each command's resistance (:data:`DRIFT_PASSES` times).
     """
     unsupported = unsupported_effects(eff)
     if unsupported:
         raise ValueError(
             f"the fast simulator does not model {', '.join(unsupported)} ; use truckd.sim.plant"
         )
-    n = len(t)
     hist = 0 if t_hist is None or u_hist is None else len(t_hist)
     t = np.asarray(t, float)
+    t_cmd = t if not hist else np.concatenate([np.asarray(t_hist, float), t])
+    out = _simulate(p, eff, t, u, v0, t_hist, u_hist, v_pre, x0, None)
+    if eff.resistance_drift == 0.0:
+        return out
+    for _ in range(DRIFT_PASSES):
+        rise = winding_rises(p, eff, t, out.i, rise0)
+        # Each command sees the winding as it was when the command was issued.
+        k = np.clip(np.searchsorted(t, t_cmd, "right") - 1, 0, len(t) - 1)
+        r_at = np.array([winding_resistance(p, eff, x) for x in rise.tolist()])
+        r_cmd = np.where(t_cmd < t[0], winding_resistance(p, eff, rise0), r_at[k])
+        out = _simulate(p, eff, t, u, v0, t_hist, u_hist, v_pre, x0, r_cmd - p.R_m)
+    return out
+
+
+DRIFT_PASSES = 2
+"""Re-simulations with the winding's resistance from the previous pass's current."""
+
+
+def winding_rises(p: VehicleParams, eff: Effects, t: Array, i: Array, rise0: float) -> Array:
+    """The winding's temperature rise (K) at each sample under the current ``i`` (A),
+    from ``rise0`` at ``t[0]`` (copper loss over a step: the mean of the squared currents
+    at its ends, as the plant counts it)."""
+    out = np.empty(len(t))
+    rise = rise0
+    out[0] = rise
+    sq = (np.asarray(i, float) ** 2).tolist()
+    dts = np.diff(t).tolist()
+    for k, h in enumerate(dts):
+        r = winding_resistance(p, eff, rise)
+        rise = winding_rise_step(eff, rise, 0.5 * (sq[k] + sq[k + 1]) * r, h)
+        out[k + 1] = rise
+    return out
+
+
+def _simulate(
+    p: VehicleParams,
+    eff: Effects,
+    t: Array,
+    u: Array,
+    v0: float,
+    t_hist: Array | None,
+    u_hist: Array | None,
+    v_pre: float,
+    x0: float,
+    r_drift: Array | None,
+) -> VoltagePrediction:
+    """:func:`simulate_voltage` with each command's extra winding resistance ``r_drift``
+    (ohm, over the history and the log's commands; None = cold)."""
+    n = len(t)
+    hist = 0 if t_hist is None or u_hist is None else len(t_hist)
     u_all = np.asarray(u, float) if not hist else np.concatenate([u_hist, u])
     t_cmd = t if not hist else np.concatenate([t_hist, t])
     volts = driver_volts(u_all, eff, p.V_batt)
     duty = volts / p.V_batt
     r_tot = p.R_m + eff.battery_sag * duty * duty
+    if r_drift is not None:
+        r_tot = r_tot + r_drift
     k_arr, _ = electrical_correction(p, eff.viscous_friction, r_tot)
     k0, l0 = electrical_correction(p, eff.viscous_friction)
     kappa, lag_e = float(k0), float(l0)
     a = k_arr * p.K_T / p.J_S * volts / r_tot
     b = k_arr * (p.K_T * p.K_v / r_tot + eff.viscous_friction) / p.J_S
     load = p.force_to_torque(eff.load_force)
+    stribeck: Callable[[float], float] | None = None
+    if eff.stribeck_friction != 0.0:
+        per_nm = kappa / p.J_S
+
+        def stribeck(w: float) -> float:
+            return per_nm * stribeck_torque(p, eff, w)
+
     kin = Kinetics(
         a=a,
         b=b,
@@ -436,9 +600,13 @@ def simulate_voltage(
         sigma=kappa * p.K_stiction / p.J_S,
         d=kappa * load / p.J_S,
         drag=kappa * eff.aero_drag * p.ratio**3 / p.J_S,
-        scale=k_arr / kappa if eff.battery_sag != 0.0 else None,
+        scale=k_arr / kappa if eff.battery_sag != 0.0 or r_drift is not None else None,
         lag=lag_e,
         terrain=_terrain(p, eff, kappa, x0),
+        # While the limit binds the current is held: no electrical pole slows the drive.
+        a_max=limited_torque(p, eff) / p.J_S,
+        b_mech=kappa * eff.viscous_friction / p.J_S,
+        stribeck=stribeck,
     )
     tl = _merge_equal(timeline(t, eff.input_delay + lag_e, hist, t_cmd), a, b)
     w0 = p.omega(v0)
@@ -456,6 +624,10 @@ def simulate_voltage(
     r_old = np.where(prev >= 0, r_tot[np.maximum(prev, 0)], p.R_m)
     cur_old = (v_old - p.K_v * raw) / r_old
     cur = cur + (cur_old - cur) * np.exp(-since * r_at / p.L_m)
+    if eff.current_limit != 0.0:
+        cur = np.clip(cur, -eff.current_limit, eff.current_limit)
+        room = r_at * eff.current_limit
+        v_at = np.clip(v_at, p.K_v * raw - room, p.K_v * raw + room)
     return VoltagePrediction(
         v=meas * p.ratio, v_true=raw * p.ratio, i=cur, x=pos * p.ratio, volts=v_at
     )

@@ -27,7 +27,22 @@ name                      parameter           physics
                                               ``d = u / V_batt`` the motor sees
                                               ``u - R_b d^2 i`` (supply droops with current)
 ``sensor_lag``            s                   measured speed low-pass filtered, time const.
+``current_limit``         A                   the motor controller holds the armature
+                                              current within ``+-I_max``: it lowers its
+                                              voltage to ``K_v omega +- R I_max`` (torque
+                                              saturates on hard acceleration and braking)
+``stribeck_friction``     N m                 sliding friction above ``K_coulomb`` at zero
+                                              speed, fading as ``exp(-(v/v_s)^2)`` with
+                                              ``stribeck_speed`` v_s (m/s at the wheels)
+``resistance_drift``      K/W                 the winding's thermal resistance: copper loss
+                                              ``i^2 R`` heats it (first order, time
+                                              constant ``winding_time_constant`` s) and
+                                              ``R = R_m (1 + alpha_Cu dT)``
 ========================  ==================  =============================================
+
+Each effect's physics is written once here, as functions of the state; the plant
+(:mod:`truckd.sim.plant`) and the fast simulator of the fit (:mod:`truckd.ident.fastsim`)
+both call them.
 """
 
 from __future__ import annotations
@@ -48,7 +63,15 @@ EFFECT_NAMES: tuple[str, ...] = (
     "voltage_saturation",
     "battery_sag",
     "sensor_lag",
+    "current_limit",
+    "stribeck_friction",
+    "resistance_drift",
 )
+"""The effects (each switched on by its own field), in one place: the plant, the fast
+simulator, the candidates of the diagnosis and the model file all follow this list."""
+
+COPPER_TEMPCO = 3.93e-3
+"""Temperature coefficient of copper's resistance near 20 C, 1/K."""
 
 
 @dataclass(frozen=True)
@@ -120,6 +143,35 @@ class Effects:
         "speed sensor low-pass time constant", unit="s", lo=0.0, hi=5.0, default=0.0
     )
 
+    current_limit: float = spec(
+        "motor controller's armature current limit, 0 = off", unit="A", lo=0.0, hi=1e4, default=0.0
+    )
+    stribeck_friction: float = spec(
+        "sliding friction above K_coulomb at zero speed (Stribeck), 0 = off",
+        unit="N m",
+        lo=0.0,
+        hi=100.0,
+        default=0.0,
+    )
+    stribeck_speed: float = spec(
+        "speed over which the Stribeck friction fades (at the wheels)",
+        unit="m/s",
+        lo=0.0,
+        lo_open=True,
+        hi=100.0,
+        default=0.1,
+    )
+    resistance_drift: float = spec(
+        "winding thermal resistance (temperature rise per watt of copper loss), 0 = off",
+        unit="K/W",
+        lo=0.0,
+        hi=100.0,
+        default=0.0,
+    )
+    winding_time_constant: float = spec(
+        "thermal time constant of the winding", unit="s", lo=0.0, lo_open=True, hi=1e5, default=60.0
+    )
+
     def active(self) -> tuple[str, ...]:
         """Names (from :data:`EFFECT_NAMES`) of the effects switched on."""
         return tuple(n for n in EFFECT_NAMES if getattr(self, n) != 0.0)
@@ -170,3 +222,41 @@ def drag_linearisation(p: VehicleParams, eff: Effects, omega0: float) -> tuple[f
     """
     c = eff.aero_drag * p.ratio**3
     return 2.0 * c * abs(omega0), -c * omega0 * abs(omega0)
+
+
+def current_limited(p: VehicleParams, eff: Effects, volts: float, omega: float, r: float) -> float:
+    """The voltage (V) a current-limiting driver applies instead of ``volts`` at motor
+    speed ``omega`` (rad/s) through the circuit resistance ``r`` (ohm): within
+    ``K_v omega +- r I_max``, so that the quasi-static current stays within the limit."""
+    if eff.current_limit == 0.0:
+        return volts
+    emf = p.K_v * omega
+    room = r * eff.current_limit
+    return min(max(volts, emf - room), emf + room)
+
+
+def limited_torque(p: VehicleParams, eff: Effects) -> float:
+    """The largest motor torque (N m) the current limit allows (inf when off)."""
+    return p.K_T * eff.current_limit if eff.current_limit > 0.0 else math.inf
+
+
+def stribeck_torque(p: VehicleParams, eff: Effects, omega: float) -> float:
+    """Sliding friction above ``K_coulomb`` (N m, magnitude) at motor speed omega (rad/s)."""
+    if eff.stribeck_friction == 0.0:
+        return 0.0
+    z = omega * p.ratio / eff.stribeck_speed
+    return eff.stribeck_friction * math.exp(-z * z)
+
+
+def winding_resistance(p: VehicleParams, eff: Effects, rise: float) -> float:
+    """Armature resistance (ohm) with the winding ``rise`` K above where R_m was measured."""
+    return p.R_m * (1.0 + COPPER_TEMPCO * rise)
+
+
+def winding_rise_step(eff: Effects, rise: float, power: float, h: float) -> float:
+    """Winding temperature rise (K) after h s of copper loss ``power`` (W), exactly for the
+    first-order thermal model ``tau drise/dt = R_th P - rise``."""
+    if eff.resistance_drift == 0.0:
+        return 0.0
+    e = math.exp(-h / eff.winding_time_constant)
+    return rise * e + eff.resistance_drift * power * (1.0 - e)
