@@ -30,8 +30,17 @@ EFFECT_RANGES: dict[str, tuple[float, float]] = {
     "voltage_saturation": (3.5, 5.5),  # V
     "battery_sag": (0.08, 0.25),  # ohm
     "sensor_lag": (0.03, 0.15),  # s
+    "current_limit": (20.0, 45.0),  # A (the default motor's stall current is 85 A)
+    "stribeck_friction": (0.006, 0.015),  # N m above K_coulomb (0.015) at zero speed
+    "resistance_drift": (0.6, 1.5),  # K/W: 30-120 K over a log of random steps
 }
 """Ranges of the random magnitudes the tests and the benchmark draw from."""
+
+COMPANION_RANGES: dict[str, tuple[str, float, float]] = {
+    "stribeck_friction": ("stribeck_speed", 0.05, 0.3),  # m/s
+    "resistance_drift": ("winding_time_constant", 10.0, 40.0),  # s
+}
+"""The second parameter drawn with an effect that has one (name, range)."""
 
 
 def random_effect(name: str, rng: np.random.Generator) -> float:
@@ -84,6 +93,17 @@ def plant_log(
 def with_effect(name: str, value: float) -> Effects:
     """Effects with one switched on."""
     return dataclasses.replace(Effects(), **{name: value})
+
+
+def random_effects(name: str, rng: np.random.Generator, k_scale: float = 1.0) -> Effects:
+    """Effects with ``name`` switched on at a random magnitude (scaled for a truck whose
+    motor constant is ``k_scale`` times the default, :func:`scaled_effect`), and its
+    companion parameter (:data:`COMPANION_RANGES`) drawn too."""
+    values = {name: scaled_effect(name, random_effect(name, rng), k_scale)}
+    if name in COMPANION_RANGES:
+        other, lo, hi = COMPANION_RANGES[name]
+        values[other] = scaled_effect(other, float(rng.uniform(lo, hi)), k_scale)
+    return dataclasses.replace(Effects(), **values)
 
 
 SCALE_RANGE = (0.1, 10.0)
@@ -150,6 +170,10 @@ def scaled_effect(name: str, value: float, k_scale: float) -> float:
         return value * k_scale**2
     if name == "aero_drag":
         return value * k_scale**3
+    if name == "stribeck_friction":
+        return value * k_scale  # a torque, like K_coulomb
+    if name == "stribeck_speed":
+        return value / k_scale  # the top speed scales as 1/K_v
     return value
 
 
