@@ -152,6 +152,8 @@ def rolling_candidate(p0: VehicleParams, wave: Wave) -> Candidate:
     )
 
 
+BACKLASH_MAX_WHEEL = 0.35
+"""Largest backlash (rad at the wheel, 20 degrees) a drivetrain can have and still drive."""
 WINDING_RISE_MAX = 200.0
 """Largest winding temperature rise (K) a drift may imply at the log's mean copper loss:
 above it the insulation (class H, 180 C) would have burnt."""
@@ -160,10 +162,8 @@ above it the insulation (class H, 180 C) would have burnt."""
 def copper_loss(p0: VehicleParams, data: Series) -> float:
     """Mean copper loss (W) in ``data``: from the logged current, else from the
     quasi-static current ``(u - K_v omega) / R_m`` of the logged speed."""
-    if data.i is not None:
-        i = data.i
-    else:
-        i = (data.inp - p0.K_v * data.v / p0.ratio) / p0.R_m
+    quasi_static = (data.inp - p0.K_v * data.v / p0.ratio) / p0.R_m
+    i = data.i if data.i is not None else quasi_static
     return float(np.mean(i * i)) * p0.R_m
 
 
@@ -173,6 +173,8 @@ def cause_candidates(p0: VehicleParams, data: Series) -> list[Candidate]:
 
     * ``current_limit`` (A): between the current that just holds Coulomb friction and
       the stall current at the largest command (no limit acts above it);
+    * ``backlash`` (rad at the motor shaft): up to :data:`BACKLASH_MAX_WHEEL` at the
+      wheel (the rotor's share of the inertia held at its configured fraction);
     * ``stribeck`` (``stribeck_friction`` N m with ``stribeck_speed`` m/s freed beside
       it): up to five times the fitted Coulomb friction, fading within the speeds seen;
     * ``resistance_drift`` (K/W with ``winding_time_constant`` s freed beside it): up to
@@ -189,6 +191,7 @@ def cause_candidates(p0: VehicleParams, data: Series) -> list[Candidate]:
     drift_hi = WINDING_RISE_MAX / power
     tau0 = max(min(duration / 3.0, 120.0), 1.0)
     vs0 = 0.1 * v_max
+    gearing = p0.n_g * p0.n_fd  # motor turns per wheel turn
     return [
         Candidate(
             "current_limit",
@@ -198,6 +201,11 @@ def cause_candidates(p0: VehicleParams, data: Series) -> list[Candidate]:
                 for x in (0.15, 0.25, 0.35, 0.5, 0.65, 0.8)
                 if float(x) * i_stall > 1.05 * i_hold
             ),
+        ),
+        Candidate(
+            "backlash",
+            Param("backlash", 0.02 * gearing, 0.0, BACKLASH_MAX_WHEEL * gearing),
+            tuple(float(np.radians(deg)) * gearing for deg in (0.5, 1.0, 2.0, 4.0, 7.0)),
         ),
         Candidate(
             "stribeck",
@@ -217,9 +225,7 @@ def cause_candidates(p0: VehicleParams, data: Series) -> list[Candidate]:
     ]
 
 
-def cause_problem(
-    name: str, value: float, p: VehicleParams, runs: Sequence[Series]
-) -> str | None:
+def cause_problem(name: str, value: float, p: VehicleParams, runs: Sequence[Series]) -> str | None:
     """Why the new cause ``name = value`` is physically impossible for the fitted ``p``
     on these runs (None: possible, or not one of :func:`cause_candidates`)."""
     u_max = max(float(np.max(np.abs(r.inp))) for r in runs)
@@ -233,6 +239,11 @@ def cause_problem(
         return (
             f"friction at rest {p.K_coulomb + value:.3g} N m at or above the stall torque "
             f"at the log's largest command ({stall:.3g} N m)"
+        )
+    if name == "backlash" and value > BACKLASH_MAX_WHEEL * p.n_g * p.n_fd:
+        return (
+            f"backlash = {value:.3g} rad at the motor is {value / (p.n_g * p.n_fd):.3g} rad "
+            f"at the wheel: more play than a drivetrain that drives has"
         )
     if name == "resistance_drift":
         rise = max(value * copper_loss(p, r) for r in runs)

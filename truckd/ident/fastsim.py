@@ -26,6 +26,9 @@ from numpy.typing import NDArray
 
 from truckd.model.effects import (
     Effects,
+    gap_at_start,
+    gap_free_motion,
+    gap_opens,
     limited_torque,
     position_dependent,
     stribeck_torque,
@@ -128,6 +131,8 @@ class Kinetics:
     stribeck: Callable[[float], float] | None = None
     """Sliding friction above ``c`` per unit inertia at speed ``w`` (None = none),
     evaluated at the start of each sub-interval as the plant does."""
+    gap: GapRun | None = None
+    """The backlash gap (None = no backlash)."""
 
 
 def _limited(
@@ -262,6 +267,7 @@ def run(
     lag_alpha_cache: dict[float, float] = {}
     limit = kin.a_max < math.inf
     stribeck = kin.stribeck
+    gap = kin.gap
     for dt, k, se in zip(tl.dt.tolist(), tl.cmd.tolist(), tl.sample_end.tolist(), strict=True):
         f = 1.0
         if k >= 0:
@@ -288,24 +294,20 @@ def run(
             d_eff = d - drag * w * aw
         else:
             b_eff, d_eff = b, d
-        if limit:
+        rigid = dt
+        if gap is not None:
             b_m = kin.b_mech * f + (b_eff - b)
-            done = _limited(w, a, b_eff, b_m, kin, c, sigma, d_eff, dt)
-            if done is not None:
-                w, dx = done
-                x += dx
-                h_step += dt
-                if se >= 0:
-                    out[se], raw[se], pos[se], v_lag, x_step0, h_step = _sampled(
-                        w, x, x_step0, h_step, v_lag, sensor_lag
-                    )
-                continue
+            w, dx, used = gap.step(k, w, dt, c / f, d_eff / f, b_m / f)
+            x += dx
+            rigid = dt - used
+        if limit or gap is not None:
+            if rigid > 0.0:
+                w, x = _rigid(w, x, a, b, b_eff, c, sigma, d_eff, f, rigid, kin, limit, lag)
         # Fast path (inlined): sliding on, no zero crossing, not a tiny b*dt.
-        bh = b_eff * dt
-        if w != 0.0 and bh >= 1e-5:
+        elif w != 0.0 and b_eff * dt >= 1e-5:
             s = 1.0 if w > 0.0 else -1.0
             g = a - s * c - d_eff
-            em1 = -math.expm1(-bh)
+            em1 = -math.expm1(-b_eff * dt)
             phi1 = em1 / b_eff
             w1 = w * (1.0 - em1) + g * phi1
             if w1 * s > 0.0:
@@ -317,6 +319,8 @@ def run(
         else:
             w, dx = _segment(w, a, b_eff, c, sigma, d_eff, dt, lag)
             x += dx
+        if gap is not None and se >= 0:
+            gap.rotor_out[se] = gap.gap.rotor if gap.gap.side == 0 else w
         h_step += dt
         if se >= 0:
             raw[se] = w
@@ -335,15 +339,79 @@ def run(
     return out, raw, pos
 
 
-def _sampled(
-    w: float, x: float, x_step0: float, h_step: float, v_lag: float, sensor_lag: float
-) -> tuple[float, float, float, float, float, float]:
-    """What :func:`run` records at a sample instant (the slow path of its loop):
-    ``(sensor speed, speed, position, sensor state, position at the step's start, 0)``."""
-    if sensor_lag > 0.0:
-        v_lag += (1.0 - math.exp(-h_step / sensor_lag)) * ((x - x_step0) / h_step - v_lag)
-        return v_lag, w, x, v_lag, x, 0.0
-    return w, w, x, v_lag, x, 0.0
+def _rigid(
+    w: float,
+    x: float,
+    a: float,
+    b: float,
+    b_eff: float,
+    c: float,
+    sigma: float,
+    d_eff: float,
+    f: float,
+    dt: float,
+    kin: Kinetics,
+    limit: bool,
+    lag: float,
+) -> tuple[float, float]:
+    """One sub-interval of the drivetrain moving as one body: ``(speed, position)``."""
+    if limit:
+        b_m = kin.b_mech * f + (b_eff - b)
+        done = _limited(w, a, b_eff, b_m, kin, c, sigma, d_eff, dt)
+        if done is not None:
+            return done[0], x + done[1]
+    # Fast path (inlined): sliding on, no zero crossing, not a tiny b*dt.
+    bh = b_eff * dt
+    if w != 0.0 and bh >= 1e-5:
+        s = 1.0 if w > 0.0 else -1.0
+        g = a - s * c - d_eff
+        em1 = -math.expm1(-bh)
+        phi1 = em1 / b_eff
+        w1 = w * (1.0 - em1) + g * phi1
+        if w1 * s > 0.0:
+            return w1, x + w * phi1 + g * (dt - phi1) / b_eff
+    w, dx = _segment(w, a, b_eff, c, sigma, d_eff, dt, lag)
+    return w, x + dx
+
+
+class GapRun:
+    """The backlash gap during a fast run (:func:`truckd.model.effects.gap_free_motion`,
+    the plant's physics), with per-command driver voltage and circuit resistance."""
+
+    def __init__(
+        self,
+        p: VehicleParams,
+        eff: Effects,
+        volts: Array,
+        r: Array,
+        v_idle: float,
+        kappa: float,
+        n: int,
+        w0: float,
+    ) -> None:
+        self.p, self.eff = p, eff
+        self.volts, self.r = volts.tolist(), r.tolist()
+        self.v_idle = v_idle
+        self.per = p.J_S / kappa
+        """Torque (N m) per unit of the run's per-inertia coefficients."""
+        self.gap = gap_at_start(eff, w0)
+        self.rotor_out = np.full(n, w0)
+        """Rotor speed (rad/s) at each sample (the load's while the gap is closed)."""
+
+    def step(
+        self, k: int, w: float, dt: float, c: float, d: float, visc: float
+    ) -> tuple[float, float, float]:
+        """Open the gap when the gear torque reverses, move across it: ``(load speed,
+        angle, time used)`` (no time used while the gap stays closed)."""
+        p, eff, g = self.p, self.eff, self.gap
+        volts = self.volts[k] if k >= 0 else self.v_idle
+        r = self.r[k] if k >= 0 else p.R_m
+        coulomb, load, viscous = c * self.per, d * self.per, visc * self.per
+        if g.side != 0:
+            if not gap_opens(p, eff, g, w, volts, r, coulomb, load, viscous):
+                return w, 0.0, 0.0
+            g.side, g.rotor = 0, w
+        return gap_free_motion(p, eff, g, w, volts, r, coulomb, load, viscous, dt)
 
 
 def driver_volts(u: Array, eff: Effects, v_batt: float) -> Array:
@@ -457,6 +525,8 @@ HANDLED = (
     "stribeck_speed",
     "resistance_drift",
     "winding_time_constant",
+    "backlash",
+    "rotor_inertia_fraction",
 )
 """Effects fields :func:`simulate_voltage` models; any other active field is refused."""
 
@@ -607,8 +677,14 @@ def _simulate(
         a_max=limited_torque(p, eff) / p.J_S,
         b_mech=kappa * eff.viscous_friction / p.J_S,
         stribeck=stribeck,
+        gap=None
+        if eff.backlash == 0.0
+        else GapRun(p, eff, volts, r_tot, v_pre, kappa, n, p.omega(v0)),
     )
-    tl = _merge_equal(timeline(t, eff.input_delay + lag_e, hist, t_cmd), a, b)
+    # The gap opens on the command itself (the plant decides it on the quasi-static
+    # current): no electrical lag before the command acts.
+    lag_cmd = lag_e if eff.backlash == 0.0 else 0.0
+    tl = _merge_equal(timeline(t, eff.input_delay + lag_cmd, hist, t_cmd), a, b)
     w0 = p.omega(v0)
     meas, raw, pos = run(kin, tl, n, w0, eff.sensor_lag)
     # Active command at each sample instant (for the quasi-static current).
@@ -616,13 +692,14 @@ def _simulate(
     idx = np.searchsorted(act, t, "left") - 1
     v_at = np.where(idx >= 0, volts[np.maximum(idx, 0)], v_pre)
     r_at = np.where(idx >= 0, r_tot[np.maximum(idx, 0)], p.R_m)
-    cur = (v_at - p.K_v * raw) / r_at
+    rotor = raw if kin.gap is None else kin.gap.rotor_out
+    cur = (v_at - p.K_v * rotor) / r_at
     # A command that acted just before the sample: the current is still settling.
     prev = idx - 1
     since = np.where(idx >= 0, t - act[np.maximum(idx, 0)], np.inf)
     v_old = np.where(prev >= 0, volts[np.maximum(prev, 0)], v_pre)
     r_old = np.where(prev >= 0, r_tot[np.maximum(prev, 0)], p.R_m)
-    cur_old = (v_old - p.K_v * raw) / r_old
+    cur_old = (v_old - p.K_v * rotor) / r_old
     cur = cur + (cur_old - cur) * np.exp(-since * r_at / p.L_m)
     if eff.current_limit != 0.0:
         cur = np.clip(cur, -eff.current_limit, eff.current_limit)

@@ -31,6 +31,7 @@ EFFECT_RANGES: dict[str, tuple[float, float]] = {
     "battery_sag": (0.08, 0.25),  # ohm
     "sensor_lag": (0.03, 0.15),  # s
     "current_limit": (20.0, 45.0),  # A (the default motor's stall current is 85 A)
+    "backlash": (1.0, 4.0),  # rad at the motor shaft (2-8 degrees at the wheel)
     "stribeck_friction": (0.006, 0.015),  # N m above K_coulomb (0.015) at zero speed
     "resistance_drift": (0.6, 1.5),  # K/W: 30-120 K over a log of random steps
 }

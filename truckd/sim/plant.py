@@ -15,9 +15,13 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from truckd.model.effects import (
+    Gap,
     current_limited,
     drag_linearisation,
     driver_output,
+    gap_at_start,
+    gap_free_motion,
+    gap_opens,
     load_torque,
     position_dependent,
     stribeck_torque,
@@ -87,6 +91,8 @@ class Plant:
         self._inputs = SegmentInputs(voltage=0.0)
         self.winding_rise = 0.0
         """Winding temperature above where R_m was measured (K), resistance_drift."""
+        self.gap: Gap = gap_at_start(eff, 0.0)
+        """The backlash gap (closed forward at rest)."""
         self._tick_len = (
             2.0 * math.pi * params.r_w / self.cfg.encoder_ticks_per_rev
             if self.cfg.encoder_ticks_per_rev
@@ -102,6 +108,7 @@ class Plant:
             i=i, omega=omega, direction=(0 if omega == 0 else (1 if omega > 0 else -1))
         )
         self._sensor = _SensorState(v_lag=v, v_quant=v)
+        self.gap = gap_at_start(self.cfg.effects, omega)
 
     @property
     def v(self) -> float:
@@ -146,6 +153,27 @@ class Plant:
         r = self.p.R_m + r_x + self._winding_extra()
         return current_limited(self.p, eff, volts, self.motor.omega, r) != volts
 
+    def _gap_piece(self, inputs: SegmentInputs, h: float) -> float:
+        """Opens the backlash gap when the gear torque reverses and moves the rotor across
+        it; returns the time (s) used before the gap closed (0 when it stays closed)."""
+        p, eff, g, m = self.p, self.cfg.effects, self.gap, self.motor
+        r = p.R_m + inputs.extra_resistance
+        coulomb = p.K_coulomb + inputs.coulomb_extra
+        load, viscous = inputs.load_torque, inputs.viscous
+        if g.side != 0:
+            if not gap_opens(p, eff, g, m.omega, inputs.voltage, r, coulomb, load, viscous):
+                return 0.0
+            g.side, g.rotor = 0, m.omega
+        w, angle, used = gap_free_motion(
+            p, eff, g, m.omega, inputs.voltage, r, coulomb, load, viscous, h
+        )
+        self.x += angle * self._ratio
+        self.t += used
+        m.omega = w
+        m.direction = 0 if w == 0.0 else (1 if w > 0.0 else -1)
+        m.i = (inputs.voltage - p.K_v * (g.rotor if g.side == 0 else w)) / r
+        return used
+
     def _winding_extra(self) -> float:
         """Resistance (ohm) the winding's heating adds to R_m."""
         if self.winding_rise == 0.0:
@@ -169,9 +197,12 @@ class Plant:
             inputs.load_torque = load_torque(self.p, eff, self.x) + t_drag
             inputs.viscous = eff.viscous_friction + visc_drag
         i0 = self.motor.i
-        angle = advance(self.p, self.motor, inputs, h)
-        self.x += angle * self._ratio
-        self.t += h
+        if eff.backlash != 0.0:
+            h -= self._gap_piece(inputs, h)
+        if h > 0.0:
+            angle = advance(self.p, self.motor, inputs, h)
+            self.x += angle * self._ratio
+            self.t += h
         if eff.resistance_drift != 0.0:
             # Copper loss over the piece: the mean of the squared currents at its ends.
             r = self.p.R_m + self._winding_extra()
