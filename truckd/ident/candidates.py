@@ -206,6 +206,9 @@ def cause_candidates(p0: VehicleParams, data: Series) -> list[Candidate]:
             "backlash",
             Param("backlash", 0.02 * gearing, 0.0, BACKLASH_MAX_WHEEL * gearing),
             tuple(float(np.radians(deg)) * gearing for deg in (0.5, 1.0, 2.0, 4.0, 7.0)),
+            # Held at the configured share (reported with it): the rotor's share of the
+            # inertia is barely seen in the speed.
+            preset=(("rotor_inertia_fraction", 0.35),),
         ),
         Candidate(
             "stribeck",

@@ -77,6 +77,13 @@ EFFECT_NAMES: tuple[str, ...] = (
 """The effects (each switched on by its own field), in one place: the plant, the fast
 simulator, the candidates of the diagnosis and the model file all follow this list."""
 
+COMPANIONS: dict[str, tuple[str, ...]] = {
+    "backlash": ("rotor_inertia_fraction",),
+    "stribeck_friction": ("stribeck_speed",),
+    "resistance_drift": ("winding_time_constant",),
+}
+"""Fields that shape an effect beside the one that switches it on (reported with it)."""
+
 COPPER_TEMPCO = 3.93e-3
 """Temperature coefficient of copper's resistance near 20 C, 1/K."""
 
