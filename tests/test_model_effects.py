@@ -36,7 +36,7 @@ def test_all_contract_effects_are_switches() -> None:
         "sensor_lag",
         "current_limit",
         "backlash",
-        "stribeck_friction",
+        "stribeck",
         "resistance_drift",
     }
     assert Effects().active() == ()
@@ -176,10 +176,10 @@ def test_current_limit_caps_the_current_and_the_acceleration(params: VehiclePara
     assert measured == pytest.approx(accel, rel=0.01)
 
 
-def test_stribeck_friction_slows_the_truck_only_at_low_speed(params: VehicleParams) -> None:
+def test_stribeck_slows_the_truck_only_at_low_speed(params: VehicleParams) -> None:
     """Friction K_coulomb + F_s exp(-(v/v_s)^2): a command that holds a slow speed holds a
     slower one; at full speed the friction excess has faded."""
-    eff = {"stribeck_friction": 0.008, "stribeck_speed": 0.15}
+    eff = {"stribeck": 0.008, "stribeck_speed": 0.15}
     slow = run(params, step(0.8), **eff)[-1]
     assert 0.0 < slow < 0.9 * run(params, step(0.8))[-1]
     fast = run(params, step(6.0), **eff)[-1]

@@ -175,7 +175,7 @@ def cause_candidates(p0: VehicleParams, data: Series) -> list[Candidate]:
       the stall current at the largest command (no limit acts above it);
     * ``backlash`` (rad at the motor shaft): up to :data:`BACKLASH_MAX_WHEEL` at the
       wheel (the rotor's share of the inertia held at its configured fraction);
-    * ``stribeck`` (``stribeck_friction`` N m with ``stribeck_speed`` m/s freed beside
+    * ``stribeck`` (``stribeck`` N m with ``stribeck_speed`` m/s freed beside
       it): up to five times the fitted Coulomb friction, fading within the speeds seen;
     * ``resistance_drift`` (K/W with ``winding_time_constant`` s freed beside it): up to
       :data:`WINDING_RISE_MAX` at the log's mean copper loss, a time constant between
@@ -212,7 +212,7 @@ def cause_candidates(p0: VehicleParams, data: Series) -> list[Candidate]:
         ),
         Candidate(
             "stribeck",
-            Param("stribeck_friction", k_c, 0.0, 5.0 * k_c),
+            Param("stribeck", k_c, 0.0, 5.0 * k_c),
             (0.2 * k_c, 0.5 * k_c, 1.0 * k_c, 2.0 * k_c),
             preset=(("stribeck_speed", vs0),),
             output="stribeck",
@@ -238,7 +238,7 @@ def cause_problem(name: str, value: float, p: VehicleParams, runs: Sequence[Seri
             f"current_limit = {value:.3g} A gives {p.K_T * value:.3g} N m, not even the "
             f"Coulomb friction {p.K_coulomb:.3g} N m: the truck could not have moved"
         )
-    if name in ("stribeck", "stribeck_friction") and p.K_coulomb + value >= stall:
+    if name == "stribeck" and p.K_coulomb + value >= stall:
         return (
             f"friction at rest {p.K_coulomb + value:.3g} N m at or above the stall torque "
             f"at the log's largest command ({stall:.3g} N m)"

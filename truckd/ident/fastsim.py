@@ -521,7 +521,7 @@ HANDLED = (
     "hill_start",
     "hill_length",
     "current_limit",
-    "stribeck_friction",
+    "stribeck",
     "stribeck_speed",
     "resistance_drift",
     "winding_time_constant",
@@ -655,7 +655,7 @@ def _simulate(
     b = k_arr * (p.K_T * p.K_v / r_tot + eff.viscous_friction) / p.J_S
     load = p.force_to_torque(eff.load_force)
     stribeck: Callable[[float], float] | None = None
-    if eff.stribeck_friction != 0.0:
+    if eff.stribeck != 0.0:
         per_nm = kappa / p.J_S
 
         def stribeck(w: float) -> float:

@@ -32,13 +32,13 @@ EFFECT_RANGES: dict[str, tuple[float, float]] = {
     "sensor_lag": (0.03, 0.15),  # s
     "current_limit": (20.0, 45.0),  # A (the default motor's stall current is 85 A)
     "backlash": (1.0, 4.0),  # rad at the motor shaft (2-8 degrees at the wheel)
-    "stribeck_friction": (0.006, 0.015),  # N m above K_coulomb (0.015) at zero speed
+    "stribeck": (0.006, 0.015),  # N m above K_coulomb (0.015) at zero speed
     "resistance_drift": (0.6, 1.5),  # K/W: 30-120 K over a log of random steps
 }
 """Ranges of the random magnitudes the tests and the benchmark draw from."""
 
 COMPANION_RANGES: dict[str, tuple[str, float, float]] = {
-    "stribeck_friction": ("stribeck_speed", 0.05, 0.3),  # m/s
+    "stribeck": ("stribeck_speed", 0.05, 0.3),  # m/s
     "resistance_drift": ("winding_time_constant", 10.0, 40.0),  # s
 }
 """The second parameter drawn with an effect that has one (name, range)."""
@@ -171,7 +171,7 @@ def scaled_effect(name: str, value: float, k_scale: float) -> float:
         return value * k_scale**2
     if name == "aero_drag":
         return value * k_scale**3
-    if name == "stribeck_friction":
+    if name == "stribeck":
         return value * k_scale  # a torque, like K_coulomb
     if name == "stribeck_speed":
         return value / k_scale  # the top speed scales as 1/K_v

@@ -31,7 +31,7 @@ name                      parameter           physics
                                               current within ``+-I_max``: it lowers its
                                               voltage to ``K_v omega +- R I_max`` (torque
                                               saturates on hard acceleration and braking)
-``stribeck_friction``     N m                 sliding friction above ``K_coulomb`` at zero
+``stribeck``     N m                 sliding friction above ``K_coulomb`` at zero
                                               speed, fading as ``exp(-(v/v_s)^2)`` with
                                               ``stribeck_speed`` v_s (m/s at the wheels)
 ``backlash``              rad                 free angle of the drivetrain at the motor
@@ -71,7 +71,7 @@ EFFECT_NAMES: tuple[str, ...] = (
     "sensor_lag",
     "current_limit",
     "backlash",
-    "stribeck_friction",
+    "stribeck",
     "resistance_drift",
 )
 """The effects (each switched on by its own field), in one place: the plant, the fast
@@ -79,7 +79,7 @@ simulator, the candidates of the diagnosis and the model file all follow this li
 
 COMPANIONS: dict[str, tuple[str, ...]] = {
     "backlash": ("rotor_inertia_fraction",),
-    "stribeck_friction": ("stribeck_speed",),
+    "stribeck": ("stribeck_speed",),
     "resistance_drift": ("winding_time_constant",),
 }
 """Fields that shape an effect beside the one that switches it on (reported with it)."""
@@ -174,7 +174,7 @@ class Effects:
         hi=0.95,
         default=0.35,
     )
-    stribeck_friction: float = spec(
+    stribeck: float = spec(
         "sliding friction above K_coulomb at zero speed (Stribeck), 0 = off",
         unit="N m",
         lo=0.0,
@@ -270,10 +270,10 @@ def limited_torque(p: VehicleParams, eff: Effects) -> float:
 
 def stribeck_torque(p: VehicleParams, eff: Effects, omega: float) -> float:
     """Sliding friction above ``K_coulomb`` (N m, magnitude) at motor speed omega (rad/s)."""
-    if eff.stribeck_friction == 0.0:
+    if eff.stribeck == 0.0:
         return 0.0
     z = omega * p.ratio / eff.stribeck_speed
-    return eff.stribeck_friction * math.exp(-z * z)
+    return eff.stribeck * math.exp(-z * z)
 
 
 def winding_resistance(p: VehicleParams, eff: Effects, rise: float) -> float:

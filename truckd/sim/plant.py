@@ -128,7 +128,7 @@ class Plant:
 
     def _segment(self, h: float) -> None:
         eff = self.cfg.effects
-        if eff.current_limit == 0.0 and eff.stribeck_friction == 0.0:
+        if eff.current_limit == 0.0 and eff.stribeck == 0.0:
             self._piece(h)
             return
         while h > 0.0:
@@ -143,7 +143,7 @@ class Plant:
         eff = self.cfg.effects
         if eff.current_limit != 0.0 and self._limit_binds():
             return FINE_STEP
-        if eff.stribeck_friction != 0.0 and abs(self.v) < STRIBECK_SPAN * eff.stribeck_speed:
+        if eff.stribeck != 0.0 and abs(self.v) < STRIBECK_SPAN * eff.stribeck_speed:
             return STRIBECK_STEP
         return math.inf
 
