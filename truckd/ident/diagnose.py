@@ -749,7 +749,7 @@ def diagnose_voltage(
 
         single = {n: m.val_cost for n, m in tried.items()}
         impossible = [n for n, r in rows.items() if r.note.startswith("physically impossible")]
-        order = pair_order(single, base.val_cost, skip=impossible)
+        order = pair_order(single, base.val_cost, skip=impossible, accepted=accepted)
         pair = best_pair(order, current.val_cost, fit_pair, lambda m: m.val_cost, earns)
         if pair is not None:
             for n in accepted:

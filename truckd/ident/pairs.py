@@ -2,9 +2,10 @@
 
 The greedy selection (:mod:`truckd.ident.diagnose`) accepts causes one at a time: a
 cause that explains little alone while another one distorts the rest of the response
-(a current limit next to a backlash, a Stribeck friction next to an input delay) is
-never accepted.  Here the causes that lowered the validation cost alone are ranked,
-the best :data:`PAIR_TOP` are fitted in pairs (each jointly with the other), and a pair
+(a backlash behind a current limit, a Stribeck friction next to an input delay) is
+never accepted.  Here the causes are ranked by their validation cost alone, the best
+:data:`PAIR_TOP` are fitted in pairs with the one accepted (and with each other when
+each helped alone), each jointly with the other, and a pair
 is kept only when *each* member earns its place on the validation data: the pair beats
 each member alone by the selection's rule (:func:`truckd.ident.selection.passes`), and
 beats the model the greedy selection reached.  Pure numerics: the fitting and the
@@ -29,15 +30,20 @@ def pair_order(
     base_cost: float,
     top: int = PAIR_TOP,
     skip: Sequence[str] = (),
+    accepted: Sequence[str] = (),
 ) -> list[tuple[str, str]]:
-    """Pairs of the ``top`` causes that lowered the validation cost alone (below
-    ``base_cost``), best first by the sum of their costs alone; ``skip`` leaves causes out
-    (those that were found physically impossible)."""
-    ranked = sorted(
-        (n for n, c in single_cost.items() if c < base_cost and n not in skip),
+    """Pairs to fit, best first by the sum of their validation costs alone: the cause
+    already ``accepted`` with each of the ``top`` best others (a second cause can be
+    hidden behind the first: it may not help alone), and pairs of the ``top`` best
+    among those that lowered the validation cost alone (below ``base_cost``); ``skip``
+    leaves causes out (those found physically impossible)."""
+    others = sorted(
+        (n for n in single_cost if n not in skip and n not in accepted),
         key=lambda n: single_cost[n],
     )[:top]
-    pairs = [(a, b) for i, a in enumerate(ranked) for b in ranked[i + 1 :]]
+    pairs = [(a, b) for a in accepted for b in others]
+    helping = [n for n in others if single_cost[n] < base_cost]
+    pairs += [(a, b) for i, a in enumerate(helping) for b in helping[i + 1 :]]
     return sorted(pairs, key=lambda ab: single_cost[ab[0]] + single_cost[ab[1]])
 
 

@@ -31,7 +31,7 @@ name                      parameter           physics
                                               current within ``+-I_max``: it lowers its
                                               voltage to ``K_v omega +- R I_max`` (torque
                                               saturates on hard acceleration and braking)
-``stribeck``     N m                 sliding friction above ``K_coulomb`` at zero
+``stribeck``              N m                 sliding friction above ``K_coulomb`` at zero
                                               speed, fading as ``exp(-(v/v_s)^2)`` with
                                               ``stribeck_speed`` v_s (m/s at the wheels)
 ``backlash``              rad                 free angle of the drivetrain at the motor
