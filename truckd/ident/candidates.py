@@ -230,7 +230,9 @@ def cause_candidates(p0: VehicleParams, data: Series) -> list[Candidate]:
 
 def cause_problem(name: str, value: float, p: VehicleParams, runs: Sequence[Series]) -> str | None:
     """Why the new cause ``name = value`` is physically impossible for the fitted ``p``
-    on these runs (None: possible, or not one of :func:`cause_candidates`)."""
+    on these runs (None: possible, switched off, or not one of :func:`cause_candidates`)."""
+    if value == 0.0:
+        return None
     u_max = max(float(np.max(np.abs(r.inp))) for r in runs)
     stall = p.K_T * u_max / p.R_m
     if name == "current_limit" and p.K_T * value <= p.K_coulomb:
