@@ -18,7 +18,14 @@ import pytest
 
 from truckd.ident.api import diagnose_log
 from truckd.ident.result import Diagnosis
-from truckd.ident.synth import DrawnTruck, draw_truck, drawn_log, plant_log, random_effects, visibility
+from truckd.ident.synth import (
+    DrawnTruck,
+    draw_truck,
+    drawn_log,
+    plant_log,
+    random_effects,
+    visibility,
+)
 from truckd.model.effects import COMPANIONS, Effects
 from truckd.model.params import VehicleParams
 
