@@ -50,6 +50,7 @@ from truckd.ident.synth import (
     random_effect,
     random_effects,
     rolling_effects,
+    visibility,
     with_effect,
 )
 from truckd.logfile import Log
@@ -76,6 +77,9 @@ NEW_CAUSES = ("current_limit", "backlash", "stribeck", "resistance_drift")
 """Causes real drivetrains have beyond the contract's first eight."""
 PAIR_PARTNERS = (*NEW_CAUSES, "load_force", "input_delay", "sensor_lag")
 """The ``pair`` case hides one new cause with another cause from this list."""
+VISIBLE = 1.5
+"""A new cause is observable in a log when it moves it by this many noise units
+(:func:`truckd.ident.synth.visibility`, as ``tests/test_diagnose_causes.py``)."""
 WITH_CURRENT = ("viscous_friction", "resistance_drift")
 """Drawn logs with a current column (what shows these causes)."""
 
@@ -117,7 +121,10 @@ def _drawn(p: Any, name: str, seed: int) -> dict[str, Any]:
     if name != "none":
         eff = random_effects(name, rng, truck.k_scale)
         value = float(getattr(eff, name))
-    log = drawn_log(truck, eff, int(rng.integers(1 << 30)), with_current=name in WITH_CURRENT)
+    log_seed = int(rng.integers(1 << 30))
+    log = drawn_log(truck, eff, log_seed, with_current=name in WITH_CURRENT)
+    with_i = name in WITH_CURRENT
+    shown = visibility(truck, eff, log_seed, with_current=with_i) if name in NEW_CAUSES else 0.0
     t0 = time.perf_counter()
     d = diagnose_log(log, p)
     dt = time.perf_counter() - t0
@@ -138,6 +145,7 @@ def _drawn(p: Any, name: str, seed: int) -> dict[str, Any]:
         "extended_fit": d.extended.fit_percent,
         "rejected": [r.name for r in d.rejected],
         "time_s": dt,
+        "visibility": shown,
     }
     if name == "none":
         row["hit"] = not names and abs(kv_rel) < 0.1
@@ -401,6 +409,10 @@ def main() -> int:
     for case in cases:
         rs = [r for r in rows if r["case"] == case]
         table[case] = {"runs": len(rs), "hit_rate": float(np.mean([r["hit"] for r in rs]))}
+        shown = [r for r in rs if r.get("visibility", 0.0) >= VISIBLE]
+        if case in NEW_CAUSES and shown:
+            table[case]["hit_rate_observable"] = float(np.mean([r["hit"] for r in shown]))
+            table[case]["observable_runs"] = len(shown)
         if case in TERRAIN:
             table[case]["hit_rate_observable"] = float(np.mean([r["hit_observable"] for r in rs]))
         if case in EFFECT_NAMES or case in TERRAIN or case == "pair":

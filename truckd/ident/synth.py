@@ -234,9 +234,16 @@ def rolling_effects(truck: DrawnTruck, seed: int, amplitude: float) -> Effects:
     return Effects(load_force_amplitude=amplitude, load_force_wavelength=max(span / 4.0, 0.5))
 
 
-def visibility(truck: DrawnTruck, effects: Effects, seed: int, seconds: float = 50.0) -> float:
+def visibility(
+    truck: DrawnTruck,
+    effects: Effects,
+    seed: int,
+    seconds: float = 50.0,
+    with_current: bool = True,
+) -> float:
     """How far hidden ``effects`` move the log of ``truck`` (same seed, no noise) in units
-    of its noise: ``sqrt(mean(dv^2)/noise_v^2 + mean(di^2)/(0.3 A)^2)``.  Below about 0.3
+    of its noise: ``sqrt(mean(dv^2)/noise_v^2 + mean(di^2)/(0.3 A)^2)`` (the current's
+    term only ``with_current``).  Below about 0.3
     the validation cost changes by less than the 5 % a cause must earn: the log cannot
     show it."""
     rng = np.random.default_rng(seed)
@@ -248,5 +255,5 @@ def visibility(truck: DrawnTruck, effects: Effects, seed: int, seconds: float = 
     clean = simulate_open_loop(truck.params, t, u)
     hidden = simulate_open_loop(truck.params, t, u, PlantConfig(effects=effects))
     dv = float(np.mean((hidden.v - clean.v) ** 2)) / truck.noise_v**2
-    di = float(np.mean((hidden.i - clean.i) ** 2)) / 0.3**2
+    di = float(np.mean((hidden.i - clean.i) ** 2)) / 0.3**2 if with_current else 0.0
     return float(np.sqrt(dv + di))
