@@ -165,6 +165,11 @@ def _limited(
     # The limit releases inside: at w* where a - b_emf w* = a_l.  Find when (bisection on
     # the exact limited solution; it is monotone in time up to w*).
     w_star = (a - a_l) / b_emf
+    t_rel = _time_to(w, w_star, a_l, b_mech, c, d)
+    if t_rel is not None and 0.0 <= t_rel <= h:
+        w1, d1 = _segment(w, a_l, b_mech, c, sigma, d, t_rel, kin.lag)
+        w2, d2 = _segment(w1, a, b, c, sigma, d, h - t_rel, kin.lag)
+        return w2, d1 + d2
     lo, hi = 0.0, h
     for _ in range(40):
         mid = 0.5 * (lo + hi)
@@ -178,6 +183,23 @@ def _limited(
     w1, d1 = _segment(w, a_l, b_mech, c, sigma, d, hi, kin.lag)
     w2, d2 = _segment(w1, a, b, c, sigma, d, h - hi, kin.lag)
     return w2, d1 + d2
+
+
+def _time_to(w: float, target: float, a: float, b: float, c: float, d: float) -> float | None:
+    """When the speed, sliding from ``w`` (not 0) under ``dw/dt = a - b w - s c - d``,
+    reaches ``target`` of the same sign (closed form); None when it does not."""
+    if w == 0.0 or w * target <= 0.0:
+        return None
+    s = 1.0 if w > 0.0 else -1.0
+    g = a - s * c - d
+    if b * abs(target - w) < 1e-9 * max(abs(g), 1e-300):
+        t = (target - w) / g if g != 0.0 else -1.0
+        return t if t >= 0.0 else None
+    ratio = (target - g / b) / (w - g / b)
+    if not ratio > 0.0:
+        return None
+    t = -math.log(ratio) / b
+    return t if t >= 0.0 else None
 
 
 def _phi(b: float, h: float) -> tuple[float, float, float]:
