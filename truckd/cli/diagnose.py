@@ -1,7 +1,7 @@
 """``truckd diagnose LOG.csv [LOG.csv ...] [--validate LOG.csv ...] [--gap S] [--config FILE]
 [--json FILE] [--report DIR] [--out MODEL.yaml]``: what the simulation gets wrong, and why.
 
-Logs are CSV (CONTRACTS.md section 3) or WPILib SysId ``FILE.json[:test,...]``."""
+Logs are CSV (reference section 3) or WPILib SysId ``FILE.json[:test,...]``."""
 
 from __future__ import annotations
 
@@ -30,7 +30,7 @@ def add_subparser(sub: Any) -> None:
     p.add_argument("--validate", nargs="+", metavar="LOG.csv", help="validation logs (same kind)")
     p.add_argument("--config", help="configuration file (starting values and bounds)")
     p.add_argument(
-        "--json", type=json_file, metavar="FILE", help="write the result (CONTRACTS.md section 4)"
+        "--json", type=json_file, metavar="FILE", help="write the result (docs/reference.md 4)"
     )
     p.add_argument(
         "--report", type=report_dir, metavar="DIR", help="write index.html with plots here"
@@ -71,6 +71,12 @@ def run(args: argparse.Namespace) -> int:
         write_set(files)
     b, x = diag.baseline, diag.extended
     print(f"{diag.samples} samples in {diag.runs} run(s) ({diag.input} input)")
+    ls = diag.least_squares
+    if ls is not None and ls.get("fit_percent") is not None:
+        print(
+            f"least squares:  fit {ls['fit_percent']:7.2f} %  (SysId's kS={ls['kS']:.4g} V, "
+            f"kV={ls['kV']:.4g} V s/m, kA={ls['kA']:.4g} V s^2/m)"
+        )
     print(f"seed model:     fit {b.fit_percent:7.2f} %  rmse {b.rmse:.4g}")
     for f in diag.effects:
         ps = ", ".join(f"{k}={v:.4g}" for k, v in f.params.items())
@@ -97,6 +103,8 @@ def run(args: argparse.Namespace) -> int:
         )
     elif diag.explains:
         print("the model explains the data: its residual is white at the noise level")
+    for note in diag.alerts:
+        print(f"note: {note}")
     ff = x.feedforward
     if ff is not None:
         print(

@@ -4,7 +4,7 @@ Only the chosen subcommand's module is imported (``truckd run`` on the car does 
 the offline tools' scipy, matplotlib or the diagnosis stack); ``truckd --help`` and a
 missing or unknown command import them all to list them.
 
-Exit codes (CONTRACTS.md section 1): 0 success, 2 bad usage or input (one line naming
+Exit codes (reference section 1): 0 success, 2 bad usage or input (one line naming
 the file, line or key and what was expected), 1 other failures.
 """
 
@@ -20,6 +20,7 @@ import threading
 from collections.abc import Iterator, Sequence
 from types import FrameType
 
+import truckd
 from truckd.errors import InputError, TruckdError
 
 # Subcommand name -> module with add_subparser(subparsers) and run(args) -> int.
@@ -36,7 +37,7 @@ SUBCOMMANDS: dict[str, str] = {
 
 class _Parser(argparse.ArgumentParser):
     def error(self, message: str) -> None:  # type: ignore[override]
-        # One line (CONTRACTS.md section 1); the usage is one --help away.
+        # One line (reference section 1); the usage is one --help away.
         print(f"{self.prog}: error: {message} (see {self.prog} --help)", file=sys.stderr)
         raise SystemExit(2)
 
@@ -45,6 +46,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     """The parser with ``command``'s subparser only (its module alone is imported), or with
     every subcommand when ``command`` is None or not one of them."""
     parser = _Parser(prog="truckd", description="Model-scale truck controller and tools.")
+    parser.add_argument("--version", action="version", version=f"truckd {truckd.version()}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     sub.required = True
     chosen = {command: SUBCOMMANDS[command]} if command in SUBCOMMANDS else SUBCOMMANDS

@@ -51,7 +51,7 @@ from truckd.schema import to_plain
 log = logging.getLogger("truckd.daemon")
 
 LOG_COLUMNS = (*STEP_COLUMNS, "lateness_us", "compute_us", "cpu_us")
-"""Recorded columns: the step's (contract names first, CONTRACTS.md section 3), then the
+"""Recorded columns: the step's (contract names first, reference section 3), then the
 loop's timing (us): this cycle's wake-up lateness, the previous cycle's wall-clock compute
 time and the CPU time the loop thread used in it (``time.thread_time``).  Compute minus
 CPU is time the loop waited for the host (descheduled, the GIL, blocking I/O): the host's
@@ -61,7 +61,7 @@ stall as the OS accounts it, as opposed to the code's own work."""
 def _state_message(
     out: CycleOutputs, lateness_s: float, platoon: PlatoonDecision | None
 ) -> dict[str, Any]:
-    """The state message (CONTRACTS.md section 5) of the cycle ``out``, with the platoon's
+    """The state message (reference section 5) of the cycle ``out``, with the platoon's
     fields of that cycle's decision (all frozen: built later, on another thread)."""
     return {**state_message(out, lateness_s), **platoon_state_fields(platoon)}
 
@@ -366,7 +366,7 @@ class Daemon:
         to_mcap = mc is not None and mc.wants_state(out.seq)
         if to_tel or to_mcap:
             # Built on the publisher or the recorder thread, whichever needs it first: the
-            # loop's cycle only hands over its frozen outputs (docs/daemon.md, "Sixth pass").
+            # loop's cycle only hands over its frozen outputs (docs/daemon.md, "Performance").
             msg = Deferred(_state_message, out, self.rk.last_lateness, self.platoon.decision)
             if mc is not None and to_mcap:
                 mc.record_state(out.t, msg)
