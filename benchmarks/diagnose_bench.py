@@ -78,7 +78,7 @@ NEW_CAUSES = ("current_limit", "backlash", "stribeck", "resistance_drift")
 """Causes real drivetrains have beyond the contract's first eight."""
 PAIR_PARTNERS = (*NEW_CAUSES, "load_force", "input_delay", "sensor_lag")
 """The ``pair`` case hides one new cause with another cause from this list."""
-VISIBLE = 1.5
+VISIBLE = 2.0
 """A new cause is observable in a log when it moves it by this many noise units
 (:func:`truckd.ident.synth.visibility`, as ``tests/test_diagnose_causes.py``)."""
 WITH_CURRENT = ("viscous_friction", "resistance_drift")
