@@ -2,7 +2,8 @@
 
 Logs come from the reference plant (truckd.sim.plant) with random excitation, a random
 magnitude (ranges in truckd.ident.synth.EFFECT_RANGES), 0.01 m/s speed noise and 0.3 A
-current noise.  The seeds come from one fixed SeedSequence, not picked per case; the
+current noise (the causes beyond the contract's eight: tests/test_diagnose_causes.py).
+The seeds come from one fixed SeedSequence, not picked per case; the
 hit rate over many seeds is measured by benchmarks/diagnose_bench.py.
 """
 
@@ -40,7 +41,7 @@ def _diag(p: VehicleParams, eff: Effects, seed: int) -> Diagnosis:
     return diagnose_log(plant_log(p, eff, seed=seed, n=N), p)
 
 
-@pytest.mark.parametrize("k,name", list(enumerate(EFFECT_NAMES)))
+@pytest.mark.parametrize("k,name", list(enumerate(n for n in EFFECT_NAMES if n in TOLERANCE)))
 def test_hidden_effect_is_named_and_recovered(params: VehicleParams, k: int, name: str) -> None:
     rng = np.random.default_rng(SEEDS[k])
     value = random_effect(name, rng)

@@ -34,6 +34,10 @@ def test_all_contract_effects_are_switches() -> None:
         "voltage_saturation",
         "battery_sag",
         "sensor_lag",
+        "current_limit",
+        "backlash",
+        "stribeck",
+        "resistance_drift",
     }
     assert Effects().active() == ()
     assert Effects(dead_zone=1.0, sensor_lag=0.1).active() == ("dead_zone", "sensor_lag")
@@ -153,3 +157,67 @@ def test_non_finite_command_is_treated_as_zero(params: VehicleParams) -> None:
     plant.command(float("nan"))
     plant.advance(2.0)
     assert plant.v == 0.0 and math.isfinite(plant.motor.i)
+
+
+def test_current_limit_caps_the_current_and_the_acceleration(params: VehicleParams) -> None:
+    """A 7 V step from rest would draw ~80 A; limited to 25 A the current stays within it
+    and the truck accelerates at (K_T I - K_coulomb) / J_S while the limit binds."""
+    limit = 25.0
+    t = np.arange(0.0, 1.0, 0.001)
+    log = simulate_open_loop(
+        params, t, step(7.0, 0.1, t), PlantConfig(effects=Effects(current_limit=limit))
+    )
+    assert np.max(np.abs(log.i)) <= limit * 1.001
+    free = simulate_open_loop(params, t, step(7.0, 0.1, t))
+    assert np.max(np.abs(free.i)) > 2.0 * limit
+    accel = (params.K_T * limit - params.K_coulomb) / params.J_S * params.ratio
+    k0, k1 = int(0.11 / 0.001), int(0.13 / 0.001)
+    measured = (log.v_true[k1] - log.v_true[k0]) / (t[k1] - t[k0])
+    assert measured == pytest.approx(accel, rel=0.01)
+
+
+def test_stribeck_slows_the_truck_only_at_low_speed(params: VehicleParams) -> None:
+    """Friction K_coulomb + F_s exp(-(v/v_s)^2): a command that holds a slow speed holds a
+    slower one; at full speed the friction excess has faded."""
+    eff = {"stribeck": 0.008, "stribeck_speed": 0.15}
+    slow = run(params, step(0.8), **eff)[-1]
+    assert 0.0 < slow < 0.9 * run(params, step(0.8))[-1]
+    fast = run(params, step(6.0), **eff)[-1]
+    assert fast == pytest.approx(run(params, step(6.0))[-1], rel=1e-4)
+
+
+def test_resistance_drift_heats_the_winding_to_its_steady_rise(params: VehicleParams) -> None:
+    """Under a steady load the current is ``(K_coulomb + load) / K_T`` whatever R is; the
+    winding settles where ``rise = R_th i^2 R_m (1 + alpha rise)``."""
+    from truckd.model.effects import COPPER_TEMPCO
+
+    load = 8.0  # N at the wheels
+    eff = Effects(resistance_drift=2.0, winding_time_constant=5.0, load_force=load)
+    plant = Plant(params, PlantConfig(effects=eff))
+    plant.command(5.0)
+    for _ in range(6000):
+        plant.advance(0.01)
+    i = (params.K_coulomb + params.force_to_torque(load)) / params.K_T
+    q = 2.0 * i * i * params.R_m
+    assert plant.winding_rise == pytest.approx(q / (1.0 - COPPER_TEMPCO * q), rel=1e-3)
+
+
+def test_backlash_holds_the_load_while_the_rotor_crosses_the_gap(params: VehicleParams) -> None:
+    """At rest with the gears closed forward, a reverse command turns the rotor alone
+    (its inertia ``rotor_inertia_fraction J_S``, time constant ``J_r R / (K_T K_v)``)
+    through the gap; the truck starts to move only when the rotor has turned by it."""
+    gap, frac, volts = 2.0, 0.35, -3.0
+    t = np.arange(0.0, 0.2, 0.0002)
+    log = simulate_open_loop(
+        params,
+        t,
+        step(volts, 0.0, t),
+        PlantConfig(effects=Effects(backlash=gap, rotor_inertia_fraction=frac)),
+    )
+    tau = frac * params.J_S * params.R_m / (params.K_T * params.K_v)
+    w_inf = abs(volts) / params.K_v
+    grid = np.linspace(0.0, 0.1, 100001)
+    turned = w_inf * (grid - tau * (1.0 - np.exp(-grid / tau)))
+    t_cross = float(grid[np.argmax(turned >= gap)])
+    assert np.all(log.x[t < t_cross - 0.0005] == 0.0)
+    assert np.all(log.x[t > t_cross + 0.0005] < 0.0)

@@ -9,6 +9,7 @@ it is located on a grid between the log's distinct command levels.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -54,7 +55,7 @@ def hill_candidate(p0: VehicleParams, stretch: Stretch) -> Candidate:
 
 
 def voltage_candidates(p0: VehicleParams, data: Series) -> list[Candidate]:
-    """The eight contract effects for a voltage-input log (those the data can show)."""
+    """The contract effects for a voltage-input log (those the data can show)."""
     u_abs = np.abs(data.inp)
     u_max = float(np.max(u_abs))
     v_max = max(float(np.max(np.abs(data.v))), 0.1)
@@ -126,6 +127,7 @@ def voltage_candidates(p0: VehicleParams, data: Series) -> list[Candidate]:
             tuple(float(x) for x in h * np.array([0.5, 1.0, 2.0, 3.0, 5.0, 7.0, 10.0, 15.0, 20.0])),
         ),
     ]
+    out.extend(cause_candidates(p0, data))
     with_current = data.i is not None
     # A candidate without a start grid cannot be located in these data (a dead zone needs
     # two command levels below 0.8 u_max to lie between: a single step has none).
@@ -148,3 +150,111 @@ def rolling_candidate(p0: VehicleParams, wave: Wave) -> Candidate:
             Param("load_force_phase", 1.0, wave.phase - 2.0, wave.phase + 2.0),
         ),
     )
+
+
+BACKLASH_MAX_WHEEL = 0.35
+"""Largest backlash (rad at the wheel, 20 degrees) a drivetrain can have and still drive."""
+WINDING_RISE_MAX = 200.0
+"""Largest winding temperature rise (K) a drift may imply at the log's mean copper loss:
+above it the insulation (class H, 180 C) would have burnt."""
+
+
+def copper_loss(p0: VehicleParams, data: Series) -> float:
+    """Mean copper loss (W) in ``data``: from the logged current, else from the
+    quasi-static current ``(u - K_v omega) / R_m`` of the logged speed."""
+    quasi_static = (data.inp - p0.K_v * data.v / p0.ratio) / p0.R_m
+    i = data.i if data.i is not None else quasi_static
+    return float(np.mean(i * i)) * p0.R_m
+
+
+def cause_candidates(p0: VehicleParams, data: Series) -> list[Candidate]:
+    """Causes real drivetrains have beyond the contract's first eight, with bounds from
+    the fitted machine ``p0`` (not the configuration) and the log's range.
+
+    * ``current_limit`` (A): between the current that just holds Coulomb friction and
+      the stall current at the largest command (no limit acts above it);
+    * ``backlash`` (rad at the motor shaft): up to :data:`BACKLASH_MAX_WHEEL` at the
+      wheel (the rotor's share of the inertia held at its configured fraction);
+    * ``stribeck`` (``stribeck`` N m with ``stribeck_speed`` m/s freed beside
+      it): up to five times the fitted Coulomb friction, fading within the speeds seen;
+    * ``resistance_drift`` (K/W with ``winding_time_constant`` s freed beside it): up to
+      :data:`WINDING_RISE_MAX` at the log's mean copper loss, a time constant between
+      a second and ten times the log's length.
+    """
+    u_max = float(np.max(np.abs(data.inp)))
+    v_max = max(float(np.max(np.abs(data.v))), 1e-3)
+    i_stall = max(u_max / p0.R_m, 1e-6)
+    i_hold = p0.K_coulomb / p0.K_T
+    k_c = max(p0.K_coulomb, 1e-3 * p0.K_T * i_stall)
+    duration = float(data.t[-1] - data.t[0])
+    power = max(copper_loss(p0, data), 1e-9)
+    drift_hi = WINDING_RISE_MAX / power
+    tau0 = max(min(duration / 3.0, 120.0), 1.0)
+    vs0 = 0.1 * v_max
+    gearing = p0.n_g * p0.n_fd  # motor turns per wheel turn
+    return [
+        Candidate(
+            "current_limit",
+            Param("current_limit", i_stall, max(1.05 * i_hold, 0.02 * i_stall), i_stall),
+            tuple(
+                float(x) * i_stall
+                for x in (0.15, 0.25, 0.35, 0.5, 0.65, 0.8)
+                if float(x) * i_stall > 1.05 * i_hold
+            ),
+        ),
+        Candidate(
+            "backlash",
+            Param("backlash", 0.02 * gearing, 0.0, BACKLASH_MAX_WHEEL * gearing),
+            tuple(float(np.radians(deg)) * gearing for deg in (0.5, 1.0, 2.0, 4.0, 7.0)),
+            # Held at the configured share (reported with it): the rotor's share of the
+            # inertia is barely seen in the speed.
+            preset=(("rotor_inertia_fraction", 0.35),),
+        ),
+        Candidate(
+            "stribeck",
+            Param("stribeck", k_c, 0.0, 5.0 * k_c),
+            (0.2 * k_c, 0.5 * k_c, 1.0 * k_c, 2.0 * k_c),
+            preset=(("stribeck_speed", vs0),),
+            output="stribeck",
+            extra=(Param("stribeck_speed", vs0, 0.005 * v_max, v_max),),
+        ),
+        Candidate(
+            "resistance_drift",
+            Param("resistance_drift", 50.0 / power, 0.0, drift_hi),
+            tuple(float(x) / power for x in (10.0, 30.0, 60.0, 120.0)),
+            preset=(("winding_time_constant", tau0),),
+            extra=(Param("winding_time_constant", tau0, 1.0, max(10.0 * duration, 2.0)),),
+        ),
+    ]
+
+
+def cause_problem(name: str, value: float, p: VehicleParams, runs: Sequence[Series]) -> str | None:
+    """Why the new cause ``name = value`` is physically impossible for the fitted ``p``
+    on these runs (None: possible, switched off, or not one of :func:`cause_candidates`)."""
+    if value == 0.0:
+        return None
+    u_max = max(float(np.max(np.abs(r.inp))) for r in runs)
+    stall = p.K_T * u_max / p.R_m
+    if name == "current_limit" and p.K_T * value <= p.K_coulomb:
+        return (
+            f"current_limit = {value:.3g} A gives {p.K_T * value:.3g} N m, not even the "
+            f"Coulomb friction {p.K_coulomb:.3g} N m: the truck could not have moved"
+        )
+    if name == "stribeck" and p.K_coulomb + value >= stall:
+        return (
+            f"friction at rest {p.K_coulomb + value:.3g} N m at or above the stall torque "
+            f"at the log's largest command ({stall:.3g} N m)"
+        )
+    if name == "backlash" and value > BACKLASH_MAX_WHEEL * p.n_g * p.n_fd:
+        return (
+            f"backlash = {value:.3g} rad at the motor is {value / (p.n_g * p.n_fd):.3g} rad "
+            f"at the wheel: more play than a drivetrain that drives has"
+        )
+    if name == "resistance_drift":
+        rise = max(value * copper_loss(p, r) for r in runs)
+        if rise > WINDING_RISE_MAX:
+            return (
+                f"resistance_drift = {value:.3g} K/W heats the winding by {rise:.3g} K at "
+                f"the log's copper loss: above what its insulation survives"
+            )
+    return None

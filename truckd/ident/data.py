@@ -44,6 +44,11 @@ class Series:
     hist_t: Array | None = None
     """Times (s) of the inputs before ``t[0]`` (a chunk's history; they may still act)."""
     hist_inp: Array | None = None
+    origin: Series | None = None
+    """The whole run this stretch was cut from (None: it starts the run), which a winding
+    heating over the run (``resistance_drift``) is simulated over up to ``offset``."""
+    offset: int = 0
+    """Index of ``t[0]`` in ``origin``."""
 
     def __len__(self) -> int:
         return len(self.t)
@@ -71,6 +76,8 @@ class Series:
             x=None if self.x is None else self.x[lo:hi],
             hist_t=self.t[h0:lo] if lo > 0 else None,
             hist_inp=self.inp[h0:lo] if lo > 0 else None,
+            origin=(self.origin or self) if self.offset + lo > 0 else None,
+            offset=self.offset + lo,
         )
 
 

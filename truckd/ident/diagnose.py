@@ -44,6 +44,7 @@ from truckd.ident.linear import (
     least_squares_model,
     start_model,
 )
+from truckd.ident.pairs import best_pair, pair_order
 from truckd.ident.physics import (
     configuration_notes,
     effect_problem,
@@ -92,7 +93,7 @@ from truckd.ident.voltage import (
     theta_of,
     weights_for,
 )
-from truckd.model.effects import Effects
+from truckd.model.effects import COMPANIONS, Effects
 from truckd.model.params import VehicleParams
 
 Progress = Callable[[str], None]
@@ -632,6 +633,8 @@ def _summary(
     params = {n: float(getattr(p, n)) for n in SEED_NAMES}
     for n in e.active():
         params[n] = float(getattr(e, n))
+        for c in COMPANIONS.get(n, ()):
+            params[c] = float(getattr(e, c))
     if e.hill_force != 0.0:
         for n in ("hill_force", "hill_start", "hill_length"):
             params[n] = float(getattr(e, n))
@@ -846,6 +849,42 @@ def diagnose_voltage(
         rows[name] = dataclasses.replace(
             rows[name], accepted=True, note="accepted on top of the others"
         )
+
+    # Pairs of causes, when one is not enough (truckd/ident/pairs.py): each member
+    # must earn its place against the other alone, the pair against the greedy model.
+    if len(accepted) < 2:
+
+        def fit_pair(a: str, b: str) -> _Model | None:
+            progress(f"pair: {a} + {b}")
+            ca = by_name[a]
+            own = [ca.param, *ca.extra] if ca.smooth else []
+            f = _fit_candidate(
+                tried[a].fit, seed_free, own, by_name[b], fit_data, w, grid, progress, val_data
+            )
+            m = _Model(f, (a, b), _val_cost(f, val_data, w))
+            return m if possible(m.fit, [a, b]) else None
+
+        def member_earns(m: _Model, name: str) -> bool:
+            other = tried[m.names[1] if name == m.names[0] else m.names[0]]
+            ok = _passes(m, other, 1, hill_check(name, m, other))[0]
+            return ok and earns(name, m, other)
+
+        single = {n: m.val_cost for n, m in tried.items()}
+        impossible = [n for n, r in rows.items() if r.note.startswith("physically impossible")]
+        order = pair_order(single, base.val_cost, skip=impossible, accepted=accepted)
+        pair = best_pair(order, current.val_cost, fit_pair, lambda m: m.val_cost, member_earns)
+        if pair is not None:
+            for n in accepted:
+                if n not in pair.names:
+                    rows[n] = dataclasses.replace(
+                        rows[n], accepted=False, note="replaced by a pair of causes"
+                    )
+            for n in pair.names:
+                other = pair.names[1] if n == pair.names[0] else pair.names[0]
+                rows[n] = dataclasses.replace(
+                    rows[n], accepted=True, note=f"accepted with {other} (a pair)"
+                )
+            accepted, current = list(pair.names), pair
 
     # Backward check: an effect accepted early may be redundant once later ones are in.
     if len(accepted) > 1:

@@ -26,7 +26,18 @@ import numpy as np
 from numpy.typing import NDArray
 
 from truckd.ident import ckernel
-from truckd.model.effects import Effects, position_dependent, terrain_force
+from truckd.model.effects import (
+    Effects,
+    gap_at_start,
+    gap_free_motion,
+    gap_opens,
+    limited_torque,
+    position_dependent,
+    stribeck_torque,
+    terrain_force,
+    winding_resistance,
+    winding_rise_step,
+)
 from truckd.model.params import VehicleParams
 
 Array = NDArray[np.float64]
@@ -114,6 +125,83 @@ class Kinetics:
     terrain: Callable[[float], float] | None = None
     """Extra load per unit inertia at position ``x`` (integral of speed from the start),
     evaluated at the start of each sub-interval as the plant does (None = none)."""
+    a_max: float = math.inf
+    """Largest drive acceleration (per unit inertia) a current limit allows."""
+    b_mech: float = 0.0
+    """The part of ``b`` that is mechanical (viscous), kept while the current limit binds
+    (the back-EMF part of ``b`` then no longer acts: the current is held)."""
+    stribeck: Callable[[float], float] | None = None
+    """Sliding friction above ``c`` per unit inertia at speed ``w`` (None = none),
+    evaluated at the start of each sub-interval as the plant does."""
+    gap: GapRun | None = None
+    """The backlash gap (None = no backlash)."""
+
+
+def _limited(
+    w: float,
+    a: float,
+    b: float,
+    b_mech: float,
+    kin: Kinetics,
+    c: float,
+    sigma: float,
+    d: float,
+    h: float,
+) -> tuple[float, float] | None:
+    """A sub-interval that starts with the current limit binding: ``(end speed, integral
+    of speed)``, or None when the limit does not bind at its start.
+
+    While it binds the drive is the constant ``+-a_max`` (damping ``b_mech`` only); when
+    the speed reaches where the unlimited drive ``a - (b - b_mech) w`` falls within the
+    limit, the rest is solved unlimited (the driver's drive only shrinks in magnitude
+    under a constant command: the speed approaches its steady value)."""
+    b_emf = b - b_mech
+    drive = a - b_emf * w
+    if abs(drive) <= kin.a_max:
+        return None
+    s_l = 1.0 if drive > 0.0 else -1.0
+    a_l = s_l * kin.a_max
+    w_end, dist = _segment(w, a_l, b_mech, c, sigma, d, h, kin.lag)
+    if b_emf <= 0.0 or abs(a - b_emf * w_end) >= kin.a_max:
+        return w_end, dist
+    # The limit releases inside: at w* where a - b_emf w* = a_l.  Find when (bisection on
+    # the exact limited solution; it is monotone in time up to w*).
+    w_star = (a - a_l) / b_emf
+    t_rel = _time_to(w, w_star, a_l, b_mech, c, d)
+    if t_rel is not None and 0.0 <= t_rel <= h:
+        w1, d1 = _segment(w, a_l, b_mech, c, sigma, d, t_rel, kin.lag)
+        w2, d2 = _segment(w1, a, b, c, sigma, d, h - t_rel, kin.lag)
+        return w2, d1 + d2
+    lo, hi = 0.0, h
+    for _ in range(40):
+        mid = 0.5 * (lo + hi)
+        wm, _ = _segment(w, a_l, b_mech, c, sigma, d, mid, kin.lag)
+        if (wm - w_star) * s_l < 0.0:
+            lo = mid
+        else:
+            hi = mid
+        if hi - lo <= 1e-9 * h:
+            break
+    w1, d1 = _segment(w, a_l, b_mech, c, sigma, d, hi, kin.lag)
+    w2, d2 = _segment(w1, a, b, c, sigma, d, h - hi, kin.lag)
+    return w2, d1 + d2
+
+
+def _time_to(w: float, target: float, a: float, b: float, c: float, d: float) -> float | None:
+    """When the speed, sliding from ``w`` (not 0) under ``dw/dt = a - b w - s c - d``,
+    reaches ``target`` of the same sign (closed form); None when it does not."""
+    if w == 0.0 or w * target <= 0.0:
+        return None
+    s = 1.0 if w > 0.0 else -1.0
+    g = a - s * c - d
+    if b * abs(target - w) < 1e-9 * max(abs(g), 1e-300):
+        t = (target - w) / g if g != 0.0 else -1.0
+        return t if t >= 0.0 else None
+    ratio = (target - g / b) / (w - g / b)
+    if not ratio > 0.0:
+        return None
+    t = -math.log(ratio) / b
+    return t if t >= 0.0 else None
 
 
 def _phi(b: float, h: float) -> tuple[float, float, float]:
@@ -245,6 +333,9 @@ def run(
     terrain = kin.terrain
     sc_list = kin.scale.tolist() if kin.scale is not None else None
     lag_alpha_cache: dict[float, float] = {}
+    limit = kin.a_max < math.inf
+    stribeck = kin.stribeck
+    gap = kin.gap
     for dt, k, se in zip(tl.dt.tolist(), tl.cmd.tolist(), tl.sample_end.tolist(), strict=True):
         f = 1.0
         if k >= 0:
@@ -256,18 +347,35 @@ def run(
             a, b = kin.a_idle, kin.b_idle
         if terrain is not None:
             d = (kin.d + terrain(x)) * f
+        if stribeck is not None:
+            # Breakaway takes at least the sliding friction at zero speed.
+            sigma = max(kin.sigma, kin.c + stribeck(0.0)) * f
+            c = (kin.c + stribeck(w)) * f
+            if dt > 0.0:
+                # Midpoint: the friction at the speed halfway through the sub-interval
+                # (predicted with the friction at its start).
+                w_half, _ = _segment(w, a, b, c, sigma, d, 0.5 * dt, lag)
+                c = (kin.c + stribeck(0.5 * (w + w_half) if w != 0.0 else w_half)) * f
         if drag != 0.0:
             aw = abs(w)
             b_eff = b + 2.0 * drag * aw
             d_eff = d - drag * w * aw
         else:
             b_eff, d_eff = b, d
+        rigid = dt
+        if gap is not None:
+            b_m = kin.b_mech * f + (b_eff - b)
+            w, dx, used = gap.step(k, w, dt, c / f, d_eff / f, b_m / f)
+            x += dx
+            rigid = dt - used
+        if limit or gap is not None:
+            if rigid > 0.0:
+                w, x = _rigid(w, x, a, b, b_eff, c, sigma, d_eff, f, rigid, kin, limit, lag)
         # Fast path (inlined): sliding on, no zero crossing, not a tiny b*dt.
-        bh = b_eff * dt
-        if w != 0.0 and bh >= 1e-5:
+        elif w != 0.0 and b_eff * dt >= 1e-5:
             s = 1.0 if w > 0.0 else -1.0
             g = a - s * c - d_eff
-            em1 = -math.expm1(-bh)
+            em1 = -math.expm1(-b_eff * dt)
             phi1 = em1 / b_eff
             w1 = w * (1.0 - em1) + g * phi1
             if w1 * s > 0.0:
@@ -279,6 +387,8 @@ def run(
         else:
             w, dx = _segment(w, a, b_eff, c, sigma, d_eff, dt, lag)
             x += dx
+        if gap is not None and se >= 0:
+            gap.rotor_out[se] = gap.gap.rotor if gap.gap.side == 0 else w
         h_step += dt
         if se >= 0:
             raw[se] = w
@@ -295,6 +405,81 @@ def run(
             x_step0 = x
             h_step = 0.0
     return out, raw, pos
+
+
+def _rigid(
+    w: float,
+    x: float,
+    a: float,
+    b: float,
+    b_eff: float,
+    c: float,
+    sigma: float,
+    d_eff: float,
+    f: float,
+    dt: float,
+    kin: Kinetics,
+    limit: bool,
+    lag: float,
+) -> tuple[float, float]:
+    """One sub-interval of the drivetrain moving as one body: ``(speed, position)``."""
+    if limit:
+        b_m = kin.b_mech * f + (b_eff - b)
+        done = _limited(w, a, b_eff, b_m, kin, c, sigma, d_eff, dt)
+        if done is not None:
+            return done[0], x + done[1]
+    # Fast path (inlined): sliding on, no zero crossing, not a tiny b*dt.
+    bh = b_eff * dt
+    if w != 0.0 and bh >= 1e-5:
+        s = 1.0 if w > 0.0 else -1.0
+        g = a - s * c - d_eff
+        em1 = -math.expm1(-bh)
+        phi1 = em1 / b_eff
+        w1 = w * (1.0 - em1) + g * phi1
+        if w1 * s > 0.0:
+            return w1, x + w * phi1 + g * (dt - phi1) / b_eff
+    w, dx = _segment(w, a, b_eff, c, sigma, d_eff, dt, lag)
+    return w, x + dx
+
+
+class GapRun:
+    """The backlash gap during a fast run (:func:`truckd.model.effects.gap_free_motion`,
+    the plant's physics), with per-command driver voltage and circuit resistance."""
+
+    def __init__(
+        self,
+        p: VehicleParams,
+        eff: Effects,
+        volts: Array,
+        r: Array,
+        v_idle: float,
+        kappa: float,
+        n: int,
+        w0: float,
+    ) -> None:
+        self.p, self.eff = p, eff
+        self.volts, self.r = volts.tolist(), r.tolist()
+        self.v_idle = v_idle
+        self.per = p.J_S / kappa
+        """Torque (N m) per unit of the run's per-inertia coefficients."""
+        self.gap = gap_at_start(eff, w0)
+        self.rotor_out = np.full(n, w0)
+        """Rotor speed (rad/s) at each sample (the load's while the gap is closed)."""
+
+    def step(
+        self, k: int, w: float, dt: float, c: float, d: float, visc: float
+    ) -> tuple[float, float, float]:
+        """Open the gap when the gear torque reverses, move across it: ``(load speed,
+        angle, time used)`` (no time used while the gap stays closed)."""
+        p, eff, g = self.p, self.eff, self.gap
+        volts = self.volts[k] if k >= 0 else self.v_idle
+        r = self.r[k] if k >= 0 else p.R_m
+        coulomb, load, viscous = c * self.per, d * self.per, visc * self.per
+        if g.side != 0:
+            if not gap_opens(p, eff, g, w, volts, r, coulomb, load, viscous):
+                return w, 0.0, 0.0
+            g.side, g.rotor = 0, w
+        return gap_free_motion(p, eff, g, w, volts, r, coulomb, load, viscous, dt)
 
 
 def driver_volts(u: Array, eff: Effects, v_batt: float) -> Array:
@@ -403,6 +588,13 @@ HANDLED = (
     "hill_force",
     "hill_start",
     "hill_length",
+    "current_limit",
+    "stribeck",
+    "stribeck_speed",
+    "resistance_drift",
+    "winding_time_constant",
+    "backlash",
+    "rotor_inertia_fraction",
 )
 """Effects fields :func:`simulate_voltage` models; any other active field is refused."""
 
@@ -483,6 +675,7 @@ def simulate_voltage(
     u_hist: Array | None = None,
     v_pre: float = 0.0,
     x0: float = 0.0,
+    rise0: float = 0.0,
 ) -> VoltagePrediction:
     """Fast free run of the plant model on a log's input (``u[k]`` from ``t[k]``).
 
@@ -492,35 +685,104 @@ def simulate_voltage(
     still act after ``t[0]`` when there is an input delay.  ``v_pre``: the motor
     voltage (V) until the first known command acts; 0 as in a plant started by
     :func:`truckd.sim.plant.simulate_open_loop`, see :func:`prelog_voltage` for a log.
+    ``rise0``: the winding's temperature rise (K) at ``t[0]`` (``resistance_drift``).
+
+    A resistance drift is slow (a thermal time constant of seconds to minutes): the run
+    is simulated cold, the winding's heating computed from that run's copper loss, and
+    the run simulated again with each command's resistance (:data:`DRIFT_PASSES` times).
     """
     unsupported = unsupported_effects(eff)
     if unsupported:
         raise ValueError(
             f"the fast simulator does not model {', '.join(unsupported)} ; use truckd.sim.plant"
         )
-    n = len(t)
     hist = 0 if t_hist is None or u_hist is None else len(t_hist)
     t = np.asarray(t, float)
+    t_cmd = t if not hist else np.concatenate([np.asarray(t_hist, float), t])
+    out = _simulate(p, eff, t, u, v0, t_hist, u_hist, v_pre, x0, None)
+    if eff.resistance_drift == 0.0:
+        return out
+    for _ in range(DRIFT_PASSES):
+        rise = winding_rises(p, eff, t, out.i, rise0)
+        # Each command sees the winding as it was when the command was issued.
+        k = np.clip(np.searchsorted(t, t_cmd, "right") - 1, 0, len(t) - 1)
+        r_at = np.array([winding_resistance(p, eff, x) for x in rise.tolist()])
+        r_cmd = np.where(t_cmd < t[0], winding_resistance(p, eff, rise0), r_at[k])
+        out = _simulate(p, eff, t, u, v0, t_hist, u_hist, v_pre, x0, r_cmd - p.R_m)
+    return out
+
+
+DRIFT_PASSES = 2
+"""Re-simulations with the winding's resistance from the previous pass's current."""
+
+
+def winding_rises(p: VehicleParams, eff: Effects, t: Array, i: Array, rise0: float) -> Array:
+    """The winding's temperature rise (K) at each sample under the current ``i`` (A),
+    from ``rise0`` at ``t[0]`` (copper loss over a step: the mean of the squared currents
+    at its ends, as the plant counts it)."""
+    out = np.empty(len(t))
+    rise = rise0
+    out[0] = rise
+    sq = (np.asarray(i, float) ** 2).tolist()
+    dts = np.diff(t).tolist()
+    for k, h in enumerate(dts):
+        r = winding_resistance(p, eff, rise)
+        rise = winding_rise_step(eff, rise, 0.5 * (sq[k] + sq[k + 1]) * r, h)
+        out[k + 1] = rise
+    return out
+
+
+def _simulate(
+    p: VehicleParams,
+    eff: Effects,
+    t: Array,
+    u: Array,
+    v0: float,
+    t_hist: Array | None,
+    u_hist: Array | None,
+    v_pre: float,
+    x0: float,
+    r_drift: Array | None,
+) -> VoltagePrediction:
+    """:func:`simulate_voltage` with each command's extra winding resistance ``r_drift``
+    (ohm, over the history and the log's commands; None = cold)."""
+    n = len(t)
+    hist = 0 if t_hist is None or u_hist is None else len(t_hist)
     u_all = np.asarray(u, float) if not hist else np.concatenate([u_hist, u])
     t_cmd = t if not hist else np.concatenate([t_hist, t])
+    # The gap opens on the command itself (the plant decides it on the quasi-static
+    # current): no electrical lag before the command acts.  A winding's resistance
+    # changes per pass: neither is cached.
+    cached = r_drift is None and eff.backlash == 0.0
     key = _prep_key(p, eff, t, u, t_hist, u_hist)
-    hit = _PREP.get(key)
+    hit = _PREP.get(key) if cached else None
     if hit is not None and hit[0] is t and hit[1] is u and hit[2] is t_hist and hit[3] is u_hist:
         volts, r_tot, k_arr, kappa, lag_e, a, b, tl = hit[4]
     else:
         volts = driver_volts(u_all, eff, p.V_batt)
         duty = volts / p.V_batt
         r_tot = p.R_m + eff.battery_sag * duty * duty
+        if r_drift is not None:
+            r_tot = r_tot + r_drift
         k_arr, _ = electrical_correction(p, eff.viscous_friction, r_tot)
         k0, l0 = electrical_correction(p, eff.viscous_friction)
         kappa, lag_e = float(k0), float(l0)
         a = k_arr * p.K_T / p.J_S * volts / r_tot
         b = k_arr * (p.K_T * p.K_v / r_tot + eff.viscous_friction) / p.J_S
-        tl = _merge_equal(timeline(t, eff.input_delay + lag_e, hist, t_cmd), a, b)
-        if len(_PREP) >= PREP_CACHE:
-            del _PREP[next(iter(_PREP))]
-        _PREP[key] = (t, u, t_hist, u_hist, (volts, r_tot, k_arr, kappa, lag_e, a, b, tl))
+        lag_cmd = lag_e if eff.backlash == 0.0 else 0.0
+        tl = _merge_equal(timeline(t, eff.input_delay + lag_cmd, hist, t_cmd), a, b)
+        if cached:
+            if len(_PREP) >= PREP_CACHE:
+                del _PREP[next(iter(_PREP))]
+            _PREP[key] = (t, u, t_hist, u_hist, (volts, r_tot, k_arr, kappa, lag_e, a, b, tl))
     load = p.force_to_torque(eff.load_force)
+    stribeck: Callable[[float], float] | None = None
+    if eff.stribeck != 0.0:
+        per_nm = kappa / p.J_S
+
+        def stribeck(w: float) -> float:
+            return float(per_nm * stribeck_torque(p, eff, w))
+
     kin = Kinetics(
         a=a,
         b=b,
@@ -530,9 +792,16 @@ def simulate_voltage(
         sigma=kappa * p.K_stiction / p.J_S,
         d=kappa * load / p.J_S,
         drag=kappa * eff.aero_drag * p.ratio**3 / p.J_S,
-        scale=k_arr / kappa if eff.battery_sag != 0.0 else None,
+        scale=k_arr / kappa if eff.battery_sag != 0.0 or r_drift is not None else None,
         lag=lag_e,
         terrain=_terrain(p, eff, kappa, x0),
+        # While the limit binds the current is held: no electrical pole slows the drive.
+        a_max=limited_torque(p, eff) / p.J_S,
+        b_mech=kappa * eff.viscous_friction / p.J_S if eff.current_limit != 0.0 else 0.0,
+        stribeck=stribeck,
+        gap=None
+        if eff.backlash == 0.0
+        else GapRun(p, eff, volts, r_tot, v_pre, kappa, n, p.omega(v0)),
     )
     w0 = p.omega(v0)
     meas, raw, pos = run(kin, tl, n, w0, eff.sensor_lag)
@@ -541,14 +810,19 @@ def simulate_voltage(
     idx = np.searchsorted(act, t, "left") - 1
     v_at = np.where(idx >= 0, volts[np.maximum(idx, 0)], v_pre)
     r_at = np.where(idx >= 0, r_tot[np.maximum(idx, 0)], p.R_m)
-    cur = (v_at - p.K_v * raw) / r_at
+    rotor = raw if kin.gap is None else kin.gap.rotor_out
+    cur = (v_at - p.K_v * rotor) / r_at
     # A command that acted just before the sample: the current is still settling.
     prev = idx - 1
     since = np.where(idx >= 0, t - act[np.maximum(idx, 0)], np.inf)
     v_old = np.where(prev >= 0, volts[np.maximum(prev, 0)], v_pre)
     r_old = np.where(prev >= 0, r_tot[np.maximum(prev, 0)], p.R_m)
-    cur_old = (v_old - p.K_v * raw) / r_old
+    cur_old = (v_old - p.K_v * rotor) / r_old
     cur = cur + (cur_old - cur) * np.exp(-since * r_at / p.L_m)
+    if eff.current_limit != 0.0:
+        cur = np.clip(cur, -eff.current_limit, eff.current_limit)
+        room = r_at * eff.current_limit
+        v_at = np.clip(v_at, p.K_v * raw - room, p.K_v * raw + room)
     return VoltagePrediction(
         v=meas * p.ratio, v_true=raw * p.ratio, i=cur, x=pos * p.ratio, volts=v_at
     )

@@ -13,6 +13,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from truckd.ident.candidates import cause_problem
 from truckd.ident.data import Series
 from truckd.ident.terrain import hill_problem, rolling_problem
 from truckd.model.effects import Effects
@@ -101,6 +102,9 @@ def effect_problem(
     stall = p.K_T * u_max / p.R_m
     longest = _longest_run(runs)
     delay_max = min(DELAY_MAX_S, DELAY_FRACTION * longest)
+    why = cause_problem(name, value, p, runs)  # current limit, Stribeck, drift
+    if why is not None:
+        return why
     if name == "load_force" and abs(value) > weight:
         return (
             f"|load_force| = {abs(value):.3g} N exceeds the weight the fitted inertia "

@@ -24,7 +24,12 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from truckd.ident.data import Series, noise_std
-from truckd.ident.fastsim import VoltagePrediction, prelog_voltage, simulate_voltage
+from truckd.ident.fastsim import (
+    VoltagePrediction,
+    prelog_voltage,
+    simulate_voltage,
+    winding_rises,
+)
 from truckd.model.effects import Effects
 from truckd.model.params import VehicleParams
 
@@ -132,7 +137,17 @@ def predict(p: VehicleParams, e: Effects, s: Series) -> VoltagePrediction:
     i0 = None if s.i is None else float(s.i[0])
     v_pre = prelog_voltage(p, e, p.omega(v0), i0)
     x0 = 0.0 if s.x is None else float(s.x[0])
-    return simulate_voltage(p, e, s.t, s.inp, v0, s.hist_t, s.hist_inp, v_pre, x0)
+    rise0 = _winding_rise_before(p, e, s)
+    return simulate_voltage(p, e, s.t, s.inp, v0, s.hist_t, s.hist_inp, v_pre, x0, rise0)
+
+
+def _winding_rise_before(p: VehicleParams, e: Effects, s: Series) -> float:
+    """The winding's temperature rise (K) at the start of ``s`` (``resistance_drift``):
+    the run it was cut from simulated up to there (0 when ``s`` starts the run)."""
+    if e.resistance_drift == 0.0 or s.origin is None or s.offset < 1:
+        return 0.0
+    head = s.origin.slice(0, s.offset + 1)
+    return float(winding_rises(p, e, head.t, predict(p, e, head).i, 0.0)[-1])
 
 
 def residuals(p: VehicleParams, e: Effects, data: Sequence[Series], w: Weights) -> Array:

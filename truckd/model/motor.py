@@ -45,13 +45,15 @@ class SegmentInputs:
 
     ``voltage`` applied armature voltage (V); ``load_torque`` torque at the motor shaft
     opposing forward motion (N m), independent of speed; ``viscous`` torque per motor
-    speed (N m s/rad); ``extra_resistance`` series resistance (ohm), e.g. the battery's.
+    speed (N m s/rad); ``extra_resistance`` series resistance (ohm), e.g. the battery's;
+    ``coulomb_extra`` sliding friction (N m) on top of ``K_coulomb`` (Stribeck).
     """
 
     voltage: float
     load_torque: float = 0.0
     viscous: float = 0.0
     extra_resistance: float = 0.0
+    coulomb_extra: float = 0.0
 
 
 def _slide(
@@ -59,7 +61,7 @@ def _slide(
 ) -> tuple[float, float, float]:
     """Closed-form sliding segment of length t (s): ``(i, omega, integral of omega dt)``."""
     f0 = u.voltage / p.L_m
-    f1 = (-s * p.K_coulomb - u.load_torque) / p.J_S
+    f1 = (-s * (p.K_coulomb + u.coulomb_extra) - u.load_torque) / p.J_S
     iss, wss = solve2(a, -f0, -f1)
     d0, d1 = i0 - iss, w0 - wss
     e = expm2(a, t)
@@ -82,6 +84,8 @@ def advance(p: VehicleParams, x: MotorState, u: SegmentInputs, h: float) -> floa
     Returns the motor shaft angle travelled (rad), for the vehicle position.
     """
     a = system_matrix(p, u.viscous, u.extra_resistance)
+    # Breakaway takes at least the sliding friction at zero speed (Stribeck's peak).
+    k_st = max(p.K_stiction, p.K_coulomb + u.coulomb_extra)
     remaining = h
     angle = 0.0
     for _ in range(_MAX_EVENTS):
@@ -90,11 +94,11 @@ def advance(p: VehicleParams, x: MotorState, u: SegmentInputs, h: float) -> floa
         if x.direction == 0:
             i_end = _stuck_current(p, u, x.i, remaining)
             torque = p.K_T * i_end - u.load_torque
-            if abs(torque) <= p.K_stiction:
+            if abs(torque) <= k_st:
                 x.i, x.omega = i_end, 0.0
                 return angle
             # Breakaway: the current is monotone while stuck, so the crossing is closed form.
-            target = math.copysign(p.K_stiction, torque)
+            target = math.copysign(k_st, torque)
             i_t = (target + u.load_torque) / p.K_T
             r = p.R_m + u.extra_resistance
             iss = u.voltage / r
@@ -125,7 +129,7 @@ def advance(p: VehicleParams, x: MotorState, u: SegmentInputs, h: float) -> floa
         remaining -= hi
         torque = p.K_T * i_z - u.load_torque
         x.i, x.omega = i_z, 0.0
-        x.direction = 0 if abs(torque) <= p.K_stiction else (1 if torque > 0 else -1)
+        x.direction = 0 if abs(torque) <= k_st else (1 if torque > 0 else -1)
     # Too many events in one step (a pathological chatter): hold the mode for the rest.
     if x.direction == 0:
         x.i = _stuck_current(p, u, x.i, remaining)

@@ -15,10 +15,18 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from truckd.model.effects import (
+    Gap,
+    current_limited,
     drag_linearisation,
     driver_output,
+    gap_at_start,
+    gap_free_motion,
+    gap_opens,
     load_torque,
     position_dependent,
+    stribeck_torque,
+    winding_resistance,
+    winding_rise_step,
 )
 from truckd.model.motor import MotorState, SegmentInputs, advance
 from truckd.model.params import VehicleParams
@@ -43,6 +51,16 @@ class PlantOutput:
     ticks: int
     vbat: float
     u_applied: float
+
+
+FINE_STEP = 1.25e-4
+"""Longest piece (s) the plant integrates at once while the current limit binds (the
+driver's voltage is held over a piece); about the electrical time constant of the
+default motor."""
+STRIBECK_STEP = 1e-3
+"""Longest piece (s) while the Stribeck friction changes with speed (held over a piece)."""
+STRIBECK_SPAN = 4.0
+"""Below this many Stribeck speeds the friction still changes: integrated in fine pieces."""
 
 
 @dataclass
@@ -71,6 +89,10 @@ class Plant:
         self._constant_load = eff.aero_drag == 0.0 and not position_dependent(eff)
         self._load0 = load_torque(params, eff, 0.0)
         self._inputs = SegmentInputs(voltage=0.0)
+        self.winding_rise = 0.0
+        """Winding temperature above where R_m was measured (K), resistance_drift."""
+        self.gap: Gap = gap_at_start(eff, 0.0)
+        """The backlash gap (closed forward at rest)."""
         self._tick_len = (
             2.0 * math.pi * params.r_w / self.cfg.encoder_ticks_per_rev
             if self.cfg.encoder_ticks_per_rev
@@ -86,6 +108,7 @@ class Plant:
             i=i, omega=omega, direction=(0 if omega == 0 else (1 if omega > 0 else -1))
         )
         self._sensor = _SensorState(v_lag=v, v_quant=v)
+        self.gap = gap_at_start(self.cfg.effects, omega)
 
     @property
     def v(self) -> float:
@@ -105,8 +128,67 @@ class Plant:
 
     def _segment(self, h: float) -> None:
         eff = self.cfg.effects
+        if eff.current_limit == 0.0 and eff.stribeck == 0.0:
+            self._piece(h)
+            return
+        while h > 0.0:
+            step = self._fine()
+            piece = step if h > 1.5 * step else h
+            self._piece(piece)
+            h -= piece
+
+    def _fine(self) -> float:
+        """The longest piece now: shorter while the current limit binds or the Stribeck
+        friction still varies (inf otherwise)."""
+        eff = self.cfg.effects
+        if eff.current_limit != 0.0 and self._limit_binds():
+            return FINE_STEP
+        if eff.stribeck != 0.0 and abs(self.v) < STRIBECK_SPAN * eff.stribeck_speed:
+            return STRIBECK_STEP
+        return math.inf
+
+    def _limit_binds(self) -> bool:
+        eff = self.cfg.effects
+        volts, r_x = driver_output(self._u_active, eff, self.p.V_batt)
+        r = self.p.R_m + r_x + self._winding_extra()
+        return current_limited(self.p, eff, volts, self.motor.omega, r) != volts
+
+    def _gap_piece(self, inputs: SegmentInputs, h: float) -> float:
+        """Opens the backlash gap when the gear torque reverses and moves the rotor across
+        it; returns the time (s) used before the gap closed (0 when it stays closed)."""
+        p, eff, g, m = self.p, self.cfg.effects, self.gap, self.motor
+        r = p.R_m + inputs.extra_resistance
+        coulomb = p.K_coulomb + inputs.coulomb_extra
+        load, viscous = inputs.load_torque, inputs.viscous
+        if g.side != 0:
+            if not gap_opens(p, eff, g, m.omega, inputs.voltage, r, coulomb, load, viscous):
+                return 0.0
+            g.side, g.rotor = 0, m.omega
+        w, angle, used = gap_free_motion(
+            p, eff, g, m.omega, inputs.voltage, r, coulomb, load, viscous, h
+        )
+        self.x += angle * self._ratio
+        self.t += used
+        m.omega = w
+        m.direction = 0 if w == 0.0 else (1 if w > 0.0 else -1)
+        m.i = (inputs.voltage - p.K_v * (g.rotor if g.side == 0 else w)) / r
+        return used
+
+    def _winding_extra(self) -> float:
+        """Resistance (ohm) the winding's heating adds to R_m."""
+        if self.winding_rise == 0.0:
+            return 0.0
+        return winding_resistance(self.p, self.cfg.effects, self.winding_rise) - self.p.R_m
+
+    def _piece(self, h: float) -> None:
+        eff = self.cfg.effects
         inputs = self._inputs
         inputs.voltage, inputs.extra_resistance = driver_output(self._u_active, eff, self.p.V_batt)
+        inputs.extra_resistance += self._winding_extra()
+        if eff.current_limit != 0.0:
+            r = self.p.R_m + inputs.extra_resistance
+            inputs.voltage = current_limited(self.p, eff, inputs.voltage, self.motor.omega, r)
+        inputs.coulomb_extra = stribeck_torque(self.p, eff, self.motor.omega)
         if self._constant_load:
             inputs.load_torque = self._load0
             inputs.viscous = eff.viscous_friction
@@ -114,9 +196,18 @@ class Plant:
             visc_drag, t_drag = drag_linearisation(self.p, eff, self.motor.omega)
             inputs.load_torque = load_torque(self.p, eff, self.x) + t_drag
             inputs.viscous = eff.viscous_friction + visc_drag
-        angle = advance(self.p, self.motor, inputs, h)
-        self.x += angle * self._ratio
-        self.t += h
+        i0 = self.motor.i
+        if eff.backlash != 0.0:
+            h -= self._gap_piece(inputs, h)
+        if h > 0.0:
+            angle = advance(self.p, self.motor, inputs, h)
+            self.x += angle * self._ratio
+            self.t += h
+        if eff.resistance_drift != 0.0:
+            # Copper loss over the piece: the mean of the squared currents at its ends.
+            r = self.p.R_m + self._winding_extra()
+            power = 0.5 * (i0 * i0 + self.motor.i * self.motor.i) * r
+            self.winding_rise = winding_rise_step(eff, self.winding_rise, power, h)
 
     def advance(self, h: float) -> None:
         """Integrate h seconds (h > 0) under the active and pending commands."""
@@ -184,10 +275,14 @@ class Plant:
             and eff.dead_zone == 0.0
             and eff.dead_zone_offset == 0.0
             and eff.voltage_saturation == 0.0
+            and eff.current_limit == 0.0
         ):
             limit = self.p.V_batt
             return v, i, limit, max(-limit, min(limit, self._u_active))
-        volts, _ = driver_output(self._u_active, eff, self.p.V_batt)
+        volts, r_x = driver_output(self._u_active, eff, self.p.V_batt)
+        if eff.current_limit != 0.0:
+            r = self.p.R_m + r_x + self._winding_extra()
+            volts = current_limited(self.p, eff, volts, self.motor.omega, r)
         duty = volts / self.p.V_batt
         vbat = self.p.V_batt - eff.battery_sag * duty * self.motor.i
         return v, i, vbat, volts - eff.battery_sag * duty * duty * self.motor.i
