@@ -162,7 +162,9 @@ class Daemon:
         if self.rt.telemetry.enabled:
             self.telemetry = Telemetry(self.cfg.vehicle_id, self.rt.telemetry, self.params)
             self.telemetry.start()
-            self.platoon.subscribe(self.telemetry.subscribe_key, self.rt.fault_injection)
+            self.platoon.subscribe(
+                self.telemetry.subscribe_key, self.rt.fault_injection, self.telemetry.subscribe_raw
+            )
             if self.rt.fault_injection:
                 self.telemetry.subscribe("inject", self.faults.apply)
         if self.rt.recorder.enabled:

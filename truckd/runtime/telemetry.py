@@ -170,6 +170,20 @@ class Telemetry:
 
         self._subs.append(self._session.declare_subscriber(key, on_sample))
 
+    def subscribe_raw(self, key: str, callback: Callable[[zenoh.ZBytes], None]) -> None:
+        """Like :meth:`subscribe_key`, passing the payload uncopied (``to_bytes()`` when
+        needed): the callback's work does not grow with the payload's size."""
+        if self._session is None:
+            raise RuntimeError("Telemetry.subscribe before start")
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            try:
+                callback(sample.payload)
+            except Exception as exc:  # never kill zenoh's callback thread
+                log.warning("%s handler failed: %s", key, exc)
+
+        self._subs.append(self._session.declare_subscriber(key, on_sample))
+
     def _on_query(self, query: zenoh.Query) -> None:
         self.queries += 1
         try:
