@@ -54,7 +54,7 @@ def test_garbage_floods_cost_one_decode_per_cycle_and_never_raise(decodes: list[
     r.on_payload(_plan(5))
     assert r.latest() is not None
     bombs = [b"\xff\xfe", b"[" * 100_000 + b"]" * 100_000, b"{}", b"nan", b"x" * 10]
-    for cycle in range(50):
+    for _cycle in range(50):
         for b in bombs:
             r.on_payload(b)
         p = r.latest()
@@ -117,7 +117,7 @@ def test_health_reports_a_flood_and_the_monitor_shows_it() -> None:
     assert h["plan_rate_hz"] == pytest.approx(1.0 / period)
     assert h["plan_flood"] is False
     # a flood: 100 per cycle
-    for k in range(round(0.5 / period) * 100):
+    for _k in range(round(0.5 / period) * 100):
         pl.receiver.on_payload(b"x")
     wall[0] += 0.5
     h = pl.health()
