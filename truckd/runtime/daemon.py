@@ -99,6 +99,7 @@ class Daemon:
             self.ticks_per_rev,
             self.rt.stop_ramp_v_per_s,
             time_budget=True,  # on the car a late solve is a failure
+            stall_limit_s=self.rt.stall_limit_s,
         )
         self.controller = self.companion.controller
         self.platoon = DaemonPlatoon(cfg.vehicle_id, cfg.platoon, self.companion)
@@ -136,6 +137,7 @@ class Daemon:
         self._states_sent = 0
         self._rate_mark = (0.0, 0)
         self._transitions: list[dict[str, object]] = []
+        self._last_stall_t: float | None = None
 
     # -- start-up and shutdown -----------------------------------------------------
     def params(self) -> dict[str, Any]:
@@ -321,6 +323,14 @@ class Daemon:
         self.out, self.decision = out.control, out.decision
         self._last_cycle = out
         self.u, self.enable, self.seq = out.command.voltage, out.command.enable, out.seq + 1
+        if out.stall_s > 0.0:
+            log.warning(
+                "loop stalled for %.3f s (limit %.3f s) at t=%.3f s: estimator and controller "
+                "re-initialised, motor off until the sensors are fresh",
+                out.stall_s, self.rt.stall_limit_s, out.t,
+            )  # fmt: skip
+            self._last_stall_t = out.t
+            self._next_health = 0.0  # publish health now
         if out.error is not None and self.companion.controller_errors <= 3:
             log.error("controller failed: %s", out.error)
         tr = out.decision.transition
@@ -423,6 +433,12 @@ class Daemon:
             "realtime": self.realtime.as_dict(),
             "state_rate_hz": rate,
             "injected": {"solver": self.faults.solver_fail, "overrun_s": self.faults.overrun_s},
+            "stall": {
+                "count": self.companion.stalls,
+                "last_s": self.companion.last_stall_s if self.companion.stalls else None,
+                "last_t": self._last_stall_t,
+                "limit_s": self.rt.stall_limit_s,
+            },
             "pid": os.getpid(),
             "platoon": self.platoon.health(),
         }
