@@ -5,8 +5,10 @@ read (checked messages) -> estimate + control (the pure Controller) -> supervise
 -> command (always finite, within limits) -> publish (Zenoh, non-blocking) -> record
 (CSV, non-blocking) -> watchdog -> keep rate.
 
-SIGTERM/SIGINT end the loop at the next cycle: the motor is commanded off, the log
-flushed, the link closed, and ``run`` returns 0.
+SIGTERM, SIGINT and SIGHUP (unless ignored at start, as under ``nohup``) end the loop at
+the next cycle: the motor is commanded off, the logs flushed and closed (the MCAP with
+its index), the link closed, and ``run`` returns 0.  At start, MCAP files a crash left
+unfinished in the log directory are recovered (:mod:`truckd.runtime.mcap_recover`).
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ import os
 import signal
 import time
 from collections.abc import Callable, Mapping
+from pathlib import Path
 from typing import Any
 
 from firmware_protocol.messages import CompanionHeartbeat, CompanionState, MotorCommand
@@ -34,6 +37,7 @@ from truckd.runtime.cycle import CompanionCycle, CycleInputs, CycleOutputs, stat
 from truckd.runtime.deferred import Deferred
 from truckd.runtime.faults import RuntimeFaults, wrap_solver
 from truckd.runtime.mcap_log import McapLog
+from truckd.runtime.mcap_recover import recover_dir
 from truckd.runtime.notify import Notifier
 from truckd.runtime.platoon_link import DaemonPlatoon, platoon_state_fields
 from truckd.runtime.ratekeeper import RateKeeper
@@ -170,6 +174,7 @@ class Daemon:
             if self.rt.fault_injection:
                 self.telemetry.subscribe("inject", self.faults.apply)
         if self.rt.recorder.enabled:
+            self._recover_logs()
             self.mcap = McapLog.for_recorder(self.cfg.vehicle_id, self.rt.recorder)
             self.recorder = Recorder(self.rt.recorder, LOG_COLUMNS, sidecar=self.mcap)
             self.recorder.start()
@@ -187,6 +192,16 @@ class Daemon:
             "truckd %s: backend %s, %.0f Hz", self.cfg.vehicle_id, self.backend_name,
             self.control_cfg.rate_hz,
         )  # fmt: skip
+
+    def _recover_logs(self) -> None:
+        """Finish the MCAP files a crash left unfinished in the log directory (index and
+        footer rewritten; files another running daemon writes are left alone)."""
+        d = Path(self.rt.recorder.dir)
+        if not d.is_dir():
+            return
+        for r in recover_dir(d):
+            if r.status == "recovered":
+                log.warning("%s", r.line())
 
     def request_stop(self, signum: int = 0, _frame: object = None) -> None:
         """Signal handler: finish the current cycle, then shut down."""
@@ -255,8 +270,15 @@ class Daemon:
             self.telemetry.close()
 
     def run(self) -> int:
-        """Start, loop until SIGTERM/SIGINT or the duration, shut down; exit code 0."""
-        old = {s: signal.signal(s, self.request_stop) for s in (signal.SIGTERM, signal.SIGINT)}
+        """Start, loop until SIGTERM/SIGINT/SIGHUP or the duration, shut down; exit code 0.
+
+        SIGHUP (the terminal hung up) stops like SIGTERM, unless it is ignored when the
+        daemon starts (``nohup``): an ignored SIGHUP stays ignored.  systemd sends none
+        (the unit has no ``SendSIGHUP=`` and no reload)."""
+        sigs = [signal.SIGTERM, signal.SIGINT]
+        if signal.getsignal(signal.SIGHUP) is not signal.SIG_IGN:
+            sigs.append(signal.SIGHUP)
+        old = {s: signal.signal(s, self.request_stop) for s in sigs}
         try:
             self.start()
             self.realtime = setup_realtime(
