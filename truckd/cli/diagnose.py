@@ -15,8 +15,9 @@ from truckd.cli.args import json_file, model_file, report_dir, report_notes, vol
 from truckd.cli.identify import add_gap_option, check_gap
 from truckd.config.truck import load_config
 from truckd.ident.api import diagnose_log, model_of, read_logs, require_physical
+from truckd.ident.sysid import split_selector
 from truckd.modelfile import model_text
-from truckd.outputs import atomic_dir, check_distinct, write_set
+from truckd.outputs import atomic_dir, check_distinct, guard_inputs, write_set
 
 
 def add_subparser(sub: Any) -> None:
@@ -46,6 +47,15 @@ def _progress(msg: str) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Refuses an output that is one of the inputs (see :func:`guard_inputs`)."""
+    with guard_inputs(
+        [*(split_selector(p)[0] for p in [*args.logs, *(args.validate or [])]), args.config],
+        [("--json", args.json), ("--out", args.out), ("--report", args.report)],
+    ):
+        return _run(args)
+
+
+def _run(args: argparse.Namespace) -> int:
     check_distinct([("--out", args.out), ("--json", args.json), ("--report", args.report)])
     check_gap(args.gap)
     cfg = load_config(args.config)
