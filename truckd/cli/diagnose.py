@@ -20,6 +20,12 @@ from truckd.modelfile import model_text
 from truckd.outputs import atomic_dir, check_distinct, guard_inputs, write_set
 
 
+DIAGNOSE_MAX_ROWS = 360_000
+"""Rows of one log diagnosed at most (an hour at 100 Hz): a longer log is read whole (every
+row checked, memory for the rows kept only) and diagnosed on 8 evenly spread stretches
+of 45 000 rows, each a run, so memory and time stay bounded (docs/diagnosis.md)."""
+
+
 def add_subparser(sub: Any) -> None:
     p = sub.add_parser("diagnose", help="name what the model is missing, extend it")
     p.add_argument(
@@ -59,8 +65,8 @@ def _run(args: argparse.Namespace) -> int:
     check_distinct([("--out", args.out), ("--json", args.json), ("--report", args.report)])
     check_gap(args.gap)
     cfg = load_config(args.config)
-    logs = read_logs(args.logs, args.vbat)
-    val = read_logs(args.validate, args.vbat) if args.validate else None
+    logs = read_logs(args.logs, args.vbat, DIAGNOSE_MAX_ROWS)
+    val = read_logs(args.validate, args.vbat, DIAGNOSE_MAX_ROWS) if args.validate else None
     report_notes([n for lg in [*logs, *(val or [])] for n in lg.notes])
     diag = diagnose_log(logs, cfg.vehicle, val, _progress, args.gap)
     name = " ".join(args.logs)
