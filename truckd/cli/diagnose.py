@@ -19,7 +19,6 @@ from truckd.ident.sysid import split_selector
 from truckd.modelfile import model_text
 from truckd.outputs import atomic_dir, check_distinct, guard_inputs, write_set
 
-
 DIAGNOSE_MAX_ROWS = 360_000
 """Rows of one log diagnosed at most (an hour at 100 Hz): a longer log is read whole (every
 row checked, memory for the rows kept only) and diagnosed on 8 evenly spread stretches
