@@ -4,7 +4,8 @@ A synthetic log of ``--rows`` rows at 100 Hz (``t, u, v``: piecewise-constant vo
 levels of 2 s, a first-order truck with 0.6 s time constant, 3 mm/s speed noise; the
 same text per row as a daemon-style export, about 22 bytes) is written to a temporary
 directory; ``truckd diagnose LOG`` runs in a child process, whose peak resident memory
-(``getrusage(RUSAGE_CHILDREN).ru_maxrss``), CPU time and wall time are recorded.  CPU
+(``getrusage(RUSAGE_CHILDREN).ru_maxrss`` in a process of its own per log), CPU time and
+wall time are recorded.  CPU
 time is the figure to compare on a shared machine (wall time includes waiting for it).
 
     nice .venv/bin/python benchmarks/diagnose_memory_bench.py [--rows N ...]
@@ -20,7 +21,6 @@ import argparse
 import json
 import os
 import platform
-import resource
 import subprocess
 import sys
 import tempfile
@@ -55,25 +55,34 @@ def write_log(path: Path, rows: int, seed: int = 1) -> int:
     return path.stat().st_size
 
 
+_CHILD = """
+import json, resource, subprocess, sys, time
+t0 = time.perf_counter()
+p = subprocess.run(sys.argv[1:], capture_output=True, text=True, check=False)
+wall = time.perf_counter() - t0
+ru = resource.getrusage(resource.RUSAGE_CHILDREN)
+print(json.dumps({"code": p.returncode, "stdout": p.stdout, "stderr": p.stderr, "wall": wall,
+                  "maxrss_kib": ru.ru_maxrss, "cpu": ru.ru_utime + ru.ru_stime}))
+"""
+"""Runs the command as its only child and reports that child's rusage (ru_maxrss of
+RUSAGE_CHILDREN is the largest child so far: one measuring process per log)."""
+
+
 def measure(log: Path) -> dict[str, Any]:
     """``truckd diagnose log`` in a child: peak RSS (MiB), CPU and wall seconds."""
-    before = resource.getrusage(resource.RUSAGE_CHILDREN)
-    t0 = time.perf_counter()
+    cmd = [sys.executable, "-m", "truckd.cli.main", "diagnose", str(log)]
     p = subprocess.run(
-        [sys.executable, "-m", "truckd.cli.main", "diagnose", str(log)],
-        cwd=ROOT, capture_output=True, text=True, check=False,
-    )  # fmt: skip
-    wall = time.perf_counter() - t0
-    after = resource.getrusage(resource.RUSAGE_CHILDREN)
-    if p.returncode != 0:
-        raise SystemExit(f"diagnose failed ({p.returncode}): {p.stderr[-2000:]}")
-    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+        [sys.executable, "-c", _CHILD, *cmd], cwd=ROOT, capture_output=True, text=True, check=True
+    )
+    r = json.loads(p.stdout)
+    if r["code"] != 0:
+        raise SystemExit(f"diagnose failed ({r['code']}): {r['stderr'][-2000:]}")
     return {
-        "peak_rss_mib": after.ru_maxrss / 1024.0,  # KiB on Linux; the largest child so far
-        "cpu_s": cpu,
-        "wall_s": wall,
-        "notes": [line for line in p.stderr.splitlines() if line.startswith("note:")],
-        "fit_line": next((ln for ln in p.stdout.splitlines() if ln.startswith("extended")), ""),
+        "peak_rss_mib": r["maxrss_kib"] / 1024.0,  # KiB on Linux
+        "cpu_s": r["cpu"],
+        "wall_s": r["wall"],
+        "notes": [ln for ln in r["stderr"].splitlines() if ln.startswith("note:")],
+        "fit_line": next((ln for ln in r["stdout"].splitlines() if ln.startswith("extended")), ""),
     }
 
 
@@ -91,7 +100,6 @@ def main() -> int:
     }
     runs = []
     with tempfile.TemporaryDirectory() as tmp:
-        # rows in increasing order: ru_maxrss is the largest child so far
         for rows in sorted(args.rows):
             log = Path(tmp) / f"log{rows}.csv"
             size = write_log(log, rows)
