@@ -28,7 +28,7 @@ by ``loop_bench.py``.
   something outside the process does: on a virtual machine, the host's other tenants
   and the host moving the virtual CPU between cores.  This machine: see README.
 
-``--root DIR`` measures the truckd of another checkout (e.g. the previous release, for a
+``--root DIR`` measures the truckd of another checkout (e.g. an earlier commit's git archive, for a
 side-by-side figure).
 
     .venv/bin/python benchmarks/cycle_work.py [--root DIR] [--json FILE]
@@ -47,6 +47,8 @@ import sys
 import tempfile
 from pathlib import Path
 from typing import Any
+
+from results import write_json
 
 ROOT = Path(__file__).resolve().parent.parent
 LOG = ROOT / "tests" / "data" / "replay" / "run.rx.jsonl"
@@ -205,6 +207,11 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--root", type=Path, default=ROOT, help="the checkout whose truckd runs")
     ap.add_argument("--json", metavar="FILE")
+    ap.add_argument(
+        "--key",
+        metavar="NAME",
+        help="store the run under NAME in --json's file (what_YYYY-MM-DD), not at its top level",
+    )
     args = ap.parse_args()
     if not (args.root / "truckd" / "runtime" / "cycle.py").is_file():
         print(f"cycle_work: {args.root}: not a truckd checkout", file=sys.stderr)
@@ -221,7 +228,7 @@ def main() -> int:
     print(f"  p50 after a busy gap    {busy} us")
     print(f"  load average            {r['machine']['loadavg_1_5_15'][0]:.2f}")
     if args.json:
-        Path(args.json).write_text(json.dumps(r, indent=2) + "\n")
+        write_json(args.json, r, args.key)
     return 0
 
 

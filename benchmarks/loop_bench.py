@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 import yaml
 import zenoh
+from results import write_json
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
@@ -217,6 +218,11 @@ def main() -> int:
     ap.add_argument("--duration", type=float, default=60.0)
     ap.add_argument("--backend", choices=("serial", "sim"), default="serial")
     ap.add_argument("--json", metavar="FILE")
+    ap.add_argument(
+        "--key",
+        metavar="NAME",
+        help="store the run under NAME in --json's file (what_YYYY-MM-DD), not at its top level",
+    )
     ap.add_argument("--stages", action="store_true", help="time each stage of the cycle")
     ap.add_argument(
         "--cpu-latency-us",
@@ -249,7 +255,7 @@ def main() -> int:
     for k, (p50, p99) in r.get("stages_us_p50_p99", {}).items():
         print(f"  stage {k.ljust(w - 6)}  {p50:.0f} / {p99:.0f} us (p50 / p99)")
     if args.json:
-        Path(args.json).write_text(json.dumps(r, indent=2) + "\n")
+        write_json(args.json, r, args.key)
     return 0
 
 

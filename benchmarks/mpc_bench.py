@@ -5,8 +5,9 @@ The controller is timed in both formulations back to back (replays alternating):
 move-blocked condensed QP (``blocked``, the default ``move_blocks``, 8 if the
 configuration has 0) and the sparse QP (``sparse``, ``move_blocks: 0``).  Cold OSQP and
 cvxpy solve the sparse QP (the full problem); ``max_abs_diff_u`` of ``blocked`` is thus
-the first-move change that blocking makes against the full QP's optimum.  ``previous``
-is the sparse QP at the tolerance shipped before (eps 1e-5, :data:`PREVIOUS_EPS`).
+the first-move change that blocking makes against the full QP's optimum.  ``sparse_1e-5``
+is the sparse QP at the tolerance it shipped with until 2026-11-23
+(:data:`SPARSE_EPS_UNTIL_2026_11_23`).
 
 What each time covers (wall clock, ``time.perf_counter`` around the call):
 
@@ -59,8 +60,8 @@ from truckd.sim.closed_loop import SimSetup, run_scenario
 from truckd.sim.plant import Plant
 from truckd.sim.scenarios import World, make_scenario
 
-PREVIOUS_EPS = 1e-5
-"""The OSQP tolerance shipped with the sparse QP before issue 11 (``previous`` rows)."""
+SPARSE_EPS_UNTIL_2026_11_23 = 1e-5
+"""The OSQP tolerance the sparse QP shipped with until 2026-11-23 (``sparse_1e-5`` rows)."""
 
 CVXPY_NOTE = (
     "warm: MpcSolver.solve whole (q/l/u, update, shifted warm start, solve, checks); "
@@ -229,7 +230,7 @@ def main(argv: list[str] | None = None) -> int:
         cfgs = {
             "blocked": dataclasses.replace(cfg, move_blocks=cfg.move_blocks or 8),
             "sparse": dataclasses.replace(cfg, move_blocks=0),
-            "previous": dataclasses.replace(cfg, move_blocks=0, eps=PREVIOUS_EPS),
+            "sparse_1e-5": dataclasses.replace(cfg, move_blocks=0, eps=SPARSE_EPS_UNTIL_2026_11_23),
         }
         runs: dict[str, list[WarmRun]] = {f: [] for f in cfgs}
         for _ in range(args.repeats):

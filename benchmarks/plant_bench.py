@@ -1,6 +1,6 @@
 """Simulated-plant speed: a 60 s log at 100 Hz, open loop, on one core.
 
-Prints a table and, with ``--json FILE``, writes the figures.  Aim (issue 2): at least
+Prints a table and, with ``--json FILE``, writes the figures.  Aim: at least
 1000x faster than real time, i.e. under 60 ms of compute for the 60 s log.
 """
 

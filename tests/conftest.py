@@ -7,6 +7,8 @@ import pytest
 from truckd.config.truck import load_config
 from truckd.model.params import VehicleParams
 
+pytest_plugins = ["tool_markers"]  # the needs_tool marker (tests/tool_markers.py)
+
 
 @pytest.fixture(scope="session")
 def params() -> VehicleParams:

@@ -1,4 +1,4 @@
-"""Issue 9, bad input: every case exits 2 with one line naming the file and what was
+"""Bad input: every case exits 2 with one line naming the file and what was
 expected; never a traceback, never a hang, never a half-written output."""
 
 from __future__ import annotations

@@ -107,7 +107,7 @@ def test_step_lead_forecast_is_an_input() -> None:
         ub = b.step(CycleInputs(k * 0.01, msgs, lead_forecast=[1.5] * n)).command.voltage
     # A lead said to drive away at 1.5 m/s lets the truck go harder.  The margin is well
     # above the command's cycle-to-cycle change (18 mV in cruise) but below what the rate
-    # weight r_du = 5 (issue 11's smooth command) lets build up in 0.4 s (0.64 V here;
+    # weight r_du = 5 (the smooth-command tuning) lets build up in 0.4 s (0.64 V here;
     # 1.0 V held only with the former r_du = 0.3).
     assert ub > ua + 0.3
 

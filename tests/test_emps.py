@@ -1,7 +1,7 @@
 """Real data: the EMPS rig (force input), against the published reference model.
 
-The data must be there (``<repo>/../shared/data/emps`` or $TRUCKD_EMPS_DIR): a missing
-file fails the test, it does not skip it.  Published (Janot et al. 2019, IDIM-LS):
+The data ships in ``tests/data/emps`` (README there: provenance, licence): a missing file
+fails the test, it does not skip it.  Published (Janot et al. 2019, IDIM-LS):
 M = 95.1089 kg, Fv = 203.5034 N s/m, Fc = 20.3935 N, offset = -3.1648 N, force relative
 error 4.0834 % on DATA_EMPS (training) and 5.9824 % on DATA_EMPS_PULSES (cross-test).
 """
@@ -20,8 +20,11 @@ from truckd.logfile import write_log
 from truckd.model.params import VehicleParams
 
 
-def test_emps_data_is_present() -> None:
+def test_emps_data_is_present(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The loader's default is the copy in this repository's tests/data/emps."""
+    monkeypatch.delenv("TRUCKD_EMPS_DIR", raising=False)
     d = emps_dir()
+    assert d == Path(__file__).resolve().parent / "data" / "emps"
     assert (d / TRAIN).is_file(), f"EMPS data missing in {d}"
     assert (d / TEST).is_file(), f"EMPS data missing in {d}"
 

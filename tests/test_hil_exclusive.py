@@ -1,4 +1,4 @@
-"""One daemon per device (issue 9): a second `truckd run` on the serial device that a
+"""One daemon per device: a second `truckd run` on the serial device that a
 first one drives fails to start, names the device and the first one's pid, and sends
 nothing: the firmware sees no counter gap, no bad frame, no motor-off, and the first
 daemon keeps driving."""
@@ -70,7 +70,7 @@ def test_second_daemon_on_one_device_fails_and_sends_nothing(
         before = fw.status()
         assert before["last_command"]["enable"], before
 
-        # B1: the issue's case, same Zenoh port too; B2: its own port (only the device
+        # B1: one configuration twice, same Zenoh port too; B2: its own port (only the device
         # is shared).  Both must fail at the device lock, before Zenoh or the link.
         (tmp_path / "b2").mkdir()
         cfg_b2 = hil_config(tmp_path / "b2", pty, new_port())

@@ -124,7 +124,7 @@ def rig(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Rig]:
 
 def stop_detected_in_time(stop: Sample, age_key: str, timeout: float, period: float) -> None:
     """The first stopped sample: the data's age just past its timeout (<= 2 periods, the
-    issue's bound; +1 ms for the detecting cycle's wake lateness, as ages are measured at
+    required bound; +1 ms for the detecting cycle's wake lateness, as ages are measured at
     wake-up and cycles start on the grid)."""
     age = stop.msg["ages_ms"][age_key]
     assert age is not None

@@ -9,7 +9,6 @@ fit of SysId's equation computed here, independently of truckd.ident.linear.
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
 import numpy as np
@@ -20,11 +19,8 @@ from truckd.errors import InputError
 from truckd.ident.api import diagnose_log, read_logs
 from truckd.model.params import VehicleParams
 
-DATA = Path(
-    os.environ.get("TRUCKD_SYSID_DIR")
-    or Path(__file__).resolve().parents[1].parent / "shared" / "data" / "sysid"
-)
-"""``$TRUCKD_SYSID_DIR`` or ``<repo>/../shared/data/sysid`` (as the EMPS data)."""
+DATA = Path(__file__).resolve().parent / "data" / "sysid"
+"""The copy in this repository (README there: provenance, licence)."""
 FILE = DATA / "frc_swerve_12_12.json"
 RAMPS = f"{FILE}:slow-forward,slow-backward"
 STEPS = f"{FILE}:fast-forward,fast-backward"
@@ -37,7 +33,7 @@ FIT_TOL = 1.5
 
 def _require_data() -> None:
     if not FILE.exists():
-        pytest.fail(f"SysId data missing: {FILE} (set TRUCKD_SYSID_DIR)")
+        pytest.fail(f"SysId data missing: {FILE}")
 
 
 def _ols_sysid(path: Path, tests: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:

@@ -1,4 +1,4 @@
-"""Issue 9: property-based fuzz of the CSV reader, the configuration and model loaders
+"""Property-based fuzz of the CSV reader, the configuration and model loaders
 and the command-line parsing.  Whatever the input: the result is a value or one
 :class:`InputError` line (exit 2), never another exception, never a traceback.  Time is
 bounded by a fixed number of examples; memory by running the bombs in a child process

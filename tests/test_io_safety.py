@@ -1,4 +1,4 @@
-"""The hardware path's safety (issue 9): sends never wait (a stalled line drops and
+"""The hardware path's safety: sends never wait (a stalled line drops and
 counts), a missing device is named once in the log and retried, the device lock."""
 
 from __future__ import annotations
@@ -216,7 +216,7 @@ def _pty_config(tmp_path: Path, dev: str, **telemetry: Any) -> Path:
 def test_zenoh_failure_stops_start_before_the_link_opens(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """The issue's second daemon failed on the Zenoh port after opening the device and then
+    """A second daemon used to fail on the Zenoh port after opening the device and then
     sent motor-off into it.  Now Zenoh comes first: the device is never opened."""
     import socket
 

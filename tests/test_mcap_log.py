@@ -233,7 +233,7 @@ def test_sim_mcap_file_needs_one_scenario(
 
 
 def test_sim_mcap_carries_the_supervisors_mode_and_enable(tmp_path: Path) -> None:
-    """The sim runs the daemon's cycle (issue 11): its MCAP shows the supervisor's mode
+    """The sim runs the daemon's cycle: its MCAP shows the supervisor's mode
     and the driver enable of each cycle, as the --trace log records them, not a constant."""
     argv = ["sim", "--scenario", "cruise", "--duration", "1", "--mcap", str(tmp_path / "m"),
             "--trace", str(tmp_path / "tr")]  # fmt: skip

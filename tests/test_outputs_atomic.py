@@ -1,4 +1,4 @@
-"""Issue 9, outputs all or nothing: a write that fails leaves no half-written file, no
+"""Outputs all or nothing: a write that fails leaves no half-written file, no
 temporary file, and an existing target untouched."""
 
 from __future__ import annotations

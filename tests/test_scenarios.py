@@ -1,5 +1,5 @@
 """Closed-loop scenarios through the simulated firmware and the real protocol: the pass
-criteria of issue 4 on every scenario, and ``truckd sim`` end to end."""
+criteria of each scenario (no collision, gap error, limits), and ``truckd sim`` end to end."""
 
 from __future__ import annotations
 
@@ -211,7 +211,7 @@ def test_cli_sim_bad_duration_and_model_exit_2(tmp_path: Path) -> None:
 
 
 def test_model_file_with_the_plants_effect_beats_the_seed_model(tmp_path: Path) -> None:
-    """Issue 6's comparison through the CLI: the plant has a 50 ms input delay; the
+    """Seed model against extended model through the CLI: the plant has a 50 ms input delay; the
     controller with the seed model oscillates, with the extended MODEL.yaml it does not."""
     import yaml
 
@@ -221,8 +221,8 @@ def test_model_file_with_the_plants_effect_beats_the_seed_model(tmp_path: Path) 
 
     doc = yaml.safe_load(default_config_path().read_text())
     doc["plant"]["effects"]["input_delay"] = 0.05
-    # The aggressive tuning of issue 6 (rate weight 0.3, own-speed filter 3 m/s^2): the
-    # shipped smoother one (issue 11) keeps even the seed model stable at 50-100 ms delay.
+    # The earlier, aggressive tuning (rate weight 0.3, own-speed filter 3 m/s^2): the
+    # shipped smoother one keeps even the seed model stable at 50-100 ms delay.
     doc["control"]["r_du"] = 0.3
     doc["control"]["estimator"]["speed_accel_std"] = 3.0
     cfg_file = tmp_path / "truck.yaml"

@@ -1,4 +1,4 @@
-"""``truckd sim --platoon``: the platoon scenarios' pass criteria (issue 12), in simulated
+"""``truckd sim --platoon``: the platoon scenarios' pass criteria, in simulated
 time with plans passed as over Zenoh (20 ms delay)."""
 
 from __future__ import annotations

@@ -21,11 +21,11 @@ PREVIOUS_SPEED_ACCEL_STD = 3.0
 """The settings before the smooth-command change (the comparison's "before")."""
 
 MEAN_DU_AIM_V = 0.020
-"""Issue 11's aim: at most 20 mV per cycle in steady cruise."""
+"""The aim: at most 20 mV per cycle in steady cruise."""
 
 
 def _run(tc: TruckConfig, cfg: ControlConfig, name: str) -> tuple[dict[str, object], Trace]:
-    # run_scenario runs in simulated time: no wall-clock budget (issue 11), no workaround.
+    # run_scenario runs in simulated time: no wall-clock budget, no workaround.
     setup = SimSetup(tc.vehicle, tc.plant, cfg, ControlModel(tc.vehicle), 512)
     return run_scenario(make_scenario(name, tc.vehicle, cfg), setup)
 

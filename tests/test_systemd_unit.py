@@ -4,7 +4,6 @@ and the directives the daemon relies on present."""
 from __future__ import annotations
 
 import re
-import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -15,12 +14,9 @@ UNIT = Path(__file__).resolve().parent.parent / "systemd" / "truckd.service"
 EXPOSURE_THRESHOLD = 2.5  # systemd-analyze security scale 0 (locked down) .. 10 (exposed)
 
 
-@pytest.fixture(autouse=True)
-def _systemd_analyze_required() -> None:
-    """The unit checks are part of the suite: a missing tool fails, never skips."""
-    assert shutil.which("systemd-analyze") is not None, (
-        "systemd-analyze is required by the unit tests (Debian package: systemd)"
-    )
+pytestmark = pytest.mark.needs_tool("systemd-analyze", install="apt-get install -y systemd")
+"""Every check here runs systemd-analyze (tests/tool_markers.py: skipped when missing,
+failed in CI)."""
 
 
 def installed_copy(tmp_path: Path, text: str | None = None) -> Path:

@@ -36,7 +36,7 @@ def add_subparser(sub: Any) -> None:
     p.add_argument("--validate", nargs="+", metavar="LOG.csv", help="validation logs (same kind)")
     p.add_argument("--config", help="configuration file (starting values and bounds)")
     p.add_argument(
-        "--json", type=json_file, metavar="FILE", help="write the result (CONTRACTS.md section 4)"
+        "--json", type=json_file, metavar="FILE", help="write the result (docs/reference.md 4)"
     )
     p.add_argument(
         "--report", type=report_dir, metavar="DIR", help="write index.html with plots here"

@@ -20,6 +20,7 @@ import threading
 from collections.abc import Iterator, Sequence
 from types import FrameType
 
+import truckd
 from truckd.errors import InputError, TruckdError
 
 # Subcommand name -> module with add_subparser(subparsers) and run(args) -> int.
@@ -46,6 +47,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     """The parser with ``command``'s subparser only (its module alone is imported), or with
     every subcommand when ``command`` is None or not one of them."""
     parser = _Parser(prog="truckd", description="Model-scale truck controller and tools.")
+    parser.add_argument("--version", action="version", version=f"truckd {truckd.version()}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     sub.required = True
     chosen = {command: SUBCOMMANDS[command]} if command in SUBCOMMANDS else SUBCOMMANDS

@@ -12,7 +12,7 @@ from truckd.config.truck import load_config
 def add_subparser(sub: Any) -> None:
     p = sub.add_parser("params", help="print the vehicle parameters")
     p.add_argument("--config", help="configuration file (default: the shipped one)")
-    p.add_argument("--json", action="store_true", help="print JSON (CONTRACTS.md section 2)")
+    p.add_argument("--json", action="store_true", help="print JSON (docs/reference.md section 2)")
     p.set_defaults(run=run)
 
 

@@ -1,10 +1,11 @@
 """The EMPS benchmark data (real measurements) as contract force-input logs.
 
-The rig's two MATLAB files live in ``<repo>/../shared/data/emps`` (override with the
-environment variable ``TRUCKD_EMPS_DIR``).  :func:`emps_log` turns one into a
+The rig's two MATLAB files ship with the repository in ``tests/data/emps`` (their README
+gives provenance and licence); the environment variable ``TRUCKD_EMPS_DIR`` names another
+directory.  :func:`emps_log` turns one into a
 :class:`truckd.logfile.Log` with ``t`` (s), ``F = gtau * vir`` (N, load side), ``x``
 (m, measured position) and the reference ``x_ref`` (m); ``python -m truckd.ident.emps
-OUTDIR`` writes both as CSV.
+OUTDIR [DATADIR]`` writes both as CSV.
 """
 
 from __future__ import annotations
@@ -23,11 +24,11 @@ TEST = "DATA_EMPS_PULSES.mat"
 
 
 def emps_dir() -> Path:
-    """Where the EMPS files are: ``$TRUCKD_EMPS_DIR`` or ``<repo>/../shared/data/emps``."""
+    """Where the EMPS files are: ``$TRUCKD_EMPS_DIR`` or the checkout's ``tests/data/emps``."""
     env = os.environ.get("TRUCKD_EMPS_DIR")
     if env:
         return Path(env)
-    return Path(__file__).resolve().parents[2].parent / "shared" / "data" / "emps"
+    return Path(__file__).resolve().parents[2] / "tests" / "data" / "emps"
 
 
 def emps_log(name: str, directory: Path | None = None) -> Log:
@@ -48,12 +49,14 @@ def emps_log(name: str, directory: Path | None = None) -> Log:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Write ``emps_train.csv`` and ``emps_test.csv`` into the directory given."""
+    """Write ``emps_train.csv`` and ``emps_test.csv`` into the directory given (first
+    argument), read from the EMPS directory given second (default :func:`emps_dir`)."""
     args = sys.argv[1:] if argv is None else argv
     out = Path(args[0] if args else ".")
+    data = Path(args[1]) if len(args) > 1 else None
     out.mkdir(parents=True, exist_ok=True)
     for name, csv in ((TRAIN, "emps_train.csv"), (TEST, "emps_test.csv")):
-        write_log(out / csv, emps_log(name).columns)
+        write_log(out / csv, emps_log(name, data).columns)
         print(f"{name} -> {out / csv}")
     return 0
 

@@ -400,7 +400,7 @@ class Daemon:
         to_mcap = mc is not None and mc.wants_state(out.seq)
         if to_tel or to_mcap:
             # Built on the publisher or the recorder thread, whichever needs it first: the
-            # loop's cycle only hands over its frozen outputs (docs/daemon.md, "Sixth pass").
+            # loop's cycle only hands over its frozen outputs (docs/daemon.md, "Performance").
             msg = Deferred(_state_message, out, self.rk.last_lateness, self.platoon.decision)
             if mc is not None and to_mcap:
                 mc.record_state(out.t, msg)

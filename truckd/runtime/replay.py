@@ -35,7 +35,7 @@ def cycle_from_params(params: dict[str, Any], t0: float, source: str) -> Compani
             load_dataclass(VehicleParams, params["model"]["vehicle"], source),
             load_dataclass(Effects, params["model"]["effects"], source),
         )
-        # A log recorded before `control.move_blocks` existed ran the sparse QP (issue 11).
+        # A log recorded before `control.move_blocks` existed ran the sparse QP.
         control_params = {"move_blocks": 0, **params["control"]}
         control = load_dataclass(ControlConfig, control_params, source)
         sup = load_dataclass(SupervisorConfig, params["runtime"]["supervisor"], source)
