@@ -1,21 +1,28 @@
 """The loop is insulated from the plan key's sender: a sample costs Zenoh's thread constant
 work (no decoding), the loop decodes at most one per cycle (the newest), every sample never
-decoded is counted, and a flood shows in health and in ``truckd monitor``."""
+decoded is counted, a flood shows in health and in ``truckd monitor``, and the session
+lets a key's samples in at most at its ingress limit (Zenoh drops the rest)."""
 
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
+from pathlib import Path
 from typing import Any
 
 import pytest
+from runtime_support import endpoint, free_port
 
 from truckd.config.truck import load_config
 from truckd.control.platoon import PlatoonConfig, encode_plan, kinematic_plan
 from truckd.control.qp import ControlModel
 from truckd.runtime import platoon_link
+from truckd.runtime.config import TelemetryConfig
 from truckd.runtime.cycle import CompanionCycle
 from truckd.runtime.monitor import FleetView
 from truckd.runtime.platoon_link import MAX_PLAN_BYTES, DaemonPlatoon, PlanReceiver
+from truckd.runtime.telemetry import Telemetry
 
 
 def _plan(seq: int, v: float = 1.0, vid: str = "lead") -> bytes:
@@ -131,3 +138,37 @@ def test_health_reports_a_flood_and_the_monitor_shows_it() -> None:
     h["plan_flood"] = False
     view.on_sample("truckd/f1/health", json.dumps({"faults": [], "platoon": h}).encode(), 1.0)
     assert view.rows(1.0)[0][-1] == "-"
+
+
+def _flooded(limit_hz: float | None, seconds: float = 2.0) -> tuple[int, int]:
+    """Samples reaching a callback on a flooded key in a Telemetry session (with an
+    ingress limit or without), and the samples the flooding process sent."""
+    port = free_port()
+    tel = Telemetry("f1", TelemetryConfig(listen=(endpoint(port),)), dict)
+    key = "truckd/lead/plan"
+    if limit_hz is not None:
+        tel.limit_ingress(key, limit_hz)
+    tel.start()
+    got = [0]
+    try:
+        tel.subscribe_raw(key, lambda _p: got.__setitem__(0, got[0] + 1))
+        flood = subprocess.Popen(
+            [sys.executable, str(Path(__file__).parent / "plan_flood.py"), "--connect",
+             endpoint(port), "--key", key, "--duration", str(seconds)],
+            stdout=subprocess.PIPE, text=True,
+        )  # fmt: skip
+        out, _ = flood.communicate(timeout=60)
+        sent = json.loads(out.splitlines()[-1])["sent"]
+    finally:
+        tel.close()
+    return got[0], sent
+
+
+def test_the_session_lets_in_at_most_the_ingress_limit() -> None:
+    """Zenoh's ingress downsampling drops a flood before any Python runs; the control
+    experiment without the limit delivers far more."""
+    limited, sent = _flooded(50.0, 2.0)
+    assert sent > 20_000  # it was a flood
+    assert 0 < limited <= 50.0 * 2.0 * 1.5 + 5
+    unlimited, _ = _flooded(None, 2.0)
+    assert unlimited > 20 * limited

@@ -167,6 +167,7 @@ class Daemon:
         self.claim = claim_backend(self.backend_name, self.cfg.link)
         if self.rt.telemetry.enabled:
             self.telemetry = Telemetry(self.cfg.vehicle_id, self.rt.telemetry, self.params)
+            self.platoon.limit_ingress(self.telemetry.limit_ingress)
             self.telemetry.start()
             self.platoon.subscribe(
                 self.telemetry.subscribe_key, self.rt.fault_injection, self.telemetry.subscribe_raw

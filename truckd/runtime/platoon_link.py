@@ -178,9 +178,15 @@ def platoon_state_fields(d: PlatoonDecision | None) -> dict[str, Any]:
     }
 
 
-FLOOD_FACTOR = 3.0
+INGRESS_FACTOR = 4.0
+"""At most this many plans per control period are let into the daemon's Zenoh session on
+the predecessor's key (Zenoh's ingress downsampling drops the rest before any Python
+runs): a predecessor publishes one per cycle; a sender's jitter fits."""
+
+FLOOD_FACTOR = 2.0
 """Plans arriving faster than this many per control period are a flood (a predecessor
-publishes one per cycle): ``plan_flood`` in health, shown by ``truckd monitor``."""
+publishes one per cycle; a flood arrives at the ingress limit): ``plan_flood`` in health,
+shown by ``truckd monitor``."""
 
 
 class DaemonPlatoon:
@@ -210,6 +216,12 @@ class DaemonPlatoon:
         self._rate_mark = (math.nan, 0)  # (wall time, plans received) at the last health
         self.plan_rate_hz: float | None = None
         """Plans received per second since the previous health message (None: unknown)."""
+
+    def limit_ingress(self, limit: Callable[[str, float], None]) -> None:
+        """Cap the predecessor's plan key at :data:`INGRESS_FACTOR` plans per control
+        period in the session (``limit(key, hz)``, before the session opens)."""
+        if self.receiver is not None:
+            limit(self.receiver.key, INGRESS_FACTOR / self.cyc.period)
 
     def subscribe(
         self,
