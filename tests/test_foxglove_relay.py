@@ -3,8 +3,9 @@
 on loopback: the channels are advertised with their JSON schemas and messages arrive for
 both vehicles, and a vehicle that goes has its channels unadvertised.
 
-foxglove-sdk (0.30) accepts the subprotocol ``foxglove.sdk.v1`` only: the same messages as
-``foxglove.websocket.v1`` under a new name (recent Foxglove and Lichtblick speak both).
+The server accepts both names of the protocol, ``foxglove.websocket.v1`` (the reference
+client ``@foxglove/ws-protocol``; tests/test_foxglove_readers.py runs it) and
+``foxglove.sdk.v1`` (foxglove-sdk 0.30, recent Foxglove and Lichtblick): the same messages.
 """
 
 from __future__ import annotations
@@ -30,7 +31,7 @@ from truckd.runtime.foxglove_relay import clean_payload
 from truckd.runtime.msg_schemas import SCHEMAS
 from truckd.runtime.telemetry import Telemetry, open_session, zenoh_config
 
-SUBPROTOCOL = "foxglove.sdk.v1"
+SUBPROTOCOLS = ("foxglove.websocket.v1", "foxglove.sdk.v1")
 OP_MESSAGE_DATA = 0x01
 
 
@@ -52,7 +53,8 @@ def _state(seq: int) -> dict[str, Any]:
             "gap_ref": 1.1, "v_lead": 0.8, "u": 2.5, "u_ff": 2.0, "solve_us": 250.0}  # fmt: skip
 
 
-def test_relay_serves_two_vehicles_to_a_foxglove_client() -> None:
+@pytest.mark.parametrize("subprotocol", SUBPROTOCOLS)
+def test_relay_serves_two_vehicles_to_a_foxglove_client(subprotocol: str) -> None:
     port_a, port_b = free_port(), free_port()
     # vehicle A: the daemon's own publisher; vehicle B: plain Zenoh puts (state, health, plan)
     tel = Telemetry("fa", TelemetryConfig(listen=(endpoint(port_a),)), dict)
@@ -84,8 +86,8 @@ def test_relay_serves_two_vehicles_to_a_foxglove_client() -> None:
         first = proc.stdout.readline()  # the relay prints its address once serving
         assert "ws://127.0.0.1:" in first, first + (proc.stderr.read() if proc.stderr else "")
         url = first.split()[3]
-        with connect(url, subprotocols=[SUBPROTOCOL], open_timeout=10) as ws:  # type: ignore[list-item]
-            assert ws.subprotocol == SUBPROTOCOL
+        with connect(url, subprotocols=[subprotocol], open_timeout=10) as ws:  # type: ignore[list-item]
+            assert ws.subprotocol == subprotocol
             info = json.loads(ws.recv(timeout=10))
             assert info["op"] == "serverInfo" and info["name"] == "truckd"
             wanted = {"/truckd/fa/state", "/truckd/fa/health", "/truckd/fb/state",
@@ -145,10 +147,10 @@ def test_relay_serves_two_vehicles_to_a_foxglove_client() -> None:
         sess_b.close()  # type: ignore[no-untyped-call]
 
 
-def test_relay_without_foxglove_sdk_is_a_clear_error(
+def test_relay_without_websockets_is_a_clear_error(
     monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    monkeypatch.setitem(sys.modules, "foxglove", None)  # import foxglove -> ImportError
+    monkeypatch.setitem(sys.modules, "websockets.sync.server", None)  # import -> ImportError
     assert main(["monitor", "--foxglove", "0", "--duration", "1"]) == 1
     err = capsys.readouterr().err
     assert "pip install 'truckd[foxglove]'" in err and err.count("\n") == 1
@@ -159,3 +161,54 @@ def test_bad_port_is_exit_2(port: str, capsys: pytest.CaptureFixture[str]) -> No
     assert main(["monitor", "--foxglove", port]) == 2
     err = capsys.readouterr().err
     assert "--foxglove" in err and err.count("\n") == 1
+
+
+def test_server_protocol_details() -> None:
+    """The server alone: both subprotocol names accepted, any other refused at the
+    handshake; channels open before a client connects are advertised to it; a request
+    it does not serve, or a subscription to no channel, gets a status warning; message
+    data goes only to a subscription, with its id and the log time; an unsubscribed or
+    unadvertised channel sends nothing more."""
+    from websockets.exceptions import InvalidHandshake
+
+    from truckd.runtime.foxglove_ws import FoxgloveServer
+
+    srv = FoxgloveServer(port=0)
+    port = srv.start()
+    try:
+        url = f"ws://127.0.0.1:{port}"
+        with pytest.raises(InvalidHandshake):
+            connect(url, subprotocols=["foxglove.other.v9"], open_timeout=10).close()  # type: ignore[list-item]
+        a = srv.add_channel("/a", "json", "truckd.state", b"{}", "jsonschema")
+        with connect(url, subprotocols=["foxglove.websocket.v1"], open_timeout=10) as ws:  # type: ignore[list-item]
+            assert json.loads(ws.recv(timeout=10))["op"] == "serverInfo"
+            adv = json.loads(ws.recv(timeout=10))
+            assert adv["op"] == "advertise" and [c["id"] for c in adv["channels"]] == [a]
+            ws.send(json.dumps({"op": "publish"}))
+            assert json.loads(ws.recv(timeout=10))["op"] == "status"
+            ws.send(json.dumps({"op": "subscribe", "subscriptions": [{"id": 7, "channelId": 99}]}))
+            assert json.loads(ws.recv(timeout=10))["op"] == "status"
+            ws.send(json.dumps({"op": "subscribe", "subscriptions": [{"id": 5, "channelId": a}]}))
+            got = None
+            for k in range(200):  # the subscription is taken on the server's thread
+                srv.log(a, b'{"k": %d}' % k, 123456789)
+                try:
+                    got = ws.recv(timeout=0.05)
+                    break
+                except TimeoutError:
+                    continue
+            assert isinstance(got, bytes)
+            op, sub, t = struct.unpack_from("<BIQ", got)
+            assert (op, sub, t) == (OP_MESSAGE_DATA, 5, 123456789)
+            assert "k" in json.loads(got[13:])
+            srv.remove_channel(a)
+            while True:  # the rest of the burst, then the unadvertise
+                frame = ws.recv(timeout=10)
+                if isinstance(frame, str):
+                    assert json.loads(frame) == {"op": "unadvertise", "channelIds": [a]}
+                    break
+            srv.log(a, b"{}", 1)
+            with pytest.raises(TimeoutError):
+                ws.recv(timeout=0.3)
+    finally:
+        srv.stop()

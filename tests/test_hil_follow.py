@@ -190,7 +190,7 @@ def test_follow_15s_rate_safety_and_steady_state(tmp_path: Path) -> None:
     assert len(msgs) >= 0.95 * (seqs[-1] - seqs[0] + 1 - rate * sub_stalled), got
     assert len(msgs) >= 0.95 * rate * (RUN_S - stalled), got
     assert seqs == sorted(seqs)  # in order
-    # CONTRACTS.md section 5: state keys; health at least 1 Hz with timing, link, freshness
+    # reference section 5: state keys; health at least 1 Hz with timing, link, freshness
     contract = {"seq", "t", "mode", "v", "gap", "gap_ref", "v_lead", "u", "u_ff", "solve_us"}
     assert all(contract <= m.keys() for m in msgs), contract - msgs[0].keys()
     health = [h.msg for h in watch.health if t_lead <= h.rx <= t1]

@@ -1,4 +1,4 @@
-"""MCAP beside the CSV (CONTRACTS.md section 5): read back with the ``mcap`` reader,
+"""MCAP beside the CSV (reference section 5): read back with the ``mcap`` reader,
 counts per channel, every message validated against its channel's JSON schema (the
 ``jsonschema`` package), rotation with the CSV, a file cut by SIGKILL, ``truckd sim --mcap``.
 """
@@ -269,3 +269,31 @@ def test_sim_mcap_mistyped_file_name_is_exit_2(
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "--mcap" in err
     assert not (tmp_path / "run.txt").exists()
+
+
+def test_sim_mcap_records_the_plan_like_the_daemon(tmp_path: Path) -> None:
+    """``sim --mcap`` records the MPC's plan on ``/plan``, every ``mcap_plan_every``-th
+    offered from the first (the daemon's decimation), each one at the log time of the
+    cycle that made it, with the configured vehicle id and a horizon of predicted speeds."""
+    runs = {}
+    for every in (1, 3):
+        over = {"vehicle_id": "t7", "runtime": {"recorder": {"mcap_plan_every": every}}}
+        cfg = write_config(tmp_path / f"truck{every}.yaml", over)
+        out = tmp_path / f"f{every}.mcap"
+        argv = ["sim", "--config", str(cfg), "--scenario", "follow", "--duration", "2",
+                "--mcap", str(out)]  # fmt: skip
+        assert main(argv) == 0
+        runs[every] = read_mcap(out)
+    msgs = validate_all(runs[1])
+    states, plans = msgs["/truckd/t7/state"], msgs["/truckd/t7/plan"]
+    assert len(states) == 200
+    assert len(plans) > 150  # the follow scenario runs the MPC nearly throughout
+    assert validate_all(runs[3])["/truckd/t7/plan"] == plans[::3]
+    t_of = {s["seq"]: s["t"] for s in states}
+    for p in plans:
+        assert p["vehicle_id"] == "t7" and p["t"] == t_of[p["seq"]]
+        assert len(p["v"]) == len(p["a"]) > 10 and p["dt"] == pytest.approx(0.01)
+        assert all(v >= 0.0 for v in p["v"])
+    c = runs[1]
+    msg = [m for m in c.messages if c.topic(m) == "/truckd/t7/plan"]
+    assert [m.log_time for m in msg] == [round(p["t"] * 1e9) for p in plans]

@@ -1,4 +1,4 @@
-"""Error types that map onto the command line's exit codes (CONTRACTS.md section 1)."""
+"""Error types that map onto the command line's exit codes (reference section 1)."""
 
 
 class InputError(Exception):

@@ -1,4 +1,4 @@
-"""The log format (CONTRACTS.md section 3): CSV, one header row, columns by name.
+"""The log format (reference section 3): CSV, one header row, columns by name.
 
 ``t`` (s, strictly increasing), ``u`` (V), ``v`` (m/s); optional ``i``, ``x``, ``gap``,
 ``v_lead``, ``vbat``; force-input logs carry ``F`` (N) instead of ``u`` and may carry
@@ -419,7 +419,7 @@ def _derive_u(
     vbat: float | None,
     notes: list[str],
 ) -> None:
-    """u = duty * vbat for a duty-cycle log (CONTRACTS.md section 3)."""
+    """u = duty * vbat for a duty-cycle log (reference section 3)."""
     if vbat is not None and not (math.isfinite(vbat) and 0 < vbat <= BOUNDS["vbat"][0]):
         raise InputError(f"--vbat {vbat!r}: expected a supply voltage in (0, 1000] V")
     if "duty" not in cols:

@@ -1,7 +1,7 @@
 """``truckd diagnose LOG.csv [LOG.csv ...] [--validate LOG.csv ...] [--gap S] [--config FILE]
 [--json FILE] [--report DIR] [--out MODEL.yaml]``: what the simulation gets wrong, and why.
 
-Logs are CSV (CONTRACTS.md section 3) or WPILib SysId ``FILE.json[:test,...]``."""
+Logs are CSV (reference section 3) or WPILib SysId ``FILE.json[:test,...]``."""
 
 from __future__ import annotations
 

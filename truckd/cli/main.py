@@ -4,7 +4,7 @@ Only the chosen subcommand's module is imported (``truckd run`` on the car does 
 the offline tools' scipy, matplotlib or the diagnosis stack); ``truckd --help`` and a
 missing or unknown command import them all to list them.
 
-Exit codes (CONTRACTS.md section 1): 0 success, 2 bad usage or input (one line naming
+Exit codes (reference section 1): 0 success, 2 bad usage or input (one line naming
 the file, line or key and what was expected), 1 other failures.
 """
 
@@ -38,7 +38,7 @@ SUBCOMMANDS: dict[str, str] = {
 
 class _Parser(argparse.ArgumentParser):
     def error(self, message: str) -> None:  # type: ignore[override]
-        # One line (CONTRACTS.md section 1); the usage is one --help away.
+        # One line (reference section 1); the usage is one --help away.
         print(f"{self.prog}: error: {message} (see {self.prog} --help)", file=sys.stderr)
         raise SystemExit(2)
 

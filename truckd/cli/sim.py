@@ -1,5 +1,5 @@
 """``truckd sim``: the controller drives the simulated truck through the simulated
-firmware and the real protocol (CONTRACTS.md section 1)."""
+firmware and the real protocol (reference section 1)."""
 
 from __future__ import annotations
 
@@ -105,7 +105,8 @@ def _run(args: argparse.Namespace) -> int:
     if args.plot:
         files.append((args.plot, plot_image(traces, plot_format(args.plot))))
     for name, trace in traces if mcaps else ():
-        files.append((mcaps[name], trace_mcap_bytes(cfg.vehicle_id, name, trace)))
+        every = cfg.runtime.recorder.mcap_plan_every  # as the daemon records plans
+        files.append((mcaps[name], trace_mcap_bytes(cfg.vehicle_id, name, trace, every)))
     if trace_dir is not None:
         for name, trace in traces:
             files.append((trace_dir / f"{name}.csv", trace_text(trace)))

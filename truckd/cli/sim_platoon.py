@@ -1,4 +1,4 @@
-"""``truckd sim --platoon N``: the platoon scenarios (CONTRACTS.md section 1)."""
+"""``truckd sim --platoon N``: the platoon scenarios (reference section 1)."""
 
 from __future__ import annotations
 

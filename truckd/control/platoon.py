@@ -1,6 +1,6 @@
 """Platooning (cooperative adaptive cruise), pure numerics: no I/O, no clock.
 
-Each truck publishes its plan every cycle (CONTRACTS.md section 5, ``truckd/<id>/plan``):
+Each truck publishes its plan every cycle (reference section 5, ``truckd/<id>/plan``):
 the speeds its MPC predicts over the horizon, sampled every ``dt`` from the sender's time
 ``t``.  A follower turns its predecessor's latest plan into the lead-speed forecast of its
 own MPC (:func:`lead_forecast`: shifted by the plan's age, the last speed held past the
@@ -130,7 +130,7 @@ class Plan:
         return self.t + (len(self.v) - 1) * self.dt
 
     def as_dict(self) -> dict[str, Any]:
-        """The JSON object of the contract (CONTRACTS.md section 5)."""
+        """The JSON object of the contract (reference section 5)."""
         return {
             "t": self.t,
             "seq": self.seq,

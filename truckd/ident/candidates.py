@@ -1,4 +1,4 @@
-"""Candidate causes (CONTRACTS.md section 4) as parameterised extensions of the seed.
+"""Candidate causes (reference section 4) as parameterised extensions of the seed.
 
 Each candidate frees one parameter of :class:`truckd.model.effects.Effects`, with a
 physical scale, bounds and a grid of starting values derived from the configured
@@ -35,7 +35,7 @@ class Candidate:
     preset: tuple[tuple[str, float], ...] = ()
     """Effects fields set with the candidate and held (a hill's start and length, m)."""
     output: str = ""
-    """Effect name (CONTRACTS.md section 4) it reports as; default its own name."""
+    """Effect name (reference section 4) it reports as; default its own name."""
     extra: tuple[Param, ...] = ()
     """Further parameters freed with it when it is fitted alone (held afterwards)."""
 

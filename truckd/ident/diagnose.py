@@ -284,7 +284,7 @@ def _params_of(cand: Candidate, e: Effects) -> dict[str, float]:
 
 
 def _profile_of(cand: Candidate, e: Effects) -> dict[str, float | str] | None:
-    """Position description of a position-dependent load (CONTRACTS.md section 4)."""
+    """Position description of a position-dependent load (reference section 4)."""
     if cand.param.name == "load_force_amplitude":
         return {
             "profile": "rolling",

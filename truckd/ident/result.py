@@ -1,4 +1,4 @@
-"""What a diagnosis returns: the JSON of CONTRACTS.md section 4 plus report material."""
+"""What a diagnosis returns: the JSON of reference section 4 plus report material."""
 
 from __future__ import annotations
 
@@ -137,7 +137,7 @@ class Diagnosis:
     """The extended model's residual is white at the noise level on the report data."""
 
     def to_json(self) -> dict[str, Any]:
-        """The CONTRACTS.md section 4 object (plus ``notes`` and ``residual``)."""
+        """The reference section 4 object (plus ``notes`` and ``residual``)."""
         return {
             "input": self.input,
             "samples": int(self.samples),

@@ -150,7 +150,7 @@ def speed_fit(p: VehicleParams, e: Effects, s: Series) -> tuple[float, float, Ar
 
 
 def fit_percent(y: Array, y_sim: Array) -> float:
-    """``100 (1 - ||y - y_sim|| / ||y - mean(y)||)`` (CONTRACTS.md section 4)."""
+    """``100 (1 - ||y - y_sim|| / ||y - mean(y)||)`` (reference section 4)."""
     den = float(np.linalg.norm(y - np.mean(y)))
     if den == 0.0:
         return 0.0

@@ -1,4 +1,4 @@
-"""Effects the seed model lacks (CONTRACTS.md section 4), as physical extensions.
+"""Effects the seed model lacks (reference section 4), as physical extensions.
 
 Each is off at its default (0).  The simulated plant switches them on; the diagnosis
 fits them; an extended model written by ``diagnose`` carries them to the MPC.

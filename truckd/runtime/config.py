@@ -11,7 +11,7 @@ from truckd.schema import spec
 
 @dataclass(frozen=True)
 class TelemetryConfig:
-    """Zenoh publishing (CONTRACTS.md section 5)."""
+    """Zenoh publishing (reference section 5)."""
 
     enabled: bool = spec("publish over Zenoh", default=True)
     zenoh_config: str = spec(
@@ -34,7 +34,7 @@ class TelemetryConfig:
 
 @dataclass(frozen=True)
 class RecorderConfig:
-    """The daemon's own log, in the contract CSV format (CONTRACTS.md section 3)."""
+    """The daemon's own log, in the contract CSV format (reference section 3)."""
 
     enabled: bool = spec("record a log", default=True)
     dir: str = spec("directory for log files (relative: to the working directory)", default="logs")

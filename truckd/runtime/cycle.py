@@ -46,7 +46,7 @@ MODE_CODE = {Mode.INIT: 0, Mode.ACTIVE: 1, Mode.DEGRADED: 2, Mode.SAFE_STOP: 3, 
 """Numeric mode in the CSV log (the log format is all numbers)."""
 
 LOG_COLUMNS = (
-    "t", "u", "v", "i", "vbat", "x", "gap", "v_lead",  # the contract's (CONTRACTS.md 3)
+    "t", "u", "v", "i", "vbat", "x", "gap", "v_lead",  # the contract's (reference section 3)
     "gap_ref", "u_ff", "u_fw", "solve_us", "mode", "enable",
     "lead_valid", "range_raw", "seq",
 )  # fmt: skip
@@ -123,7 +123,7 @@ def _j(x: float) -> float | None:
 
 
 def state_message(out: CycleOutputs, lateness_s: float = 0.0) -> dict[str, Any]:
-    """The published state of the cycle ``out`` (CONTRACTS.md section 5); ``lateness_s``
+    """The published state of the cycle ``out`` (reference section 5); ``lateness_s``
     the loop's.  Reads only ``out`` (frozen): safe on another thread, later."""
     c = out.control
     est = c.estimate if c is not None else None

@@ -55,7 +55,7 @@ from truckd.schema import to_plain
 log = logging.getLogger("truckd.daemon")
 
 LOG_COLUMNS = (*STEP_COLUMNS, "lateness_us", "compute_us", "cpu_us")
-"""Recorded columns: the step's (contract names first, CONTRACTS.md section 3), then the
+"""Recorded columns: the step's (contract names first, reference section 3), then the
 loop's timing (us): this cycle's wake-up lateness, the previous cycle's wall-clock compute
 time and the CPU time the loop thread used in it (``time.thread_time``).  Compute minus
 CPU is time the loop waited for the host (descheduled, the GIL, blocking I/O): the host's
@@ -65,7 +65,7 @@ stall as the OS accounts it, as opposed to the code's own work."""
 def _state_message(
     out: CycleOutputs, lateness_s: float, platoon: PlatoonDecision | None
 ) -> dict[str, Any]:
-    """The state message (CONTRACTS.md section 5) of the cycle ``out``, with the platoon's
+    """The state message (reference section 5) of the cycle ``out``, with the platoon's
     fields of that cycle's decision (all frozen: built later, on another thread)."""
     return {**state_message(out, lateness_s), **platoon_state_fields(platoon)}
 

@@ -1,5 +1,7 @@
 """``truckd monitor --foxglove``: every reachable vehicle's state, health and plan, live, on
-a Foxglove WebSocket server (the foxglove-sdk package, optional extra ``[foxglove]``).
+a Foxglove WebSocket server (:mod:`truckd.runtime.foxglove_ws`, our own on the published
+protocol, under both subprotocol names ``foxglove.websocket.v1`` and ``foxglove.sdk.v1``;
+the ``websockets`` package, optional extra ``[foxglove]``).
 
 A Zenoh peer session that listens nowhere connects to the given endpoints and subscribes
 to ``truckd/*/state``, ``truckd/*/health``, ``truckd/*/plan``; the first sample of a
@@ -10,7 +12,7 @@ has not).  A vehicle whose liveliness token goes has its channels closed (unadve
 until it is heard again.  The server binds 127.0.0.1 unless told otherwise.  The log time
 is the relay's wall clock when the sample arrived (ns since the Unix epoch).
 
-foxglove-sdk is imported only here, only when the relay starts.
+``websockets`` is imported only when the relay starts.
 """
 
 from __future__ import annotations
@@ -34,8 +36,7 @@ from truckd.runtime.msg_schemas import topic as topic_of
 from truckd.runtime.telemetry import open_session, zenoh_config
 
 if TYPE_CHECKING:
-    import foxglove
-    from foxglove.websocket import WebSocketServer
+    from truckd.runtime.foxglove_ws import FoxgloveServer
 
 log = logging.getLogger("truckd.foxglove")
 
@@ -91,39 +92,42 @@ class FoxgloveRelay:
         self.host = host
         self.port = port
         self._clock_ns = clock_ns
-        self._fg: Any = None  # the foxglove module, imported in start()
-        self._server: WebSocketServer | None = None
+        self._server: FoxgloveServer | None = None
         self._session: zenoh.Session | None = None
         self._subs: list[Any] = []
-        self._channels: dict[tuple[str, str], foxglove.Channel] = {}
+        self._channels: dict[tuple[str, str], int] = {}  # (vehicle, kind) -> channel id
         self._lock = threading.Lock()
         self.stats = RelayStats()
 
     def start(self) -> int:
         """Start the server and the Zenoh subscribers; returns the port bound (raises
-        TruckdError when foxglove-sdk is missing or the port is taken, InputError for a
+        TruckdError when websockets is missing or the port is taken, InputError for a
         bad endpoint)."""
         try:
-            import foxglove
+            import websockets.sync.server  # noqa: F401 - only to fail early and clearly
         except ImportError:
             raise TruckdError(
-                "monitor --foxglove needs the foxglove-sdk package: pip install 'truckd[foxglove]'"
+                "monitor --foxglove needs the websockets package: pip install 'truckd[foxglove]'"
             ) from None
-        self._fg = foxglove
+        from truckd.runtime.foxglove_ws import FoxgloveServer
+
         conf = zenoh_config(
             self.zenoh_file, listen=[], connect=self.connect, names=("", "--connect")
         )
+        server = FoxgloveServer(name="truckd", host=self.host, port=self.port)
         try:
-            self._server = foxglove.start_server(name="truckd", host=self.host, port=self.port)
-        except Exception as exc:  # the SDK raises its own error for a taken port
+            self.port = server.start()
+        except OSError as exc:
             raise TruckdError(
-                f"cannot start the Foxglove server on {self.host}:{self.port}: {exc}"
+                f"cannot start the Foxglove server on {self.host}:{self.port}: "
+                f"{exc.strerror or exc}"
             ) from None
-        self.port = self._server.port
+        self._server = server
         try:
             self._session = s = open_session(conf, "monitor --foxglove")
         except BaseException:
-            self._server.stop()
+            server.stop()
+            self._server = None
             raise
         for kind in KINDS:
             self._subs.append(s.declare_subscriber(f"truckd/*/{kind}", self._on_sample))
@@ -136,25 +140,24 @@ class FoxgloveRelay:
     def url(self) -> str:
         return f"ws://{self.host}:{self.port}"
 
-    def _channel(self, vid: str, kind: str) -> foxglove.Channel | None:
-        """The channel of a vehicle's kind, advertised on first use; None for a vehicle
+    def _channel(self, vid: str, kind: str) -> int | None:
+        """The channel id of a vehicle's kind, advertised on first use; None for a vehicle
         beyond :data:`MAX_VEHICLES` (a flood of vehicle ids: channels are bounded)."""
         with self._lock:
             ch = self._channels.get((vid, kind))
             if ch is None:
                 vehicles = {v for v, _ in self._channels}
-                if vid not in vehicles and len(vehicles) >= MAX_VEHICLES:
+                if (vid not in vehicles and len(vehicles) >= MAX_VEHICLES) or not self._server:
                     return None
-                fg = self._fg
-                ch = fg.Channel(
+                ch = self._server.add_channel(
                     topic_of(vid, kind),
-                    message_encoding=MESSAGE_ENCODING,
-                    schema=fg.Schema(
-                        name=f"truckd.{kind}", encoding=SCHEMA_ENCODING, data=schema_bytes(kind)
-                    ),
+                    MESSAGE_ENCODING,
+                    f"truckd.{kind}",
+                    schema_bytes(kind),
+                    SCHEMA_ENCODING,
                 )
                 self._channels[(vid, kind)] = ch
-                log.info("relaying %s", ch.topic())
+                log.info("relaying %s", topic_of(vid, kind))
             return ch
 
     def on_payload(self, key: str, payload: bytes) -> None:
@@ -167,11 +170,12 @@ class FoxgloveRelay:
             self.stats.rejected += 1
             return
         ch = self._channel(*vk)
-        if ch is None:
+        server = self._server
+        if ch is None or server is None:
             self.stats.rejected += 1
             return
-        ch.log(data, log_time=self._clock_ns())
-        t = ch.topic()
+        server.log(ch, data, self._clock_ns())
+        t = topic_of(*vk)
         self.stats.messages[t] = self.stats.messages.get(t, 0) + 1
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
@@ -187,8 +191,8 @@ class FoxgloveRelay:
         with self._lock:  # the vehicle went: unadvertise its channels
             for kind in KINDS:
                 ch = self._channels.pop((parts[1], kind), None)
-                if ch is not None:
-                    ch.close()
+                if ch is not None and self._server is not None:
+                    self._server.remove_channel(ch)
 
     def close(self) -> None:
         """Undeclare, close the session and the channels, stop the server (idempotent)."""
@@ -199,12 +203,10 @@ class FoxgloveRelay:
             self._session.close()  # type: ignore[no-untyped-call]
             self._session = None
         with self._lock:
-            for ch in self._channels.values():
-                ch.close()
             self._channels.clear()
-        if self._server is not None:
-            self._server.stop()
-            self._server = None
+            server, self._server = self._server, None
+        if server is not None:
+            server.stop()
 
 
 def run_relay(

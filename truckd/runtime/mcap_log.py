@@ -1,4 +1,4 @@
-"""MCAP logs of the telemetry messages (CONTRACTS.md section 5), readable by Foxglove and
+"""MCAP logs of the telemetry messages (reference section 5), readable by Foxglove and
 PlotJuggler.
 
 Channels ``/truckd/<vehicle_id>/state``, ``/health`` and ``/plan``, JSON messages, one JSON
@@ -234,7 +234,7 @@ class McapLog:
         self._put("health", t, msg, extra)
 
     def record_plan(self, t: float, msg: Mapping[str, Any]) -> None:
-        """Offer one plan message (CONTRACTS.md section 5: ``t, seq, dt, v, a``); every
+        """Offer one plan message (reference section 5: ``t, seq, dt, v, a``); every
         ``plan_every``-th is queued, starting with the first."""
         n = self._plans
         self._plans = n + 1

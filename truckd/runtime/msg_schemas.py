@@ -1,4 +1,4 @@
-"""JSON schemas of the telemetry messages (CONTRACTS.md section 5), for MCAP and Foxglove.
+"""JSON schemas of the telemetry messages (reference section 5), for MCAP and Foxglove.
 
 One schema per channel kind: ``state``, ``health``, ``plan``.  They describe what the
 daemon publishes (``truckd/runtime/daemon.py``): the contract's keys are required, the

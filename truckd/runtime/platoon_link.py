@@ -28,7 +28,7 @@ from truckd.runtime.cycle import CompanionCycle, CycleOutputs
 
 
 def plan_key(vehicle_id: str) -> str:
-    """The Zenoh key of a vehicle's plan (CONTRACTS.md section 5)."""
+    """The Zenoh key of a vehicle's plan (reference section 5)."""
     return f"truckd/{vehicle_id}/plan"
 
 

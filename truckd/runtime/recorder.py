@@ -1,4 +1,4 @@
-"""The daemon's own log: the contract CSV format (CONTRACTS.md section 3) plus extra
+"""The daemon's own log: the contract CSV format (reference section 3) plus extra
 columns, rotated by size, written by a background thread.
 
 The loop calls :meth:`Recorder.record` with one tuple of floats per cycle (an append to a

@@ -1,6 +1,6 @@
 """The received-message log (a sidecar of the CSV log) that makes a run replayable.
 
-The CSV log (CONTRACTS.md section 3) holds what the daemon did; this file holds what it
+The CSV log (reference section 3) holds what the daemon did; this file holds what it
 heard: every cycle's inputs to :class:`~truckd.runtime.cycle.CompanionCycle` (the time,
 the checked messages with their arrival times, the link state and the loop's deadline
 verdict), so :mod:`truckd.runtime.replay` can feed them through the same step again and

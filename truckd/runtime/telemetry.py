@@ -1,4 +1,4 @@
-"""Zenoh telemetry (CONTRACTS.md section 5) that never blocks the control loop.
+"""Zenoh telemetry (reference section 5) that never blocks the control loop.
 
 The loop hands dicts, or state messages still to be built
 (:class:`~truckd.runtime.deferred.Deferred`), to :meth:`Telemetry.publish_state` /

@@ -27,18 +27,20 @@ import numpy as np
 
 from truckd.control.config import ControlConfig
 from truckd.control.controller import Controller
+from truckd.control.platoon import Plan
 from truckd.control.qp import ControlModel
 from truckd.control.supervisor import Mode, SupervisorConfig
 from truckd.io.port import companion_port
 from truckd.model.params import VehicleParams
 from truckd.model.plant_config import encoder_ticks_per_rev
 from truckd.runtime.cycle import CompanionCycle, CycleInputs
+from truckd.runtime.platoon_link import cycle_plan
 from truckd.sim.firmware import FirmwareSimConfig, simulated_truck
 from truckd.sim.plant import Plant, PlantConfig
 from truckd.sim.scenarios import Scenario, World
 
 STEADY_AFTER_S = 5.0
-"""``gap_error_rms_m`` is taken after this time (CONTRACTS.md section 1)."""
+"""``gap_error_rms_m`` is taken after this time (reference section 1)."""
 
 TRUTH_COLUMNS = ("v_true", "gap_true", "v_lead_true", "x_true", "i_true")
 """The plant's truth, appended to each log row of a trace (m/s, m, m/s, m, A)."""
@@ -62,6 +64,10 @@ class Trace:
     rows: list[tuple[float, ...]] = field(default_factory=list)
     """The daemon's log row each cycle (:data:`~truckd.runtime.cycle.LOG_COLUMNS`) with
     the truth appended (:data:`TRUTH_COLUMNS`)."""
+    plans: list[Plan | None] = field(default_factory=list)
+    """The plan the daemon would publish after each cycle (the MPC's predicted speeds,
+    standstill while holding, None on a fallback), stamped with the simulated time and
+    without a vehicle id (:func:`truckd.runtime.platoon_link.cycle_plan`)."""
 
 
 @dataclass(frozen=True)
@@ -86,7 +92,7 @@ def _percentile(xs: list[float], q: float) -> float:
 def run_scenario(
     sc: Scenario, setup: SimSetup, duration: float | None = None, realtime: bool = False
 ) -> tuple[dict[str, Any], Trace]:
-    """Run one scenario; returns the contract metrics (CONTRACTS.md section 1) and a trace."""
+    """Run one scenario; returns the contract metrics (reference section 1) and a trace."""
     cfg = setup.control
     dt = cfg.period
     dur = sc.duration if duration is None else duration
@@ -141,6 +147,7 @@ def run_scenario(
         tr.rows.append(
             (*cyc.log_row(out), plant.v, tr.gap[-1], tr.v_lead[-1], plant.x, plant.motor.i)
         )
+        tr.plans.append(cycle_plan(cyc, out, t))
         fw.step(dt)
         if realtime:
             delay = wall0 + (k + 1) * dt - time.monotonic()

@@ -7,11 +7,15 @@ is the supervisor's mode, ``enable`` the driver enable sent and ``solve_us`` OSQ
 as the daemon records them; ``ctrl`` is the controller's mode.  The state holds the
 plant's truth (``v``, ``gap``, ``v_lead``) and the controller's estimate of the gap
 (``gap_est``); ``gap_ref`` is ``d_0 + h v``.  ``health`` is written every 0.5 s with the
-scenario name.  ``plan`` stays empty until the trace carries plans.
+scenario name.  ``plan`` holds the plans the daemon would publish (the MPC's predicted
+speeds, standstill while holding; none on a fallback), every ``plan_every``-th from the
+first, as the daemon records them (``runtime.recorder.mcap_plan_every``), stamped with
+the simulated time and the configured vehicle id.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import tempfile
 from collections.abc import Iterator, Mapping
@@ -33,9 +37,15 @@ def _f(x: float) -> float | None:
     return x if math.isfinite(x) else None
 
 
-def trace_messages(scenario: str, tr: Trace) -> Iterator[tuple[str, int, Mapping[str, Any]]]:
-    """``(kind, log_time_ns, message)`` for every cycle of the trace."""
+def trace_messages(
+    scenario: str, tr: Trace, vehicle_id: str = "", plan_every: int = 1
+) -> Iterator[tuple[str, int, Mapping[str, Any]]]:
+    """``(kind, log_time_ns, message)`` for every cycle of the trace; of the plans, every
+    ``plan_every``-th offered is kept, starting with the first (as ``McapLog.record_plan``)."""
+    if plan_every < 1:
+        raise ValueError(f"plan_every must be >= 1, got {plan_every}")
     next_health = 0.0
+    plans_offered = 0
     for k, t in enumerate(tr.t):
         ns = round(t * 1e9)
         mode = tr.supervisor[k]
@@ -59,6 +69,11 @@ def trace_messages(scenario: str, tr: Trace) -> Iterator[tuple[str, int, Mapping
                 "gap_est": _f(tr.gap_est[k]),
             },
         )
+        plan = tr.plans[k] if k < len(tr.plans) else None
+        if plan is not None:
+            if plans_offered % plan_every == 0:
+                yield "plan", ns, dataclasses.replace(plan, vehicle_id=vehicle_id).as_dict()
+            plans_offered += 1
         if t >= next_health - 1e-9:
             yield "health", ns, {"t": t, "mode": mode, "faults": [], "sim": scenario}
             next_health = t + HEALTH_PERIOD_S
@@ -98,21 +113,23 @@ def mcap_paths(target: str, scenarios: tuple[str, ...]) -> dict[str, Path]:
     return {s: p / f"{s}.mcap" for s in scenarios}
 
 
-def trace_mcap_bytes(vehicle_id: str, scenario: str, tr: Trace) -> bytes:
+def trace_mcap_bytes(vehicle_id: str, scenario: str, tr: Trace, plan_every: int = 1) -> bytes:
     """One run as an MCAP file's bytes (to be written with the other outputs as a set)."""
     with tempfile.TemporaryDirectory(prefix="truckd-mcap-") as tmp:
         path = Path(tmp) / f"{scenario}.mcap"
-        write_trace_mcap(path, vehicle_id, scenario, tr)
+        write_trace_mcap(path, vehicle_id, scenario, tr, plan_every)
         return path.read_bytes()
 
 
-def write_trace_mcap(path: Path, vehicle_id: str, scenario: str, tr: Trace) -> int:
+def write_trace_mcap(
+    path: Path, vehicle_id: str, scenario: str, tr: Trace, plan_every: int = 1
+) -> int:
     """Write one run (all or nothing); returns the number of messages."""
     try:
         return write_messages(
             path,
             vehicle_id,
-            trace_messages(scenario, tr),
+            trace_messages(scenario, tr, vehicle_id, plan_every),
             metadata={"source": "truckd sim", "scenario": scenario, "time": "simulated"},
         )
     except OSError as exc:

@@ -23,7 +23,7 @@ Scenarios (all start as a platoon in steady CACC at the lead's speed):
 Every truck has a dead time of :data:`ACTUATION_DELAY_S` between command and actuation
 (known to its controller).
 
-Metrics (CONTRACTS.md section 1): the spacing error ``e_i = gap_i - (d_0 + h_i v_i)``
+Metrics (reference section 1): the spacing error ``e_i = gap_i - (d_0 + h_i v_i)``
 with the true gap and speed and the headway ``h_i`` the follower drives at that time;
 for each follower i >= 2 the ratios ``||e_i||_2 / ||e_(i-1)||_2`` and ``max|e_i| /
 max|e_(i-1)|`` (string stability when both are <= 1).
@@ -381,7 +381,7 @@ def platoon_metrics(
     channels: list[PlanChannel],
     pcfg: PlatoonConfig,
 ) -> dict[str, Any]:
-    """The contract keys (CONTRACTS.md section 1) plus switch times and decelerations."""
+    """The contract keys (reference section 1) plus switch times and decelerations."""
     t = np.asarray(tr.t)
     gaps = np.asarray(tr.gap, dtype=float)[:, 1:]
     err = gaps - np.asarray(tr.gap_ref, dtype=float)[:, 1:]

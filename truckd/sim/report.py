@@ -100,7 +100,7 @@ def trace_columns() -> tuple[str, ...]:
 
 
 def trace_text(tr: Trace) -> str:
-    """A run's time series in the log format (CONTRACTS.md section 3, the daemon's own
+    """A run's time series in the log format (reference section 3, the daemon's own
     columns plus the truth), as the file's text."""
     names = trace_columns()
     lines = [",".join(names)]

@@ -11,7 +11,11 @@
  *   CAN1 PB8/PB9 ......... CAN link 500 kbit/s (build with -DBOARD_LINK_CAN)
  *   range sensor ......... stub: a real driver (e.g. VL53L1X over I2C) calls
  *                          board_range_update(); until then NO_TARGET
- * Every HAL function returns at once: nothing here waits for the hardware.
+ * Every HAL function returns at once.  The only waits on the hardware (the CAN
+ * controller's mode acknowledges) are bounded (BOARD_WAIT_MS) and run after the watchdog
+ * is started; a controller that does not answer leaves a fault code in board_fault
+ * (BOARD_FAULT_*), the link down and the motor off, and is tried again every
+ * CAN_RETRY_MS while the main loop runs on.
  */
 #include <stdint.h>
 
@@ -93,9 +97,21 @@
 #define SYST_RVR REG(0xE000E014u)
 #define SYST_CVR REG(0xE000E018u)
 #define NVIC_ISER(n) REG(0xE000E100u + 4u * (n))
+#define NVIC_ICER(n) REG(0xE000E180u + 4u * (n))
 
 #define HSI_HZ 16000000u
 #define PWM_TOP 799u /* 16 MHz / 800 = 20 kHz */
+
+#define BOARD_WAIT_MS 2u    /* a mode acknowledge takes microseconds on a working board */
+#define CAN_RETRY_MS 1000u /* the CAN controller is tried again this often while failed */
+
+/* board_fault: why the link is not up (readable with a debugger; 0 = none) */
+#define BOARD_FAULT_NONE 0u
+#define BOARD_FAULT_CAN_INIT 1u  /* bxCAN gave no init-mode acknowledge (clock, reset) */
+#define BOARD_FAULT_CAN_START 2u /* bxCAN did not leave init mode: no bus (transceiver,
+                                    wiring, termination) */
+volatile uint8_t board_fault;
+volatile uint32_t board_fault_count; /* failed attempts since reset */
 
 /* -- clock --------------------------------------------------------------------------- */
 static volatile uint32_t ms_ticks;
@@ -220,6 +236,9 @@ static int hal_send_bytes(void *ctx, const uint8_t *data, size_t len)
 static int hal_send_frame(void *ctx, uint16_t can_id, const uint8_t *data, uint8_t len)
 {
     (void)ctx;
+    if (board_fault != BOARD_FAULT_NONE) {
+        return -1; /* the controller is not running: counted by the core (tx_failed) */
+    }
     uint32_t tsr = CAN_TSR;
     unsigned m;
     if (tsr & (1u << 26)) {
@@ -340,9 +359,37 @@ static void board_init(uint8_t can)
     if (can) {
         gpio_af(GPIOB, 8u, 9u); /* CAN1 RX/TX */
         gpio_af(GPIOB, 9u, 9u);
-        CAN_MCR = 1u; /* INRQ */
-        while (!(CAN_MSR & 1u)) {
+    } else {
+        gpio_af(GPIOA, 2u, 7u); /* USART2 TX/RX */
+        gpio_af(GPIOA, 3u, 7u);
+        USART_BRR = (HSI_HZ + 115200u / 2u) / 115200u;
+        USART_CR1 = (1u << 13) | (1u << 5) | (1u << 3) | (1u << 2); /* UE, RXNEIE, TE, RE */
+        NVIC_ISER(1) = (1u << (38u - 32u));
+    }
+}
+
+/* Wait until (CAN_MSR & mask) == want, at most BOARD_WAIT_MS (SysTick runs); 0 when it
+ * came.  The watchdog runs: a wait never outlasts its 50 ms. */
+static int can_wait_msr(uint32_t mask, uint32_t want)
+{
+    uint32_t t0 = ms_ticks;
+    while ((CAN_MSR & mask) != want) {
+        if (ms_ticks - t0 > BOARD_WAIT_MS) {
+            return -1;
         }
+    }
+    return 0;
+}
+
+/* Configure and start bxCAN; BOARD_FAULT_NONE or the fault code (also in board_fault). */
+static uint8_t can_start(void)
+{
+    uint8_t fault = BOARD_FAULT_NONE;
+    NVIC_ICER(0) = (1u << 20);
+    CAN_MCR = 1u; /* INRQ */
+    if (can_wait_msr(1u, 1u) != 0) {
+        fault = BOARD_FAULT_CAN_INIT;
+    } else {
         /* 16 MHz / 2 = 8 MHz time quanta, 1 + 13 + 2 = 16 tq: 500 kbit/s, sample 87.5 % */
         CAN_BTR = (1u << 20) | (12u << 16) | 1u;
         CAN_FMR |= 1u; /* filter init: filter 0, 32-bit mask 0 = accept all */
@@ -353,15 +400,18 @@ static void board_init(uint8_t can)
         CAN_FA1R |= 1u;
         CAN_FMR &= ~1u;
         CAN_IER = (1u << 1); /* FMPIE0 */
-        CAN_MCR = (1u << 6); /* leave init, automatic bus-off recovery */
-        NVIC_ISER(0) = (1u << 20);
-    } else {
-        gpio_af(GPIOA, 2u, 7u); /* USART2 TX/RX */
-        gpio_af(GPIOA, 3u, 7u);
-        USART_BRR = (HSI_HZ + 115200u / 2u) / 115200u;
-        USART_CR1 = (1u << 13) | (1u << 5) | (1u << 3) | (1u << 2); /* UE, RXNEIE, TE, RE */
-        NVIC_ISER(1) = (1u << (38u - 32u));
+        CAN_MCR = (1u << 6); /* leave init (needs 11 recessive bits on the bus), ABOM */
+        if (can_wait_msr(1u, 0u) != 0) {
+            fault = BOARD_FAULT_CAN_START;
+        } else {
+            NVIC_ISER(0) = (1u << 20);
+        }
     }
+    if (fault != BOARD_FAULT_NONE) {
+        board_fault_count++;
+    }
+    board_fault = fault;
+    return fault;
 }
 
 /* Motor off at once: zero duty, the timer's outputs off, the driver disabled.  Called by
@@ -406,11 +456,19 @@ int main(void)
         .send_frame = hal_send_frame,
     };
     static struct truck_fw fw;
+    watchdog_start(); /* first: every wait after this is bounded by it too */
     board_init(can);
     truck_fw_init(&fw, &cfg, &hal);
-    watchdog_start();
+    uint32_t can_tried = ms_ticks;
+    if (can) {
+        (void)can_start();
+    }
     for (;;) {
         IWDG_KR = 0xAAAAu; /* the loop runs: feed the watchdog */
+        if (can && board_fault != BOARD_FAULT_NONE && ms_ticks - can_tried >= CAN_RETRY_MS) {
+            can_tried = ms_ticks;
+            (void)can_start(); /* the motor stays off meanwhile: no command arrives */
+        }
         uint8_t chunk[32];
         size_t n = 0;
         while (rx_tail != rx_head && n < sizeof(chunk)) {

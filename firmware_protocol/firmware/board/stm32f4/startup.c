@@ -8,8 +8,10 @@ int main(void);
 void Reset_Handler(void);
 void Default_Handler(void);
 void SysTick_Handler(void);
-void USART2_IRQHandler(void);
-void CAN1_RX0_IRQHandler(void);
+/* a board without one of these leaves it to the default handler */
+void USART1_IRQHandler(void) __attribute__((weak, alias("Default_Handler")));
+void USART2_IRQHandler(void) __attribute__((weak, alias("Default_Handler")));
+void CAN1_RX0_IRQHandler(void) __attribute__((weak, alias("Default_Handler")));
 
 void board_motor_off(void);
 
@@ -48,5 +50,6 @@ __attribute__((section(".isr_vector"), used)) static const vector_t vectors[16 +
     [14] = Default_Handler, /* PendSV */
     [15] = SysTick_Handler,
     [16 + 20] = CAN1_RX0_IRQHandler,
+    [16 + 37] = USART1_IRQHandler,
     [16 + 38] = USART2_IRQHandler,
 };
