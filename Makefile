@@ -16,9 +16,11 @@ setup: $(BIN)/python
 setup-dev: $(BIN)/python
 	$(BIN)/pip install -q -e '.[dev]'
 
-# the C firmware core as the shared library the simulated truck loads (docs/firmware.md)
+# the C firmware core as the shared library the simulated truck loads (docs/firmware.md),
+# and the identification's C free-run kernel (docs/diagnosis.md)
 firmware:
 	@$(MAKE) -s -C $(FW) host
+	@$(MAKE) -s -C truckd/ident/kernel
 
 sim: setup firmware
 	mkdir -p out

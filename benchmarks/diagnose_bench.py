@@ -5,8 +5,8 @@ truckd.ident.synth.EFFECT_RANGES, random excitation, 0.01 m/s and 0.3 A noise, 5
 100 Hz).  A *hit* names exactly that effect, recovers its parameter within the tests'
 tolerance and improves the fit.  Also: logs without effect (hit = nothing named, not
 unexplained), two effects at once (hit = both named), a periodic disturbance outside
-the candidates (hit = unexplained and nothing named).  Speed: diagnose on a 10-minute
-log at 100 Hz (60 000 samples).
+the candidates (hit = unexplained and nothing named).  Speed: diagnose on 10 000 and 60 000
+samples at 100 Hz, median of 3, with the load average (``--speed-only``).
 
 ``--trucks drawn``: the wider draw.  Every log comes from a different truck with 0.1x..10x
 the default motor constant and inertia (log-uniform), logged at 50-200 Hz with jittered
@@ -24,7 +24,7 @@ clipped to the driven range; a constant ``load_force`` when it covers all of it)
 ``hit_rate`` the hill as placed.
 
     nice .venv/bin/python benchmarks/diagnose_bench.py [--seeds N] [--trucks default|drawn]
-        [--json FILE]
+        [--speed-only | --no-speed] [--json FILE]
 """
 
 from __future__ import annotations
@@ -40,6 +40,7 @@ from typing import Any
 import numpy as np
 
 from truckd.config.truck import load_config
+from truckd.ident import ckernel
 from truckd.ident.api import diagnose_log
 from truckd.ident.synth import (
     draw_truck,
@@ -301,11 +302,46 @@ def _wobble(p: Any, seed: int) -> dict[str, Any]:
     }
 
 
+SPEED_SAMPLES = (10000, 60000)
+"""Log lengths of the speed figure (100 Hz: 100 s and 10 min)."""
+SPEED_REPEATS = 3
+
+
+def _speed(p: Any) -> dict[str, Any]:
+    """Diagnose time of a log with a hidden sensor lag at each of :data:`SPEED_SAMPLES`:
+    median of :data:`SPEED_REPEATS`, with the 1-minute load average around each run."""
+    rows = []
+    for n in SPEED_SAMPLES:
+        log = plant_log(p, with_effect("sensor_lag", 0.06), seed=3, n=n)
+        secs, loads = [], []
+        named: list[str] = []
+        for _ in range(SPEED_REPEATS):
+            loads.append(os.getloadavg()[0])
+            t0 = time.perf_counter()
+            d = diagnose_log(log, p)
+            secs.append(time.perf_counter() - t0)
+            named = [f.name for f in d.effects]
+        rows.append(
+            {
+                "samples": n,
+                "seconds": secs,
+                "median_s": float(np.median(secs)),
+                "loadavg_1min": [round(x, 2) for x in loads],
+                "named": named,
+            }
+        )
+        print(f"  speed {n}: {secs}", file=sys.stderr, flush=True)
+    return {"c_kernel": ckernel.available(), "rows": rows}
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=10, help="seeds per case")
     ap.add_argument("--json", metavar="FILE", help="write the results as JSON")
-    ap.add_argument("--no-speed", action="store_true", help="skip the 60 000-sample run")
+    ap.add_argument("--no-speed", action="store_true", help="skip the speed runs")
+    ap.add_argument(
+        "--speed-only", action="store_true", help="only the speed runs (10 000, 60 000 samples)"
+    )
     ap.add_argument(
         "--trucks", choices=("default", "drawn"), default="default", help="which trucks"
     )
@@ -314,7 +350,9 @@ def main() -> int:
     load_before = os.getloadavg()
     seeds = [int(s) for s in np.random.SeedSequence(20261122).generate_state(args.seeds)]
     rows: list[dict[str, Any]] = []
-    if args.trucks == "drawn":
+    if args.speed_only:
+        cases = []
+    elif args.trucks == "drawn":
         rows = _run_drawn(p, seeds)
         cases = [*EFFECT_NAMES, *TERRAIN, "none"]
     else:
@@ -346,18 +384,11 @@ def main() -> int:
             table[case]["named_rate"] = float(np.mean([r["name_hit"] for r in rs]))
             table[case]["median_time_s"] = float(np.median([r["time_s"] for r in rs]))
     false_per_100 = None
-    if args.trucks == "drawn":
+    if args.trucks == "drawn" and rows:
         false_per_100 = 100.0 * sum(r["false_causes"] for r in rows) / len(rows)
-    speed: dict[str, float] = {}
+    speed: dict[str, Any] = {}
     if not args.no_speed:
-        log = plant_log(p, with_effect("sensor_lag", 0.06), seed=3, n=60000)
-        t0 = time.perf_counter()
-        d = diagnose_log(log, p)
-        speed = {
-            "samples": 60000,
-            "seconds": time.perf_counter() - t0,
-            "named": [f.name for f in d.effects],
-        }  # type: ignore[dict-item]
+        speed = _speed(p)
     print(f"\n{'case':20s} {'runs':>5s} {'hit rate':>9s} {'named':>7s} {'median s':>9s}")
     for case, r in table.items():
         named = f"{r['named_rate']:.2f}" if "named_rate" in r else ""
@@ -368,9 +399,10 @@ def main() -> int:
         print(f"{case:20s} {r['runs']:5d} {r['hit_rate']:9.2f} {named:>7s} {med:>9s}{obs}")
     if false_per_100 is not None:
         print(f"\nfalse causes per 100 logs: {false_per_100:.1f} ({len(rows)} logs)")
-    if speed:
+    for row in speed.get("rows", []):
         print(
-            f"\ndiagnose on {speed['samples']} samples (10 min at 100 Hz): {speed['seconds']:.1f} s"
+            f"\ndiagnose on {row['samples']} samples: median {row['median_s']:.2f} s of "
+            f"{[round(x, 2) for x in row['seconds']]} (load {row['loadavg_1min']})"
         )
     machine = {
         "platform": platform.platform(),

@@ -64,6 +64,11 @@ def test_json_follows_the_contract(run_dir: Path) -> None:
     assert j["extended"]["fit_percent"] > j["baseline"]["fit_percent"]
     assert j["unexplained"] is False
     assert j["ambiguous"] == []
+    # The data's own least squares (WPILib SysId's model), one to one for its users.
+    ls = j["least_squares"]
+    assert set(ls) == {"kS", "kV", "kA", "kS_se", "kV_se", "kA_se", "fit_percent"}
+    assert ls["kV"] > 0 and ls["kA"] > 0 and ls["kV_se"] < ls["kV"]
+    assert j["extended"]["fit_percent"] >= ls["fit_percent"]
 
 
 def test_model_file_carries_the_effect(run_dir: Path) -> None:

@@ -26,7 +26,8 @@ RAMPS = f"{FILE}:slow-forward,slow-backward"
 STEPS = f"{FILE}:fast-forward,fast-backward"
 
 VALIDATION_FIT = 79.9
-"""Free-run fit (%) on the steps of the model fitted on the ramps (measured)."""
+"""Free-run fit (%) on the steps of the seed model fitted on the ramps, as first measured:
+the fit may not fall below it (the least-squares rung lifted it to 82.7 %)."""
 FIT_TOL = 1.5
 """Percentage points; the seed tool's fit on these files was 45 %, one run alone 98 %."""
 
@@ -73,8 +74,15 @@ def test_fit_on_ramps_validated_on_steps(params: VehicleParams) -> None:
     _require_data()
     d = diagnose_log(read_logs([RAMPS]), params, read_logs([STEPS]))
     assert d.runs == 2
-    assert d.baseline.fit_percent == pytest.approx(VALIDATION_FIT, abs=FIT_TOL)
+    assert d.baseline.fit_percent >= VALIDATION_FIT - FIT_TOL
     assert d.extended.fit_percent >= d.baseline.fit_percent
+    # Never below SysId's own least squares on the same files, and it is reported.
+    ls = d.least_squares
+    assert ls is not None and ls["fit_percent"] is not None
+    assert d.extended.fit_percent >= ls["fit_percent"]
+    # Slow symmetric ramps do not pin kA down: the notes must not call it determined.
+    det = next(n for n in d.notes if n.startswith("determined by these runs"))
+    assert "kA" not in det
     ff = d.extended.feedforward
     assert ff is not None
     ols, se = _ols_sysid(FILE, ("slow-forward", "slow-backward"))

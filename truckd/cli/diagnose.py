@@ -86,6 +86,12 @@ def _run(args: argparse.Namespace) -> int:
         write_set(files)
     b, x = diag.baseline, diag.extended
     print(f"{diag.samples} samples in {diag.runs} run(s) ({diag.input} input)")
+    ls = diag.least_squares
+    if ls is not None and ls.get("fit_percent") is not None:
+        print(
+            f"least squares:  fit {ls['fit_percent']:7.2f} %  (SysId's kS={ls['kS']:.4g} V, "
+            f"kV={ls['kV']:.4g} V s/m, kA={ls['kA']:.4g} V s^2/m)"
+        )
     print(f"seed model:     fit {b.fit_percent:7.2f} %  rmse {b.rmse:.4g}")
     for f in diag.effects:
         ps = ", ".join(f"{k}={v:.4g}" for k, v in f.params.items())
@@ -112,6 +118,8 @@ def _run(args: argparse.Namespace) -> int:
         )
     elif diag.explains:
         print("the model explains the data: its residual is white at the noise level")
+    for note in diag.alerts:
+        print(f"note: {note}")
     ff = x.feedforward
     if ff is not None:
         print(

@@ -8,6 +8,7 @@ short, constant input, no motion) raises :class:`truckd.errors.InputError` namin
 from __future__ import annotations
 
 import dataclasses
+import functools
 import itertools
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -46,6 +47,16 @@ class Series:
 
     def __len__(self) -> int:
         return len(self.t)
+
+    @functools.cached_property
+    def fresh(self) -> NDArray[np.bool_]:
+        """:func:`fresh_mask` of ``v``: the samples with a new speed reading."""
+        return fresh_mask(self.v)
+
+    @functools.cached_property
+    def start_speed(self) -> float:
+        """:func:`initial_speed` of ``v`` (computed once: every free run starts there)."""
+        return initial_speed(self.v)
 
     def slice(self, lo: int, hi: int) -> Series:
         """Samples ``lo:hi``, with up to :data:`HISTORY_S` of earlier inputs as history."""
@@ -222,8 +233,53 @@ def check_excitation(runs: Sequence[Series], source: str, kind: str) -> None:
         )
 
 
+HELD = 0.3
+"""A signal whose sample-to-sample change is exactly zero this often (and not always) is
+sampled and held: a sensor slower than the log."""
+
+
+PERIODIC = 0.6
+"""... and a held signal changes at its median interval (+-1 sample) this often."""
+
+
+def fresh_mask(y: Array) -> NDArray[np.bool_]:
+    """Which samples of ``y`` carry a new reading (all, unless sampled and held:
+    :func:`fresh_samples`)."""
+    out = np.ones(len(y), dtype=bool)
+    if len(y) < 3:
+        return out
+    changed = np.diff(y) != 0.0
+    if 1.0 - float(np.mean(changed)) < HELD or not changed.any():
+        return out
+    # A sensor slower than the log updates at a steady interval; a coarse speed at rest
+    # or at steady state repeats irregularly and is not held (all its samples count).
+    gaps = np.diff(np.flatnonzero(changed))
+    if len(gaps) < 3:
+        return out
+    k = float(np.median(gaps))
+    if k < 2.0 or float(np.mean(np.abs(gaps - k) <= 1.0)) < PERIODIC:
+        return out
+    out[1:] = changed
+    return out
+
+
+def fresh_samples(y: Array) -> Array:
+    """The samples of ``y`` that carry a new reading: all of them, or for a sampled-and-
+    held signal (a speed that updates every 4th sample repeats its value,
+    :data:`HELD`) the first sample and each one that differs from the one before."""
+    if len(y) < 3:
+        return y
+    changed = np.diff(y) != 0.0
+    held = 1.0 - float(np.mean(changed))
+    if held < HELD or not changed.any():
+        return y
+    return np.asarray(y[np.concatenate([[0], np.flatnonzero(changed) + 1])], float)
+
+
 def noise_std(y: Array) -> float:
-    """Robust white-noise level of a smooth signal: MAD of its second difference."""
+    """Robust white-noise level of a smooth signal: MAD of its second difference, over
+    its fresh readings (:func:`fresh_samples`: a held value would give noise 0)."""
+    y = fresh_samples(np.asarray(y, float))
     if len(y) < 5:
         return 0.0
     d2 = np.diff(y, 2)

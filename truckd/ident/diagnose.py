@@ -31,14 +31,26 @@ from truckd.ident.data import (
     MIN_RUN,
     Series,
     chunks_of_runs,
+    fresh_mask,
     merged,
     noise_std,
     split_runs_for_validation,
     with_position,
 )
-from truckd.ident.linear import Feedforward, feedforward_of, start_model
-from truckd.ident.physics import effect_problem, effects_problems, vehicle_problems
-from truckd.ident.residuals import Whiteness, whiteness
+from truckd.ident.linear import (
+    Feedforward,
+    LeastSquares,
+    feedforward_of,
+    least_squares_model,
+    start_model,
+)
+from truckd.ident.physics import (
+    configuration_notes,
+    effect_problem,
+    effects_problems,
+    vehicle_problems,
+)
+from truckd.ident.residuals import Whiteness, looks_like, whiteness
 from truckd.ident.result import (
     CandidateRow,
     Diagnosis,
@@ -67,6 +79,7 @@ from truckd.ident.voltage import (
     FitResult,
     Param,
     Weights,
+    apply,
     fit_percent,
     fit_with_stiction,
     predict,
@@ -76,6 +89,7 @@ from truckd.ident.voltage import (
     scan_stiction,
     seed_params,
     stiction_grid,
+    theta_of,
     weights_for,
 )
 from truckd.model.effects import Effects
@@ -110,6 +124,8 @@ def _budget(runs: Sequence[Series], samples: int) -> int:
     return int(min(max(samples, per_time), BUDGET_MAX_FACTOR * samples))
 
 
+GAIN_MIN = 0.5
+"""Points of validation fit a cause must add to be accepted (the selection's test)."""
 MAX_EXTRA_ROUNDS = 2
 """Rounds of trying the remaining candidates on top of the accepted ones."""
 SETTLE = 3.0
@@ -163,7 +179,8 @@ def identify_voltage(
     p_lin, _ = _linear_start(p0, runs, progress)
     free = seed_params(p_lin, whole.i is not None)
     grid = stiction_grid(p0, whole)
-    best = _fit_seed(p0, p_lin, free, fit_data, w, grid, progress)
+    ls = least_squares_model(p0, runs)
+    best = _fit_seed(p0, p_lin, free, fit_data, w, grid, progress, ls)
     return _restick(best, grid, list(runs), w)
 
 
@@ -190,18 +207,30 @@ def _fit_seed(
     w: Weights,
     grid: Sequence[float],
     progress: Progress,
+    ls: LeastSquares | None = None,
+    val_data: list[Series] | None = None,
 ) -> FitResult:
     """Simulation-error refinement from the linear start ``p_lin`` (and from the
     configuration ``p0``, a second start); the best of the refined models and the
-    unrefined linear start (the refinement must beat where it started)."""
+    unrefined linear start and least-squares model ``ls`` (the refinement must beat
+    where it started)."""
     progress("fitting the seed model (motor, inertia, Coulomb, stiction)")
     r = residuals(p_lin, Effects(), fit_data, w)
     start = FitResult(p_lin, Effects(), float(r @ r), len(r), 0)
+    starts = [start]
+    if ls is not None:
+        r = residuals(ls.params, Effects(), fit_data, w)
+        starts.append(FitResult(ls.params, Effects(), float(r @ r), len(r), 0))
     first = fit_with_stiction(p_lin, Effects(), free, fit_data, w, grid, progress, max_nfev=80)
-    alt = p0 if p0 != p_lin else p0.replace(J_S=p0.J_S * 2.0, K_coulomb=p0.K_coulomb * 0.5)
-    alt = alt.replace(K_stiction=max(alt.K_stiction, alt.K_coulomb))
-    second = fit_with_stiction(alt, Effects(), free, fit_data, w, grid, progress, max_nfev=80)
-    fits = [first, second, start]
+    fits = [first, *starts]
+    # Second start: the configuration, unless the data's machine is far from it (then a
+    # start there costs evaluations and finds nothing the data's start does not).
+    if not configuration_notes(p_lin, p0):
+        alt = p0 if p0 != p_lin else p0.replace(J_S=p0.J_S * 2.0, K_coulomb=p0.K_coulomb * 0.5)
+        alt = alt.replace(K_stiction=max(alt.K_stiction, alt.K_coulomb))
+        fits.append(
+            fit_with_stiction(alt, Effects(), free, fit_data, w, grid, progress, max_nfev=80)
+        )
     # Third start: the linear start with its breakaway scanned first.  A stiction far from
     # the configured one made the first fit move Coulomb friction and K_v to absorb it (a
     # local minimum the later scan could not leave: K_coulomb 0.026 for 0.015).
@@ -210,7 +239,23 @@ def _fit_seed(
         fits.append(
             fit_with_stiction(p_st, Effects(), free, fit_data, w, grid, progress, max_nfev=80)
         )
-    return min(fits, key=lambda m: m.sse)
+    best = min(fits, key=lambda m: m.sse)
+    if val_data is None:
+        return best
+    # Estimation data that hardly show one constant (slow symmetric ramps and kA) leave
+    # fits of nearly equal cost there and far apart elsewhere: when the best one's
+    # constants are not all determined (Fisher information), among the fits near the
+    # best the validation data choose.
+    rel = fisher_rel_se(best, free, fit_data, w)
+    if rel is None or max(rel[1:]) < DETERMINED:
+        return best
+    low = best.sse
+    near = [m for m in fits if m.sse <= low + max(NEAR_SSE * low, 2.0 * BIC_MIN)]
+    return min(near, key=lambda m: _val_cost(m, val_data, w))
+
+
+NEAR_SSE = 0.5
+"""Seed fits within this fraction of the best estimation cost go to the validation data."""
 
 
 def _restick(m: FitResult, grid: Sequence[float], data: list[Series], w: Weights) -> FitResult:
@@ -383,12 +428,70 @@ def _free_run(
     return np.concatenate([r.v for r in runs]), np.concatenate(sims)
 
 
+def _gain_where_acting(
+    new: FitResult, old: FitResult, runs: Sequence[Series], noise: float
+) -> float:
+    """Points of free-run fit ``new`` gains over ``old`` on the samples of ``runs`` where
+    the two differ by more than twice the noise (where the added cause acts; all samples
+    when fewer than :data:`MIN_SUPPORT` do): of the speed, or of the current when logged
+    (a dead zone may show in the current only), whichever gains more."""
+    p_new = [predict(new.params, new.effects, r) for r in runs]
+    p_old = [predict(old.params, old.effects, r) for r in runs]
+    outputs = [
+        (
+            np.concatenate([r.v for r in runs]),
+            np.concatenate([q.v for q in p_new]),
+            np.concatenate([q.v for q in p_old]),
+            noise,
+        )
+    ]
+    if all(r.i is not None for r in runs):
+        cur = [r.i for r in runs if r.i is not None]
+        outputs.append(
+            (
+                np.concatenate(cur),
+                np.concatenate([q.i for q in p_new]),
+                np.concatenate([q.i for q in p_old]),
+                float(np.mean([noise_std(c) for c in cur])),
+            )
+        )
+    gains = []
+    for y, y_new, y_old, sd in outputs:
+        acts = np.abs(y_new - y_old) > 2.0 * sd
+        if int(acts.sum()) < MIN_SUPPORT:
+            acts = np.ones(len(y), dtype=bool)
+        gains.append(fit_percent(y[acts], y_new[acts]) - fit_percent(y[acts], y_old[acts]))
+    return max(gains)
+
+
+def _residual_signals(runs: Sequence[Series]) -> dict[str, np.ndarray]:
+    """The signals a residual over ``runs`` is compared with (same length, end to end)."""
+    sig: dict[str, list[np.ndarray]] = {
+        "speed": [],
+        "acceleration": [],
+        "command_sign": [],
+        "time": [],
+        "position": [],
+    }
+    for r in runs:
+        sig["speed"].append(r.v)
+        sig["acceleration"].append(np.gradient(r.v, r.t) if len(r) > 2 else np.zeros(len(r)))
+        sig["command_sign"].append(np.sign(r.inp))
+        sig["time"].append(r.t - r.t[0])
+        sig["position"].append(r.x if r.x is not None else np.zeros(len(r)))
+    return {k: np.concatenate(v) for k, v in sig.items()}
+
+
 def _whiteness_of(r: np.ndarray, runs: Sequence[Series]) -> tuple[Whiteness, bool]:
-    """Whiteness statistics of a residual over ``runs`` and whether it is structured."""
+    """Whiteness statistics of a residual over ``runs`` and whether it is structured.
+    A sampled-and-held speed is judged at its fresh readings only (between them the
+    held value is stale by construction, a staircase no model of the truck explains)."""
     whole = merged(runs)
     noise = float(np.mean([noise_std(x.v) for x in runs]))
-    h = float(np.median(np.diff(whole.t)))
-    wt = whiteness(r, whole.inp, noise, max_lag=max(10, round(1.0 / h)))
+    fresh = np.concatenate([fresh_mask(x.v) for x in runs])
+    r, inp, t = r[fresh], whole.inp[fresh], whole.t[fresh]
+    h = float(np.median(np.diff(t))) if len(t) > 1 else 1.0
+    wt = whiteness(r, inp, noise, max_lag=max(10, round(1.0 / h)))
     return wt, structured(wt, noise, 2e-3 * float(np.std(whole.v)))
 
 
@@ -536,7 +639,12 @@ def _summary(
         for n in ("load_force_amplitude", "load_force_wavelength", "load_force_phase"):
             params[n] = float(getattr(e, n))
     ff = feedforward_of(p).to_json()
-    return ModelSummary(fit_percent(y, y_sim), rmse(y, y_sim), params, feedforward=ff), y_sim
+    # A sampled-and-held speed is compared at its fresh readings (the held ones are stale).
+    m = np.concatenate([r.fresh for r in runs])
+    summary = ModelSummary(
+        fit_percent(y[m], y_sim[m]), rmse(y[m], y_sim[m]), params, feedforward=ff
+    )
+    return summary, y_sim
 
 
 def diagnose_voltage(
@@ -563,9 +671,10 @@ def diagnose_voltage(
     val_data = chunks_of_runs(val, _budget(val, VAL_BUDGET))
     w = weights_for(fit_data)
     p_lin, ff = _linear_start(p0, est, progress)
+    ls = least_squares_model(p0, est)
     seed_free = seed_params(p_lin, whole.i is not None)
     grid = stiction_grid(p0, whole)
-    base_fit = _fit_seed(p0, p_lin, seed_free, fit_data, w, grid, progress)
+    base_fit = _fit_seed(p0, p_lin, seed_free, fit_data, w, grid, progress, ls, val_data)
     base = _Model(base_fit, (), _val_cost(base_fit, val_data, w))
     rejected: list[Rejected] = []
 
@@ -582,7 +691,7 @@ def diagnose_voltage(
                     e.load_force_amplitude, e.load_force_wavelength, m.params, runs
                 )
             else:
-                why = effect_problem(n, float(getattr(m.effects, pn)), m.params, runs)
+                why = effect_problem(n, float(getattr(m.effects, pn)), m.params, runs, p0)
             if why is not None:
                 ok = False
                 if all(r.reason != why for r in rejected):
@@ -591,6 +700,15 @@ def diagnose_voltage(
 
     def is_hill(name: str) -> bool:
         return by_name[name].param.name == "hill_force"
+
+    noise_val = float(np.mean([noise_std(r.v) for r in val]))
+
+    def earns(name: str, new: _Model, old: _Model) -> bool:
+        """``new`` (``old`` + ``name``) raises the validation fit where the cause acts
+        by :data:`GAIN_MIN` points (a hill: validated where it acts, :func:`hill_check`)."""
+        if is_hill(name):
+            return True
+        return _gain_where_acting(new.fit, old.fit, val, noise_val) >= GAIN_MIN
 
     held_out: dict[tuple[float, float, float], bool | None] = {}
     hill_notes: dict[str, str] = {}
@@ -638,6 +756,7 @@ def diagnose_voltage(
         f = _fit_candidate(base_fit, seed_free, [], cand, fit_data, w, grid, progress, val_data)
         m = _Model(f, (cand.name,), _val_cost(f, val_data, w))
         ok, dbic = _passes(m, base, 1, hill_check(cand.name, m, base))
+        ok = ok and earns(cand.name, m, base)
         note = "passes alone" if ok else hill_notes.get(cand.name, "")
         if ok and not possible(f, [cand.name]):
             ok = False
@@ -672,6 +791,7 @@ def diagnose_voltage(
             )
             new = _Model(f, (*current.names, name), _val_cost(f, val_data, w))
         ok, _ = _passes(new, current, 1, hill_check(name, new, current))
+        ok = ok and earns(name, new, current)
         if ok and possible(new.fit, [*accepted, name]):
             accepted.append(name)
             current = new
@@ -713,6 +833,7 @@ def diagnose_voltage(
             new = _Model(f, (*current.names, cand.name), _val_cost(f, val_data, w))
             if (
                 _passes(new, current, 1, hill_check(cand.name, new, current))[0]
+                and earns(cand.name, new, current)
                 and possible(new.fit, new.names)
                 and (best is None or new.val_cost < best.val_cost)
             ):
@@ -766,44 +887,116 @@ def diagnose_voltage(
             max_nfev=FINAL_NFEV,
         )
         final = _restick(final, grid, fit_runs, w)
-        if effects_problems(final.effects, final.params, runs):
+        if effects_problems(final.effects, final.params, runs, p0):
             final = _restick(current.fit, grid, fit_runs, w)  # the refit left the limits
     base_sum, y_base = _summary(base_pol.params, base_pol.effects, report)
+
+    def keep(model: FitResult) -> tuple[list[Finding], list[str], ModelSummary, np.ndarray]:
+        """The accepted causes that earn their place in ``model`` on the report data,
+        in order: each must raise the report fit by :data:`GAIN_MIN` points (a hill, on
+        its stretch only, validated where it acts: by any gain)."""
+        found: list[Finding] = []
+        kept_: list[str] = []
+        y_e, e_sum = y_base, base_sum
+        for name in accepted:
+            later = {by_name[a].param.name: 0.0 for a in accepted if a not in (*kept_, name)}
+            trial = dataclasses.replace(model.effects, **later)
+            s_k, y_k = _summary(model.params, trial, report)
+            if s_k.fit_percent <= e_sum.fit_percent:
+                continue
+            found.append(
+                Finding(
+                    name=by_name[name].output or name,
+                    params=_params_of(by_name[name], model.effects),
+                    profile=_profile_of(by_name[name], model.effects),
+                    fit_percent=s_k.fit_percent,
+                    fit_gain_percent=s_k.fit_percent - e_sum.fit_percent,
+                )
+            )
+            kept_.append(name)
+            e_sum, y_e = s_k, y_k
+        return found, kept_, e_sum, y_e
+
     # Never worse: each accepted cause must raise the report fit; one that does not is
-    # switched off (a cause that lowers the validation fit is no cause).
-    findings: list[Finding] = []
-    y_ext, ext_sum = y_base, base_sum
-    kept: list[str] = []
+    # switched off (a cause that lowers the validation fit is no cause).  The final
+    # joint refit never drops a cause that earned its place in the selection's model:
+    # when it would, the selection's model stays.
+    findings, kept, ext_sum, y_ext = keep(final)
+    if accepted and final is not current.fit:
+        sel = _restick(current.fit, grid, fit_runs, w)
+        alt = keep(sel)
+        if len(alt[1]) > len(kept) or (
+            len(alt[1]) == len(kept) and alt[2].fit_percent > ext_sum.fit_percent
+        ):
+            progress("the final joint refit loses a cause: the selection's model stays")
+            final = sel
+            findings, kept, ext_sum, y_ext = alt
     for name in accepted:
-        later = {by_name[a].param.name: 0.0 for a in accepted if a not in (*kept, name)}
-        trial = dataclasses.replace(final.effects, **later)
-        s_k, y_k = _summary(final.params, trial, report)
-        if s_k.fit_percent <= ext_sum.fit_percent:
+        if name not in kept:
             progress(f"{name} does not raise the report fit: not accepted")
             rows[name] = dataclasses.replace(
-                rows[name], accepted=False, note="lowers the report fit: not accepted"
+                rows[name],
+                accepted=False,
+                note="lowers the report fit: not accepted",
             )
-            continue
-        findings.append(
-            Finding(
-                name=by_name[name].output or name,
-                params=_params_of(by_name[name], final.effects),
-                profile=_profile_of(by_name[name], final.effects),
-                fit_percent=s_k.fit_percent,
-                fit_gain_percent=s_k.fit_percent - ext_sum.fit_percent,
-            )
-        )
-        kept.append(name)
-        ext_sum, y_ext = s_k, y_k
     switched_off = {by_name[a].param.name: 0.0 for a in accepted if a not in kept}
     ext_params = final.params if kept else base_pol.params
     ext_effects = dataclasses.replace(final.effects, **switched_off) if kept else base_pol.effects
+    fisher = fisher_rel_se(base_fit, seed_free, fit_data, w)
+    notes = [*_notes(runs, ff, fisher)]
+    ls_json: dict[str, float | None] | None = None
+    if ls is not None:
+        ls_sum, y_ls = _summary(ls.params, Effects(), report)
+        ls_json = _least_squares_json(ls, ls_sum.fit_percent)
+        progress(f"least squares (SysId's model): fit {ls_sum.fit_percent:.2f} %")
+        if ext_sum.fit_percent < ls_sum.fit_percent:
+            notes.append(
+                f"the simulation-error fit ({ext_sum.fit_percent:.1f} %) does not beat the "
+                f"data's own least-squares model ({ls_sum.fit_percent:.1f} %) on the "
+                "validation data: the extended model is the least-squares model"
+            )
+            for name in kept:
+                rows[name] = dataclasses.replace(
+                    rows[name], accepted=False, note="below least squares: not accepted"
+                )
+            findings, kept = [], []
+            ext_sum, y_ext = ls_sum, y_ls
+            ext_params, ext_effects = ls.params, Effects()
+    binding = _binding_limits(
+        ext_params,
+        ext_effects,
+        [*seed_free, *[by_name[a].param for a in kept]],
+        polish_data,
+        report,
+        grid,
+        progress,
+    )
+    notes.extend(binding)
+    machine = configuration_notes(ext_params, p0)
+    notes.extend(machine)
+    alerts = [n for n in notes if n.startswith("the simulation-error fit")]
+    alerts.extend([*binding, *machine])
+    notes.extend(vehicle_problems(ext_params, runs))
     y_all = np.concatenate([r.v for r in report])
     wt, unexplained = _whiteness_of(y_all - y_ext, report)
-    notes = [*_notes(runs, ff), *vehicle_problems(ext_params, runs)]
+    rep = merged(report)
+    looks = looks_like(y_all - y_ext, _residual_signals(report))
+    if unexplained:
+        what = (
+            ", ".join(f"{k} (r = {c:+.2f})" for k, c in looks.items())
+            if looks
+            else "none of speed, acceleration, the command's sign, time or position"
+        )
+        line = (
+            f"unexplained: the best model leaves structure in the residual (autocorrelation "
+            f"{wt.acf_outside:.0%} and cross-correlation with the input {wt.ccf_outside:.0%} "
+            f"of lags outside the band, RMS {wt.rms:.3g} against noise {wt.noise:.3g} m/s); "
+            f"it correlates with {what}"
+        )
+        notes.append(line)
+        alerts.append(line)
     if supply_note is not None:
         notes.insert(0, supply_note)
-    rep = merged(report)
     return Diagnosis(
         input="voltage",
         samples=sum(len(r) for r in runs),
@@ -831,12 +1024,78 @@ def diagnose_voltage(
             "structure": wt.structure,
             "acf_outside_fraction": wt.acf_outside,
             "ccf_outside_fraction": wt.ccf_outside,
+            **{f"corr_{k}": c for k, c in looks.items()},
         },
         rejected=rejected,
         linear=None if ff is None else ff.to_json(),
+        least_squares=ls_json,
+        alerts=alerts,
         runs=len(runs),
         explains=not unexplained and white(wt),
     )
+
+
+def _least_squares_json(ls: LeastSquares, fit_pct: float) -> dict[str, float | None]:
+    """The ``least_squares`` object of the JSON (CONTRACTS.md)."""
+    se = ls.se
+    out: dict[str, float | None] = {"kS": ls.ff.kS, "kV": ls.ff.kV, "kA": ls.ff.kA}
+    for k, e in zip(("kS", "kV", "kA"), se, strict=True):
+        out[f"{k}_se"] = float(e) if np.isfinite(e) else None
+    out["fit_percent"] = float(fit_pct)
+    return out
+
+
+def _value_of(p: VehicleParams, e: Effects, name: str) -> float:
+    """A free parameter's value in a model (vehicle parameter or effect)."""
+    return float(getattr(p, name)) if hasattr(p, name) else float(getattr(e, name))
+
+
+BOUND_TOL = 1e-3
+"""A parameter within this fraction of a limit ends on that limit."""
+UNBOUND = 100.0
+"""The refit without a binding limit moves it this factor further out."""
+
+
+def _binding_limits(
+    p: VehicleParams,
+    e: Effects,
+    free: Sequence[Param],
+    fit_data: list[Series],
+    report: Sequence[Series],
+    grid: Sequence[float],
+    progress: Progress,
+) -> list[str]:
+    """One note per free parameter of the final model that ends on a limit of its range
+    (zero lower limits excepted: a sign, not a size), with the report fit with the
+    limit and after a refit with it moved :data:`UNBOUND` times further out."""
+    out = []
+    w = weights_for(fit_data)
+    for k, f in enumerate(free):
+        if f.name == "stiction_excess":
+            continue
+        val = _value_of(p, e, f.name)
+        at_lo = f.lo != 0.0 and abs(val - f.lo) <= BOUND_TOL * abs(f.lo)
+        at_hi = f.hi != 0.0 and abs(val - f.hi) <= BOUND_TOL * abs(f.hi)
+        if not (at_lo or at_hi):
+            continue
+        bound = f.lo if at_lo else f.hi
+        wider = (
+            dataclasses.replace(f, lo=f.lo / UNBOUND if f.lo > 0 else f.lo * UNBOUND)
+            if at_lo
+            else dataclasses.replace(f, hi=f.hi * UNBOUND if f.hi > 0 else f.hi / UNBOUND)
+        )
+        trial = [*free[:k], wider, *free[k + 1 :]]
+        progress(f"{f.name} ends on its limit {bound:.3g}: refit without it")
+        refit = fit_with_stiction(p, e, trial, fit_data, w, grid, progress)
+        with_pct = _summary(p, e, report)[0].fit_percent
+        without = _summary(refit.params, refit.effects, report)[0].fit_percent
+        new_val = _value_of(refit.params, refit.effects, f.name)
+        out.append(
+            f"limit binds: {f.name} = {val:.3g} ends on its {'lower' if at_lo else 'upper'} "
+            f"limit {bound:.3g}; fit {with_pct:.1f} % with the limit, {without:.1f} % "
+            f"without it ({f.name} = {new_val:.3g})"
+        )
+    return out
 
 
 DETERMINED = 0.1
@@ -844,7 +1103,58 @@ DETERMINED = 0.1
 error is below this."""
 
 
-def _notes(runs: Sequence[Series], ff: Feedforward | None) -> list[str]:
+def fisher_rel_se(
+    m: FitResult, free: Sequence[Param], data: list[Series], w: Weights
+) -> tuple[float, float, float] | None:
+    """Relative standard errors of (kS, kV, kA) of the simulation-error fit ``m`` on
+    ``data``, from the Fisher information (Gauss-Newton, finite differences in log
+    space), the residual's variance, and its lag-1 autocorrelation to count effectively
+    independent samples (an autocorrelated residual carries less information).  None
+    when the seed's ``K_v``, ``J_S`` or ``K_coulomb`` is not free."""
+    names = [f.name for f in free]
+    if not {"K_v", "J_S", "K_coulomb"} <= set(names):
+        return None
+    r0 = residuals(m.params, m.effects, data, w)
+    cols = []
+    step = 1e-3
+    for f in free:
+        val = _value_of(m.params, m.effects, f.name)
+        if f.name == "K_coulomb" and val <= 0.0:
+            val = 1e-3 * f.scale
+        th = theta_of(m.params, m.effects, free)
+        k = names.index(f.name)
+        th_up = th.copy()
+        th_up[k] = val * (1.0 + step) / f.scale
+        p_up, e_up = apply(m.params, m.effects, free, th_up)
+        r_up = residuals(p_up, e_up, data, w)
+        cols.append((r_up - r0) / step)  # per unit relative change (log space)
+    jac = np.column_stack(cols)
+    n = len(r0)
+    if n <= len(free):
+        return None
+    res = r0 - np.mean(r0)
+    rho = float(res[:-1] @ res[1:]) / max(float(res @ res), 1e-300)
+    rho = min(max(rho, 0.0), 0.99)
+    var = float(r0 @ r0) / (n - len(free)) * (1.0 + rho) / (1.0 - rho)
+    try:
+        cov = var * np.linalg.pinv(jac.T @ jac)
+    except np.linalg.LinAlgError:
+        return None
+    kv, js, kc = names.index("K_v"), names.index("J_S"), names.index("K_coulomb")
+    d = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    # kA = R_m J_S / (K_T ratio) with K_T tied to K_v: log kA = log J_S - log K_v + c.
+    ka = float(np.sqrt(max(cov[js, js] + cov[kv, kv] - 2.0 * cov[js, kv], 0.0)))
+    ks = float(np.sqrt(max(cov[kc, kc] + cov[kv, kv] - 2.0 * cov[kc, kv], 0.0)))
+    if m.params.K_coulomb <= 0.0:
+        ks = float("inf")
+    return ks, float(d[kv]), ka
+
+
+def _notes(
+    runs: Sequence[Series],
+    ff: Feedforward | None,
+    fisher: tuple[float, float, float] | None = None,
+) -> list[str]:
     """What these runs can and cannot determine."""
     whole = merged(runs)
     notes = [
@@ -869,7 +1179,10 @@ def _notes(runs: Sequence[Series], ff: Feedforward | None) -> list[str]:
         )
     else:
         names = {"kS": "K_coulomb", "kV": "K_v", "kA": "J_S"}
-        good = [k for k, e in zip(("kS", "kV", "kA"), ff.rel_se, strict=True) if e < DETERMINED]
+        # Determined: both the linear estimate and the simulation-error fit pin it down
+        # (the windowed OLS alone called kA determined from slow symmetric ramps).
+        rel = ff.rel_se if fisher is None else tuple(map(max, ff.rel_se, fisher))
+        good = [k for k, e in zip(("kS", "kV", "kA"), rel, strict=True) if e < DETERMINED]
         bad = [k for k in ("kS", "kV", "kA") if k not in good]
         if good:
             notes.append(

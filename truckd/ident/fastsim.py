@@ -20,10 +20,12 @@ import dataclasses
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
+from truckd.ident import ckernel
 from truckd.model.effects import Effects, position_dependent, terrain_force
 from truckd.model.params import VehicleParams
 
@@ -173,15 +175,59 @@ def _segment(
     return w, dist
 
 
+KERNEL_FIELDS = frozenset(
+    ("a", "b", "a_idle", "b_idle", "c", "sigma", "d", "drag", "scale", "lag", "terrain")
+)
+"""The :class:`Kinetics` fields the C kernel (:mod:`truckd.ident.ckernel`) models."""
+
+
+def kernel_handles(kin: Kinetics) -> bool:
+    """Whether the C kernel models ``kin``: a position-dependent load only as a
+    :class:`Terrain`, and every field it does not know at its default (a newer model
+    feature runs the Python loop)."""
+    if kin.terrain is not None and not isinstance(kin.terrain, Terrain):
+        return False
+    for f in dataclasses.fields(kin):
+        if f.name in KERNEL_FIELDS:
+            continue
+        if f.default is dataclasses.MISSING or getattr(kin, f.name) != f.default:
+            return False
+    return True
+
+
 def run(
-    kin: Kinetics, tl: Timeline, n: int, w0: float, sensor_lag: float = 0.0
+    kin: Kinetics,
+    tl: Timeline,
+    n: int,
+    w0: float,
+    sensor_lag: float = 0.0,
+    use_kernel: bool = True,
 ) -> tuple[Array, Array, Array]:
     """Free run from speed w0; returns per-sample (speed, mean speed, position).
+
+    The C kernel runs it when built and it models ``kin`` (:func:`kernel_handles`;
+    ``use_kernel=False``: always the Python loop, the reference).
 
     ``speed[k]`` at ``t[k]`` as the sensor reports it (low-pass ``sensor_lag`` s applied
     to the mean speed over each sample step, as the plant does), ``mean`` the raw
     instantaneous speed, ``pos`` the integral of speed.
     """
+    if use_kernel and kernel_handles(kin):
+        tr = kin.terrain
+        ter = None
+        if isinstance(tr, Terrain):
+            e = tr.eff
+            ter = (
+                tr.per_newton, tr.ratio, tr.x0, e.load_force_amplitude,
+                e.load_force_wavelength, e.load_force_phase, e.hill_force, e.hill_start,
+                e.hill_length,
+            )  # fmt: skip
+        done = ckernel.run(
+            kin.a, kin.b, kin.a_idle, kin.b_idle, kin.c, kin.sigma, kin.d, kin.drag,
+            kin.scale, kin.lag, tl.dt, tl.cmd, tl.sample_end, n, w0, sensor_lag, ter,
+        )  # fmt: skip
+        if done is not None:
+            return done
     out = np.empty(n)
     raw = np.empty(n)
     pos = np.empty(n)
@@ -372,20 +418,59 @@ def unsupported_effects(eff: Effects) -> list[str]:
     return out
 
 
+@dataclass(frozen=True)
+class Terrain:
+    """The position-dependent load per unit inertia as a function of the motor angle
+    travelled (rad) from ``x0`` (m): ``per_newton * terrain_force(eff, x0 + angle *
+    ratio)``; the C kernel computes the same from these fields."""
+
+    eff: Effects
+    per_newton: float
+    ratio: float
+    x0: float
+
+    def __call__(self, angle: float) -> float:
+        return self.per_newton * terrain_force(self.eff, self.x0 + angle * self.ratio)
+
+
 def _terrain(
     p: VehicleParams, eff: Effects, kappa: float, x0: float
 ) -> Callable[[float], float] | None:
-    """The position-dependent load per unit inertia as a function of the motor angle
-    travelled (rad) from ``x0`` (m); None when the load does not depend on position."""
+    """The position-dependent load per unit inertia (:class:`Terrain`); None when the
+    load does not depend on position."""
     if not position_dependent(eff):
         return None
-    per_newton = kappa * p.force_to_torque(1.0) / p.J_S
-    ratio = p.ratio
+    return Terrain(eff, kappa * p.force_to_torque(1.0) / p.J_S, p.ratio, x0)
 
-    def extra(angle: float) -> float:
-        return per_newton * terrain_force(eff, x0 + angle * ratio)
 
-    return extra
+PREP_CACHE = 64
+"""Series whose input-side preparation (driver voltage, coefficients, timeline) is kept:
+a stiction scan or a friction fit changes only what acts after it."""
+_PREP: dict[tuple[object, ...], tuple[Any, ...]] = {}
+_UNPREPARED = (
+    "load_force",
+    "aero_drag",
+    "sensor_lag",
+    "load_force_amplitude",
+    "load_force_wavelength",
+    "load_force_phase",
+    "hill_force",
+    "hill_start",
+    "hill_length",
+)
+"""Effects fields that do not enter the preparation (loads, drag, lag, terrain)."""
+
+
+def _prep_key(
+    p: VehicleParams, eff: Effects, t: Array, u: Array, t_hist: Array | None, u_hist: Array | None
+) -> tuple[object, ...]:
+    """Cache key of the preparation: the arrays' identities (the cache holds them, so an
+    identity cannot be reused while cached) and every parameter that enters it (the whole
+    vehicle but its friction, the whole effects but loads, drag, lag and terrain; a new
+    effect field is part of the key by construction)."""
+    q = p.replace(K_coulomb=0.0, K_stiction=0.0)
+    e = dataclasses.replace(eff, **dict.fromkeys(_UNPREPARED, 0.0))
+    return (id(t), id(u), id(t_hist), id(u_hist), q, e)
 
 
 def simulate_voltage(
@@ -418,14 +503,23 @@ def simulate_voltage(
     t = np.asarray(t, float)
     u_all = np.asarray(u, float) if not hist else np.concatenate([u_hist, u])
     t_cmd = t if not hist else np.concatenate([t_hist, t])
-    volts = driver_volts(u_all, eff, p.V_batt)
-    duty = volts / p.V_batt
-    r_tot = p.R_m + eff.battery_sag * duty * duty
-    k_arr, _ = electrical_correction(p, eff.viscous_friction, r_tot)
-    k0, l0 = electrical_correction(p, eff.viscous_friction)
-    kappa, lag_e = float(k0), float(l0)
-    a = k_arr * p.K_T / p.J_S * volts / r_tot
-    b = k_arr * (p.K_T * p.K_v / r_tot + eff.viscous_friction) / p.J_S
+    key = _prep_key(p, eff, t, u, t_hist, u_hist)
+    hit = _PREP.get(key)
+    if hit is not None and hit[0] is t and hit[1] is u and hit[2] is t_hist and hit[3] is u_hist:
+        volts, r_tot, k_arr, kappa, lag_e, a, b, tl = hit[4]
+    else:
+        volts = driver_volts(u_all, eff, p.V_batt)
+        duty = volts / p.V_batt
+        r_tot = p.R_m + eff.battery_sag * duty * duty
+        k_arr, _ = electrical_correction(p, eff.viscous_friction, r_tot)
+        k0, l0 = electrical_correction(p, eff.viscous_friction)
+        kappa, lag_e = float(k0), float(l0)
+        a = k_arr * p.K_T / p.J_S * volts / r_tot
+        b = k_arr * (p.K_T * p.K_v / r_tot + eff.viscous_friction) / p.J_S
+        tl = _merge_equal(timeline(t, eff.input_delay + lag_e, hist, t_cmd), a, b)
+        if len(_PREP) >= PREP_CACHE:
+            del _PREP[next(iter(_PREP))]
+        _PREP[key] = (t, u, t_hist, u_hist, (volts, r_tot, k_arr, kappa, lag_e, a, b, tl))
     load = p.force_to_torque(eff.load_force)
     kin = Kinetics(
         a=a,
@@ -440,7 +534,6 @@ def simulate_voltage(
         lag=lag_e,
         terrain=_terrain(p, eff, kappa, x0),
     )
-    tl = _merge_equal(timeline(t, eff.input_delay + lag_e, hist, t_cmd), a, b)
     w0 = p.omega(v0)
     meas, raw, pos = run(kin, tl, n, w0, eff.sensor_lag)
     # Active command at each sample instant (for the quasi-static current).

@@ -223,3 +223,83 @@ def start_model(
     kc = max(ks_v, 0.0) * p.K_T / p.R_m
     ks = kc + max(p0.K_stiction - p0.K_coulomb, 0.0) * (kc / p0.K_coulomb if p0.K_coulomb else 1)
     return p.replace(J_S=j, K_coulomb=kc, K_stiction=ks), ff
+
+
+@dataclass(frozen=True)
+class LeastSquares:
+    """The data's own least-squares model (WPILib SysId's), as a vehicle and constants.
+
+    ``params``: the configured vehicle with ``K_v``, ``J_S``, ``K_coulomb`` (and ``R_m``
+    with current) replaced so that it simulates exactly ``V = kS sign(v) + kV v + kA a``
+    (``K_stiction = K_coulomb``: SysId has no breakaway); only the gearing of the
+    configuration converts units (the ratios ``K_T/K_v`` and ``K_T/R_m`` it keeps cancel
+    in the speed).  ``ff``: the constants with their standard errors (V, V s/m, V s^2/m).
+    """
+
+    params: VehicleParams
+    ff: Feedforward
+
+    @property
+    def se(self) -> tuple[float, float, float]:
+        """Standard errors of (kS, kV, kA) (inf: not determined)."""
+        vals = (self.ff.kS, self.ff.kV, self.ff.kA)
+        return (
+            float(self.ff.rel_se[0] * abs(vals[0])) if np.isfinite(self.ff.rel_se[0]) else np.inf,
+            float(self.ff.rel_se[1] * abs(vals[1])),
+            float(self.ff.rel_se[2] * abs(vals[2])),
+        )
+
+
+def _finite_difference_ols(runs: Sequence[Series]) -> Feedforward | None:
+    """SysId's older form: OLS of ``V = kS sign(v) + kV v + kA a`` with ``a`` the central
+    difference of the speed, over all samples clearly in motion (None: too few)."""
+    xs, ys = [], []
+    for r in runs:
+        if len(r) < 5:
+            continue
+        a = np.gradient(r.v, r.t)
+        thr = max(3.0 * noise_std(r.v), 0.02 * float(np.max(np.abs(r.v))), 1e-9)
+        ok = np.abs(r.v) > thr
+        xs.append(np.column_stack([np.sign(r.v[ok]), r.v[ok], a[ok]]))
+        ys.append(r.inp[ok])
+    if not xs:
+        return None
+    x, y = np.vstack(xs), np.concatenate(ys)
+    if len(y) < 10 or np.linalg.matrix_rank(x) < 3:
+        return None
+    coef, *_ = np.linalg.lstsq(x, y, rcond=None)
+    ks, kv, ka = (float(c) for c in coef)
+    if kv <= 0.0 or ka <= 0.0:
+        return None
+    res = y - x @ coef
+    cov = float(res @ res) / max(len(y) - 3, 1) * np.linalg.pinv(x.T @ x)
+    se = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    rel = tuple(
+        float(e / abs(k)) if k != 0 else float("inf") for e, k in zip(se, coef, strict=True)
+    )
+    return Feedforward(
+        kS=max(ks, 0.0), kV=kv, kA=ka, rel_se=(rel[0], rel[1], rel[2]), samples=len(y)
+    )
+
+
+def least_squares_model(p0: VehicleParams, runs: Sequence[Series]) -> LeastSquares | None:
+    """The least-squares model of ``runs`` (:class:`LeastSquares`): SysId's OLS in its
+    exact discrete form (:func:`fit_feedforward`), else its finite-difference form;
+    with current, ``R_m`` and ``K_v`` from the electrical balance.  None: too few
+    samples in motion for either."""
+    ff = fit_feedforward(runs) or _finite_difference_ols(runs)
+    if ff is None:
+        return None
+    r = p0.ratio
+    p = p0
+    el = electrical(runs, p0)
+    if el is not None:
+        rm, kv = el
+        p = p.replace(R_m=rm, K_v=kv, K_T=p0.K_T * kv / p0.K_v)
+    else:
+        kv = ff.kV * r
+        p = p.replace(K_v=kv, K_T=p0.K_T * kv / p0.K_v)
+    ks_v = ff.kS if np.isfinite(ff.rel_se[0]) else 0.0
+    kc = max(ks_v, 0.0) * p.K_T / p.R_m
+    j = ff.kA * p.K_T * r / p.R_m
+    return LeastSquares(p.replace(J_S=j, K_coulomb=kc, K_stiction=kc), ff)

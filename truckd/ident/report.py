@@ -161,6 +161,15 @@ def _html(diag: Diagnosis, images: list[tuple[str, str]], source: str) -> str:
             f"{diag.baseline.force_relerr_percent:.3f} %, extended "
             f"{diag.extended.force_relerr_percent:.3f} %</p>"
         )
+    ls = diag.least_squares
+    if ls is not None and ls.get("fit_percent") is not None:
+        force += (
+            f"<p>Least squares (WPILib SysId's model, the data's own): fit "
+            f"{ls['fit_percent']:.2f} %, kS {ls['kS']:.4g} V, kV {ls['kV']:.4g} V s/m, "
+            f"kA {ls['kA']:.4g} V s^2/m.</p>"
+        )
+    if diag.alerts:
+        force += "<ul>" + "".join(f"<li><b>{e(a)}</b></li>" for a in diag.alerts) + "</ul>"
     imgs = "".join(f"<h2>{e(t)}</h2><img src='{e(p)}' alt='{e(t)}'>" for t, p in images)
     notes = "".join(f"<li>{e(n)}</li>" for n in diag.notes)
     amb = ", ".join(f"{a} / {b}" for a, b in diag.ambiguous) or "none"

@@ -103,3 +103,29 @@ def whiteness(r: Array, u: Array, noise: float, max_lag: int) -> Whiteness:
         acf_outside=float(np.mean(np.abs(acf) > b)),
         ccf_outside=float(np.mean(np.abs(ccf) > b)),
     )
+
+
+LOOKS_MIN = 0.2
+"""A residual is said to look like a signal when their correlation exceeds this (and the
+white-noise band)."""
+
+
+def looks_like(r: Array, signals: dict[str, Array]) -> dict[str, float]:
+    """Correlation coefficient of the residual ``r`` with each signal (speed,
+    acceleration, sign of the command, time, position...), for those beyond
+    :data:`LOOKS_MIN` and the 99 % band, strongest first."""
+    out: dict[str, float] = {}
+    b = band(len(r))
+    rc = r - np.mean(r)
+    nr = float(np.linalg.norm(rc))
+    if nr == 0.0:
+        return out
+    for name, x in signals.items():
+        xc = np.asarray(x, float) - np.mean(x)
+        nx = float(np.linalg.norm(xc))
+        if nx == 0.0 or len(xc) != len(rc):
+            continue
+        c = float(rc @ xc) / (nr * nx)
+        if abs(c) > max(LOOKS_MIN, b):
+            out[name] = c
+    return dict(sorted(out.items(), key=lambda kv: -abs(kv[1])))

@@ -132,6 +132,12 @@ class Diagnosis:
     """Best fits that are physically impossible: reported, never accepted."""
     linear: dict[str, float] | None = None
     """The linear equation-error estimate (SysId's OLS) the fit started from."""
+    least_squares: dict[str, float | None] | None = None
+    """The data's own least-squares model (SysId's): kS, kV, kA, their standard errors
+    ``*_se`` (None: not determined) and its ``fit_percent`` on the report data."""
+    alerts: list[str] = field(default_factory=list)
+    """The notes a user must see (a limit that binds, a machine unlike the configured
+    one, a fallback to least squares); also in ``notes``."""
     runs: int = 1
     explains: bool = False
     """The extended model's residual is white at the noise level on the report data."""
@@ -152,7 +158,17 @@ class Diagnosis:
             "runs": int(self.runs),
             "explains_data": bool(self.explains),
             **({"linear_estimate": self.linear} if self.linear is not None else {}),
+            **(
+                {"least_squares": {k: _opt(v) for k, v in self.least_squares.items()}}
+                if self.least_squares is not None
+                else {}
+            ),
         }
+
+
+def _opt(x: float | None) -> float | None:
+    """:func:`_num` that passes None through."""
+    return None if x is None else _num(x)
 
 
 def _num(x: float) -> float | None:

@@ -43,11 +43,14 @@ def close(a: float, b: float, absolute: float = 2.0 * BIC_MIN) -> bool:
 
 
 def structured(wt: Whiteness, noise: float, floor: float) -> bool:
-    """Structure remains in a residual: many autocorrelation lags outside the white-noise
-    band *and* RMS beyond the noise above ``max(STRUCT_MIN noise, floor)``."""
-    return bool(wt.acf_outside > ACF_MAX and wt.structure > max(STRUCT_MIN * noise, floor))
+    """Structure remains in a residual: many lags of its autocorrelation *or* of its
+    cross-correlation with the input outside the white-noise band, *and* RMS beyond the
+    noise above ``max(STRUCT_MIN noise, floor)``."""
+    corr = wt.acf_outside > ACF_MAX or wt.ccf_outside > ACF_MAX
+    return bool(corr and wt.structure > max(STRUCT_MIN * noise, floor))
 
 
 def white(wt: Whiteness) -> bool:
-    """The residual's autocorrelation is inside the white-noise band (few lags outside)."""
-    return bool(wt.acf_outside <= ACF_MAX)
+    """The residual is white and independent of the input: few lags of its
+    autocorrelation and of its cross-correlation with the input outside the band."""
+    return bool(wt.acf_outside <= ACF_MAX and wt.ccf_outside <= ACF_MAX)

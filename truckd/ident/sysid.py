@@ -5,7 +5,10 @@ voltage ramps) and ``fast-forward``, ``fast-backward`` (voltage steps), each a l
 Drivetrain rows are ``[t, V_left, V_right, x_left, x_right, v_left, v_right, angle,
 angular_rate]``; the other mechanisms' rows are ``[t, V, x, v]``.  A drivetrain becomes
 the mean of its left and right sides (the robot's straight-line voltage and speed);
-``units`` ``Meters`` or ``Feet`` (converted to m).  Each test is one experiment (run).
+``units`` any of SysId's unit systems (:data:`UNITS`): linear ones converted to m,
+rotational ones (``Radians``, ``Rotations``, ``Degrees``) to rad, whose speed in rad/s
+then stands for the speed (the fitted constants are per radian; the configured gearing
+is only a prior, see docs/diagnosis.md).  Each test is one experiment (run).
 
 ``FILE.json:slow-forward,slow-backward`` selects tests (default: all four).
 """
@@ -21,7 +24,18 @@ from truckd.inputs import read_text
 from truckd.logfile import MAX_LOG_BYTES, Log
 
 TESTS = ("slow-forward", "slow-backward", "fast-forward", "fast-backward")
-UNITS = {"meters": 1.0, "feet": 0.3048}
+UNITS = {
+    "meters": 1.0,
+    "feet": 0.3048,
+    "inches": 0.0254,
+    "centimeters": 0.01,
+    "millimeters": 0.001,
+    "radians": 1.0,
+    "rotations": 2.0 * np.pi,
+    "degrees": np.pi / 180.0,
+}
+"""SysId's unit systems and the factor to SI: linear ones to metres; rotational ones to
+radians (a flywheel's or arm's speed in rad/s then stands where a truck's m/s would)."""
 
 
 def is_sysid_path(path: str) -> bool:
@@ -50,8 +64,9 @@ def read_sysid(path: str) -> list[Log]:
     unit_name = str(raw.get("units", "Meters")).lower()
     if unit_name not in UNITS:
         raise InputError(
-            f"{file}: key 'units': {raw.get('units')!r}; expected Meters or Feet "
-            "(a linear mechanism; rotations have no vehicle speed)"
+            f"{file}: key 'units': {raw.get('units')!r}; expected one of SysId's unit "
+            "systems: Meters, Feet, Inches, Centimeters, Millimeters, Radians, Rotations, "
+            "Degrees"
         )
     scale = UNITS[unit_name]
     drivetrain = "drivetrain" in str(raw.get("test", "")).lower()

@@ -1,0 +1,94 @@
+"""Honest words: the noise level survives sample-and-hold speed, "white" needs the
+cross-correlation with the input too, and SysId logs come in any of its unit systems."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from truckd.errors import InputError
+from truckd.ident.data import noise_std
+from truckd.ident.residuals import Whiteness
+from truckd.ident.selection import structured, white
+from truckd.ident.sysid import read_sysid
+
+
+@pytest.mark.parametrize("hold", [1, 2, 4, 10])
+def test_noise_level_of_a_sampled_and_held_speed(hold: int) -> None:
+    """A speed that updates every ``hold``-th sample repeats its value in between: the
+    second difference is mostly 0, and its MAD gave a noise level of 0."""
+    rng = np.random.default_rng(hold)
+    t = np.arange(8000) * 0.005
+    sd = 0.02
+    fresh = np.sin(0.5 * t) + sd * rng.standard_normal(len(t))
+    held = np.repeat(fresh[::hold], hold)[: len(t)]
+    assert noise_std(held) == pytest.approx(sd, rel=0.15)
+
+
+def test_white_needs_the_cross_correlation_with_the_input() -> None:
+    """A residual whose autocorrelation is in the band but that follows the input (59 %
+    of the cross-correlation lags outside the band) is not white, and is structured when
+    it exceeds the noise."""
+    wt = Whiteness(rms=0.05, noise=0.01, structure=0.049, acf_outside=0.05, ccf_outside=0.59)
+    assert not white(wt)
+    assert structured(wt, 0.01, 0.0)
+    clean = Whiteness(rms=0.0101, noise=0.01, structure=0.001, acf_outside=0.05, ccf_outside=0.05)
+    assert white(clean)
+    assert not structured(clean, 0.01, 0.0)
+
+
+UNIT = {
+    "Meters": 1.0,
+    "Feet": 0.3048,
+    "Inches": 0.0254,
+    "Radians": 1.0,
+    "Rotations": 2.0 * np.pi,
+    "Degrees": np.pi / 180.0,
+}
+
+
+@pytest.mark.parametrize("units", sorted(UNIT))
+def test_sysid_logs_in_every_unit_system(tmp_path: Path, units: str) -> None:
+    rows = [[0.01 * k, 1.0 + 0.01 * k, 0.02 * k, 0.5 + 0.001 * k] for k in range(50)]
+    path = tmp_path / "sysid.json"
+    path.write_text(
+        json.dumps({"test": "Simple", "units": units, "slow-forward": rows}), encoding="utf-8"
+    )
+    (log,) = read_sysid(str(path))
+    v = np.asarray(log.columns["v"])
+    assert v[10] == pytest.approx((0.5 + 0.01) * UNIT[units])
+
+
+def test_an_unknown_unit_system_is_refused(tmp_path: Path) -> None:
+    path = tmp_path / "sysid.json"
+    rows = [[0.01 * k, 1.0, 0.0, 0.5] for k in range(5)]
+    path.write_text(json.dumps({"units": "Furlongs", "slow-forward": rows}), encoding="utf-8")
+    with pytest.raises(InputError, match="Rotations"):
+        read_sysid(str(path))
+
+
+@pytest.mark.parametrize("hold", [4, 10])
+def test_a_sampled_and_held_speed_is_explained_by_the_clean_model(hold: int) -> None:
+    """A clean truck whose speed sensor updates every ``hold``-th sample: compared at its
+    fresh readings, the model explains it (nothing named, not unexplained) and beats the
+    least squares, which the staircase biases (a held value is a stale one)."""
+    from truckd.config.truck import load_config
+    from truckd.ident.api import diagnose_log
+    from truckd.ident.synth import plant_log
+    from truckd.logfile import Log
+    from truckd.model.effects import Effects
+
+    p = load_config().vehicle
+    log = plant_log(p, Effects(), seed=9, n=3000, with_current=False)
+    cols = dict(log.columns)
+    v = np.asarray(cols["v"])
+    cols["v"] = np.repeat(v[::hold], hold)[: len(v)]
+    d = diagnose_log(Log(cols, f"<held every {hold}>"), p)
+    assert [f.name for f in d.effects] == []
+    assert not d.unexplained
+    ls = d.least_squares
+    assert ls is not None and ls["fit_percent"] is not None
+    assert d.extended.fit_percent >= ls["fit_percent"]

@@ -1,0 +1,48 @@
+"""The C free-run kernel gives the Python loop's speeds (the reference), bit for bit
+or nearly, over trucks, rates and every effect the kernel models."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from truckd.config.truck import load_config
+from truckd.ident import ckernel, fastsim
+from truckd.ident.synth import draw_truck, plant_log
+from truckd.model.effects import Effects
+
+EFFECTS = [
+    Effects(),
+    Effects(sensor_lag=0.06),
+    Effects(input_delay=0.027),
+    Effects(battery_sag=0.2, aero_drag=0.8),
+    Effects(dead_zone=1.2, voltage_saturation=5.0, load_force=2.0),
+    Effects(load_force_amplitude=2.0, load_force_wavelength=1.7, load_force_phase=0.3),
+    Effects(hill_force=3.0, hill_start=0.5, hill_length=2.0, viscous_friction=5e-5),
+]
+
+
+def test_the_kernel_is_built() -> None:
+    assert ckernel.available(), f"{ckernel.LIBRARY} missing: run `make firmware`"
+
+
+@pytest.mark.parametrize("k", range(len(EFFECTS)))
+def test_kernel_matches_the_python_loop(k: int, monkeypatch: pytest.MonkeyPatch) -> None:
+    p0 = load_config().vehicle
+    rng = np.random.default_rng(100 + k)
+    p = draw_truck(p0, rng).params
+    eff = EFFECTS[k]
+    log = plant_log(p, eff, seed=k, n=2000)
+    t, u = log.columns["t"], log.columns["u"]
+    fast = fastsim.simulate_voltage(p, eff, t, u, 0.1, x0=0.2)
+    orig = fastsim.run
+
+    def python_only(*a: object, **kw: object) -> object:
+        return orig(*a, use_kernel=False, **kw)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(fastsim, "run", python_only)
+    ref = fastsim.simulate_voltage(p, eff, t, u, 0.1, x0=0.2)
+    scale = float(np.max(np.abs(ref.v)))
+    assert scale > 0.0
+    assert np.max(np.abs(fast.v - ref.v)) <= 1e-9 * scale
+    assert np.max(np.abs(fast.x - ref.x)) <= 1e-9 * max(float(np.max(np.abs(ref.x))), 1.0)

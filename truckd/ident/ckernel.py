@@ -1,0 +1,117 @@
+"""The C free-run kernel (truckd/ident/kernel/fastrun.c) through ctypes, when built.
+
+``make firmware`` (and ``make setup-dev firmware``) builds it next to its source; without
+it :func:`truckd.ident.fastsim.run` runs its Python loop (the reference: same results,
+about fifty times slower).  Loading the library is the only thing this module does
+besides computing.
+"""
+
+from __future__ import annotations
+
+import ctypes
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+Array = NDArray[np.float64]
+
+LIBRARY = Path(__file__).resolve().parent / "kernel" / "build" / "libtruckd_fastrun.so"
+"""Where ``make firmware`` puts the kernel."""
+
+_state: dict[str, ctypes.CDLL | None] = {}
+
+
+def library() -> ctypes.CDLL | None:
+    """The loaded kernel, or None when it is not built (or cannot be loaded)."""
+    if "lib" in _state:
+        return _state["lib"]
+    lib: ctypes.CDLL | None = None
+    if LIBRARY.is_file():
+        try:
+            lib = ctypes.CDLL(str(LIBRARY))
+        except OSError:
+            lib = None
+    if lib is not None:
+        dp = ctypes.c_void_p  # double *, passed as an address
+        ip = ctypes.c_void_p  # int64_t *
+        d = ctypes.c_double
+        i = ctypes.c_int64
+        fn = lib.truckd_fastrun
+        fn.restype = ctypes.c_int
+        fn.argtypes = [dp, dp, d, d, d, d, d, d, dp, d, dp, ip, ip, i, i, d, d, dp, dp, dp, dp]
+    _state["lib"] = lib
+    return lib
+
+
+def available() -> bool:
+    """Whether the C kernel is built and loads."""
+    return library() is not None
+
+
+def _dp(a: NDArray[np.float64] | NDArray[np.int64] | None) -> int | None:
+    """The address of a contiguous array's data (None: a NULL pointer)."""
+    return None if a is None else int(a.ctypes.data)
+
+
+def run(
+    a: Array,
+    b: Array,
+    a_idle: float,
+    b_idle: float,
+    c: float,
+    sigma: float,
+    d: float,
+    drag: float,
+    scale: Array | None,
+    lag: float,
+    dt: Array,
+    cmd: NDArray[np.int64],
+    sample_end: NDArray[np.int64],
+    n: int,
+    w0: float,
+    sensor_lag: float,
+    terrain: tuple[float, ...] | None = None,
+) -> tuple[Array, Array, Array] | None:
+    """:func:`truckd.ident.fastsim.run` in C (None: the kernel is not built).
+
+    ``terrain``: ``(per_newton, ratio, x0, amplitude, wavelength, phase, hill_force,
+    hill_start, hill_length)`` of a position-dependent load (see
+    :class:`truckd.ident.fastsim.Terrain`), None for none."""
+    lib = library()
+    if lib is None:
+        return None
+    a = np.ascontiguousarray(a, dtype=np.float64)
+    b = np.ascontiguousarray(b, dtype=np.float64)
+    sc = None if scale is None else np.ascontiguousarray(scale, dtype=np.float64)
+    dt = np.ascontiguousarray(dt, dtype=np.float64)
+    cmd = np.ascontiguousarray(cmd, dtype=np.int64)
+    se = np.ascontiguousarray(sample_end, dtype=np.int64)
+    out = np.empty(n)
+    raw = np.empty(n)
+    pos = np.empty(n)
+    ter = None if terrain is None else np.array(terrain, dtype=np.float64)
+    lib.truckd_fastrun(
+        _dp(a),
+        _dp(b),
+        float(a_idle),
+        float(b_idle),
+        float(c),
+        float(sigma),
+        float(d),
+        float(drag),
+        _dp(sc),
+        float(lag),
+        _dp(dt),
+        _dp(cmd),
+        _dp(se),
+        len(dt),
+        n,
+        float(w0),
+        float(sensor_lag),
+        _dp(out),
+        _dp(raw),
+        _dp(pos),
+        _dp(ter),
+    )
+    return out, raw, pos
