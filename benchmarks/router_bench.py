@@ -8,6 +8,11 @@ monitor (this process, a client).  Publishing starts once every publisher sees t
 monitor's subscription, so the start-up is not counted as loss.
 
     python benchmarks/router_bench.py --json benchmarks/router_bench.json [--vehicles 20]
+
+``--tls on`` runs the same through a router with the fleet's mutual TLS and access control
+(truckd/runtime/fleet_tls.py: a certificate per vehicle, the monitor an operator);
+``--tls both`` runs without and with, one after the other, and writes both
+(``benchmarks/platoon_router.json``).
 """
 
 from __future__ import annotations
@@ -47,20 +52,42 @@ def _conf(path: Path, listen: list[str] | None, connect: list[str] | None) -> ze
     return c
 
 
-def router(port: int) -> int:
+def _fleet(fleet_dir: str) -> Any:
+    from truckd.runtime.fleet_tls import Fleet
+
+    names = json.loads((Path(fleet_dir) / "names.json").read_text())
+    return Fleet(Path(fleet_dir), tuple(names["trucks"]), tuple(names["operators"]))
+
+
+def _client(port: int, fleet_dir: str, name: str) -> zenoh.Config:
+    if not fleet_dir:
+        return _conf(CLIENT_CONF, None, [f"tcp/127.0.0.1:{port}"])
+    from truckd.runtime.fleet_tls import client_config
+
+    conf = client_config(_fleet(fleet_dir), name, f"tls/127.0.0.1:{port}")
+    return zenoh.Config.from_json5(json.dumps(conf))
+
+
+def router(port: int, fleet_dir: str = "") -> int:
     """Run the router until stdin closes."""
-    s = zenoh.open(_conf(ROUTER_CONF, [f"tcp/127.0.0.1:{port}"], None))
+    if fleet_dir:
+        from truckd.runtime.fleet_tls import router_config
+
+        conf = router_config(_fleet(fleet_dir), f"tls/127.0.0.1:{port}")
+        s = zenoh.open(zenoh.Config.from_json5(json.dumps(conf)))
+    else:
+        s = zenoh.open(_conf(ROUTER_CONF, [f"tcp/127.0.0.1:{port}"], None))
     print("ready", flush=True)
     sys.stdin.read()
     s.close()  # type: ignore[no-untyped-call]
     return 0
 
 
-def vehicles(port: int, n: int, duration: float, rate: float) -> int:
+def vehicles(port: int, n: int, duration: float, rate: float, fleet_dir: str = "") -> int:
     """n client sessions, each publishing state and plan at ``rate`` Hz for ``duration``."""
     sessions, pubs = [], []
     for i in range(n):
-        s = zenoh.open(_conf(CLIENT_CONF, None, [f"tcp/127.0.0.1:{port}"]))
+        s = zenoh.open(_client(port, fleet_dir, f"v{i}"))
         sessions.append(s)
         for kind in ("state", "plan"):
             pubs.append((i, kind, s.declare_publisher(f"truckd/v{i}/{kind}")))
@@ -115,17 +142,34 @@ def main() -> int:
     ap.add_argument("--rate", type=float, default=100.0, help="Hz per vehicle and kind")
     ap.add_argument("--duration", type=float, default=10.0, help="s of publishing")
     ap.add_argument("--json", help="write the figures here")
+    ap.add_argument("--tls", choices=("off", "on", "both"), default="off")
     ap.add_argument("--role", choices=("router", "vehicles"), help=argparse.SUPPRESS)
     ap.add_argument("--port", type=int, help=argparse.SUPPRESS)
+    ap.add_argument("--fleet", default="", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.role == "router":
-        return router(args.port)
+        return router(args.port, args.fleet)
     if args.role == "vehicles":
-        return vehicles(args.port, args.vehicles, args.duration, args.rate)
+        return vehicles(args.port, args.vehicles, args.duration, args.rate, args.fleet)
+    if args.tls == "both":
+        return _both(args)
+    fleet_dir = ""
+    tmp = None
+    if args.tls == "on":
+        import tempfile
+
+        from truckd.runtime.fleet_tls import make_fleet
+
+        tmp = tempfile.TemporaryDirectory()
+        fleet_dir = tmp.name
+        trucks = [f"v{i}" for i in range(args.vehicles)]
+        make_fleet(fleet_dir, trucks, ["monitor"])
+        names = {"trucks": trucks, "operators": ["monitor"]}
+        (Path(fleet_dir) / "names.json").write_text(json.dumps(names))
     port = _free_port()
     me = [sys.executable, str(Path(__file__).resolve())]
     rproc = subprocess.Popen(
-        [*me, "--role", "router", "--port", str(port)],
+        [*me, "--role", "router", "--port", str(port), "--fleet", fleet_dir],
         stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
     )  # fmt: skip
     assert rproc.stdout is not None and rproc.stdin is not None
@@ -144,11 +188,11 @@ def main() -> int:
             with lock:
                 lat[kind].append(now - msg["t"])
 
-        mon = zenoh.open(_conf(CLIENT_CONF, None, [f"tcp/127.0.0.1:{port}"]))
+        mon = zenoh.open(_client(port, fleet_dir, "monitor"))
         subs = [mon.declare_subscriber(f"truckd/*/{k}", on_sample) for k in ("state", "plan")]
         vproc = subprocess.Popen(
             [*me, "--role", "vehicles", "--port", str(port), "--vehicles", str(args.vehicles),
-             "--rate", str(args.rate), "--duration", str(args.duration)],
+             "--rate", str(args.rate), "--duration", str(args.duration), "--fleet", fleet_dir],
             stdout=subprocess.PIPE, text=True,
         )  # fmt: skip
         out, _ = vproc.communicate(timeout=args.duration + 120)
@@ -168,7 +212,10 @@ def main() -> int:
         print(f"router_bench: {report['error']}", file=sys.stderr)
         return 1
     received = sum(len(v) for v in lat.values())
+    if tmp is not None:
+        tmp.cleanup()
     doc: dict[str, Any] = {
+        "tls": args.tls == "on",
         "vehicles": args.vehicles,
         "rate_hz": args.rate,
         "duration_s": args.duration,
@@ -192,6 +239,36 @@ def main() -> int:
         with open(args.json, "w", encoding="utf-8") as f:
             json.dump(doc, f, indent=2)
             f.write("\n")
+    return 0
+
+
+def _both(args: argparse.Namespace) -> int:
+    """Without TLS, then with: one JSON with both runs."""
+    import datetime
+    import platform
+    import tempfile
+
+    me = [sys.executable, str(Path(__file__).resolve())]
+    runs: dict[str, Any] = {}
+    with tempfile.TemporaryDirectory() as d:
+        for tls in ("off", "on"):
+            out = Path(d) / f"{tls}.json"
+            cmd = [*me, "--tls", tls, "--vehicles", str(args.vehicles), "--rate", str(args.rate),
+                   "--duration", str(args.duration), "--json", str(out)]  # fmt: skip
+            if subprocess.run(cmd, stdout=subprocess.DEVNULL, check=False).returncode != 0:
+                print(f"router_bench: the run with TLS {tls} failed", file=sys.stderr)
+                return 1
+            runs[f"tls_{tls}"] = json.loads(out.read_text())
+    doc = {
+        "what": "state and plan messages through one router, TLS (mutual, access control by "
+        "certificate name) off and on",
+        "date": datetime.date.today().isoformat(),
+        "machine": f"{platform.machine()}, {os.cpu_count()} cores",
+        **runs,
+    }
+    print(json.dumps(doc, indent=2))
+    if args.json:
+        Path(args.json).write_text(json.dumps(doc, indent=2) + "\n")
     return 0
 
 

@@ -109,7 +109,12 @@ def test_follower_subscribes_to_its_predecessors_key_only() -> None:
         tel.close()
 
 
-def test_daemon_follows_its_predecessors_plan_then_falls_back_to_acc(tmp_path: Path) -> None:
+@pytest.mark.parametrize("offset", [0.0, 2.0, -2.0])
+def test_daemon_follows_its_predecessors_plan_then_falls_back_to_acc(
+    tmp_path: Path, offset: float
+) -> None:
+    """``offset``: the lead's clock runs this far from the follower's (s); the follower
+    estimates it from the plans (``platoon.clock_sync``) and follows all the same."""
     port = free_port()
     cfg_path = write_config(
         tmp_path / "truck.yaml",
@@ -141,7 +146,8 @@ def test_daemon_follows_its_predecessors_plan_then_falls_back_to_acc(tmp_path: P
             if cacc_seen is not None and time.monotonic() - cacc_seen > 0.3:
                 stopped_at.append(time.monotonic())
                 return  # the link goes silent
-            pub.put(encode_plan(kinematic_plan(time.time(), seq, 0.01, 0.9, 0.0, 40, "lead")))
+            t = time.time() + offset
+            pub.put(encode_plan(kinematic_plan(t, seq, 0.01, 0.9, 0.0, 40, "lead")))
             seq += 1
             time.sleep(0.01)
 
@@ -161,7 +167,7 @@ def test_daemon_follows_its_predecessors_plan_then_falls_back_to_acc(tmp_path: P
     assert "ACC" in modes[first_cacc:]  # fell back after the plans stopped
     assert all(m in ("CACC", "ACC") for m in modes)
     assert plans and {"t", "seq", "dt", "v", "a"} <= set(plans[-1])
-    assert plans[-1]["vehicle_id"] == "f1"
+    assert plans[-1]["vehicle_id"] == "f1" and plans[-1]["predecessor"] == "lead"
     assert len(plans[-1]["v"]) == d.controller.mpc.horizon + 1
     entries = [h["platoon"] for h in health if "platoon" in h]
     assert entries and entries[-1]["predecessor"] == "lead"

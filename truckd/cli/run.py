@@ -9,6 +9,7 @@ from typing import Any
 
 from truckd.cli.args import run_duration
 from truckd.config.truck import load_config
+from truckd.control.effect_use import startup_line
 from truckd.control.qp import ControlModel
 from truckd.modelfile import read_model
 from truckd.runtime.daemon import Daemon
@@ -39,4 +40,7 @@ def run(args: argparse.Namespace) -> int:
     if args.model:
         mf = read_model(args.model)
         model = ControlModel(mf.vehicle, mf.effects)
+        note = startup_line(mf.effects)
+        if note is not None:
+            logging.getLogger("truckd").warning("%s", note)
     return Daemon(cfg, args.backend, duration=args.duration, model=model).run()

@@ -5,12 +5,14 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 from typing import Any
 
 from truckd.cli.args import image_file, json_file, output_dir, plot_format, sim_duration
 from truckd.cli.sim_platoon import add_platoon_arguments, check_platoon_only, run_platoon_cli
 from truckd.config.truck import load_config
+from truckd.control.effect_use import present_effects, startup_line
 from truckd.control.qp import ControlModel
 from truckd.errors import TruckdError
 from truckd.modelfile import read_model
@@ -73,6 +75,9 @@ def _run(args: argparse.Namespace) -> int:
         model, source = ControlModel(mf.vehicle, mf.effects), f"model file {args.model}"
     else:
         model, source = ControlModel(cfg.vehicle), "configured vehicle"
+    note = startup_line(model.effects)
+    if note is not None:
+        print(f"truckd sim: {note}", file=sys.stderr)
     trace_dir = ensure_dir(args.trace, "trace directory") if args.trace else None
     setup = SimSetup(
         cfg.vehicle,
@@ -92,10 +97,10 @@ def _run(args: argparse.Namespace) -> int:
         )
         results.append(json_safe(metrics))
         traces.append((name, trace))
-    effects = ", ".join(model.effects.active()) or "none"
+    effects = ", ".join(present_effects(model.effects)) or "none"
     print(
         f"controller model: {source} (effects: {effects}); plant effects: "
-        f"{', '.join(cfg.plant.effects.active()) or 'none'}"
+        f"{', '.join(present_effects(cfg.plant.effects)) or 'none'}"
     )
     print(table(results))
     files: list[tuple[str | Path, str | bytes]] = []

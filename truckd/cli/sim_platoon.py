@@ -14,7 +14,13 @@ from truckd.errors import InputError, TruckdError
 from truckd.modelfile import read_model
 from truckd.outputs import ensure_dir, write_set
 from truckd.sim.closed_loop import SimSetup, Trace
-from truckd.sim.platoon import MAX_TRUCKS, PLATOON_SCENARIOS, make_platoon_scenario, run_platoon
+from truckd.sim.platoon import (
+    MAX_TRUCKS,
+    MIN_TRUCKS,
+    PLATOON_SCENARIOS,
+    make_platoon_scenario,
+    run_platoon,
+)
 from truckd.sim.report import json_safe, trace_text
 
 
@@ -24,15 +30,49 @@ def add_platoon_arguments(p: argparse.ArgumentParser) -> None:
         "--platoon", type=int, metavar="N", help=f"N trucks (2..{MAX_TRUCKS}), truck 0 leads"
     )
     p.add_argument(
-        "--plan-delay", type=float, metavar="S", help="plan delivery delay (s, default 0.02)"
+        "--plan-delay",
+        metavar="LO[-HI]",
+        help="plan delivery delay (s, default 0.02); a range LO-HI: each plan's delay drawn "
+        "in it (plans overtake each other)",
     )
     p.add_argument(
         "--plan-loss", type=float, metavar="P", help="share of plans lost (0..1, default 0)"
     )
-    p.add_argument("--seed", type=int, help="random seed of the plan loss (default 0)")
+    p.add_argument(
+        "--burst-loss", action="store_const", const=True, help="plans lost in runs (same share)"
+    )
+    p.add_argument(
+        "--clock-offset",
+        type=float,
+        metavar="S",
+        help="each truck's clock offset drawn in +-S (s, default 0)",
+    )
+    p.add_argument(
+        "--clock-drift",
+        type=float,
+        metavar="PPM",
+        help="each truck's clock drift drawn in +-PPM (default 0)",
+    )
+    p.add_argument(
+        "--mixed",
+        action="store_const",
+        const=True,
+        help="each truck drawn: mass, motor, one effect (its controller on its own model)",
+    )
+    p.add_argument(
+        "--seed", type=int, help="random seed of the plan loss, clocks and trucks (default 0)"
+    )
 
 
-PLATOON_ONLY = {"plan_delay": 0.02, "plan_loss": 0.0, "seed": 0}
+PLATOON_ONLY: dict[str, object] = {
+    "plan_delay": "0.02",
+    "plan_loss": 0.0,
+    "burst_loss": False,
+    "clock_offset": 0.0,
+    "clock_drift": 0.0,
+    "mixed": False,
+    "seed": 0,
+}
 """Options of a platoon run and their defaults: given without ``--platoon``, refused."""
 
 
@@ -57,8 +97,11 @@ def _check(args: argparse.Namespace) -> None:
             f"--scenario {args.scenario}: with --platoon expected one of "
             f"{', '.join(PLATOON_SCENARIOS)}"
         )
-    if not (math.isfinite(args.plan_delay) and 0.0 <= args.plan_delay <= 10.0):
-        raise InputError(f"--plan-delay: expected 0 to 10 s, got {args.plan_delay}")
+    args.plan_delay = parse_delay(str(args.plan_delay))
+    if not (math.isfinite(args.clock_offset) and 0.0 <= args.clock_offset <= 3600.0):
+        raise InputError(f"--clock-offset: expected 0 to 3600 s, got {args.clock_offset}")
+    if not (math.isfinite(args.clock_drift) and 0.0 <= args.clock_drift <= 1000.0):
+        raise InputError(f"--clock-drift: expected 0 to 1000 ppm, got {args.clock_drift}")
     if not (math.isfinite(args.plan_loss) and 0.0 <= args.plan_loss <= 1.0):
         raise InputError(f"--plan-loss: expected a share from 0 to 1, got {args.plan_loss}")
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
@@ -66,6 +109,18 @@ def _check(args: argparse.Namespace) -> None:
     for opt in ("realtime", "plot", "mcap"):  # --mcap was silently ignored
         if getattr(args, opt, None):
             raise InputError(f"--{opt}: not available with --platoon")
+
+
+def parse_delay(text: str) -> tuple[float, float]:
+    """``--plan-delay``: ``S`` or ``LO-HI`` (s, 0 to 10); InputError otherwise."""
+    parts = text.split("-", 1) if not text.startswith("-") else [text]
+    try:
+        lo, hi = (float(parts[0]), float(parts[-1]))
+    except ValueError:
+        raise InputError(f"--plan-delay: expected S or LO-HI in seconds, got {text!r}") from None
+    if not (math.isfinite(lo) and math.isfinite(hi) and 0.0 <= lo <= hi <= 10.0):
+        raise InputError(f"--plan-delay: expected 0 <= LO <= HI <= 10 s, got {text!r}")
+    return lo, hi
 
 
 def _fmt(xs: list[float]) -> str:
@@ -89,6 +144,9 @@ def run_platoon_cli(args: argparse.Namespace) -> int:
         stop_ramp_v_per_s=cfg.runtime.stop_ramp_v_per_s,
     )
     names = PLATOON_SCENARIOS if args.scenario == "all" else (args.scenario,)
+    low = max(MIN_TRUCKS.get(make_platoon_scenario(n).kind, 2) for n in names)
+    if args.platoon < low:
+        raise InputError(f"--platoon: {', '.join(names)} needs at least {low} trucks")
     trace_dir = ensure_dir(args.trace, "trace directory") if getattr(args, "trace", None) else None
     results: list[dict[str, Any]] = []
     files: list[tuple[str | Path, str | bytes]] = []
@@ -100,12 +158,16 @@ def run_platoon_cli(args: argparse.Namespace) -> int:
             args.platoon,
             delay_s=args.plan_delay,
             loss=args.plan_loss,
+            burst_loss=args.burst_loss,
             seed=args.seed,
             duration=args.duration,
+            clock_offset_s=args.clock_offset,
+            clock_drift_ppm=args.clock_drift,
+            mixed=args.mixed,
         )
         results.append(json_safe(m))
-        if trace_dir is not None:  # one log per follower (truck 0, the lead, is scripted)
-            for i, rows in enumerate(tr.rows, start=1):
+        if trace_dir is not None:  # one log per truck, the lead (truck 0) included
+            for i, rows in enumerate(tr.rows):
                 files.append((trace_dir / f"{name}-truck{i}.csv", trace_text(Trace(rows=rows))))
         print(
             f"{name}: {args.platoon} trucks, collision {m['collision']}, "

@@ -17,15 +17,24 @@ from dataclasses import dataclass
 import numpy as np
 
 from truckd.control.config import ControlConfig
+from truckd.control.effect_use import (
+    DeadZoneLaw,
+    sag_command,
+    sag_limit,
+    startup_line,
+    torque_terms,
+)
 from truckd.control.estimator import EncoderSample, Estimate, Estimator, RangeSample
 from truckd.control.fallback import braking_law, held_plan_move, limit_command
-from truckd.control.feedforward import (
-    breakaway_feedforward,
-    dead_zone_command,
-    moving_feedforward,
-)
+from truckd.control.feedforward import breakaway_feedforward, moving_feedforward
 from truckd.control.mpc import MpcSolver
 from truckd.control.qp import ControlModel, QpInputs, Vec
+
+SATURATED_V = 0.01
+"""A command this close to the driver's limit (V, the QP's accuracy) is at the limit."""
+
+LEAD_ACCEL_TAU_S = 0.1
+"""Time constant (s) of the lead acceleration's filter (used over an input delay only)."""
 
 
 @dataclass(frozen=True)
@@ -76,6 +85,27 @@ class Controller:
         self._sent: deque[float] = deque(maxlen=self._delay_steps + 1)
         self._du = cfg.du_max * cfg.period
         self.u_prev = 0.0
+        eff = model.effects
+        self.dead_zone = DeadZoneLaw(eff.dead_zone, eff.dead_zone_offset)
+        """The command map of a driver dead zone (see :mod:`truckd.control.effect_use`)."""
+        self._terms = torque_terms(eff)
+        """The feedforward torque terms of the model's effects (fixed: found once)."""
+        self.startup_note = startup_line(eff)
+        """One line naming the effects of the model the controller cannot use (None: all
+        used); the daemon and ``truckd sim`` log it at start-up."""
+        self.current = math.nan
+        """The motor current (A) last measured (NaN: none), for the battery sag map."""
+        self.vbat = math.nan
+        """The battery voltage (V) last measured (NaN: none), for the battery sag map."""
+        self._v_lead_prev = math.nan
+        self._a_lead = 0.0
+        self._v_act = math.nan
+        """The speed (m/s) predicted for when the planned command acts (NaN: none)."""
+        self._wanted = 0.0
+        """The motor voltage (V) the last command was meant to apply (before the maps)."""
+        self._out = 0.0
+        """The last command returned (V): while :attr:`u_prev` equals it, the voltage at
+        the motor is :attr:`_wanted`."""
         self._plan: list[float] | None = None
         self._plan_age = 0
         self.solver_failures = 0
@@ -127,6 +157,8 @@ class Controller:
         ranges: Sequence[RangeSample] = (),
         v_lead_forecast: Sequence[float] | None = None,
         headway: float | None = None,
+        current: float = math.nan,
+        vbat: float = math.nan,
     ) -> ControlOutput:
         """One cycle at caller time t (s) with the samples received since the last one
         (oldest first).
@@ -136,8 +168,10 @@ class Controller:
         plan received from the truck ahead: with an input delay its first values cover
         the commands already in the pipeline, the rest the QP's horizon.  ``headway``
         (s, optional) replaces the configured time headway (platooning, see
-        :meth:`control`).
+        :meth:`control`).  ``current`` (A) and ``vbat`` (V): the motor driver's last
+        feedback (NaN: none), used by the battery sag map.
         """
+        self.current, self.vbat = current, vbat
         for e in encoders:
             self.estimator.update_encoders(t, e)
         for r in ranges:
@@ -173,7 +207,7 @@ class Controller:
         built with the configured headway, sees the gap less ``(h - time_headway) v``, so
         it drives the same spacing error without a new factorisation.
         """
-        cfg, p = self.cfg, self.model.params
+        cfg = self.cfg
         v = est.v if math.isfinite(est.v) else 0.0
         if not (est.speed_valid and math.isfinite(est.v)):
             # A non-finite speed said to be valid is no speed either: planning with 0 m/s
@@ -193,18 +227,9 @@ class Controller:
             mode, v_ref = "cruise", cfg.v_set
         else:
             mode, v_ref = "stop", 0.0
-        ff = (
-            moving_feedforward(p, self.model.effects, v, cfg.moving_speed)
-            if cfg.feedforward
-            else 0.0
-        )
-        ff += self._update_disturbance(v)
-        u_prev_mpc = self.u_prev - ff
-        if abs(v) <= cfg.moving_speed:
-            # At rest the previous voltage moved nothing (stiction), so to the friction-free
-            # model it is 0 V: else the rate penalty keeps asking for it and the breakaway
-            # feedforward kicks the truck forward again and again while it should stand.
-            u_prev_mpc = 0.0
+        self._update_disturbance(v)
+        ff_now = self._feedforward(v, est.x)
+        at_rest = abs(v) <= cfg.moving_speed
         n_pipe = self._pipeline_steps()
         n_all = n_pipe + self.mpc.horizon
         if lead:
@@ -214,24 +239,46 @@ class Controller:
             # of a wrong plan can say anything: it never reaches the QP beyond that).
             cap = cfg.v_set if mode == "follow" else cfg.v_max
             v_lead_all = self._lead_horizon(est, forecast, n_all, cap)
+            if n_pipe and not forecast:
+                # Over the input delay a braking lead keeps braking (what happens before
+                # the first planned command acts; held constant after).  An accelerating
+                # lead is not assumed to go on (conservative: measured, it made
+                # stop-and-go's starts 2-3 % worse than the seed model's).
+                a_lead = min(self._lead_accel(est.v_lead), 0.0)
+                v_end = min(max(est.v_lead + a_lead * n_pipe * cfg.period, 0.0), cap)
+                for k in range(n_all):
+                    vk = est.v_lead + a_lead * min(k, n_pipe) * cfg.period
+                    v_lead_all[k] = min(max(vk, 0.0), cap) if k < n_pipe else v_end
         else:
             v_lead_all = [0.0] * n_all
+            self._v_lead_prev = math.nan
         v_lead_h = v_lead_all[n_pipe:]
+        # With an input delay the plan's first command acts at the end of the pipeline:
+        # the state, and the feedforward (speed, terrain), are those predicted there.
+        x0, ff = self._initial_state(
+            v,
+            est.gap - (h - cfg.time_headway) * v if lead else 0.0,
+            ff_now,
+            v_lead_all[:n_pipe] if n_pipe else v_lead_h[:1],
+            held=at_rest or self._applied_prev() == ff_now,
+            x_pos=est.x,
+        )
+        # At rest the previous voltage moved nothing (stiction), so to the friction-free
+        # model it is 0 V: else the rate penalty keeps asking for it and the breakaway
+        # feedforward kicks the truck forward again and again while it should stand.
+        # (With an input delay: at rest when the first planned command acts.)
+        self._v_act = x0[1]
+        at_rest = abs(self._v_act) <= cfg.moving_speed
+        u_prev_mpc = 0.0 if at_rest else self._applied_prev() - ff
         inp = QpInputs(
-            x0=self._initial_state(
-                v,
-                est.gap - (h - cfg.time_headway) * v if lead else 0.0,
-                ff,
-                v_lead_all[:n_pipe] if n_pipe else v_lead_h[:1],
-                held=u_prev_mpc == 0.0,
-            ),
+            x0=x0,
             u_prev=u_prev_mpc,
             v_lead=v_lead_h,
             lead=lead,
             v_ref=v_ref,
             v_cap=cfg.v_max,
             u_lo=-self.u_max - ff,
-            u_hi=self.u_max - ff,
+            u_hi=self._u_hi() - ff,
         )
         res = self.mpc.solve("follow" if mode == "follow" else "cruise", inp)
         if not res.ok:
@@ -255,6 +302,38 @@ class Controller:
         return self._finish(
             est, v, res.u0, ff, mode, None, res.status, res.iterations, res.run_time_s, gap_ref
         )
+
+    def _lead_accel(self, v_lead: float) -> float:
+        """The lead's acceleration (m/s^2): its speed estimate's difference from the last
+        cycle, low-pass filtered (time constant :data:`LEAD_ACCEL_TAU_S`)."""
+        prev, self._v_lead_prev = self._v_lead_prev, v_lead
+        if math.isfinite(prev):
+            dt = self.cfg.period
+            alpha = dt / (LEAD_ACCEL_TAU_S + dt)
+            self._a_lead += alpha * ((v_lead - prev) / dt - self._a_lead)
+        else:
+            self._a_lead = 0.0
+        return self._a_lead
+
+    def _applied_prev(self) -> float:
+        """The voltage the previous command applies at the motor (V): what it was meant to
+        apply when the caller sent it unchanged, else the caller's command itself."""
+        return self._wanted if self.u_prev == self._out else self.u_prev
+
+    def _u_hi(self) -> float:
+        """The highest motor voltage (V) the driver can apply now (the battery sag lowers
+        it under load): the plan's real upper bound, so it never asks for more."""
+        eff, p = self.model.effects, self.model.params
+        return sag_limit(self.u_max, eff.battery_sag, p.V_batt, self.current)
+
+    def _command(self, u: float) -> float:
+        """The command map: the wanted motor voltage ``u`` (V) -> the command (V) the
+        driver turns into it (battery sag, then the dead zone), within ``u_max``."""
+        eff, p = self.model.effects, self.model.params
+        c = sag_command(u, eff.battery_sag, p.V_batt, self.current, self.vbat)
+        c = min(max(c, -self.u_max), self.u_max)
+        c = self.dead_zone.command(c)
+        return min(max(c, -self.u_max), self.u_max)
 
     def _update_hold(self, est: Estimate, v: float, lead: bool) -> bool:
         """Standstill hold, as an ACC holds the car behind a stopped lead.
@@ -301,43 +380,90 @@ class Controller:
         The speed the last plan expected now minus the speed measured, divided by the
         model's speed-per-volt over one step, is an input-voltage disturbance; a slow
         integrator (gain per cycle) estimates it and the feedforward adds it.  Frozen at
-        rest (stiction, not a disturbance) and after fallbacks (no plan expected anything).
+        rest (stiction, not a disturbance), after fallbacks (no plan expected anything) and
+        while the last command was at the driver's limit (no wind-up).
         """
         gain = self.cfg.disturbance_gain
         expected, self._v_expected = self._v_expected, math.nan
-        if gain > 0.0 and math.isfinite(expected) and abs(v) > self.cfg.moving_speed:
+        w = self._wanted  # at the driver's limit the model's error is no disturbance
+        if (
+            gain > 0.0
+            and math.isfinite(expected)
+            and abs(v) > self.cfg.moving_speed
+            and -self.u_max + SATURATED_V < w < self._u_hi() - SATURATED_V
+        ):
             self.disturbance_v += gain * (expected - v) / self._b_v
             limit = self.cfg.disturbance_max
             self.disturbance_v = min(max(self.disturbance_v, -limit), limit)
         return self.disturbance_v
 
+    def _feedforward(self, v: float, x: float) -> float:
+        """The feedforward voltage (V) at speed v (m/s), road position x (m): friction
+        and the known loads (:mod:`truckd.control.effect_use`) plus the disturbance."""
+        cfg = self.cfg
+        ff = (
+            moving_feedforward(
+                self.model.params, self.model.effects, v, cfg.moving_speed, x, self._terms
+            )
+            if cfg.feedforward
+            else 0.0
+        )
+        return ff + self.disturbance_v
+
     def _initial_state(
-        self, v: float, gap: float, ff: float, v_lead: Sequence[float], held: bool = False
-    ) -> list[float]:
-        """The QP's ``x_0``: the current ``R_m i`` after the electrical transient (about
-        0.5 ms, so settled within a cycle) from the voltage acting now; with a known input
-        delay, the state predicted over the commands sent but not yet acting, with the
-        lead at ``v_lead[k]`` (m/s) in pipeline step k.  Records :attr:`pipeline_v`."""
+        self,
+        v: float,
+        gap: float,
+        ff: float,
+        v_lead: Sequence[float],
+        held: bool = False,
+        x_pos: float = 0.0,
+    ) -> tuple[list[float], float]:
+        """The QP's ``x_0`` and the feedforward (V) the plan's first command gets.
+
+        ``x_0``: the current ``R_m i`` after the electrical transient (about 0.5 ms, so
+        settled within a cycle) from the voltage acting now.  With a known input delay,
+        the state predicted over the commands sent but not yet acting (a Smith-predictor-
+        like forward prediction), with the lead at ``v_lead[k]`` (m/s) in pipeline step k:
+        each step's friction-free input is the command less the feedforward at that step's
+        speed and position (from ``x_pos``, m), and a truck that the prediction brings to
+        rest stays there (friction does not drive it backwards); the feedforward returned
+        is the one at the end of the pipeline, ``x_0``'s current relative to it.  Records
+        :attr:`pipeline_v`."""
         p = self.model.params
         sent = self._sent
         acting = sent[0] if len(sent) == sent.maxlen else 0.0
         if self._delay_steps == 0:
-            acting = self.u_prev
+            acting = self._applied_prev()
         if held:
             acting = ff  # no current beyond what the feedforward accounts for
         x0 = [acting - ff - p.K_v * p.omega(v), v, gap]
         speeds = [v]
         if self._delay_steps == 0:
             self.pipeline_v = []
-            return x0  # a list: the QP gathers its inputs without numpy
+            return x0, ff  # a list: the QP gathers its inputs without numpy
         pred = self.mpc.qp.pred
+        dt = self.cfg.period
         x: Vec = np.array(x0)
+        ff_k = ff
+        moving = self.cfg.moving_speed
         for k, u in enumerate(list(sent)[1:]):
-            x = pred.Ad @ x + pred.bu * (u - ff) + pred.bl * float(v_lead[k])
+            v_k = float(x[1])
+            ff_k = self._feedforward(v_k, x_pos) if k > 0 else ff
+            u_k = u - ff_k
+            if abs(v_k) <= moving and self.cfg.feedforward:
+                # At rest stiction (and the load) take up to the breakaway voltage.
+                u_k = max(u - breakaway_feedforward(p, self.model.effects, 1.0, x_pos), 0.0)
+            x = pred.Ad @ x + pred.bu * u_k + pred.bl * float(v_lead[k])
+            if x[1] < 0.0 <= v_k:
+                x[1] = 0.0
+            x_pos += 0.5 * (v_k + float(x[1])) * dt
             speeds.append(float(x[1]))
         self.pipeline_v = speeds[:-1]
+        ff_end = self._feedforward(float(x[1]), x_pos)
+        x[0] += ff_k - ff_end
         out: list[float] = x.tolist()
-        return out
+        return out, ff_end
 
     def _fallback(
         self,
@@ -371,7 +497,7 @@ class Controller:
             return self._finish(
                 est,
                 v,
-                self.u_prev - ff,
+                self._applied_prev() - ff,
                 ff,
                 mode,
                 reason + ":hold",
@@ -407,19 +533,23 @@ class Controller:
     ) -> ControlOutput:
         cfg = self.cfg
         at_rest = abs(v) <= cfg.moving_speed
-        if cfg.feedforward and at_rest and u_mpc > cfg.start_voltage and mode != "fallback":
-            ff = breakaway_feedforward(self.model.params, self.model.effects, cfg.stiction_margin)
+        v_act, self._v_act = self._v_act, math.nan  # speed when this command acts
+        rest_act = abs(v_act) <= cfg.moving_speed if math.isfinite(v_act) else at_rest
+        if cfg.feedforward and rest_act and u_mpc > cfg.start_voltage and mode != "fallback":
+            ff = breakaway_feedforward(
+                self.model.params, self.model.effects, cfg.stiction_margin, est.x
+            )
         u = u_mpc + ff
         if at_rest and u < 0.0:
             u = 0.0  # never drive backwards from rest
-        u = limit_command(u, self.u_prev, self.u_max, self._du)
-        # A known driver dead zone: a voltage inside it cannot be applied; send the nearest
-        # one that can (may exceed the rate limit by the zone's width, never the voltage limit).
-        eff = self.model.effects
-        u = dead_zone_command(u, eff.dead_zone, eff.dead_zone_offset)
-        u = min(max(u, -self.u_max), self.u_max)
-        self.u_prev = u
-        self._sent.append(u)
+        wanted = limit_command(u, self._applied_prev(), self.u_max, self._du)
+        # The known driver effects (battery sag, dead zone): the command that makes the
+        # driver apply the wanted voltage, as near as it can (a dead zone may exceed the
+        # rate limit by its width, never the voltage limit).
+        u = self._command(wanted)
+        self.u_prev = self._out = u
+        self._wanted = wanted
+        self._sent.append(wanted)
         return ControlOutput(
             u=u,
             u_ff=ff,

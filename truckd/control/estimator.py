@@ -75,6 +75,8 @@ class Estimate:
     """Caller time since the own-speed filter last took a measurement (s; inf: never)."""
     v_lead_std: float = math.nan
     """The lead-speed estimate's standard deviation (m/s; NaN without a lead)."""
+    x: float = 0.0
+    """Distance travelled since start (m, the encoders' mean; road position for terrain)."""
 
 
 CLOCK_SLACK_S = 0.25
@@ -350,4 +352,5 @@ class Estimator:
             speed_restarts=self._s.restarts,
             speed_age=t - self._s.t_last,
             v_lead_std=v_lead_std,
+            x=self._s.distance,
         )

@@ -5,8 +5,11 @@ its command, the armature voltage whose steady current produces the missing torq
 ``u_ff = R_m / K_T * T`` with
 
 * moving (``|v| > moving_speed``): ``T = K_coulomb sign(v)`` plus the load torques the
-  controller's model knows (``load_force``, aero drag at the current speed);
-* at rest with a start commanded: ``T = margin * K_stiction`` (breaks stiction);
+  controller's model knows (the feedforward terms of
+  :data:`truckd.control.effect_use.EFFECT_USES`: ``load_force``, aero drag at the current
+  speed, the terrain at the position ``x`` where the command acts);
+* at rest with a start commanded: ``T = margin * K_stiction`` (breaks stiction) plus the
+  known load at ``x``;
 * otherwise 0.
 
 A known driver dead zone is not an offset: the driver (``truckd.model.effects.driver_output``)
@@ -21,6 +24,7 @@ from __future__ import annotations
 
 import math
 
+from truckd.control.effect_use import Torque, feedforward_torque
 from truckd.model.effects import Effects
 from truckd.model.params import VehicleParams
 
@@ -36,18 +40,27 @@ def load_torque_known(p: VehicleParams, eff: Effects, v: float) -> float:
     return p.force_to_torque(force)
 
 
-def moving_feedforward(p: VehicleParams, eff: Effects, v: float, moving_speed: float) -> float:
-    """Feedforward voltage (V) while moving at v (m/s); 0 at rest."""
+def moving_feedforward(
+    p: VehicleParams,
+    eff: Effects,
+    v: float,
+    moving_speed: float,
+    x: float = 0.0,
+    terms: tuple[Torque, ...] | None = None,
+) -> float:
+    """Feedforward voltage (V) while moving at v (m/s), the command acting at road
+    position x (m); 0 at rest.  ``terms``: see :func:`feedforward_torque`."""
     if abs(v) <= moving_speed:
         return 0.0
     s = math.copysign(1.0, v)
-    torque = s * p.K_coulomb + load_torque_known(p, eff, v)
+    torque = s * p.K_coulomb + feedforward_torque(p, eff, v, x, terms)
     return torque_to_voltage(p, torque)
 
 
-def breakaway_feedforward(p: VehicleParams, eff: Effects, margin: float) -> float:
-    """Forward start voltage (V) that breaks stiction (and holds the known load)."""
-    torque = margin * p.K_stiction + p.force_to_torque(eff.load_force)
+def breakaway_feedforward(p: VehicleParams, eff: Effects, margin: float, x: float = 0.0) -> float:
+    """Forward start voltage (V) that breaks stiction (and holds the known load at road
+    position x, m)."""
+    torque = margin * p.K_stiction + feedforward_torque(p, eff, 0.0, x)
     return torque_to_voltage(p, torque)
 
 

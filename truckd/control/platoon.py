@@ -11,10 +11,13 @@ falls back to ACC on the range sensor alone, ramping the headway up to the ACC h
 (the gap opens smoothly, no hard braking), and back to CACC once plans have been fresh
 for ``cacc_return_s`` (:class:`PlatoonMode`).
 
-Clocks: a plan's ``t`` is the sender's time on a clock shared by the platoon (simulated
-time in ``truckd sim``; the system clock, seconds since the Unix epoch, in ``truckd run``,
-which assumes the trucks' clocks are synchronised, e.g. by NTP/PTP or GNSS time).  A plan
-stamped in the receiver's future by more than ``max_clock_skew_s`` is refused.
+Clocks: a plan's ``t`` is the sender's time on the sender's own clock (its truck's clock
+in ``truckd sim``, drawn with an offset and drift; the system clock in ``truckd run``).
+No clock is assumed to agree with another: with ``clock_sync`` (default) the receiver
+estimates the sender's offset and drift from the plans' stamps and arrival times
+(:mod:`truckd.control.clocksync`) and restamps each plan on its own clock before it is
+aged here.  A plan stamped in the receiver's future by more than ``max_clock_skew_s``
+(on the receiver's clock) is refused.
 """
 
 from __future__ import annotations
@@ -92,6 +95,23 @@ class PlatoonConfig:
         default=0.7,
     )
 
+    clock_sync: bool = spec(
+        "estimate the predecessor's clock offset and drift from its plans' stamps and "
+        "arrival times, and age plans on this truck's own clock (false: the clocks are "
+        "assumed synchronised)",
+        default=True,
+    )
+    comfort_decel: float = spec(
+        "the hardest braking allowed while a gap opens (ACC fallback, room for a "
+        "joining truck, a new predecessor); the headway ramp (headway_rate) stays "
+        "within it (checked by the join and leave scenarios)",
+        unit="m/s^2",
+        lo=0.0,
+        lo_open=True,
+        hi=20.0,
+        default=0.5,
+    )
+
     def validate(self) -> str | None:
         """Cross-field check (called by the config loader)."""
         if self.acc_headway < self.cacc_headway:
@@ -123,6 +143,9 @@ class Plan:
     v: tuple[float, ...]
     a: tuple[float, ...]
     vehicle_id: str = ""
+    predecessor: str = ""
+    """The truck the sender follows (optional key: the platoon's order as the trucks see
+    it; "" for a lead, or when not sent)."""
 
     @property
     def t_end(self) -> float:
@@ -130,8 +153,9 @@ class Plan:
         return self.t + (len(self.v) - 1) * self.dt
 
     def as_dict(self) -> dict[str, Any]:
-        """The JSON object of the contract (reference section 5)."""
-        return {
+        """The JSON object of the contract (reference section 5); ``predecessor`` only
+        when set."""
+        d: dict[str, Any] = {
             "t": self.t,
             "seq": self.seq,
             "dt": self.dt,
@@ -139,6 +163,9 @@ class Plan:
             "a": list(self.a),
             "vehicle_id": self.vehicle_id,
         }
+        if self.predecessor:
+            d["predecessor"] = self.predecessor
+        return d
 
 
 def make_plan(t: float, seq: int, dt: float, speeds: Sequence[float], vehicle_id: str = "") -> Plan:
@@ -198,7 +225,16 @@ def decode_plan(payload: bytes | str) -> Plan:
     if min(v) < 0.0:
         raise ValueError("'v' must not be negative")
     vid = d.get("vehicle_id", "")
-    return Plan(float(t), seq, float(dt), v, a, vid if isinstance(vid, str) else "")
+    pre = d.get("predecessor", "")
+    return Plan(
+        float(t),
+        seq,
+        float(dt),
+        v,
+        a,
+        vid if isinstance(vid, str) else "",
+        pre if isinstance(pre, str) else "",
+    )
 
 
 def plan_speed(plan: Plan, t: float) -> float:
@@ -263,6 +299,17 @@ class PlatoonMode:
         self.switches = 0
         self.disagreements = 0
         """Cycles whose fresh plan was not followed: at odds with the range sensor."""
+        self.extra_headway = 0.0
+        """Added to the headway target (s): room for a joining truck, opened and closed
+        at ``headway_rate`` like every headway change."""
+
+    def retarget(self, headway: float) -> None:
+        """Another truck ahead (a join, a leave): start the headway ramp from the time gap
+        now driven to it (``headway``, s; not below the CACC headway), so the reference
+        gap does not jump; at most the ACC headway, the largest the controller's gap shift
+        is made for)."""
+        if math.isfinite(headway):
+            self.headway = min(max(headway, self.cfg.cacc_headway), self.cfg.acc_headway)
 
     def fresh(self, plan: Plan | None, t: float) -> bool:
         """Whether ``plan`` is usable at time t (s): not older than the timeout, not from
@@ -323,7 +370,7 @@ class PlatoonMode:
         elif self.mode == ACC and fresh and t - self._fresh_since >= cfg.cacc_return_s:
             self.mode = CACC
             self.switches += 1
-        target = cfg.cacc_headway if self.mode == CACC else cfg.acc_headway
+        target = (cfg.cacc_headway if self.mode == CACC else cfg.acc_headway) + self.extra_headway
         step = cfg.headway_rate * self.period
         self.headway = min(max(target, self.headway - step), self.headway + step)
         if self.mode == CACC and plan is not None:

@@ -213,7 +213,17 @@ class CompanionCycle:
         error = None
         out: ControlOutput | None
         try:
-            out = self.controller.step(t, encoders, ranges, inp.lead_forecast, inp.headway)
+            # The driver's feedback (current, battery) once one has arrived (vbat > 0).
+            fed = s.vbat > 0.0
+            out = self.controller.step(
+                t,
+                encoders,
+                ranges,
+                inp.lead_forecast,
+                inp.headway,
+                s.current if fed else math.nan,
+                s.vbat if fed else math.nan,
+            )
         except Exception as exc:  # counted as a solver failure by the supervisor
             self.controller_errors += 1
             out, error = None, f"{type(exc).__name__}: {exc}"

@@ -14,6 +14,7 @@ import math
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from typing import Any, Protocol
 
 from truckd.control.platoon import (
@@ -25,6 +26,7 @@ from truckd.control.platoon import (
     make_plan,
 )
 from truckd.runtime.cycle import CompanionCycle, CycleOutputs
+from truckd.runtime.platoon_clock import PlanClock
 
 
 def plan_key(vehicle_id: str) -> str:
@@ -192,7 +194,10 @@ shown by ``truckd monitor``."""
 class DaemonPlatoon:
     """``truckd run``'s platoon part.  Every truck publishes its plan each cycle; a truck
     with ``platoon.predecessor`` set also follows that truck's plan (CACC/ACC).  Plans are
-    stamped with ``wall()`` (the system clock: the trucks' clocks must be synchronised)."""
+    stamped with ``wall()`` (the system clock); with ``platoon.clock_sync`` the
+    predecessor's clock offset and drift are estimated from its plans and each plan is
+    aged on this truck's clock (:mod:`truckd.runtime.platoon_clock`), so the clocks need
+    not agree."""
 
     def __init__(
         self,
@@ -205,9 +210,12 @@ class DaemonPlatoon:
         self.cfg = cfg
         self.cyc = cyc
         self.wall = wall
-        self.receiver = (
-            PlanReceiver(cfg.predecessor, wall, cfg.max_clock_skew_s) if cfg.predecessor else None
+        self.receiver = (  # clock_sync: plans are aged on this clock after the receiver
+            PlanReceiver(cfg.predecessor, None if cfg.clock_sync else wall, cfg.max_clock_skew_s)
+            if cfg.predecessor
+            else None
         )
+        self.clock = PlanClock()
         self.mode = (
             PlatoonMode(cfg, cyc.period, cyc.controller.forecast_steps) if cfg.predecessor else None
         )
@@ -256,16 +264,18 @@ class DaemonPlatoon:
         self._now = self.wall()
         if self.mode is None or self.receiver is None:
             return None
-        self.decision = follower_inputs(
-            self.mode, self._now, self.receiver.latest(), last, self.cyc.control_cfg.d_0
-        )
+        plan = self.receiver.latest()
+        if self.cfg.clock_sync:  # the predecessor's clock is not ours (platoon_clock.py)
+            self.clock.observe_latest(plan, self._now)
+            plan = self.clock.to_own(plan)
+        self.decision = follower_inputs(self.mode, self._now, plan, last, self.cyc.control_cfg.d_0)
         return self.decision
 
     def plan_message(self, out: CycleOutputs) -> dict[str, Any] | None:
         """After the cycle: the plan to publish (None when there is none this cycle)."""
         t = self._now if math.isfinite(self._now) else self.wall()
         p = cycle_plan(self.cyc, out, t, self.vehicle_id)
-        return p.as_dict() if p is not None else None
+        return replace(p, predecessor=self.cfg.predecessor).as_dict() if p is not None else None
 
     def health(self) -> dict[str, Any]:
         """The ``platoon`` entry of the health message."""

@@ -1,0 +1,227 @@
+"""How the controller uses each effect of its model: one table, one entry per effect.
+
+An effect the diagnosis names (:mod:`truckd.model.effects`) reaches the controller through
+exactly one entry of :data:`EFFECT_USES`: a feedforward torque (what the MPC's model lacks,
+cancelled by voltage), a term of the MPC's prediction model, an estimator term, or a map of
+the command (the wanted motor voltage -> the command the driver turns into it).  An effect
+present in a model but without an entry is named by :func:`unused_effects` (the daemon and
+``truckd sim`` log it at start-up): nothing in a model file is silently ignored.
+
+The command maps are pure and exact inverses of :func:`truckd.model.effects.driver_output`
+where one exists:
+
+* battery sag: the driver applies ``u - R_b (u / V_batt)^2 i`` (``i`` the motor current):
+  :func:`sag_command` solves that quadratic for ``u``; without a current measurement the
+  measured battery voltage gives the motor's share, ``u vbat / V_batt``.
+* dead zone (threshold and offset forms): :class:`DeadZoneLaw`, the right inverse outside
+  the zone and, inside it, a hysteresis between 0 V and the smallest voltage the driver
+  makes, so a wanted voltage hovering at the zone's edge does not flip the command every
+  cycle.  Pure numerics: no I/O, no clock.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from truckd.model.effects import Effects, terrain_force
+from truckd.model.params import VehicleParams
+
+Torque = Callable[[VehicleParams, Effects, float, float], float]
+"""A feedforward torque term (N m at the motor shaft) at speed v (m/s) and road position x
+(m, where the command will act)."""
+
+
+def _drag_torque(p: VehicleParams, e: Effects, v: float, x: float) -> float:
+    return p.force_to_torque(e.aero_drag * v * abs(v))
+
+
+def _load_torque(p: VehicleParams, e: Effects, v: float, x: float) -> float:
+    return p.force_to_torque(e.load_force)
+
+
+def _terrain_torque(p: VehicleParams, e: Effects, v: float, x: float) -> float:
+    return p.force_to_torque(terrain_force(e, x))
+
+
+@dataclass(frozen=True)
+class EffectUse:
+    """Where one effect enters the controller (``torque``: a feedforward term; ``how``:
+    one line for the documentation and the start-up log)."""
+
+    how: str
+    torque: Torque | None = None
+
+
+EFFECT_USES: dict[str, EffectUse] = {
+    "viscous_friction": EffectUse("MPC prediction model (damping) and its steady state"),
+    "aero_drag": EffectUse("feedforward torque c v|v| at the current speed", _drag_torque),
+    "load_force": EffectUse("feedforward torque (constant force)", _load_torque),
+    "load_force_amplitude": EffectUse(
+        "feedforward torque at the position where the command acts", _terrain_torque
+    ),
+    "hill_force": EffectUse(
+        "feedforward torque at the position where the command acts", _terrain_torque
+    ),
+    "input_delay": EffectUse("estimator: state predicted over the commands in the pipeline"),
+    "sensor_lag": EffectUse("none needed: the speed comes from the encoders' positions"),
+    "dead_zone": EffectUse("command map: right inverse with hysteresis (DeadZoneLaw)"),
+    "dead_zone_offset": EffectUse("command map: offset added (DeadZoneLaw)"),
+    "voltage_saturation": EffectUse("MPC input bounds at the driver's limit"),
+    "battery_sag": EffectUse("command map: sag inverse from current or battery voltage"),
+}
+"""Every effect the controller uses, by the :class:`~truckd.model.effects.Effects` field
+that switches it on."""
+
+COMPANION_FIELDS = frozenset(
+    {"load_force_wavelength", "load_force_phase", "hill_start", "hill_length"}
+)
+"""Fields that only shape an effect of the table (no effect of their own)."""
+
+
+def present_effects(eff: Effects) -> tuple[str, ...]:
+    """Every field of ``eff`` that switches an effect on (non-zero), companions excluded:
+    also the fields of effects this controller does not know."""
+    return tuple(
+        f.name
+        for f in dataclasses.fields(eff)
+        if f.name not in COMPANION_FIELDS and getattr(eff, f.name) != 0.0
+    )
+
+
+def unused_effects(eff: Effects) -> tuple[str, ...]:
+    """The effects present in ``eff`` that the controller has no use for (no table entry)."""
+    return tuple(n for n in present_effects(eff) if n not in EFFECT_USES)
+
+
+def startup_line(eff: Effects) -> str | None:
+    """The one start-up log line naming the unused effects (None when every one is used)."""
+    unused = unused_effects(eff)
+    if not unused:
+        return None
+    return "the controller does not use these effects of its model: " + ", ".join(
+        f"{n} = {getattr(eff, n):g}" for n in unused
+    )
+
+
+def torque_terms(eff: Effects) -> tuple[Torque, ...]:
+    """The table's feedforward torque functions of the effects present in ``eff`` (the
+    terrain's once although two fields switch it on)."""
+    terms: list[Torque] = []
+    for name in present_effects(eff):
+        use = EFFECT_USES.get(name)
+        if use is not None and use.torque is not None and use.torque not in terms:
+            terms.append(use.torque)
+    return tuple(terms)
+
+
+def feedforward_torque(
+    p: VehicleParams,
+    eff: Effects,
+    v: float,
+    x: float,
+    terms: tuple[Torque, ...] | None = None,
+) -> float:
+    """Sum of the table's feedforward torques (N m) for the effects present (``terms``:
+    :func:`torque_terms` of ``eff`` when the caller keeps them, as the controller does)."""
+    total = 0.0
+    for term in torque_terms(eff) if terms is None else terms:
+        total += term(p, eff, v, x)
+    return total
+
+
+def sag_command(
+    u: float, r_batt: float, v_batt: float, current: float, vbat: float = math.nan
+) -> float:
+    """The command (V) after which a driver behind a battery of internal resistance
+    ``r_batt`` (ohm, nominal voltage ``v_batt``) applies ``u`` (V) to the motor.
+
+    The driver applies ``c - R_b (c / V_batt)^2 i`` for a command ``c`` at motor current
+    ``i`` (A): the root of ``a c^2 - c + u = 0`` (``a = R_b i / V_batt^2``) nearest ``u``.
+    Without a finite current, a measured battery voltage ``vbat`` (V) in
+    ``(0.5, 1] V_batt`` scales the command by ``V_batt / vbat``; without either, ``u``.
+    A voltage beyond what the driver can give at that current (``4 a u >= 1``) gets the
+    command that gives the most, ``1 / (2 a)`` (the caller clips it to its limit).
+    """
+    if not math.isfinite(u) or r_batt <= 0.0:
+        return u
+    if math.isfinite(current):
+        a = r_batt * current / (v_batt * v_batt)
+        disc = 1.0 - 4.0 * a * u
+        if a == 0.0:
+            return u
+        if disc <= 0.0:
+            return 0.5 / a  # beyond the driver's reach: the command that gives the most
+        return 2.0 * u / (1.0 + math.sqrt(disc))
+    if math.isfinite(vbat) and 0.5 * v_batt < vbat <= v_batt:
+        return u * v_batt / vbat
+    return u
+
+
+def sag_limit(u_max: float, r_batt: float, v_batt: float, current: float) -> float:
+    """The largest motor voltage (V) a command of ``u_max`` gives at current ``current``
+    (A): the plan's real upper limit (for a negative current the sag helps: ``u_max``)."""
+    if r_batt <= 0.0 or not math.isfinite(current) or current <= 0.0:
+        return u_max
+    return u_max - r_batt * (u_max / v_batt) ** 2 * current
+
+
+@dataclass
+class DeadZoneLaw:
+    """The command for a driver with a dead zone (both forms), with hysteresis.
+
+    ``threshold`` (V, ``dead_zone``): the driver outputs 0 for ``|c| < threshold`` and ``c``
+    above; ``offset`` (V, ``dead_zone_offset``): it outputs ``c - sign(c) offset`` beyond
+    the offset.  The threshold is taken ``margin`` larger than the model says (a diagnosed
+    zone is an estimate: a command just above an underestimated threshold gives 0 V); the
+    smallest non-zero output relied on is ``m = max(threshold (1 + margin) - offset, 0)``
+    (:attr:`smallest`).  For a wanted output ``w``:
+
+    * ``|w| >= m``: the right inverse (``w + sign(w) offset``), exact;
+    * ``|w| < m``: only 0 or ``m`` can be had.  The command switches on (to ``sign(w) m``'s
+      command) when ``|w| >= on * m`` and off when ``|w| < off * m`` (``off < on``), and
+      keeps its state between: a wanted voltage hovering around the middle of the zone
+      holds the command instead of flipping it every cycle.
+    """
+
+    threshold: float
+    offset: float = 0.0
+    on: float = 0.6
+    off: float = 0.3
+    margin: float = 0.08
+    """Relative margin on the threshold (a diagnosed 1.2 V zone came out as 1.12 V, a
+    0.6 V one as 0.67 V; see docs/controller.md)."""
+    _state: float = 0.0
+    """The sign of the output inside the zone last cycle (0: off)."""
+
+    @property
+    def active(self) -> bool:
+        return self.threshold > 0.0 or self.offset > 0.0
+
+    @property
+    def smallest(self) -> float:
+        """The smallest non-zero output (V) the law relies on."""
+        return max(self.threshold * (1.0 + self.margin) - self.offset, 0.0)
+
+    def command(self, w: float) -> float:
+        """The command (V) for the wanted driver output ``w`` (V)."""
+        if not self.active or not math.isfinite(w):
+            return w
+        smallest = self.smallest
+        s = math.copysign(1.0, w)
+        if w == 0.0 or abs(w) < self.off * smallest:
+            self._state = 0.0
+            return 0.0
+        if abs(w) >= smallest:
+            self._state = s
+            return w + s * self.offset
+        if self._state != s and abs(w) < self.on * smallest:
+            self._state = 0.0
+            return 0.0
+        self._state = s
+        return s * (smallest + self.offset)
+
+    def reset(self) -> None:
+        self._state = 0.0
