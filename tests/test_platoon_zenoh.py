@@ -51,10 +51,14 @@ def test_shipped_access_control_passes_truckd_keys_only(acl: bool) -> None:
 
 def test_plan_receiver_refuses_other_senders_and_bad_payloads() -> None:
     r = PlanReceiver("truckA")
-    r.on_payload(encode_plan(kinematic_plan(1.0, 5, 0.01, 1.0, 0.0, 10, "truckA")))
-    r.on_payload(encode_plan(kinematic_plan(1.1, 6, 0.01, 9.0, 0.0, 10, "truckC")))
-    r.on_payload(b"{not json")
-    r.on_payload(encode_plan(kinematic_plan(1.2, 4, 0.01, 7.0, 0.0, 10, "truckA")))  # older
+    for payload in (
+        encode_plan(kinematic_plan(1.0, 5, 0.01, 1.0, 0.0, 10, "truckA")),
+        encode_plan(kinematic_plan(1.1, 6, 0.01, 9.0, 0.0, 10, "truckC")),
+        b"{not json",
+        encode_plan(kinematic_plan(1.2, 4, 0.01, 7.0, 0.0, 10, "truckA")),  # older
+    ):
+        r.on_payload(payload)
+        r.latest()  # one cycle per sample: each one decoded
     p = r.latest()
     assert p is not None and p.seq == 5 and p.v[0] == 1.0
     assert (r.accepted, r.refused) == (1, 3)
@@ -69,13 +73,16 @@ def test_a_plan_stamped_in_the_future_is_refused_and_locks_nothing_out() -> None
     now = [100.0]
     r = PlanReceiver("truckA", lambda: now[0], 0.05)
     r.on_payload(encode_plan(kinematic_plan(100.0, 5, 0.01, 1.0, 0.0, 10, "truckA")))
+    r.latest()
     r.on_payload(encode_plan(kinematic_plan(1e6, 2**62, 0.01, 1.0, 0.0, 10, "truckA")))
+    r.latest()
     assert r.refused == 1 and "future" in r.last_error
     now[0] = 100.01
     r.on_payload(encode_plan(kinematic_plan(100.01, 6, 0.01, 1.2, 0.0, 10, "truckA")))
     p = r.latest()
     assert p is not None and p.seq == 6 and r.accepted == 2
     r.on_payload(encode_plan(kinematic_plan(100.04, 7, 0.01, 1.2, 0.0, 10, "truckA")))
+    r.latest()
     assert r.accepted == 3  # within the allowed skew
 
 

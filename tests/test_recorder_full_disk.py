@@ -7,7 +7,7 @@ from __future__ import annotations
 import re
 import time
 from pathlib import Path
-from typing import TextIO
+from typing import BinaryIO
 
 from cli_support import run_limited
 from runtime_support import write_config
@@ -59,9 +59,9 @@ def test_disk_full_at_rotation_keeps_the_writer_alive_and_resumes(tmp_path: Path
     real = rec._create
     full = {"on": False}
 
-    def create(base: str) -> tuple[Path, TextIO]:
+    def create(base: str) -> tuple[Path, BinaryIO]:
         if full["on"]:  # a name that is never a device: keep= may unlink it
-            return tmp_path / f"{base}-full.csv", open("/dev/full", "w", encoding="utf-8")
+            return tmp_path / f"{base}-full.csv", open("/dev/full", "wb", buffering=0)
         return real(base)
 
     rec._create = create  # type: ignore[method-assign]

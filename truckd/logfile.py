@@ -17,12 +17,13 @@ from array import array
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 from numpy.typing import NDArray
 
 from truckd.errors import InputError
-from truckd.inputs import decode_utf8, open_regular
+from truckd.inputs import open_regular
 from truckd.outputs import atomic_text
 
 KNOWN_COLUMNS = ("t", "u", "v", "i", "x", "gap", "v_lead", "vbat", "F", "duty")
@@ -124,30 +125,121 @@ def _extra(cell: str) -> float | None:
         return None
 
 
+BLOCK_BYTES = 1 << 20
+"""The reader decodes and parses a log this many bytes at a time (memory: the parsed
+columns, not the text)."""
+
+
 def read_log(path: str | Path, require: Sequence[str] = ("t",), vbat: float | None = None) -> Log:
     """Read and validate a log.
 
     ``require`` names the columns that must be present (``u`` is satisfied by ``duty``
     with a supply voltage).  ``vbat`` (V, the ``--vbat`` option) is the supply for a
     ``duty`` column; it takes precedence over a ``vbat`` column.  Raises
-    :class:`InputError` naming the file and line of the first problem.
+    :class:`InputError` naming the file and line of the first problem.  The file is read
+    in blocks: memory holds the parsed columns (8 bytes per value), not the text.
     """
+    (log,) = read_log_windows(path, require, vbat)
+    return log
+
+
+def read_log_windows(
+    path: str | Path,
+    require: Sequence[str] = ("t",),
+    vbat: float | None = None,
+    max_rows: int | None = None,
+    windows: int = 8,
+) -> list[Log]:
+    """:func:`read_log`, keeping at most about ``max_rows`` rows of a longer log: then
+    ``windows`` contiguous stretches of ``max_rows // windows`` rows, evenly spread over
+    it, each a :class:`Log` of its own (a separate run; a note says so).  Every row is
+    still read and checked (one pass, memory for the rows kept only)."""
     src = os.fspath(path)
     fd = open_regular(path, "CSV log", MAX_LOG_BYTES)
     try:
         with os.fdopen(fd, "rb") as fh:
-            data = fh.read(MAX_LOG_BYTES + 1)
+            size = os.fstat(fh.fileno()).st_size
+            if size > MAX_LOG_BYTES:
+                raise InputError(
+                    f"{src}: more than the limit of {MAX_LOG_BYTES >> 20} MiB for a log"
+                )
+            ends_cut = False
+            spans: list[tuple[int, int]] | None = None
+            if size:
+                fh.seek(size - 1)
+                ends_cut = fh.read(1) not in (b"\n", b"\r")
+                fh.seek(0)
+            if max_rows is not None and size:
+                rows = _count_lines(fh) - 1  # about the data rows (blank lines aside)
+                fh.seek(0)
+                if rows > max_rows:
+                    spans = _spans(rows, max_rows, windows)
+            return _parse(_stream_lines(fh, src), src, require, vbat, ends_cut, spans)
     except OSError as exc:
         raise InputError(f"{src}: cannot read the log: {exc.strerror}") from None
-    if len(data) > MAX_LOG_BYTES:
-        raise InputError(f"{src}: more than the limit of {MAX_LOG_BYTES >> 20} MiB for a log")
-    text = decode_utf8(data, src, "CSV log")
-    del data
-    return _parse(text, src, require, vbat)
 
 
-def _parse(text: str, src: str, require: Sequence[str], vbat: float | None) -> Log:
-    reader = csv.reader(_lines(text))
+def _count_lines(fh: BinaryIO) -> int:
+    n, last = 0, b""
+    while block := fh.read(BLOCK_BYTES):
+        n += block.count(b"\n")
+        last = block[-1:]
+    return n + (1 if last and last != b"\n" else 0)
+
+
+def _spans(rows: int, keep: int, windows: int) -> list[tuple[int, int]]:
+    """``windows`` data-row ranges ``[a, b)`` of ``keep // windows`` rows evenly spread
+    over ``rows`` rows (the first at the start, the last at the end)."""
+    size = max(1, keep // max(1, windows))
+    starts = np.linspace(0, max(0, rows - size), max(1, windows)).astype(int)
+    return [(int(a), int(a) + size) for a in starts]
+
+
+def _stream_lines(fh: BinaryIO, src: str) -> Iterator[str]:
+    """The lines of a UTF-8 file (a leading BOM dropped), decoded a block at a time; a
+    byte that is not UTF-8 is an InputError naming its line and offset."""
+    rest = b""
+    offset = 0  # of rest[0] in the file
+    line = 1  # of rest[0]
+    first = True
+    while True:
+        block = fh.read(BLOCK_BYTES)
+        data = rest + block
+        if block:
+            cut = data.rfind(b"\n") + 1  # UTF-8 never has 0x0a inside a character
+            if cut == 0:
+                rest = data
+                continue
+            part, rest = data[:cut], data[cut:]
+        else:
+            part, rest = data, b""
+        if not part:
+            return
+        try:
+            text = part.decode("utf-8-sig" if first else "utf-8")
+        except UnicodeDecodeError as exc:
+            at = line + part.count(b"\n", 0, exc.start)
+            raise InputError(
+                f"{src}: line {at}: byte 0x{part[exc.start]:02x} at offset {offset + exc.start} "
+                "is not UTF-8; expected a UTF-8 text CSV log"
+            ) from None
+        first = False
+        offset += len(part)
+        line += part.count(b"\n")
+        yield from _lines(text)
+        if not block:
+            return
+
+
+def _parse(
+    text_lines: Iterable[str],
+    src: str,
+    require: Sequence[str],
+    vbat: float | None,
+    ends_cut: bool,
+    spans: Sequence[tuple[int, int]] | None = None,
+) -> list[Log]:
+    reader = csv.reader(text_lines)
     notes: list[str] = []
     try:
         header = next(reader, None)
@@ -166,12 +258,15 @@ def _parse(text: str, src: str, require: Sequence[str], vbat: float | None) -> L
             elif n and n not in extra:
                 extra[n] = k
         _check_header(src, names, known, require, vbat)
-        vals = {n: array("d") for n in known}
-        nums: dict[str, array[float] | None] = {n: array("d") for n in extra}
-        lines: list[int] = []
+        parts = [_Part(known, extra) for _ in spans or [(0, MAX_ROWS + 1)]]
+        bounds = list(spans or [(0, MAX_ROWS + 1)])
+        texts: set[str] = set()  # unknown columns seen holding text
+        w = 0  # the window rows go to
+        rows = 0  # data rows so far
+        t_prev = -math.inf
+        t_col = known.get("t")
         empty_rows: list[int] = []
         cut: tuple[int, int] | None = None  # a short last line without a newline
-        ends_cut = not text.endswith(("\n", "\r"))
         for row in reader:
             lineno = reader.line_num
             if cut is not None:
@@ -191,24 +286,32 @@ def _parse(text: str, src: str, require: Sequence[str], vbat: float | None) -> L
                 continue
             if len(row) != len(names):
                 raise InputError(f"{src}: line {lineno}: {len(row)} cells, header has {len(names)}")
-            if len(lines) >= MAX_ROWS:
+            if rows >= MAX_ROWS:
                 raise InputError(
                     f"{src}: line {lineno}: more than {MAX_ROWS} data rows, the limit for a log"
                 )
-            for n, k in known.items():
-                vals[n].append(_number(src, lineno, n, row[k]))
-            for n, k in extra.items():
-                col = nums[n]
-                if col is not None:
-                    x = _extra(row[k])
-                    if x is None:
-                        nums[n] = None  # a text column: ignored from here on
-                    else:
-                        col.append(x)
-            lines.append(lineno)
+            values = {n: _number(src, lineno, n, row[k]) for n, k in known.items()}
+            if t_col is not None:
+                t = values["t"]
+                if not t > t_prev:
+                    raise InputError(
+                        f"{src}: line {lineno}: time t={t!r} does not increase "
+                        f"(previous {t_prev!r}); t must be strictly increasing"
+                    )
+                t_prev = t
+            while w < len(bounds) - 1 and rows >= bounds[w][1]:
+                w += 1
+            a, b = bounds[w]
+            if a <= rows < b:
+                parts[w].add(values, row, lineno, texts)
+            else:
+                for n, k in extra.items():
+                    if n not in texts and _extra(row[k]) is None:
+                        texts.add(n)
+            rows += 1
     except csv.Error as exc:
         raise InputError(f"{src}: line {reader.line_num}: {_clip(str(exc), 80)}") from None
-    if not lines:
+    if not rows:
         raise InputError(f"{src}: no data rows after the header")
     if cut is not None:
         notes.append(
@@ -222,22 +325,58 @@ def _parse(text: str, src: str, require: Sequence[str], vbat: float | None) -> L
             else (f"lines {empty_rows[0]}-{empty_rows[-1]}")
         )
         notes.append(f"{src}: skipped {len(empty_rows)} empty row(s) at the end ({span})")
-    cols: dict[str, NDArray[np.float64]] = {}
-    texts: list[str] = []
-    for n in names:
-        if n in known:
-            cols[n] = np.frombuffer(vals[n], dtype=float).copy()
-        elif n in extra and n not in cols and n not in texts:
-            col = nums[n]
-            if col is None:
-                texts.append(n)
+    kept = [p for p in parts if p.lines]
+    if spans is not None:
+        size = spans[0][1] - spans[0][0]
+        notes.append(
+            f"{src}: {rows} data rows; read whole, diagnosed on {len(kept)} stretches of "
+            f"{size} rows evenly spread over it (each a run)"
+        )
+    logs = []
+    for k, part in enumerate(kept):
+        cols = part.columns(names, texts)
+        lines = part.lines
+        _derive_u(src, cols, lines, vbat, notes if k == 0 else [])
+        if "u" in cols and "F" in cols and k == 0:
+            notes.append(f"{src}: both 'u' and 'F' present; using 'u' (voltage input), 'F' ignored")
+        name = src if spans is None else f"{src} (lines {lines[0]}-{lines[-1]})"
+        text_cols = list(dict.fromkeys(n for n in names if n in texts))
+        logs.append(Log(cols, name, text_cols, notes if k == 0 else []))
+    return logs
+
+
+class _Part:
+    """The rows of one stretch of a log, as columns (array of doubles)."""
+
+    def __init__(self, known: Mapping[str, int], extra: Mapping[str, int]) -> None:
+        self.extra = extra
+        self.vals = {n: array("d") for n in known}
+        self.nums: dict[str, array[float]] = {n: array("d") for n in extra}
+        self.lines: array[int] = array("q")
+
+    def add(
+        self, values: Mapping[str, float], row: Sequence[str], lineno: int, texts: set[str]
+    ) -> None:
+        for n, x in values.items():
+            self.vals[n].append(x)
+        for n, k in self.extra.items():
+            if n in texts:
+                continue
+            y = _extra(row[k])
+            if y is None:
+                texts.add(n)  # a text column: ignored from here on
             else:
-                cols[n] = np.frombuffer(col, dtype=float).copy()
-    _check_time(src, cols, lines)
-    _derive_u(src, cols, lines, vbat, notes)
-    if "u" in cols and "F" in cols:
-        notes.append(f"{src}: both 'u' and 'F' present; using 'u' (voltage input), 'F' ignored")
-    return Log(cols, src, texts, notes)
+                self.nums[n].append(y)
+        self.lines.append(lineno)
+
+    def columns(self, names: Sequence[str], texts: set[str]) -> dict[str, NDArray[np.float64]]:
+        cols: dict[str, NDArray[np.float64]] = {}
+        for n in names:
+            if n in self.vals and n not in cols:
+                cols[n] = np.frombuffer(self.vals[n], dtype=float).copy()
+            elif n in self.nums and n not in cols and n not in texts:
+                cols[n] = np.frombuffer(self.nums[n], dtype=float).copy()
+        return cols
 
 
 def _lines(text: str) -> Iterator[str]:
@@ -273,23 +412,10 @@ def _check_header(
         raise InputError(f"{src}: line 1: missing column '{col}' (header has: {listed})")
 
 
-def _check_time(src: str, cols: Mapping[str, NDArray[np.float64]], lines: list[int]) -> None:
-    if "t" not in cols:
-        return
-    t = cols["t"]
-    bad = np.flatnonzero(~(np.diff(t) > 0))
-    if bad.size:
-        k = int(bad[0]) + 1
-        raise InputError(
-            f"{src}: line {lines[k]}: time t={float(t[k])!r} does not increase "
-            f"(previous {float(t[k - 1])!r}); t must be strictly increasing"
-        )
-
-
 def _derive_u(
     src: str,
     cols: dict[str, NDArray[np.float64]],
-    lines: list[int],
+    lines: Sequence[int],
     vbat: float | None,
     notes: list[str],
 ) -> None:

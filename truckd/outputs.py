@@ -13,13 +13,16 @@ otherwise each finished file is renamed over its old version.
 
 :func:`check_output_file` and :func:`check_output_dir` are the up-front checks (used as
 argparse types in :mod:`truckd.cli.args`); :func:`check_distinct` refuses one path given
-for two outputs.  Failures of the checks are :class:`InputError` (exit 2); failures of
+for two outputs; :func:`guard_inputs` refuses an output that is one of the command's
+inputs (the same file by device and inode, also through a link), up front and again at
+every write.  Failures of the checks are :class:`InputError` (exit 2); failures of
 the write itself are :class:`TruckdError` (exit 1).
 """
 
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import os
 import shutil
 import tempfile
@@ -103,6 +106,64 @@ def check_distinct(paths: Iterable[tuple[str, str | Path | None]]) -> None:
         seen[key] = option
 
 
+PathLike = str | Path
+
+
+def _identity(path: PathLike) -> tuple[int, int] | None:
+    """The file ``path`` resolves to (links followed): (device, inode); None when absent."""
+    try:
+        st = os.stat(path)
+    except (OSError, ValueError):
+        return None
+    return st.st_dev, st.st_ino
+
+
+_INPUTS: contextvars.ContextVar[dict[tuple[int, int], str] | None] = contextvars.ContextVar(
+    "truckd_inputs", default=None
+)
+"""The inputs of the running command (set by :func:`guard_inputs`): every write refuses
+to replace one of them."""
+
+
+def _refuse_input(target: PathLike, option: str = "output") -> None:
+    """InputError when ``target`` is (resolves to) one of the guarded inputs."""
+    ident = _identity(target)
+    if ident is None:
+        return
+    name = (_INPUTS.get() or {}).get(ident)
+    if name is not None:
+        same = "" if os.fspath(target) == name else f" (the same file as {name})"
+        raise InputError(
+            f"{target}: {option} would replace the input {name}{same}; "
+            "an output never replaces an input, choose another path"
+        )
+
+
+@contextlib.contextmanager
+def guard_inputs(
+    inputs: Iterable[PathLike | None], outputs: Iterable[tuple[str, PathLike | None]] = ()
+) -> Iterator[None]:
+    """Inside the block no output replaces one of ``inputs`` (compared as files, by
+    device and inode: also through a symbolic or hard link).  ``outputs`` (option,
+    path) are checked at once, before any work; every file written through this module
+    (and every file a report directory publishes) is checked again when written.
+    A clash is an :class:`InputError` (exit 2) and nothing is written."""
+    ids = dict(_INPUTS.get() or {})
+    for p in inputs:
+        if p is not None:
+            ident = _identity(p)
+            if ident is not None:
+                ids.setdefault(ident, os.fspath(p))
+    token = _INPUTS.set(ids)
+    try:
+        for option, out in outputs:
+            if out is not None:
+                _refuse_input(out, option)
+        yield
+    finally:
+        _INPUTS.reset(token)
+
+
 def _remove(path: str) -> None:
     with contextlib.suppress(OSError):
         os.unlink(path)
@@ -131,6 +192,7 @@ def _atomic(path: str | Path) -> Iterator[int]:
     target = os.fspath(path)
     if os.path.isdir(target):
         raise TruckdError(f"{target}: is a directory; cannot write the file there")
+    _refuse_input(target)
     directory = os.path.dirname(os.path.abspath(target))
     name = os.path.basename(target)
     try:
@@ -197,6 +259,8 @@ def atomic_dir(path: str | Path) -> Iterator[Path]:
         raise TruckdError(f"{target}: cannot create the directory: {_strerror(exc)}") from None
     try:
         yield tmp
+        for item in tmp.iterdir():  # before any rename: nothing published on a clash
+            _refuse_input(target / item.name)
         _fsync_tree(tmp)
         try:
             os.rename(tmp, target)  # new or empty target: one step
@@ -230,6 +294,9 @@ def write_set(files: Iterable[tuple[str | Path, str | bytes]]) -> None:
     they renamed into place (a failure of the rename itself, rarer, can still leave the
     earlier ones replaced).
     """
+    files = list(files)
+    for path, _content in files:  # before any is written: nothing replaced on a clash
+        _refuse_input(path)
     with contextlib.ExitStack() as stack:
         for path, content in files:
             if isinstance(content, bytes):

@@ -15,8 +15,14 @@ from truckd.cli.args import json_file, model_file, report_dir, report_notes, vol
 from truckd.cli.identify import add_gap_option, check_gap
 from truckd.config.truck import load_config
 from truckd.ident.api import diagnose_log, model_of, read_logs, require_physical
+from truckd.ident.sysid import split_selector
 from truckd.modelfile import model_text
-from truckd.outputs import atomic_dir, check_distinct, write_set
+from truckd.outputs import atomic_dir, check_distinct, guard_inputs, write_set
+
+DIAGNOSE_MAX_ROWS = 360_000
+"""Rows of one log diagnosed at most (an hour at 100 Hz): a longer log is read whole (every
+row checked, memory for the rows kept only) and diagnosed on 8 evenly spread stretches
+of 45 000 rows, each a run, so memory and time stay bounded (docs/diagnosis.md)."""
 
 
 def add_subparser(sub: Any) -> None:
@@ -46,11 +52,20 @@ def _progress(msg: str) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Refuses an output that is one of the inputs (see :func:`guard_inputs`)."""
+    with guard_inputs(
+        [*(split_selector(p)[0] for p in [*args.logs, *(args.validate or [])]), args.config],
+        [("--json", args.json), ("--out", args.out), ("--report", args.report)],
+    ):
+        return _run(args)
+
+
+def _run(args: argparse.Namespace) -> int:
     check_distinct([("--out", args.out), ("--json", args.json), ("--report", args.report)])
     check_gap(args.gap)
     cfg = load_config(args.config)
-    logs = read_logs(args.logs, args.vbat)
-    val = read_logs(args.validate, args.vbat) if args.validate else None
+    logs = read_logs(args.logs, args.vbat, DIAGNOSE_MAX_ROWS)
+    val = read_logs(args.validate, args.vbat, DIAGNOSE_MAX_ROWS) if args.validate else None
     report_notes([n for lg in [*logs, *(val or [])] for n in lg.notes])
     diag = diagnose_log(logs, cfg.vehicle, val, _progress, args.gap)
     name = " ".join(args.logs)

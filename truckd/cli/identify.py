@@ -13,7 +13,9 @@ from truckd.errors import InputError
 from truckd.ident.api import identify_log, read_logs, require_physical
 from truckd.ident.data import runs_from_logs
 from truckd.ident.physics import vehicle_problems
+from truckd.ident.sysid import split_selector
 from truckd.modelfile import write_model
+from truckd.outputs import guard_inputs
 
 
 def add_subparser(sub: Any) -> None:
@@ -54,6 +56,15 @@ def _progress(msg: str) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Refuses an output that is one of the inputs (see :func:`guard_inputs`)."""
+    with guard_inputs(
+        [*(split_selector(p)[0] for p in args.logs), args.config],
+        [("--out", args.out)],
+    ):
+        return _run(args)
+
+
+def _run(args: argparse.Namespace) -> int:
     check_gap(args.gap)
     cfg = load_config(args.config)
     logs = read_logs(args.logs, args.vbat)

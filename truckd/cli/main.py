@@ -32,6 +32,7 @@ SUBCOMMANDS: dict[str, str] = {
     "run": "truckd.cli.run",
     "identify": "truckd.cli.identify",
     "diagnose": "truckd.cli.diagnose",
+    "recover": "truckd.cli.recover",
 }
 
 

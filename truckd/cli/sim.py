@@ -16,7 +16,7 @@ from truckd.control.effect_use import present_effects, startup_line
 from truckd.control.qp import ControlModel
 from truckd.errors import TruckdError
 from truckd.modelfile import read_model
-from truckd.outputs import check_distinct, ensure_dir, write_set
+from truckd.outputs import check_distinct, ensure_dir, guard_inputs, write_set
 from truckd.sim.closed_loop import SimSetup, run_scenario
 from truckd.sim.mcap_export import mcap_paths, trace_mcap_bytes
 from truckd.sim.platoon import PLATOON_SCENARIOS
@@ -56,6 +56,15 @@ def add_subparser(sub: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Refuses an output that is one of the inputs (see :func:`guard_inputs`)."""
+    with guard_inputs(
+        [args.config, args.model],
+        [("--json", args.json), ("--plot", args.plot), ("--mcap", args.mcap)],
+    ):
+        return _run(args)
+
+
+def _run(args: argparse.Namespace) -> int:
     if args.platoon is not None or args.scenario in PLATOON_SCENARIOS:
         return run_platoon_cli(args)
     check_platoon_only(args)

@@ -10,7 +10,7 @@ from truckd.config.truck import load_config
 from truckd.errors import InputError
 from truckd.logfile import read_log, write_log
 from truckd.modelfile import load_model_into
-from truckd.outputs import check_distinct
+from truckd.outputs import check_distinct, guard_inputs
 from truckd.sim.plant import simulate_open_loop
 
 
@@ -27,6 +27,15 @@ def add_subparser(sub: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Refuses an output that is one of the inputs (see :func:`guard_inputs`)."""
+    with guard_inputs(
+        [args.input, args.config, args.model],
+        [("--out", args.out)],
+    ):
+        return _run(args)
+
+
+def _run(args: argparse.Namespace) -> int:
     check_distinct([("INPUT.csv", args.input), ("--out", args.out)])  # never over the input
     cfg = load_config(args.config)
     if args.model:

@@ -47,6 +47,12 @@ class TruckConfig:
 
     def validate(self) -> str | None:
         """Cross-field checks after loading (None when fine)."""
+        stall, period = self.runtime.stall_limit_s, 1.0 / self.control.rate_hz
+        if stall < 2.0 * period:
+            return (
+                f"key 'runtime.stall_limit_s' = {stall:g}: expected at least two control "
+                f"periods ({2.0 * period:g} s at control.rate_hz {self.control.rate_hz:g})"
+            )
         return vehicle_id_problem(self.vehicle_id)
 
     @property

@@ -78,6 +78,7 @@ class Controller:
         self.cfg = cfg
         self.mpc = MpcSolver(model, cfg)
         self.estimator = Estimator(cfg.estimator, model.params.r_w, ticks_per_rev)
+        self._ticks_per_rev = ticks_per_rev
         sat = model.effects.voltage_saturation
         self.u_max = min(cfg.u_max, model.params.V_batt, sat if sat > 0.0 else math.inf)
         self._delay_steps = round(model.effects.input_delay / cfg.period)
@@ -123,6 +124,21 @@ class Controller:
         """Speeds (m/s) predicted at ``now + k period`` for the commands already sent but
         not yet acting (the input delay): the QP's horizon starts after them.  Set by
         each solve; a published plan begins with them."""
+
+    def reinitialise(self) -> None:
+        """Forget the state learned from past cycles (after the loop stalled: it describes
+        a world that has moved on): a new estimator, no MPC warm start, no held plan, no
+        commands in the pipeline, no disturbance estimate, no standstill hold."""
+        self.estimator = Estimator(self.cfg.estimator, self.model.params.r_w, self._ticks_per_rev)
+        self.mpc.reset()
+        self._sent.clear()
+        self.u_prev = 0.0
+        self._plan, self._plan_age = None, 0
+        self.disturbance_v = 0.0
+        self._v_expected = math.nan
+        self.holding = False
+        self._release_cycles = 0
+        self.pipeline_v = []
 
     @property
     def forecast_steps(self) -> int:

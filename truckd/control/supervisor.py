@@ -5,6 +5,7 @@ clock), a :class:`Decision` out; no clock, no I/O.
 Modes (the daemon maps them to commands):
 
 - ``INIT``: start-up, until the link is up and encoder and range data are fresh; motor off.
+  Also after a loop stall (:meth:`Supervisor.restart`: ``loop_stall`` for ``recovery_s``).
 - ``ACTIVE``: everything fresh and healthy; the controller drives.
 - ``DEGRADED``: still driving, with something wrong that the controller can cover: the
   solver failed ``solver_degrade_after`` cycles in a row (the controller's fallback is in
@@ -166,6 +167,14 @@ class Supervisor:
     mode: Mode = Mode.INIT
     transitions: list[Transition] = field(default_factory=list)
     _c: _Counters = field(default_factory=_Counters)
+    _restart_until: float = -math.inf
+
+    def restart(self, t: float) -> None:
+        """Back to ``INIT`` after a loop stall at time ``t`` (s): the cause ``loop_stall``
+        holds it for ``recovery_s`` (the restarted estimator sees fresh data), then INIT
+        ends as at start-up, once everything is fresh."""
+        self._c = _Counters()
+        self._restart_until = t + self.config.recovery_s
 
     def _frozen(self, x: SupervisorInputs) -> bool:
         """Range value bit-identical for ``range_frozen_s`` of driving time; latched until
@@ -187,6 +196,8 @@ class Supervisor:
         c.solver_fails = 0 if x.solver_ok else c.solver_fails + 1
         c.overruns = c.overruns + 1 if x.loop_missed else 0
         out: dict[str, Mode] = {}
+        if x.t <= self._restart_until:
+            out["loop_stall"] = Mode.SAFE_STOP
         if not x.link_up:
             out["link_down"] = Mode.FAULT
         if _stale(x.link_age, cfg.link_timeout_s):

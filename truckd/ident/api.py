@@ -23,15 +23,23 @@ def _as_list(logs: Log | Sequence[Log]) -> list[Log]:
     return [logs] if isinstance(logs, Log) else list(logs)
 
 
-def read_logs(paths: Sequence[str], vbat: float | None = None) -> list[Log]:
+def read_logs(
+    paths: Sequence[str], vbat: float | None = None, max_rows: int | None = None
+) -> list[Log]:
     """Logs from CSV files and WPILib SysId ``.json`` files (one log per SysId test);
-    ``vbat`` (V) is the supply for a CSV's ``duty`` column (the ``--vbat`` option)."""
+    ``vbat`` (V) is the supply for a CSV's ``duty`` column (the ``--vbat`` option).
+    ``max_rows``: a longer CSV log is read whole but kept as evenly spread stretches of
+    about that many rows in all, one log each (see
+    :func:`truckd.logfile.read_log_windows`)."""
     from truckd.ident.sysid import is_sysid_path, read_sysid
-    from truckd.logfile import read_log
+    from truckd.logfile import read_log_windows
 
     out: list[Log] = []
     for path in paths:
-        out.extend(read_sysid(path) if is_sysid_path(path) else [read_log(path, vbat=vbat)])
+        if is_sysid_path(path):
+            out.extend(read_sysid(path))
+        else:
+            out.extend(read_log_windows(path, ("t",), vbat, max_rows))
     return out
 
 

@@ -87,6 +87,17 @@ class RuntimeConfig:
     stop_ramp_v_per_s: float = spec(
         "voltage ramp towards 0 V in SAFE_STOP", unit="V/s", lo=0.0, lo_open=True, default=60.0
     )
+    stall_limit_s: float = spec(
+        "the loop woke this much later than its previous cycle (a stall: SIGSTOP, a frozen "
+        "host): logged, published in health, and the control state re-initialised (estimator "
+        "restarted, MPC warm start dropped, INIT with the motor off until the sensors are "
+        "fresh again) before driving on; at least two control periods",
+        unit="s",
+        lo=0.0,
+        lo_open=True,
+        hi=60.0,
+        default=0.05,
+    )
     fault_injection: bool = spec(
         "accept injected faults on truckd/<vehicle_id>/inject (HIL tests only)", default=False
     )

@@ -29,6 +29,7 @@ from typing import Any
 from firmware_protocol.messages import CompanionHeartbeat, CompanionState, MotorCommand
 from truckd.control.config import ControlConfig
 from truckd.control.controller import Controller, ControlOutput
+from truckd.control.estimator import EncoderSample, RangeSample
 from truckd.control.qp import ControlModel
 from truckd.control.supervisor import (
     Decision,
@@ -108,6 +109,8 @@ class CycleOutputs:
     control: ControlOutput | None
     ages: dict[str, float]
     error: str | None = None
+    stall_s: float = 0.0
+    """The loop stall detected at this cycle (s since the previous one; 0: none)."""
 
     @property
     def mode(self) -> Mode:
@@ -163,6 +166,7 @@ class CompanionCycle:
         *,
         time_budget: bool = True,
         t0: float = 0.0,
+        stall_limit_s: float = math.inf,
     ) -> None:
         if not time_budget:
             control = control.in_simulated_time()
@@ -180,6 +184,11 @@ class CompanionCycle:
         self.u = 0.0
         self.enable = False
         self.controller_errors = 0
+        self.stall_limit_s = stall_limit_s
+        self._last_now: float | None = None
+        self.stalls = 0
+        """Loop stalls detected (a cycle later than ``stall_limit_s`` after the previous)."""
+        self.last_stall_s = 0.0
 
     def step(self, inp: CycleInputs) -> CycleOutputs:
         """One cycle: sensors -> controller -> supervisor -> motor command."""
@@ -187,6 +196,20 @@ class CompanionCycle:
         t = now - self.t0
         s = self.sensors
         s.update(now, inp.received)
+        stall = now - self._last_now if self._last_now is not None else 0.0
+        self._last_now = now
+        encoders: Sequence[EncoderSample] = s.encoders
+        ranges: Sequence[RangeSample] = s.ranges
+        if stall > self.stall_limit_s:
+            # The picture is old: restart the control state, keep the motor off until the
+            # sensors are fresh again (the samples that queued meanwhile are not used).
+            self.stalls += 1
+            self.last_stall_s = stall
+            self.controller.reinitialise()
+            self.supervisor.restart(t)
+            encoders, ranges = (), ()
+        else:
+            stall = 0.0
         error = None
         out: ControlOutput | None
         try:
@@ -194,8 +217,8 @@ class CompanionCycle:
             fed = s.vbat > 0.0
             out = self.controller.step(
                 t,
-                s.encoders,
-                s.ranges,
+                encoders,
+                ranges,
                 inp.lead_forecast,
                 inp.headway,
                 s.current if fed else math.nan,
@@ -233,7 +256,7 @@ class CompanionCycle:
             else None
         )
         res = CycleOutputs(
-            self.seq, t, MotorCommand(self.u, self.enable), hb, dec, out, ages, error
+            self.seq, t, MotorCommand(self.u, self.enable), hb, dec, out, ages, error, stall
         )
         self.seq += 1
         return res

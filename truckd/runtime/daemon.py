@@ -5,8 +5,10 @@ read (checked messages) -> estimate + control (the pure Controller) -> supervise
 -> command (always finite, within limits) -> publish (Zenoh, non-blocking) -> record
 (CSV, non-blocking) -> watchdog -> keep rate.
 
-SIGTERM/SIGINT end the loop at the next cycle: the motor is commanded off, the log
-flushed, the link closed, and ``run`` returns 0.
+SIGTERM, SIGINT and SIGHUP (unless ignored at start, as under ``nohup``) end the loop at
+the next cycle: the motor is commanded off, the logs flushed and closed (the MCAP with
+its index), the link closed, and ``run`` returns 0.  At start, MCAP files a crash left
+unfinished in the log directory are recovered (:mod:`truckd.runtime.mcap_recover`).
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ import os
 import signal
 import time
 from collections.abc import Callable, Mapping
+from pathlib import Path
 from typing import Any
 
 from firmware_protocol.messages import CompanionHeartbeat, CompanionState, MotorCommand
@@ -34,6 +37,7 @@ from truckd.runtime.cycle import CompanionCycle, CycleInputs, CycleOutputs, stat
 from truckd.runtime.deferred import Deferred
 from truckd.runtime.faults import RuntimeFaults, wrap_solver
 from truckd.runtime.mcap_log import McapLog
+from truckd.runtime.mcap_recover import recover_dir
 from truckd.runtime.notify import Notifier
 from truckd.runtime.platoon_link import DaemonPlatoon, platoon_state_fields
 from truckd.runtime.ratekeeper import RateKeeper
@@ -99,6 +103,7 @@ class Daemon:
             self.ticks_per_rev,
             self.rt.stop_ramp_v_per_s,
             time_budget=True,  # on the car a late solve is a failure
+            stall_limit_s=self.rt.stall_limit_s,
         )
         self.controller = self.companion.controller
         self.platoon = DaemonPlatoon(cfg.vehicle_id, cfg.platoon, self.companion)
@@ -136,6 +141,7 @@ class Daemon:
         self._states_sent = 0
         self._rate_mark = (0.0, 0)
         self._transitions: list[dict[str, object]] = []
+        self._last_stall_t: float | None = None
 
     # -- start-up and shutdown -----------------------------------------------------
     def params(self) -> dict[str, Any]:
@@ -161,11 +167,15 @@ class Daemon:
         self.claim = claim_backend(self.backend_name, self.cfg.link)
         if self.rt.telemetry.enabled:
             self.telemetry = Telemetry(self.cfg.vehicle_id, self.rt.telemetry, self.params)
+            self.platoon.limit_ingress(self.telemetry.limit_ingress)
             self.telemetry.start()
-            self.platoon.subscribe(self.telemetry.subscribe_key, self.rt.fault_injection)
+            self.platoon.subscribe(
+                self.telemetry.subscribe_key, self.rt.fault_injection, self.telemetry.subscribe_raw
+            )
             if self.rt.fault_injection:
                 self.telemetry.subscribe("inject", self.faults.apply)
         if self.rt.recorder.enabled:
+            self._recover_logs()
             self.mcap = McapLog.for_recorder(self.cfg.vehicle_id, self.rt.recorder)
             self.recorder = Recorder(self.rt.recorder, LOG_COLUMNS, sidecar=self.mcap)
             self.recorder.start()
@@ -183,6 +193,16 @@ class Daemon:
             "truckd %s: backend %s, %.0f Hz", self.cfg.vehicle_id, self.backend_name,
             self.control_cfg.rate_hz,
         )  # fmt: skip
+
+    def _recover_logs(self) -> None:
+        """Finish the MCAP files a crash left unfinished in the log directory (index and
+        footer rewritten; files another running daemon writes are left alone)."""
+        d = Path(self.rt.recorder.dir)
+        if not d.is_dir():
+            return
+        for r in recover_dir(d):
+            if r.status == "recovered":
+                log.warning("%s", r.line())
 
     def request_stop(self, signum: int = 0, _frame: object = None) -> None:
         """Signal handler: finish the current cycle, then shut down."""
@@ -251,8 +271,15 @@ class Daemon:
             self.telemetry.close()
 
     def run(self) -> int:
-        """Start, loop until SIGTERM/SIGINT or the duration, shut down; exit code 0."""
-        old = {s: signal.signal(s, self.request_stop) for s in (signal.SIGTERM, signal.SIGINT)}
+        """Start, loop until SIGTERM/SIGINT/SIGHUP or the duration, shut down; exit code 0.
+
+        SIGHUP (the terminal hung up) stops like SIGTERM, unless it is ignored when the
+        daemon starts (``nohup``): an ignored SIGHUP stays ignored.  systemd sends none
+        (the unit has no ``SendSIGHUP=`` and no reload)."""
+        sigs = [signal.SIGTERM, signal.SIGINT]
+        if signal.getsignal(signal.SIGHUP) is not signal.SIG_IGN:
+            sigs.append(signal.SIGHUP)
+        old = {s: signal.signal(s, self.request_stop) for s in sigs}
         try:
             self.start()
             self.realtime = setup_realtime(
@@ -319,6 +346,14 @@ class Daemon:
         self.out, self.decision = out.control, out.decision
         self._last_cycle = out
         self.u, self.enable, self.seq = out.command.voltage, out.command.enable, out.seq + 1
+        if out.stall_s > 0.0:
+            log.warning(
+                "loop stalled for %.3f s (limit %.3f s) at t=%.3f s: estimator and controller "
+                "re-initialised, motor off until the sensors are fresh",
+                out.stall_s, self.rt.stall_limit_s, out.t,
+            )  # fmt: skip
+            self._last_stall_t = out.t
+            self._next_health = 0.0  # publish health now
         if out.error is not None and self.companion.controller_errors <= 3:
             log.error("controller failed: %s", out.error)
         tr = out.decision.transition
@@ -421,6 +456,12 @@ class Daemon:
             "realtime": self.realtime.as_dict(),
             "state_rate_hz": rate,
             "injected": {"solver": self.faults.solver_fail, "overrun_s": self.faults.overrun_s},
+            "stall": {
+                "count": self.companion.stalls,
+                "last_s": self.companion.last_stall_s if self.companion.stalls else None,
+                "last_t": self._last_stall_t,
+                "limit_s": self.rt.stall_limit_s,
+            },
             "pid": os.getpid(),
             "platoon": self.platoon.health(),
         }

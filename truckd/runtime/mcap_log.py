@@ -22,6 +22,8 @@ The CSV stays the input of ``identify``/``diagnose``.
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import json
 import logging
 import math
@@ -97,6 +99,8 @@ class McapFile:
     ) -> None:
         self.path = Path(path)
         self._fh: IO[bytes] | None = open(self.path, "wb")  # noqa: SIM115 - closed in close()
+        with contextlib.suppress(OSError):  # held while writing: recovery leaves it alone
+            fcntl.flock(self._fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
         self._w = Writer(self._fh, chunk_size=chunk_bytes, compression=COMPRESSION[compression])
         self._w.start(profile="", library="truckd")
         if metadata:

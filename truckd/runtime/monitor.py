@@ -159,6 +159,10 @@ class FleetView:
                 )
                 loop = h.get("loop", {}) if isinstance(h.get("loop"), dict) else {}
                 faults = h.get("faults", s.get("faults", []))
+                pl = h.get("platoon")
+                if isinstance(pl, dict) and pl.get("plan_flood") is True:
+                    # a peer floods the plan key: the daemon drops what it cannot use
+                    faults = [*(faults if isinstance(faults, list) else []), "plan_flood"]
                 fault_text = (
                     safe_text(",".join(safe_text(f) for f in faults[:8]), 4 * FIELD_MAX)
                     if isinstance(faults, list) and faults

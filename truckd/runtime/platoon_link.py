@@ -15,7 +15,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import replace
-from typing import Any
+from typing import Any, Protocol
 
 from truckd.control.platoon import (
     Plan,
@@ -71,13 +71,27 @@ def follower_inputs(
     )
 
 
+MAX_PLAN_BYTES = 65536
+"""A plan payload longer than this is refused undecoded (a 40-step plan is about 2 kB)."""
+
+
+class _Payload(Protocol):
+    def to_bytes(self) -> bytes: ...
+
+
 class PlanReceiver:
-    """The newest valid plan from one predecessor (fed on Zenoh's thread, read by the
-    loop; thread-safe).  Refused and counted: payloads that do not parse, plans naming
-    another sender, plans stamped more than ``max_skew_s`` in the future of ``clock``
-    (when given: one such plan held would lock out every genuine one after it), plans
-    older (by ``seq``) than the one held unless the sender restarted (its clock moved on
-    by more than a second)."""
+    """The newest valid plan from one predecessor, insulated from the sender's rate.
+
+    :meth:`on_payload` runs on Zenoh's thread for every sample and does constant work:
+    it counts the sample and keeps it as the pending one (a ring of one: a pending sample
+    not yet decoded is replaced and counted in ``dropped``).  :meth:`latest`, called by
+    the loop once per cycle, decodes the pending sample (at most one per call, so at most
+    one decode per cycle and key whatever the sender's rate) and returns the newest valid
+    plan.  Refused and counted: payloads longer than :data:`MAX_PLAN_BYTES` or that do
+    not parse, plans naming another sender, plans stamped more than ``max_skew_s`` in the
+    future of ``clock`` (when given: one such plan held would lock out every genuine one
+    after it), plans older (by ``seq``) than the one held unless the sender restarted (its
+    clock moved on by more than a second).  Thread-safe."""
 
     def __init__(
         self,
@@ -91,22 +105,45 @@ class PlanReceiver:
         self.key = plan_key(predecessor)
         self._lock = threading.Lock()
         self._latest: Plan | None = None
+        self._pending: bytes | _Payload | None = None
+        self.received = 0
+        """Samples that arrived on the key (every one, also those dropped)."""
+        self.decoded = 0
+        """Samples decoded (at most one per :meth:`latest` call)."""
         self.accepted = 0
         self.refused = 0
         self.last_error = ""
         self.blocked = False
         """Injected link loss (HIL runs): every plan is dropped while set."""
         self.dropped = 0
+        """Samples never decoded: replaced by a newer one before the loop took it, or
+        received while the link was blocked."""
 
-    def on_payload(self, payload: bytes) -> None:
-        if self.blocked:
-            self.dropped += 1
+    def on_payload(self, payload: bytes | _Payload) -> None:
+        """One sample arrived (Zenoh's thread): constant work, no decoding."""
+        with self._lock:
+            self.received += 1
+            if self.blocked:
+                self.dropped += 1
+                return
+            if self._pending is not None:
+                self.dropped += 1
+            self._pending = payload
+
+    def _take(self) -> None:
+        with self._lock:
+            raw, self._pending = self._pending, None
+        if raw is None:
             return
+        self.decoded += 1
         try:
-            plan = decode_plan(payload)
-        except ValueError as exc:
+            data = raw if isinstance(raw, bytes) else raw.to_bytes()
+            if len(data) > MAX_PLAN_BYTES:
+                raise ValueError(f"{len(data)} bytes, more than {MAX_PLAN_BYTES}")
+            plan = decode_plan(data)
+        except Exception as exc:  # any payload at all: nested too deep, not UTF-8, ...
             self.refused += 1
-            self.last_error = str(exc)
+            self.last_error = str(exc)[:200] or type(exc).__name__
             return
         if plan.vehicle_id and plan.vehicle_id != self.predecessor:
             self.refused += 1
@@ -127,6 +164,9 @@ class PlanReceiver:
         self.last_error = f"plan seq {plan.seq} not newer than the one held ({old.seq})"
 
     def latest(self) -> Plan | None:
+        """Decode the pending sample, if any (one at most), and return the newest valid
+        plan (the loop's side: call it once per cycle)."""
+        self._take()
         with self._lock:
             return self._latest
 
@@ -138,6 +178,17 @@ def platoon_state_fields(d: PlatoonDecision | None) -> dict[str, Any]:
         "platoon": d.mode if d is not None else None,
         "headway": d.headway if d is not None else None,
     }
+
+
+INGRESS_FACTOR = 4.0
+"""At most this many plans per control period are let into the daemon's Zenoh session on
+the predecessor's key (Zenoh's ingress downsampling drops the rest before any Python
+runs): a predecessor publishes one per cycle; a sender's jitter fits."""
+
+FLOOD_FACTOR = 2.0
+"""Plans arriving faster than this many per control period are a flood (a predecessor
+publishes one per cycle; a flood arrives at the ingress limit): ``plan_flood`` in health,
+shown by ``truckd monitor``."""
 
 
 class DaemonPlatoon:
@@ -170,17 +221,28 @@ class DaemonPlatoon:
         )
         self.decision: PlatoonDecision | None = None
         self._now = math.nan
+        self._rate_mark = (math.nan, 0)  # (wall time, plans received) at the last health
+        self.plan_rate_hz: float | None = None
+        """Plans received per second since the previous health message (None: unknown)."""
+
+    def limit_ingress(self, limit: Callable[[str, float], None]) -> None:
+        """Cap the predecessor's plan key at :data:`INGRESS_FACTOR` plans per control
+        period in the session (``limit(key, hz)``, before the session opens)."""
+        if self.receiver is not None:
+            limit(self.receiver.key, INGRESS_FACTOR / self.cyc.period)
 
     def subscribe(
         self,
         subscribe_key: Callable[[str, Callable[[bytes], None]], None],
         fault_injection: bool = False,
+        subscribe_raw: Callable[[str, Callable[[Any], None]], None] | None = None,
     ) -> None:
-        """Subscribe to the predecessor's plan key only (nothing for a leading truck);
-        with ``fault_injection`` also to ``truckd/<vehicle_id>/platoon_fault`` (HIL runs:
+        """Subscribe to the predecessor's plan key only (nothing for a leading truck),
+        with ``subscribe_raw`` when given (the payload passed uncopied); with
+        ``fault_injection`` also to ``truckd/<vehicle_id>/platoon_fault`` (HIL runs:
         ``{"link": "down"}`` drops every plan received until ``{"link": "up"}``)."""
         if self.receiver is not None:
-            subscribe_key(self.receiver.key, self.receiver.on_payload)
+            (subscribe_raw or subscribe_key)(self.receiver.key, self.receiver.on_payload)
             if fault_injection:
                 subscribe_key(f"truckd/{self.vehicle_id}/platoon_fault", self.apply_fault)
 
@@ -219,6 +281,13 @@ class DaemonPlatoon:
         """The ``platoon`` entry of the health message."""
         d, r, m = self.decision, self.receiver, self.mode
         age = d.plan_age_s if d is not None else math.nan
+        if r is not None:
+            now, (t_mark, n_mark) = self.wall(), self._rate_mark
+            if now - t_mark > 0.2:  # NaN at the first call: no rate yet
+                self.plan_rate_hz = (r.received - n_mark) / (now - t_mark)
+            if not now - t_mark <= 0.2:
+                self._rate_mark = (now, r.received)
+        rate = self.plan_rate_hz
         return {
             "predecessor": self.cfg.predecessor or None,
             "mode": d.mode if d is not None else None,
@@ -227,6 +296,9 @@ class DaemonPlatoon:
             "plans_accepted": r.accepted if r is not None else 0,
             "plans_refused": r.refused if r is not None else 0,
             "plans_dropped": r.dropped if r is not None else 0,
+            "plans_received": r.received if r is not None else 0,
+            "plan_rate_hz": rate,
+            "plan_flood": rate is not None and rate > FLOOD_FACTOR / self.cyc.period,
             "switches": m.switches if m is not None else 0,
             "plans_disagreeing": m.disagreements if m is not None else 0,
         }

@@ -22,7 +22,7 @@ import time
 from collections import deque
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Protocol, TextIO
+from typing import BinaryIO, Protocol
 
 from truckd.errors import TruckdError
 from truckd.runtime.config import RecorderConfig
@@ -62,8 +62,9 @@ class Recorder:
         self._event = threading.Event()
         self._stop = False
         self._thread: threading.Thread | None = None
-        self._fh: TextIO | None = None
-        self._bytes = 0
+        self._fh: BinaryIO | None = None
+        self._bytes = 0  # written or attempted in the current file (rotation)
+        self._on_disk = 0  # written to the current file
         self._index = 0
         self._stamp = ""
         self.files: list[Path] = []  # every file this recorder opened, oldest first
@@ -99,9 +100,7 @@ class Recorder:
         base = f"{self.prefix}-{self._stamp}-p{os.getpid()}-{self._index:04d}"
         p, fh = self._create(base)
         self._fh = fh
-        header = ",".join(self.columns) + "\n"
-        self._fh.write(header)
-        self._bytes = len(header)
+        self._bytes = self._on_disk = 0
         self.files.append(p)
         if self.sidecar is not None:
             self.sidecar.open(p.with_suffix(".mcap"))
@@ -111,13 +110,15 @@ class Recorder:
                 old.unlink()
             except OSError as exc:
                 log.warning("cannot delete old log %s: %s", old, exc.strerror)
+        self._write_all(fh, (",".join(self.columns) + "\n").encode())  # may fail: last
 
-    def _create(self, base: str) -> tuple[Path, TextIO]:
-        """A new file ``base.csv`` (``base-K.csv`` when taken), created exclusively."""
+    def _create(self, base: str) -> tuple[Path, BinaryIO]:
+        """A new file ``base.csv`` (``base-K.csv`` when taken), created exclusively,
+        unbuffered (every write goes to the OS whole: see :meth:`_write_all`)."""
         for k in range(1000):
             p = self.dir / (f"{base}.csv" if k == 0 else f"{base}-{k}.csv")
             try:
-                return p, open(p, "x", encoding="utf-8", newline="")
+                return p, open(p, "xb", buffering=0)
             except FileExistsError:
                 continue
         raise FileExistsError(f"{self.dir}: no free name for {base}.csv")
@@ -130,6 +131,28 @@ class Recorder:
         if len(self._q) >= 64:
             self._event.set()
 
+    def _write_all(self, fh: BinaryIO, data: bytes) -> None:
+        """Append whole rows with unbuffered writes: the file never holds a torn row, even
+        when the process is killed (the OS has every byte of a write that returned) or the
+        disk fills (a write cut short is truncated back to the last whole row)."""
+        start, done = self._on_disk, 0
+        self._bytes += len(data)  # towards rotation, written or not (as a full disk stays)
+        try:
+            while done < len(data):
+                n = fh.write(data[done:])
+                if not n:
+                    raise OSError(28, "no space left on device")
+                done += n
+        except OSError:
+            if done:
+                try:
+                    fh.truncate(start)
+                    fh.seek(start)
+                except OSError:
+                    pass
+            raise
+        self._on_disk = start + done
+
     def _write_pending(self) -> None:
         if self._fh is None and self.files:  # a file could not be opened: try again
             self._open_next()
@@ -137,19 +160,29 @@ class Recorder:
         if fh is None:
             return
         n = len(self.columns)
+        lines: list[str] = []
+        size = self._bytes
         while self._q:
             row = self._q.popleft()
             if len(row) != n:
                 self.errors += 1
                 continue
             line = ",".join(format(x, ".10g") for x in row) + "\n"
-            fh.write(line)
-            self._bytes += len(line)
-            self.rows += 1
-            if self._bytes >= self.cfg.max_bytes:
-                self._open_next()
+            lines.append(line)
+            size += len(line)
+            if size >= self.cfg.max_bytes:
+                data, lines = "".join(lines).encode(), []
+                try:
+                    self._write_all(fh, data)
+                    self.rows += data.count(b"\n")
+                finally:
+                    self._open_next()
                 fh = self._fh
                 assert fh is not None
+                size = self._bytes
+        if lines:
+            self._write_all(fh, "".join(lines).encode())
+            self.rows += len(lines)
 
     def _run(self) -> None:
         period = max(self.cfg.flush_period_s, 0.01)
@@ -157,9 +190,7 @@ class Recorder:
             self._event.wait(period)
             self._event.clear()
             try:
-                self._write_pending()
-                if self._fh is not None:
-                    self._fh.flush()
+                self._write_pending()  # unbuffered: every row is with the OS
                 if self.sidecar is not None:
                     self.sidecar.write_pending()
                     self.sidecar.flush()

@@ -89,6 +89,24 @@ def zenoh_config(
     return conf
 
 
+def _limit_ingress(conf: zenoh.Config, limits: dict[str, float]) -> None:
+    """Add an ingress downsampling rule per key (kept with the file's own rules)."""
+    try:
+        rules = json.loads(conf.get_json("downsampling"))
+    except Exception:  # not set in the file
+        rules = None
+    rules = rules if isinstance(rules, list) else []
+    rules.append(
+        {
+            "id": "truckd_ingress",
+            "messages": ["put", "delete"],
+            "flows": ["ingress"],
+            "rules": [{"key_expr": k, "freq": float(hz)} for k, hz in limits.items()],
+        }
+    )
+    conf.insert_json5("downsampling", json.dumps(rules))
+
+
 def open_session(conf: zenoh.Config, what: str) -> zenoh.Session:
     """Open a Zenoh session; a failure (e.g. the port is taken) becomes a TruckdError."""
     try:
@@ -124,6 +142,7 @@ class Telemetry:
         self._token: zenoh.LivelinessToken | None = None
         self._queryable: zenoh.Queryable[None] | None = None
         self._subs: list[zenoh.Subscriber[None]] = []
+        self._ingress: dict[str, float] = {}  # key -> most samples per second let in
         self.dropped = 0  # messages dropped because the queue was full
         self.sent = 0
         self.errors = 0  # puts that raised
@@ -138,6 +157,8 @@ class Telemetry:
             c.connect or None,
             names=("runtime.telemetry.listen", "runtime.telemetry.connect"),
         )
+        if self._ingress:
+            _limit_ingress(conf, self._ingress)
         self._session = s = open_session(conf, self.keys["state"])
         for k in ("state", "health", "plan"):
             self._pubs[k] = s.declare_publisher(
@@ -150,6 +171,14 @@ class Telemetry:
         self._thread = threading.Thread(target=self._run, name="truckd-telemetry", daemon=True)
         self._thread.start()
         log.info("zenoh telemetry on %s (listen %s)", self.keys["state"], conf.get_json("listen"))
+
+    def limit_ingress(self, key: str, hz: float) -> None:
+        """Let at most ``hz`` samples per second on ``key`` into this session (Zenoh's
+        ingress downsampling: the rest are dropped in Zenoh, before any Python callback
+        runs).  Only before :meth:`start`."""
+        if self._session is not None:
+            raise RuntimeError("Telemetry.limit_ingress after start")
+        self._ingress[key] = hz
 
     def subscribe(self, suffix: str, callback: Callable[[bytes], None]) -> None:
         """Call ``callback(payload)`` for each sample on ``truckd/<vehicle_id>/<suffix>``
@@ -165,6 +194,20 @@ class Telemetry:
         def on_sample(sample: zenoh.Sample) -> None:
             try:
                 callback(sample.payload.to_bytes())
+            except Exception as exc:  # never kill zenoh's callback thread
+                log.warning("%s handler failed: %s", key, exc)
+
+        self._subs.append(self._session.declare_subscriber(key, on_sample))
+
+    def subscribe_raw(self, key: str, callback: Callable[[zenoh.ZBytes], None]) -> None:
+        """Like :meth:`subscribe_key`, passing the payload uncopied (``to_bytes()`` when
+        needed): the callback's work does not grow with the payload's size."""
+        if self._session is None:
+            raise RuntimeError("Telemetry.subscribe before start")
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            try:
+                callback(sample.payload)
             except Exception as exc:  # never kill zenoh's callback thread
                 log.warning("%s handler failed: %s", key, exc)
 
