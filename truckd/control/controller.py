@@ -84,7 +84,6 @@ class Controller:
         self._delay_steps = round(model.effects.input_delay / cfg.period)
         self._sent: deque[float] = deque(maxlen=self._delay_steps + 1)
         self._du = cfg.du_max * cfg.period
-        self.u_prev = 0.0
         eff = model.effects
         self.dead_zone = DeadZoneLaw(eff.dead_zone, eff.dead_zone_offset)
         """The command map of a driver dead zone (see :mod:`truckd.control.effect_use`)."""
@@ -93,6 +92,17 @@ class Controller:
         self.startup_note = startup_line(eff)
         """One line naming the effects of the model the controller cannot use (None: all
         used); the daemon and ``truckd sim`` log it at start-up."""
+        self.solver_failures = 0
+        self.fallback_cycles = 0
+        self.overruns = 0
+        self.braking_cycles = 0
+        self._b_v = float(self.mpc.qp.pred.bu[1])
+        """Speed per volt over one step (m/s/V), for the offset-free action."""
+        self._forget()
+
+    def _forget(self) -> None:
+        """Set every state learned from past cycles to its start (the counters stay)."""
+        self.u_prev = 0.0
         self.current = math.nan
         """The motor current (A) last measured (NaN: none), for the battery sag map."""
         self.vbat = math.nan
@@ -108,18 +118,14 @@ class Controller:
         the motor is :attr:`_wanted`."""
         self._plan: list[float] | None = None
         self._plan_age = 0
-        self.solver_failures = 0
-        self.fallback_cycles = 0
-        self.overruns = 0
-        self.braking_cycles = 0
         self.disturbance_v = 0.0
         """Estimated input-voltage disturbance (V), added to the feedforward."""
         self._v_expected = math.nan
         self.holding = False
         """Standstill hold active (see :meth:`_update_hold`)."""
         self._release_cycles = 0
-        self._b_v = float(self.mpc.qp.pred.bu[1])
-        """Speed per volt over one step (m/s/V), for the offset-free action."""
+        self._sent.clear()
+        self.dead_zone.reset()
         self.pipeline_v: list[float] = []
         """Speeds (m/s) predicted at ``now + k period`` for the commands already sent but
         not yet acting (the input delay): the QP's horizon starts after them.  Set by
@@ -130,15 +136,8 @@ class Controller:
         a world that has moved on): a new estimator, no MPC warm start, no held plan, no
         commands in the pipeline, no disturbance estimate, no standstill hold."""
         self.estimator = Estimator(self.cfg.estimator, self.model.params.r_w, self._ticks_per_rev)
-        self.mpc.reset()
-        self._sent.clear()
-        self.u_prev = 0.0
-        self._plan, self._plan_age = None, 0
-        self.disturbance_v = 0.0
-        self._v_expected = math.nan
-        self.holding = False
-        self._release_cycles = 0
-        self.pipeline_v = []
+        self.mpc.restart()
+        self._forget()
 
     @property
     def forecast_steps(self) -> int:

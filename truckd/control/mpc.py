@@ -131,6 +131,8 @@ class MpcSolver:
                 p_triu, a = cq.p_triu(mode), cq.A
             s.setup(p_triu, self._q, a, self._lo, self._hi, **osqp_settings(cfg))
             self._solvers[mode] = s
+        self._rho0 = float(osqp_settings(cfg)["rho"])
+        """The step size every solver starts with (OSQP adapts it while solving)."""
         self._last: tuple[Vec, list[float]] | None = None
         """The last accepted solution: OSQP's primal vector and (condensed) the inputs it
         was solved for."""
@@ -176,6 +178,14 @@ class MpcSolver:
         self._last = None
         self._last_v = None
         self._warm = None
+
+    def restart(self) -> None:
+        """:meth:`reset`, and each solver's step size rho back to where it started (OSQP
+        adapts it while solving; a new rho refactors the KKT matrix, so not every cycle):
+        the next solve is a new solver's."""
+        self.reset()
+        for s in self._solvers.values():
+            s._solver.update_rho(self._rho0)
 
     def solve(self, mode: str, inp: QpInputs, warm: bool = True) -> MpcResult:
         """Update the vectors, warm start, solve, check.  Never raises on solver trouble."""
