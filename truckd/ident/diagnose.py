@@ -1075,7 +1075,7 @@ def diagnose_voltage(
 
 
 def _least_squares_json(ls: LeastSquares, fit_pct: float) -> dict[str, float | None]:
-    """The ``least_squares`` object of the JSON (CONTRACTS.md)."""
+    """The ``least_squares`` object of the JSON (reference section 4)."""
     se = ls.se
     out: dict[str, float | None] = {"kS": ls.ff.kS, "kV": ls.ff.kV, "kA": ls.ff.kA}
     for k, e in zip(("kS", "kV", "kA"), se, strict=True):
