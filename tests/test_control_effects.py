@@ -197,13 +197,13 @@ def test_dead_zone_law_holds_its_state_inside_the_zone() -> None:
 def test_unknown_effect_is_named_at_start_up() -> None:
     @dataclasses.dataclass(frozen=True)
     class Later(Effects):
-        stribeck_speed: float = 0.0
+        cogging_torque: float = 0.0
 
     assert startup_line(Effects(load_force=2.0, hill_force=1.0, hill_length=3.0)) is None
-    later = Later(load_force=2.0, stribeck_speed=0.05)
-    assert unused_effects(later) == ("stribeck_speed",)
+    later = Later(load_force=2.0, cogging_torque=0.05)
+    assert unused_effects(later) == ("cogging_torque",)
     line = startup_line(later)
-    assert line is not None and "stribeck_speed = 0.05" in line
+    assert line is not None and "cogging_torque = 0.05" in line
 
 
 def test_feedforward_torque_holds_the_terrain_where_the_command_acts() -> None:

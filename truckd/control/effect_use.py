@@ -26,7 +26,7 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from truckd.model.effects import Effects, terrain_force
+from truckd.model.effects import COMPANIONS, Effects, terrain_force
 from truckd.model.params import VehicleParams
 
 Torque = Callable[[VehicleParams, Effects, float, float], float]
@@ -76,9 +76,12 @@ EFFECT_USES: dict[str, EffectUse] = {
 that switches it on."""
 
 COMPANION_FIELDS = frozenset(
-    {"load_force_wavelength", "load_force_phase", "hill_start", "hill_length"}
+    {"load_force_wavelength", "load_force_phase", "hill_start", "hill_length"}.union(
+        *COMPANIONS.values()
+    )
 )
-"""Fields that only shape an effect of the table (no effect of their own)."""
+"""Fields that only shape an effect (no effect of their own): the terrain's and those the
+model names beside an effect (:data:`truckd.model.effects.COMPANIONS`)."""
 
 
 def present_effects(eff: Effects) -> tuple[str, ...]:
