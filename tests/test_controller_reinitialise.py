@@ -36,8 +36,9 @@ def test_a_reinitialised_controller_drives_as_a_new_one() -> None:
     tc = load_config()
     eff = Effects(dead_zone=0.8, input_delay=0.05, battery_sag=0.1)
     model = ControlModel(tc.vehicle, eff)
-    used = Controller(model, tc.control, TICKS)
+    cfg = tc.control.in_simulated_time()  # judged by what the solver did, not its time
+    used = Controller(model, cfg, TICKS)
     drive(used, 0.0, 150, 0.6, 0.9)  # learns: plan, pipeline, dead-zone state, lead accel
     used.reinitialise()
-    fresh = Controller(model, tc.control, TICKS)
+    fresh = Controller(model, cfg, TICKS)
     assert drive(used, 5.0, 60, 0.3, 1.2) == drive(fresh, 5.0, 60, 0.3, 1.2)
