@@ -31,6 +31,7 @@ SUBCOMMANDS: dict[str, str] = {
     "run": "truckd.cli.run",
     "identify": "truckd.cli.identify",
     "diagnose": "truckd.cli.diagnose",
+    "characterize": "truckd.cli.characterize",
 }
 
 
@@ -57,7 +58,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
 DEBUG_ENV = "TRUCKD_DEBUG"
 """Set (to anything) to let an unexpected exception's traceback through."""
 
-_OWN_SIGNALS = ("run", "monitor")
+_OWN_SIGNALS = ("run", "monitor", "characterize")
 """Commands that handle SIGTERM themselves (the daemon stops its loop and the motor)."""
 
 

@@ -66,7 +66,7 @@ def run(args: argparse.Namespace) -> int:
         model, source = ControlModel(cfg.vehicle), "configured vehicle"
     trace_dir = ensure_dir(args.trace, "trace directory") if args.trace else None
     setup = SimSetup(
-        cfg.vehicle,
+        cfg.plant_vehicle,
         cfg.plant,
         cfg.control,
         model,

@@ -17,6 +17,7 @@ from truckd.inputs import read_text
 from truckd.io.config import LinkConfig
 from truckd.model.params import VehicleParams
 from truckd.model.plant_config import PlantConfig, encoder_ticks_per_rev
+from truckd.runtime.characterize_config import CharacterizeConfig
 from truckd.runtime.config import RuntimeConfig
 from truckd.schema import load_dataclass, spec
 from truckd.yamlsafe import MAX_BYTES, load_yaml
@@ -45,9 +46,24 @@ class TruckConfig:
         "the daemon: loop, backend, supervisor, telemetry, recorder", default_factory=RuntimeConfig
     )
 
+    characterize: CharacterizeConfig = spec(
+        "truckd characterize: bring-up limits, experiments, distance budget",
+        default_factory=CharacterizeConfig,
+    )
+
     def validate(self) -> str | None:
         """Cross-field checks after loading (None when fine)."""
-        return vehicle_id_problem(self.vehicle_id)
+        problem = vehicle_id_problem(self.vehicle_id)
+        if problem is None and self.plant.vehicle.given():
+            why = self.plant_vehicle.validate()
+            if why is not None:
+                problem = f"plant.vehicle: the simulated truck is not physical: {why}"
+        return problem
+
+    @property
+    def plant_vehicle(self) -> VehicleParams:
+        """The simulated truck's parameters: ``vehicle`` with ``plant.vehicle`` over it."""
+        return self.plant.vehicle.over(self.vehicle)
 
     @property
     def ticks_per_rev(self) -> int:
