@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from truckd.config.truck import TruckConfig, load_config
-from truckd.errors import TruckdError
+from truckd.errors import InputError, TruckdError
 from truckd.logfile import Log, read_log, write_log
 from truckd.runtime.backend import Backend
 from truckd.runtime.characterize import (
@@ -38,7 +38,7 @@ from truckd.runtime.characterize import (
 )
 from truckd.runtime.daemon import Daemon
 
-LOG_COLUMNS = ("t", "u", "v", "i", "vbat", "x", "range_raw")
+LOG_COLUMNS = ("t", "u", "v", "vbat", "x", "range_raw")
 """The daemon log's columns copied into DIR/log.csv (plus ``experiment``, its index)."""
 
 SIM_WALL_BEYOND_M = 0.5
@@ -235,7 +235,13 @@ def characterize(
             console(f"characterize: stopped ({result.stop_reason}); partial log in {out}")
         _write_json(out / "summary.json", summary)
         return result.code if result.code != EXIT_DONE else 1
-    summary.update(analyse(cfg, log, result, out, console))
+    try:
+        summary.update(analyse(cfg, log, result, out, console))
+    except (TruckdError, InputError) as exc:  # the log cannot be analysed; it is kept
+        summary["analysis_error"] = str(exc)
+        _write_json(out / "summary.json", summary)
+        console(f"characterize: analysis failed: {exc}; the log is in {out / 'log.csv'}")
+        return 1
     _write_json(out / "summary.json", summary)
     _print_summary(summary, console)
     return EXIT_DONE

@@ -16,7 +16,11 @@ from truckd.schema import spec
 
 def _opt(doc: str, unit: str = "", positive: bool = True) -> float | None:
     """An optional vehicle parameter of the plant: absent (None) means the configured one."""
-    return spec(doc + " (absent: the configured vehicle's)", unit=unit, lo=0.0, lo_open=positive, default=None)  # type: ignore[no-any-return]
+    field: float | None = spec(
+        doc + " (absent: the configured vehicle's)", unit=unit, lo=0.0, lo_open=positive,
+        default=None,
+    )  # fmt: skip
+    return field
 
 
 @dataclass(frozen=True)
@@ -34,8 +38,12 @@ class PlantVehicle:
     n_fd: float | None = _opt("final drive ratio")
     r_w: float | None = _opt("wheel radius", "m")
     m: float | None = _opt("vehicle mass", "kg")
-    K_coulomb: float | None = _opt("Coulomb friction torque at the motor shaft", "N m", positive=False)
-    K_stiction: float | None = _opt("static friction torque at the motor shaft", "N m", positive=False)
+    K_coulomb: float | None = _opt(
+        "Coulomb friction torque at the motor shaft", "N m", positive=False
+    )
+    K_stiction: float | None = _opt(
+        "static friction torque at the motor shaft", "N m", positive=False
+    )
     V_batt: float | None = _opt("battery voltage", "V")
 
     def given(self) -> dict[str, float]:
@@ -57,7 +65,9 @@ class Wiring:
     wired the wrong way round: the bring-up checks of ``truckd characterize`` find it)."""
 
     motor_sign: int = spec("1, or -1: the motor leads swapped", lo=-1, hi=1, default=1)
-    encoder_sign: int = spec("1, or -1: the encoder counts down going forward", lo=-1, hi=1, default=1)
+    encoder_sign: int = spec(
+        "1, or -1: the encoder counts down going forward", lo=-1, hi=1, default=1
+    )
     counts_scale: float = spec(
         "encoder counts per metre as a multiple of the configured ones (2: a 2x encoder)",
         lo=0.0,

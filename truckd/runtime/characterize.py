@@ -12,8 +12,10 @@ and the supervisor's mode of the cycle before, and keeps:
   positive voltage, ramped until the truck has moved ``check_distance_m``): motor polarity,
   encoder direction and counts per metre, judged against the range sensor's view of a
   target ahead;
-- **experiments** (SysId's set): a quasistatic ramp each way, dynamic steps each way at each
-  level, a chirp for validation; each starts and ends at rest, alternately forward and back;
+- **experiments** (SysId's set): a quasistatic ramp each way (slowly up, then back down to
+  0 V, so the command also passes the low voltages while the truck moves: a driver's dead
+  zone shows), dynamic steps each way at each level, a chirp for validation; each starts
+  and ends at rest, alternately forward and back;
 - **limits**: a distance budget per experiment (the configured track and the free space the
   range sensor sees ahead, less the stopping distance at ``brake_decel_m_s2``): an
   experiment that would need more is shortened, one with less than ``min_budget_m`` is not
@@ -56,16 +58,12 @@ class Check:
         return {"name": self.name, "ok": self.ok, "detail": self.detail}
 
 
-class CheckFailed(Exception):
+class CheckFailedError(Exception):
     """A bring-up check failed (the routine stops the truck and ends, exit 3)."""
 
     def __init__(self, check: Check) -> None:
         super().__init__(check.detail)
         self.check = check
-
-
-class Stopped(Exception):
-    """The routine was stopped (stop request, SIGTERM, supervisor)."""
 
 
 @dataclass
@@ -85,8 +83,8 @@ class Experiment:
 
     def voltage(self, tau: float, cfg: CharacterizeConfig) -> float:
         """The voltage at ``tau`` s into the experiment."""
-        if self.kind == "quasistatic":
-            return self.direction * self.level_v * tau
+        if self.kind == "quasistatic":  # up, then back down to 0 V at the end
+            return self.direction * self.level_v * max(0.0, min(tau, self.duration_s - tau))
         if self.kind == "dynamic":
             return self.direction * self.level_v
         f0, f1, dur = cfg.validation_f0_hz, cfg.validation_f1_hz, self.duration_s
@@ -212,7 +210,9 @@ class Routine:
         self.progress_period_s = progress_period_s
         self.result = Result(experiments=plan_experiments(cfg))
         self.progress = Progress()
-        self._planned = 4.0 + sum(e.duration_s + 2.0 * PAUSE_S + 1.0 for e in self.result.experiments)
+        self._planned = 4.0 + sum(
+            e.duration_s + 2.0 * PAUSE_S + 1.0 for e in self.result.experiments
+        )
         self._elapsed_plan = 0.0
         self._next_progress = 0.0
         self._stop_request = ""
@@ -224,6 +224,8 @@ class Routine:
         self._x_max = 0.0
         self._last_x: float | None = None
         self._t = 0.0
+        self._ready = False  # link and sensors came up (the supervisor left INIT)
+        self._range0: float | None = None  # the range at rest before the polarity pulse
 
     # -- the command source ----------------------------------------------------------------
     def request_stop(self, reason: str) -> None:
@@ -255,7 +257,7 @@ class Routine:
                 u = next(self._script)
             else:
                 u = self._script.send(obs)
-        except CheckFailed as exc:
+        except CheckFailedError as exc:
             self.result.checks.append(exc.check)
             self.result.code = EXIT_CHECK
             self._stage("check failed", obs.t)
@@ -273,12 +275,10 @@ class Routine:
 
     def _supervisor_stop(self, obs: Obs) -> str:
         d = obs.decision
-        if self.progress.stage in ("checks", "experiments") and self._primed:
-            if d.mode in (Mode.SAFE_STOP, Mode.FAULT) and self._ready:
-                return f"supervisor {d.mode.value}: {', '.join(d.causes)}"
+        driving = self.progress.stage in ("checks", "experiments") and self._ready
+        if driving and d.mode in (Mode.SAFE_STOP, Mode.FAULT):
+            return f"supervisor {d.mode.value}: {', '.join(d.causes)}"
         return ""
-
-    _ready = False
 
     def _stop(self, obs: Obs, reason: str) -> None:
         self.result.code = EXIT_STOPPED
@@ -329,8 +329,8 @@ class Routine:
             obs = yield from self._experiment(exp, obs)
         self.result.code = EXIT_DONE
 
-    def _fail(self, name: str, detail: str) -> CheckFailed:
-        return CheckFailed(Check(name, False, detail))
+    def _fail(self, name: str, detail: str) -> CheckFailedError:
+        return CheckFailedError(Check(name, False, detail))
 
     def _pass(self, name: str, detail: str) -> None:
         self.result.checks.append(Check(name, True, detail))
@@ -345,7 +345,7 @@ class Routine:
         self._pass("link", f"link and sensors up after {obs.t - t0:.2f} s")
         return obs
 
-    def _not_ready(self, obs: Obs) -> CheckFailed:
+    def _not_ready(self, obs: Obs) -> CheckFailedError:
         causes = set(obs.decision.causes)
         waited = f"{self.cfg.ready_timeout_s:g} s"
         if causes & {"link_down", "link_stale"} or not causes:
@@ -471,8 +471,6 @@ class Routine:
         self._pass("free_space", f"{free:.2f} m to drive ahead")
         return obs
 
-    _range0: float | None = None
-
     def _free_ahead(self, obs: Obs) -> float:
         """Distance the truck may still drive forward (m): the track, and what the range
         sensor sees ahead less the margin (nothing seen: free up to its maximum)."""
@@ -484,7 +482,9 @@ class Routine:
     def _free_behind(self, obs: Obs) -> float:
         return self.cfg.track_length_m + obs.x
 
-    def _settled_range(self, obs: Obs, dwell: float) -> Generator[float, Obs, tuple[Obs, float | None]]:
+    def _settled_range(
+        self, obs: Obs, dwell: float
+    ) -> Generator[float, Obs, tuple[Obs, float | None]]:
         """At rest for ``dwell`` s: the median range reading (None: no target)."""
         t0, vals = obs.t, []
         last = obs.range_t

@@ -10,7 +10,6 @@ from dataclasses import dataclass
 
 from truckd.schema import spec
 
-
 CLOSED_LOOP_SCENARIOS = ("cruise", "follow", "lead-brake", "stop-and-go", "cut-in", "lead-lost")
 """The single-truck scenarios of ``truckd sim`` (truckd.sim.scenarios, which the car does not
 load)."""
@@ -79,24 +78,25 @@ class CharacterizeConfig:
         lo=0.0, hi=1.0, default=0.8,
     )  # fmt: skip
     quasistatic_ramp_v_per_s: float = spec(
-        "quasistatic ramp rate", unit="V/s", lo=0.01, hi=20.0, default=0.6
+        "quasistatic ramp rate (up, then down)", unit="V/s", lo=0.01, hi=20.0, default=1.0
     )
     quasistatic_duration_s: float = spec(
-        "quasistatic ramp length (each direction)", unit="s", lo=0.2, hi=60.0, default=4.0
-    )
+        "quasistatic ramp length, up and down (each direction)", unit="s", lo=0.2, hi=60.0,
+        default=5.0,
+    )  # fmt: skip
     step_voltages: tuple[float, ...] = spec(
         "dynamic step levels (each direction)", unit="V", lo=0.1, hi=100.0, default=(1.5, 3.0)
     )
-    step_duration_s: float = spec(
-        "dynamic step length", unit="s", lo=0.2, hi=60.0, default=1.5
-    )
+    step_duration_s: float = spec("dynamic step length", unit="s", lo=0.2, hi=60.0, default=1.5)
     validation_v: float = spec(
         "validation chirp amplitude", unit="V", lo=0.1, hi=100.0, default=2.5
     )
     validation_duration_s: float = spec(
         "validation chirp length", unit="s", lo=0.2, hi=60.0, default=4.0
     )
-    validation_f0_hz: float = spec("chirp start frequency", unit="Hz", lo=0.01, hi=20.0, default=0.4)
+    validation_f0_hz: float = spec(
+        "chirp start frequency", unit="Hz", lo=0.01, hi=20.0, default=0.4
+    )
     validation_f1_hz: float = spec("chirp end frequency", unit="Hz", lo=0.01, hi=20.0, default=2.0)
     rest_speed_m_s: float = spec(
         "at rest below this speed", unit="m/s", lo=0.001, hi=1.0, default=0.02
