@@ -223,7 +223,6 @@ class Routine:
         self._x_min = 0.0
         self._x_max = 0.0
         self._last_x: float | None = None
-        self._t = 0.0
         self._ready = False  # link and sensors came up (the supervisor left INIT)
         self._range0: float | None = None  # the range at rest before the polarity pulse
 
@@ -241,7 +240,6 @@ class Routine:
             range_t=sensors.t_range, encoder_msgs=len(sensors.encoders),
             decision=self.decision(),
         )  # fmt: skip
-        self._t = t
         if self._last_x is not None:
             self.result.distance_m += abs(obs.x - self._last_x)
         self._last_x = obs.x
@@ -601,7 +599,7 @@ class Routine:
             exp.skipped = f"{need:.2f} m free, {cfg.min_budget_m:g} m needed"
             return obs
         exp.t_start = obs.t
-        x0, last_x, dist = obs.x, obs.x, 0.0
+        last_x, dist = obs.x, 0.0
         while True:
             tau = obs.t - exp.t_start
             if tau >= exp.duration_s:
@@ -621,7 +619,6 @@ class Routine:
         obs = yield from self._rest(obs)
         exp.t_end = obs.t
         exp.distance_m = round(dist + abs(obs.x - last_x), 4)
-        del x0
         t_pause = obs.t
         while obs.t - t_pause < PAUSE_S:
             obs = yield 0.0
