@@ -176,3 +176,23 @@ def test_a_wall_within_the_track_shortens_the_experiments(tmp_path: Path) -> Non
     assert track.x_max < 1.6 - 0.3 + 0.02
     assert code in (0, 1)
     at_rest(track)
+
+
+def test_bad_input_is_one_line_and_nothing_moves(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from truckd.cli.main import main
+
+    busy = tmp_path / "busy"
+    busy.mkdir()
+    (busy / "log.csv").write_text("t,u,v\n")
+    cfg = write_config(tmp_path / "truck.yaml", {"runtime": {"backend": "sim"}})
+    assert main(["characterize", "--config", str(cfg), "--out", str(busy)]) == 2
+    err = capsys.readouterr().err
+    assert "is not an empty directory" in err and err.count("\n") == 1
+    assert sorted(p.name for p in busy.iterdir()) == ["log.csv"]
+    bad = write_config(tmp_path / "bad.yaml", {"characterize": {"speed_limit_m_s": -1.0}})
+    assert main(["characterize", "--config", str(bad), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "'characterize.speed_limit_m_s' = -1.0" in err and err.count("\n") == 1
+    assert not (tmp_path / "o").exists()

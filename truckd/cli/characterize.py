@@ -75,7 +75,10 @@ def run(args: argparse.Namespace) -> int:
 def out_dir(path: Path) -> Path:
     """Create DIR (an existing one must be empty: nothing of another run is mixed in)."""
     if path.exists() and (not path.is_dir() or any(path.iterdir())):
-        raise TruckdError(f"{path}: the output directory exists and is not empty; name a new one")
+        raise InputError(
+            f"{path}: --out exists and is not an empty directory; name a new one (nothing of "
+            "another run is mixed in)"
+        )
     try:
         path.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
