@@ -5,9 +5,9 @@ constant and mass drawn 2-5x off, one hidden effect drawn (characterize_support)
 Pass: exit 0; the hidden effect is named; kS, kV, kA and the effect's parameter within
 10 % of the plant's (an input delay may also hold the loop's own latency, at most one
 control period: the controller sees it too; kS within 50 % where the diagnosis itself
-reports it poorly determined, as behind a dead zone far above it, and only kS may be); `truckd sim --model DIR/model.yaml` on that
-plant keeps the gap better than the configured model; progress arrives over Zenoh on
-``truckd/<id>/characterize`` and ends at 100 %.
+reports it poorly determined, as behind a dead zone far above it, and only kS may be);
+`truckd sim --model DIR/model.yaml` on that plant keeps the gap better than the configured
+model; progress arrives over Zenoh on ``truckd/<id>/characterize`` and ends at 100 %.
 """
 
 from __future__ import annotations
