@@ -39,7 +39,8 @@ from truckd.runtime.characterize import (
 from truckd.runtime.daemon import Daemon
 
 LOG_COLUMNS = ("t", "u", "v", "vbat", "x", "range_raw")
-"""The daemon log's columns copied into DIR/log.csv (plus ``experiment``, its index)."""
+"""The daemon log's columns copied into DIR/log.csv (plus ``experiment``, its index, and
+``stopped``)."""
 
 SIM_WALL_BEYOND_M = 0.5
 """With ``--backend sim`` the simulated track ends at a wall this far beyond
@@ -177,9 +178,12 @@ def drive(
     return d.routine.result, d
 
 
-def experiment_log(files: list[Path], experiments: list[Experiment]) -> Log | None:
+def experiment_log(
+    files: list[Path], experiments: list[Experiment], stop_t: float = math.nan
+) -> Log | None:
     """The experiments' rows of the daemon's recording (one run each, the pauses between
-    them cut out), with their index in ``experiment``; None when nothing was driven."""
+    them cut out), with their index in ``experiment`` and ``stopped`` (1 from the stop at
+    ``stop_t`` on: the partial log marks itself); None when nothing was driven."""
     parts = [read_log(f) for f in files if f.exists()]
     parts = [p for p in parts if len(p) > 0]
     if not parts:
@@ -195,6 +199,7 @@ def experiment_log(files: list[Path], experiments: list[Experiment]) -> Log | No
         return None
     columns = {c: a[keep] for c, a in cols.items()}
     columns["experiment"] = index[keep]
+    columns["stopped"] = (t[keep] >= stop_t).astype(float)  # NaN stop_t: all 0
     return Log(columns, source="log.csv")
 
 
@@ -213,7 +218,7 @@ def characterize(
     out = out_dir(out)
     result, d = drive(cfg, backend, out, console, prepare)
     files = list(d.recorder.files) if d.recorder is not None else []
-    log = experiment_log(files, result.experiments)
+    log = experiment_log(files, result.experiments, result.stop_t)
     if log is not None:
         write_log(out / "log.csv", log.columns)
     summary: dict[str, Any] = {
