@@ -42,6 +42,9 @@ LOG_COLUMNS = ("t", "u", "v", "vbat", "x", "range_raw")
 """The daemon log's columns copied into DIR/log.csv (plus ``experiment``, its index, and
 ``stopped``)."""
 
+T_TOL = 1e-6
+"""s: times from the routine and from the recorded log agree to within this."""
+
 SIM_WALL_BEYOND_M = 0.5
 """With ``--backend sim`` the simulated track ends at a wall this far beyond
 ``characterize.track_length_m`` (the range sensor sees it, as on a real track)."""
@@ -193,13 +196,14 @@ def experiment_log(
     index = np.full(len(t), -1.0)
     for k, e in enumerate(experiments):
         if math.isfinite(e.t_start) and math.isfinite(e.t_end):
-            index[(t >= e.t_start) & (t <= e.t_end)] = k
+            # the recorder writes t with 10 significant digits: compare to within 1 us
+            index[(t >= e.t_start - T_TOL) & (t <= e.t_end + T_TOL)] = k
     keep = index >= 0
     if not keep.any():
         return None
     columns = {c: a[keep] for c, a in cols.items()}
     columns["experiment"] = index[keep]
-    columns["stopped"] = (t[keep] >= stop_t).astype(float)  # NaN stop_t: all 0
+    columns["stopped"] = (t[keep] >= stop_t - T_TOL).astype(float)  # NaN stop_t: all 0
     return Log(columns, source="log.csv")
 
 
