@@ -46,6 +46,19 @@ BAD = [
     ("plant.effects.winding_time_constant", 0.0, "'plant.effects.winding_time_constant'"),
     ("plant.encoder_ticks_per_rev", 12.5, "'plant.encoder_ticks_per_rev'"),
     ("vehicle_id", 7, "'vehicle_id'"),
+    ("plant.vehicle", {"m": -1.0}, "'plant.vehicle.m' = -1.0"),
+    ("plant.vehicle", {"K_v": 0.0}, "'plant.vehicle.K_v' = 0.0"),
+    ("plant.vehicle", {"mass": 7.0}, "unknown key 'plant.vehicle.mass'"),
+    ("plant.vehicle", {"K_stiction": 0.001}, "plant.vehicle: the simulated truck is not physical"),
+    ("plant.wiring.motor_sign", 0, "motor_sign must be 1 or -1"),
+    ("plant.wiring.encoder_sign", 2, "'plant.wiring.encoder_sign' = 2"),
+    ("plant.wiring.counts_scale", 0.0, "'plant.wiring.counts_scale' = 0.0"),
+    ("characterize.battery_min_v", 10.0, "battery_max_v (9.0) must be above battery_min_v"),
+    ("characterize.step_voltages", [], "step_voltages must list at least one"),
+    ("characterize.step_voltages", [1.0, -2.0], "'characterize.step_voltages[1]' = -2.0"),
+    ("characterize.closed_loop_scenarios", ["platoon-brake"], "closed_loop_scenarios[0]'"),
+    ("characterize.min_budget_m", 5.0, "min_budget_m (5.0) must not exceed track_length_m"),
+    ("characterize.ramp", 1.0, "unknown key 'characterize.ramp'"),
     ("extra_section", {}, "unknown key 'extra_section'"),
 ]
 
@@ -87,3 +100,15 @@ def test_unreadable_and_malformed_files(tmp_path: Path) -> None:
 def test_optional_sections_take_their_defaults() -> None:
     cfg = parse_config(yaml.safe_dump({"vehicle": GOOD["vehicle"]}), "minimal.yaml")
     assert cfg.plant.effects.active() == ()
+
+
+def test_plant_vehicle_takes_any_subset_of_the_vehicle_keys() -> None:
+    data = yaml.safe_load(default_config_path().read_text())
+    data["plant"]["vehicle"] = {"m": 10.5, "K_v": 0.009}
+    cfg = parse_config(yaml.safe_dump(data), "t.yaml")
+    p = cfg.plant_vehicle
+    assert (p.m, p.K_v) == (10.5, 0.009)
+    assert cfg.vehicle.m == GOOD["vehicle"]["m"]  # the controller's truck is unchanged
+    others = [k for k in GOOD["vehicle"] if k not in ("m", "K_v")]
+    assert all(getattr(p, k) == getattr(cfg.vehicle, k) for k in others)
+    assert load_config().plant_vehicle == load_config().vehicle  # none given: the same truck

@@ -181,3 +181,17 @@ def test_platoon_lines_from_the_network_are_escaped() -> None:
     assert platoon, text  # the chain is listed
     bad = [ch for ch in text if ch != "\n" and (ord(ch) < 0x20 or 0x7F <= ord(ch) <= 0x9F)]
     assert bad == [] and "\\x1b]0;pwned" in platoon[0]
+
+
+def test_characterize_progress_is_a_line_under_the_table() -> None:
+    v = FleetView()
+    v.on_alive("truckd/a/alive", True)
+    v.on_sample("truckd/a/state", b'{"mode": "DEGRADED", "v": 0.4}', 1.0)
+    assert "characterize" not in v.render(1.0)
+    msg = {"t": 3.0, "stage": "experiments", "experiment": "dynamic-forward-3V", "percent": 41.6}
+    v.on_sample("truckd/a/characterize", json.dumps(msg).encode(), 1.0)
+    lines = v.render(1.0).splitlines()
+    assert lines[-1] == "a characterize: experiments dynamic-forward-3V 42 %"
+    evil = {"stage": "\x1b[2Jdone", "experiment": "", "percent": 100}
+    v.on_sample("truckd/a/characterize", json.dumps(evil).encode(), 1.0)
+    assert "\x1b" not in v.render(1.0)

@@ -33,6 +33,7 @@ SUBCOMMANDS: dict[str, str] = {
     "identify": "truckd.cli.identify",
     "diagnose": "truckd.cli.diagnose",
     "recover": "truckd.cli.recover",
+    "characterize": "truckd.cli.characterize",
 }
 
 
@@ -60,7 +61,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
 DEBUG_ENV = "TRUCKD_DEBUG"
 """Set (to anything) to let an unexpected exception's traceback through."""
 
-_OWN_SIGNALS = ("run", "monitor")
+_OWN_SIGNALS = ("run", "monitor", "characterize")
 """Commands that handle SIGTERM themselves (the daemon stops its loop and the motor)."""
 
 

@@ -80,7 +80,7 @@ def _run(args: argparse.Namespace) -> int:
         print(f"truckd sim: {note}", file=sys.stderr)
     trace_dir = ensure_dir(args.trace, "trace directory") if args.trace else None
     setup = SimSetup(
-        cfg.vehicle,
+        cfg.plant_vehicle,
         cfg.plant,
         cfg.control,
         model,

@@ -17,6 +17,7 @@ from truckd.inputs import read_text
 from truckd.io.config import LinkConfig
 from truckd.model.params import VehicleParams
 from truckd.model.plant_config import PlantConfig, encoder_ticks_per_rev
+from truckd.runtime.characterize_config import CharacterizeConfig
 from truckd.runtime.config import RuntimeConfig
 from truckd.schema import load_dataclass, spec
 from truckd.yamlsafe import MAX_BYTES, load_yaml
@@ -45,6 +46,11 @@ class TruckConfig:
         "the daemon: loop, backend, supervisor, telemetry, recorder", default_factory=RuntimeConfig
     )
 
+    characterize: CharacterizeConfig = spec(
+        "truckd characterize: bring-up limits, experiments, distance budget",
+        default_factory=CharacterizeConfig,
+    )
+
     def validate(self) -> str | None:
         """Cross-field checks after loading (None when fine)."""
         stall, period = self.runtime.stall_limit_s, 1.0 / self.control.rate_hz
@@ -53,7 +59,17 @@ class TruckConfig:
                 f"key 'runtime.stall_limit_s' = {stall:g}: expected at least two control "
                 f"periods ({2.0 * period:g} s at control.rate_hz {self.control.rate_hz:g})"
             )
-        return vehicle_id_problem(self.vehicle_id)
+        problem = vehicle_id_problem(self.vehicle_id)
+        if problem is None and self.plant.vehicle.given():
+            why = self.plant_vehicle.validate()
+            if why is not None:
+                problem = f"plant.vehicle: the simulated truck is not physical: {why}"
+        return problem
+
+    @property
+    def plant_vehicle(self) -> VehicleParams:
+        """The simulated truck's parameters: ``vehicle`` with ``plant.vehicle`` over it."""
+        return self.plant.vehicle.over(self.vehicle)
 
     @property
     def ticks_per_rev(self) -> int:

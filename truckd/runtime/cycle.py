@@ -11,6 +11,12 @@ Extension points (platooning adds the predecessor's plan in and the own plan out
 from the truck ahead's plan) and :meth:`CompanionCycle.plan` gives the controller's
 predicted trajectory of this cycle.
 
+Another command source (``truckd characterize``): :attr:`CompanionCycle.command_source`,
+when set, is asked for the voltage instead of the controller (whose estimator still runs):
+the supervisor, the SAFE_STOP ramp, the limits and the heartbeat stay as they are, so a
+routine that drives the truck is one more source of commands for the one cycle, not a
+second loop.  Its output's ``mode`` is ``external`` (no MPC solved).
+
 Time budget: on the car (``time_budget=True``) a solve slower than
 ``control.time_budget_s`` is a failure (the controller falls back); in simulated time
 (``time_budget=False``) the solver is judged only by what it did (status, iterations,
@@ -24,12 +30,12 @@ import itertools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol
 
 from firmware_protocol.messages import CompanionHeartbeat, CompanionState, MotorCommand
 from truckd.control.config import ControlConfig
 from truckd.control.controller import Controller, ControlOutput
-from truckd.control.estimator import EncoderSample, RangeSample
+from truckd.control.estimator import EncoderSample, Estimate, RangeSample
 from truckd.control.qp import ControlModel
 from truckd.control.supervisor import (
     Decision,
@@ -56,6 +62,15 @@ OSQP's own run time of this cycle's solve (NaN when the controller raised)."""
 
 HEARTBEAT_PERIOD_S = 0.1
 """The companion heartbeat's period (firmware protocol: 100 ms)."""
+
+
+class CommandSource(Protocol):
+    """Another source of the motor voltage (see the module docstring)."""
+
+    def __call__(self, t: float, est: Estimate, sensors: SensorState) -> float:
+        """The voltage (V) this cycle at time ``t`` (s since the start), given the
+        estimate and the sensor state of this cycle; a non-finite one is sent as 0 V."""
+        ...
 
 
 @dataclass(frozen=True, slots=True)
@@ -189,6 +204,8 @@ class CompanionCycle:
         self.stalls = 0
         """Loop stalls detected (a cycle later than ``stall_limit_s`` after the previous)."""
         self.last_stall_s = 0.0
+        self.command_source: CommandSource | None = None
+        """When set, the voltage comes from here instead of the controller."""
 
     def step(self, inp: CycleInputs) -> CycleOutputs:
         """One cycle: sensors -> controller -> supervisor -> motor command."""
@@ -213,17 +230,21 @@ class CompanionCycle:
         error = None
         out: ControlOutput | None
         try:
-            # The driver's feedback (current, battery) once one has arrived (vbat > 0).
-            fed = s.vbat > 0.0
-            out = self.controller.step(
-                t,
-                encoders,
-                ranges,
-                inp.lead_forecast,
-                inp.headway,
-                s.current if fed else math.nan,
-                s.vbat if fed else math.nan,
-            )
+            src = self.command_source
+            if src is None:
+                # The driver's feedback (current, battery) once one has arrived (vbat > 0).
+                fed = s.vbat > 0.0
+                out = self.controller.step(
+                    t,
+                    encoders,
+                    ranges,
+                    inp.lead_forecast,
+                    inp.headway,
+                    s.current if fed else math.nan,
+                    s.vbat if fed else math.nan,
+                )
+            else:
+                out = self._external(t, src, encoders, ranges)
         except Exception as exc:  # counted as a solver failure by the supervisor
             self.controller_errors += 1
             out, error = None, f"{type(exc).__name__}: {exc}"
@@ -260,6 +281,33 @@ class CompanionCycle:
         )
         self.seq += 1
         return res
+
+    def _external(
+        self,
+        t: float,
+        src: CommandSource,
+        encoders: Sequence[EncoderSample],
+        ranges: Sequence[RangeSample],
+    ) -> ControlOutput:
+        """The estimator as in :meth:`Controller.step` on this cycle's samples, the voltage
+        from ``src`` (finite, within the controller's voltage limit), no MPC solve."""
+        ctrl, s = self.controller, self.sensors
+        estimator = ctrl.estimator
+        for e in encoders:
+            estimator.update_encoders(t, e)
+        for r in ranges:
+            v_now, _ = estimator.speed(t)
+            estimator.update_range(t, r, v_now)
+        est = estimator.estimate(t)
+        u = src(t, est, s)
+        u = min(max(u, -self.u_max), self.u_max) if math.isfinite(u) else 0.0
+        return ControlOutput(
+            u=u, u_ff=0.0, u_mpc=u, mode="external", fallback_reason=None,
+            solver_status="not-run", solve_iterations=0, solve_time_s=0.0, gap_ref=math.nan,
+            estimate=est, solver_failures=ctrl.solver_failures,
+            fallback_cycles=ctrl.fallback_cycles, overruns=ctrl.overruns,
+            braking_cycles=ctrl.braking_cycles,
+        )  # fmt: skip
 
     def plan_speeds(self, out: CycleOutputs) -> list[float] | None:
         """The predicted speeds (m/s, one per period from now) of the cycle ``out`` (call

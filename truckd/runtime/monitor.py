@@ -1,10 +1,12 @@
 r"""``truckd monitor``: a live table of every vehicle reachable over Zenoh.
 
 :class:`FleetView` is pure (samples in, table out); :func:`run_monitor` wires it to a Zenoh
-session: subscribers on ``truckd/*/state`` and ``truckd/*/health`` and a liveliness
-subscriber (with history) on ``truckd/*/alive``.  A vehicle whose token goes is shown
-``offline`` with its mode ``unknown`` (and no live values) until it comes back; one whose
-token stays but whose state stops for :data:`STALE_S` is shown ``stale`` the same way.
+session: subscribers on ``truckd/*/state``, ``truckd/*/health`` and
+``truckd/*/characterize`` (the progress of ``truckd characterize``: a line under the
+table) and a liveliness subscriber (with history) on ``truckd/*/alive``.  A vehicle
+whose token goes is shown ``offline`` with its mode ``unknown`` (and no live values) until
+it comes back; one whose token stays but whose state stops for :data:`STALE_S` is shown
+``stale`` the same way.
 
 Everything shown comes from the network and is untrusted: :func:`safe_text` escapes
 control and formatting characters (C0, DEL, C1, bidi overrides, zero-width: ``\x1b``
@@ -40,6 +42,8 @@ class VehicleView:
     health: dict[str, Any] = field(default_factory=dict)
     state_count: int = 0
     last_state_t: float = -math.inf  # local monotonic time of the last state sample
+    characterize: dict[str, Any] = field(default_factory=dict)
+    """The last ``truckd characterize`` progress (stage, experiment, percent), if any."""
 
 
 MAX_VEHICLES = 256
@@ -128,6 +132,8 @@ class FleetView:
                 v.state_count += 1
             elif key.endswith("/health"):
                 v.health = msg
+            elif key.endswith("/characterize"):
+                v.characterize = msg
 
     def on_alive(self, key: str, alive: bool) -> None:
         """The vehicle's liveliness token appeared (True) or went (False)."""
@@ -184,6 +190,21 @@ class FleetView:
                 )
         return out
 
+    def characterize_lines(self) -> list[str]:
+        """One line per vehicle running ``truckd characterize``: stage, experiment, percent."""
+        out = []
+        with self._lock:
+            for vid in sorted(self.vehicles):
+                c = self.vehicles[vid].characterize
+                if c:
+                    exp = c.get("experiment")
+                    what = f" {safe_text(exp)}" if exp else ""
+                    out.append(
+                        f"{safe_text(vid)} characterize: {safe_text(c.get('stage', '-'))}{what} "
+                        f"{_num(c.get('percent'), '.0f')} %"
+                    )
+        return out
+
     def render(self, now: float | None = None) -> str:
         """The table as text (``now``: local monotonic time, s, to judge staleness)."""
         rows = [self.COLUMNS, *self.rows(now)]
@@ -194,6 +215,7 @@ class FleetView:
         with self._lock:
             chains = platoon_lines({k: (v.state, v.health) for k, v in self.vehicles.items()})
         lines += [safe_text(c, 400) for c in chains]  # ids and modes come from the network
+        lines += self.characterize_lines()
         if self.ignored:
             lines.append(f"({self.ignored} samples of more than {MAX_VEHICLES} vehicles ignored)")
         if self.connected is False:
@@ -226,6 +248,7 @@ def run_monitor(
     subs = [
         session.declare_subscriber("truckd/*/state", on_data),
         session.declare_subscriber("truckd/*/health", on_data),
+        session.declare_subscriber("truckd/*/characterize", on_data),
         session.liveliness().declare_subscriber("truckd/*/alive", on_alive, history=True),
     ]
     view.endpoints = tuple(connect)

@@ -213,6 +213,23 @@ class Telemetry:
 
         self._subs.append(self._session.declare_subscriber(key, on_sample))
 
+    def declare(self, suffix: str) -> None:
+        """One more publisher, on ``truckd/<vehicle_id>/<suffix>`` (JSON; e.g.
+        ``characterize``): after :meth:`start`, before the loop (declaring blocks)."""
+        if self._session is None:
+            raise RuntimeError("Telemetry.declare before start")
+        key = self.keys["state"].rsplit("/", 1)[0] + "/" + suffix
+        self.keys[suffix] = key
+        self._pubs[suffix] = self._session.declare_publisher(
+            key,
+            encoding=zenoh.Encoding.APPLICATION_JSON,
+            congestion_control=zenoh.CongestionControl.DROP,
+        )
+
+    def publish(self, suffix: str, msg: dict[str, Any]) -> None:
+        """Queue one message on a key :meth:`declare` declared (never blocks)."""
+        self._enqueue(suffix, msg)
+
     def _on_query(self, query: zenoh.Query) -> None:
         self.queries += 1
         try:

@@ -16,7 +16,7 @@ def open_sim(
     cfg: TruckConfig, control: ControlConfig, ticks_per_rev: int
 ) -> tuple[Link, SimulatedFirmware]:
     """(companion link, firmware to advance after each command)."""
-    plant = Plant(cfg.vehicle, cfg.plant)
+    plant = Plant(cfg.plant_vehicle, cfg.plant)
     world = World(make_scenario("follow", cfg.vehicle, control))
     link, fw, _wire = simulated_truck(
         plant, world.range_fn, "frames", FirmwareSimConfig(ticks_per_rev=ticks_per_rev)

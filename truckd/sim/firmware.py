@@ -181,14 +181,19 @@ class SimulatedFirmware:
 
     # -- the HAL (called back from C) ----------------------------------------------------
     def read_encoders(self) -> tuple[int, int, int]:
-        """Both wheels from the plant position (the plant has one wheel speed)."""
-        ticks = math.floor(self.plant.x * self._ticks_per_m) & 0xFFFF
+        """Both wheels from the plant position (the plant has one wheel speed), through
+        the plant's wiring (``plant.wiring``: encoder sign and counts scale)."""
+        w = self.plant.cfg.wiring
+        counts = w.encoder_sign * w.counts_scale * self.plant.x * self._ticks_per_m
+        ticks = math.floor(counts) & 0xFFFF
         return ticks, ticks, 0
 
     def read_power(self) -> tuple[int, int, int]:
-        """Plant current, battery and applied voltage, in mA and mV."""
+        """Plant current, battery and applied voltage, in mA and mV, as the driver sees
+        them (its current sense and output are on the bridge's side of swapped leads)."""
         m = self.plant.measure()
-        return _mv(m.i), _mv(m.vbat), _mv(m.u_applied)
+        sign = self.plant.cfg.wiring.motor_sign
+        return _mv(sign * m.i), _mv(m.vbat), _mv(sign * m.u_applied)
 
     def read_range(self) -> tuple[int, int]:
         """``range_fn`` at the plant's time and position (+ noise), in mm."""
@@ -203,7 +208,7 @@ class SimulatedFirmware:
         """The driver: the plant gets the voltage (0 V when disabled: braking)."""
         self.voltage = voltage_mv / 1000.0 if enable else 0.0
         self.enabled = enable
-        self.plant.command(self.voltage)
+        self.plant.command(self.plant.cfg.wiring.motor_sign * self.voltage)  # leads swapped: -1
 
     def send_bytes(self, data: bytes) -> bool:
         """Serial wire bytes from the core."""

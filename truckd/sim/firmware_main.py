@@ -184,7 +184,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not 1e-4 <= args.tick <= 0.05:
         print("firmware_main: --tick must be in [0.0001, 0.05] s", file=sys.stderr)
         return 2
-    plant = Plant(cfg.vehicle, cfg.plant)
+    plant = Plant(cfg.plant_vehicle, cfg.plant)
     plant.reset(v=v0)
     fw_cfg = FirmwareSimConfig(ticks_per_rev=cfg.ticks_per_rev)
     dev: PtyDevice | SlcanDevice

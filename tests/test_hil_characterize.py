@@ -1,0 +1,143 @@
+"""HIL: `truckd characterize` on the serial backend against the simulated firmware on a pty
+(separate processes, real time), the simulated truck NOT the configured one: motor
+constant and mass drawn 2-5x off, one hidden effect drawn (characterize_support).
+
+Pass: exit 0; the hidden effect is named; kS, kV, kA and the effect's parameter within
+10 % of the plant's (an input delay may also hold the loop's own latency, at most one
+control period: the controller sees it too; kS within 50 % where the diagnosis itself
+reports it poorly determined, as behind a dead zone far above it, and only kS may be);
+`truckd sim --model DIR/model.yaml` on that plant keeps the gap better than the configured
+model; progress arrives over Zenoh on ``truckd/<id>/characterize`` and ends at 100 %.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import subprocess
+import threading
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+import zenoh
+from characterize_support import CHARACTERIZE_FOR_DRAWN, draw_truck, feedforward
+from hil_support import PY, ROOT, Firmware, end_process, hil_config, new_port
+from runtime_support import endpoint, write_config
+
+from truckd.config.truck import load_config
+from truckd.runtime.telemetry import zenoh_config
+
+pytestmark = [pytest.mark.hil, pytest.mark.slow]
+
+WALL_M = 3.6
+"""The simulated firmware's target ahead: a wall (a lead at 0 m/s) this far from the start."""
+
+TOLERANT_S = 1.0
+"""Supervisor timeouts of the test (s): see below."""
+
+SHORTER = {"quasistatic_duration_s": 4.0, "step_duration_s": 1.5, "validation_duration_s": 3.0}
+"""Experiment lengths of the test (two trucks in about 90 s)."""
+
+
+class Progress:
+    """A Zenoh subscriber on the routine's progress."""
+
+    def __init__(self, port: int) -> None:
+        self.msgs: list[dict[str, Any]] = []
+        self._lock = threading.Lock()
+        self.session = zenoh.open(zenoh_config(listen=[], connect=[endpoint(port)]))
+        self.session.declare_subscriber("truckd/truck1/characterize", self._on)
+
+    def _on(self, s: zenoh.Sample) -> None:
+        with self._lock:
+            self.msgs.append(json.loads(s.payload.to_bytes()))
+
+    def close(self) -> None:
+        self.session.close()  # type: ignore[no-untyped-call]
+
+
+def sim_gap_rms(config: Path, tmp: Path, model: Path | None) -> float:
+    out = tmp / ("sim-model.json" if model else "sim-config.json")
+    cmd = [PY, "-m", "truckd.cli.main", "sim", "--config", str(config), "--scenario", "follow",
+           "--duration", "20", "--json", str(out)]  # fmt: skip
+    if model is not None:
+        cmd += ["--model", str(model)]
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=120, cwd=ROOT)
+    assert r.returncode == 0, r.stderr
+    return float(json.loads(out.read_text())["gap_error_rms_m"])
+
+
+@pytest.mark.parametrize(("seed", "effect"), [(11, "load_force"), (23, "input_delay")])
+def test_characterize_finds_the_truck_it_was_not_told_about(
+    tmp_path: Path, seed: int, effect: str
+) -> None:
+    configured = load_config().vehicle
+    truck = draw_truck(seed, configured, effect)
+    plant_cfg = write_config(tmp_path / "plant.yaml", {"plant": truck.plant_section()})
+    pty = str(tmp_path / "ttyTRUCK")
+    port = new_port()
+    daemon_cfg = hil_config(tmp_path, pty, port)
+    doc = yaml.safe_load(daemon_cfg.read_text())
+    doc["characterize"] = {**CHARACTERIZE_FOR_DRAWN, **SHORTER}
+    # The test machine's two shared cores hold a process up for 50-200 ms at times: a
+    # supervisor with its default 50 ms timeouts rightly stops the routine then (exit 4,
+    # tested in test_characterize_stop).  This test is about what the routine finds.
+    doc["runtime"]["supervisor"] = {
+        "link_timeout_s": TOLERANT_S, "encoder_timeout_s": TOLERANT_S,
+        "range_timeout_s": TOLERANT_S, "overrun_limit": 100, "overrun_degrade_after": 100,
+    }  # fmt: skip
+    daemon_cfg.write_text(yaml.safe_dump(doc))
+    out = tmp_path / "out"
+    fw = Firmware(pty, plant_cfg, "--lead-gap", str(WALL_M), "--lead-speed", "0")
+    progress = Progress(port)
+    proc: subprocess.Popen[str] | None = None
+    try:
+        proc = subprocess.Popen(
+            [PY, "-m", "truckd.cli.main", "characterize", "--config", str(daemon_cfg),
+             "--backend", "serial", "--out", str(out)],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT,
+        )  # fmt: skip
+        _stdout, stderr = proc.communicate(timeout=240)
+        assert proc.returncode == 0, stderr[-3000:]
+        status = fw.status()
+    finally:
+        if proc is not None:
+            end_process(proc)
+        progress.close()
+        fw.stop()
+    assert abs(status["v"]) < 1e-3  # the truck ends at rest
+    summary = json.loads((out / "summary.json").read_text())
+    for name in ("log.csv", "model.yaml", "diagnosis.json", "report.html"):
+        assert (out / name).stat().st_size > 0
+    assert all(c["ok"] for c in summary["checks"])
+    named = {e["name"]: e["params"] for e in summary["effects"]}
+    assert effect in named, (truck, summary["effects"])
+    true_ff = feedforward(truck.params(configured))
+    notes = json.loads((out / "diagnosis.json").read_text()).get("notes", [])
+    poor = {  # "poorly determined by these runs (...): kS (K_coulomb), kA (J_S) (...)"
+        k
+        for n in notes
+        if n.startswith("poorly determined")
+        for k in re.findall(r"\b(kS|kV|kA) \([KJ]_", n)
+    }
+    for k, want in true_ff.items():
+        got = summary["feedforward"][k]
+        # What the diagnosis reports as poorly determined by these runs (kS behind a dead
+        # zone far above it: no data near zero speed) only has to be near.
+        tol = 0.5 if k in poor else 0.1
+        assert abs(got - want) <= tol * want, (k, got, want, truck, notes)
+    assert poor <= {"kS"}, notes
+    got_value = named[effect][effect]
+    slack = 1.0 / load_config(daemon_cfg).control.rate_hz if effect == "input_delay" else 0.0
+    assert abs(got_value - truck.value) <= 0.1 * truck.value + slack, (got_value, truck)
+    # the diagnosed model drives this plant better than the configured one
+    sim_cfg = plant_cfg
+    assert sim_gap_rms(sim_cfg, tmp_path, out / "model.yaml") < sim_gap_rms(sim_cfg, tmp_path, None)
+    # progress over Zenoh
+    stages = [m["stage"] for m in progress.msgs]
+    assert "checks" in stages and "experiments" in stages
+    assert progress.msgs[-1]["stage"] == "done" and progress.msgs[-1]["percent"] == 100
+    pct = [m["percent"] for m in progress.msgs]
+    assert pct == sorted(pct)
