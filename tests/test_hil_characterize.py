@@ -42,12 +42,13 @@ SHORTER = {"quasistatic_duration_s": 4.0, "step_duration_s": 1.5, "validation_du
 
 
 class Progress:
-    """A Zenoh subscriber on the routine's progress."""
+    """A Zenoh subscriber on the routine's progress, listening on ``port`` (the daemon
+    connects to it as it starts, so nothing it publishes is missed)."""
 
     def __init__(self, port: int) -> None:
         self.msgs: list[dict[str, Any]] = []
         self._lock = threading.Lock()
-        self.session = zenoh.open(zenoh_config(listen=[], connect=[endpoint(port)]))
+        self.session = zenoh.open(zenoh_config(listen=[endpoint(port)], connect=[]))
         self.session.declare_subscriber("truckd/truck1/characterize", self._on)
 
     def _on(self, s: zenoh.Sample) -> None:
@@ -81,6 +82,8 @@ def test_characterize_finds_the_truck_it_was_not_told_about(
     daemon_cfg = hil_config(tmp_path, pty, port)
     doc = yaml.safe_load(daemon_cfg.read_text())
     doc["characterize"] = {**CHARACTERIZE_FOR_DRAWN, **SHORTER}
+    watch_port = new_port()
+    doc["runtime"]["telemetry"]["connect"] = [endpoint(watch_port)]
     # The test machine's two shared cores hold a process up for 50-200 ms at times: a
     # supervisor with its default 50 ms timeouts rightly stops the routine then (exit 4,
     # tested in test_characterize_stop).  This test is about what the routine finds.
@@ -91,7 +94,7 @@ def test_characterize_finds_the_truck_it_was_not_told_about(
     daemon_cfg.write_text(yaml.safe_dump(doc))
     out = tmp_path / "out"
     fw = Firmware(pty, plant_cfg, "--lead-gap", str(WALL_M), "--lead-speed", "0")
-    progress = Progress(port)
+    progress = Progress(watch_port)
     proc: subprocess.Popen[str] | None = None
     try:
         proc = subprocess.Popen(
