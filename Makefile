@@ -33,8 +33,10 @@ lint: setup-dev
 
 # Installs nothing outside .venv: a test whose tool is missing (arm-none-eabi-gcc,
 # systemd-analyze) is skipped with the reason in the summary; .ci/run installs them.
+# The tests with real-time processes (marker hil) run alone, the others on both cores.
 test: lint firmware
-	$(BIN)/pytest -q
+	$(BIN)/pytest -q -m 'not hil' -n 2 --dist loadfile
+	$(BIN)/pytest -q -m hil
 
 bench: setup-dev
 	$(BIN)/python benchmarks/run_all.py

@@ -11,10 +11,12 @@ import numpy as np
 import pytest
 
 from truckd.cli.main import main
+from truckd.config.truck import load_config
 from truckd.logfile import read_log, write_log
+from truckd.model.effects import Effects
 from truckd.model.motor import steady_speed
 from truckd.model.params import VehicleParams
-from truckd.modelfile import ModelFile, write_model
+from truckd.modelfile import ModelFile, read_model, write_model
 
 CONTRACT_KEYS = {
     "R_m",
@@ -103,3 +105,14 @@ def test_bad_usage_exits_2(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["simulate"]) == 2  # usage error: a return code, one line
     assert len(capsys.readouterr().err.splitlines()) == 1
     assert main(["params", "--config", "/nonexistent/truck.yaml"]) == 2
+
+
+def test_a_model_with_numpy_values_is_written_and_reads_back(tmp_path: Path) -> None:
+    """Fitted values arrive as numpy scalars; the model file holds them as plain numbers."""
+    p = load_config().vehicle
+    fitted = p.replace(J_S=np.float64(p.J_S * 2.0))
+    eff = Effects(load_force=np.float64(-0.22), input_delay=np.float64(0.03))
+    write_model(tmp_path / "m.yaml", ModelFile(vehicle=fitted, effects=eff))
+    back = read_model(tmp_path / "m.yaml")
+    assert back.vehicle.J_S == float(fitted.J_S)
+    assert back.effects.load_force == -0.22 and back.effects.input_delay == 0.03

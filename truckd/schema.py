@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import math
+import numbers
 import types
 import typing
 from collections.abc import Mapping
@@ -175,4 +176,10 @@ def to_plain(obj: Any) -> Any:
         return {f.name: to_plain(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
     if isinstance(obj, tuple | list):
         return [to_plain(v) for v in obj]
+    if isinstance(obj, bool) or type(obj) in (int, float):
+        return obj
+    if isinstance(obj, numbers.Integral):
+        return int(obj)  # a numpy integer: YAML's safe dumper knows only Python's
+    if isinstance(obj, numbers.Real):
+        return float(obj)  # a numpy float (fitted values; np.float64 is a float subclass)
     return obj
