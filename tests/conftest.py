@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import os
+from collections.abc import Iterator
+
 import pytest
 
 from truckd.config.truck import load_config
@@ -14,3 +17,15 @@ pytest_plugins = ["tool_markers"]  # the needs_tool marker (tests/tool_markers.p
 def params() -> VehicleParams:
     """The default truck's parameters (config/truck.yaml)."""
     return load_config().vehicle
+
+
+@pytest.fixture(autouse=True)
+def _scheduling_left_as_found() -> Iterator[None]:
+    """A test that runs a daemon in this process with real-time scheduling on leaves the
+    test process (and every process it starts later) on SCHED_FIFO: that test fails."""
+    before = os.sched_getscheduler(0)
+    yield
+    assert os.sched_getscheduler(0) == before, (
+        "the test left this process on real-time scheduling: run the daemon with "
+        "runtime.realtime: false in-process"
+    )

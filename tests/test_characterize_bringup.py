@@ -56,7 +56,8 @@ def run(
             {
                 "plant": plant or {},
                 "characterize": characterize or {},
-                "runtime": {"backend": "sim", "telemetry": {"enabled": False}},
+                # in this process: no SCHED_FIFO for pytest (every later test would inherit it)
+                "runtime": {"backend": "sim", "realtime": False, "telemetry": {"enabled": False}},
             },
         )
     )
