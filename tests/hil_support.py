@@ -3,6 +3,7 @@ serial backend, and a Zenoh watcher.  Every process started here is ended by its
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -163,3 +164,20 @@ def end_process(p: subprocess.Popen[str]) -> None:
 
 def new_port() -> int:
     return free_port()
+
+
+def start_follow_rig(
+    stack: contextlib.ExitStack, tmp: Path, pty: str, cfg_path: Path, port: int
+) -> tuple[Firmware, Daemon, Watch, StallProbe]:
+    """The simulated firmware (no lead yet), the daemon, a state watcher and a stall probe,
+    each ended by ``stack`` even when a later step fails (a leaked Zenoh session keeps
+    pytest from exiting)."""
+    fw = Firmware(pty, cfg_path, "--no-lead")
+    stack.callback(fw.stop)
+    daemon = Daemon(cfg_path, tmp / "daemon.log")
+    stack.callback(daemon.stop)
+    watch = Watch(port)
+    stack.callback(watch.close)
+    probe = StallProbe()
+    stack.callback(probe.stop)
+    return fw, daemon, watch, probe

@@ -33,13 +33,12 @@ import pytest
 from hil_support import (
     PY,
     ROOT,
-    Daemon,
-    Firmware,
     StallProbe,
     Watch,
     end_process,
     hil_config,
     new_port,
+    start_follow_rig,
 )
 from runtime_support import endpoint
 from stall_probe import daemon_stalls, excused
@@ -99,17 +98,8 @@ def test_follow_15s_rate_safety_and_steady_state(tmp_path: Path) -> None:
     cfg_path = hil_config(tmp_path, pty, port)
     cfg = load_config(cfg_path)
     rate = cfg.control.rate_hz
-    # each process/session is ended even when a later step fails (a leaked Zenoh session
-    # keeps pytest from exiting)
     with contextlib.ExitStack() as stack:
-        fw = Firmware(pty, cfg_path, "--no-lead")
-        stack.callback(fw.stop)
-        daemon = Daemon(cfg_path, tmp_path / "daemon.log")
-        stack.callback(daemon.stop)
-        watch = Watch(port)
-        stack.callback(watch.close)
-        probe = StallProbe()
-        stack.callback(probe.stop)
+        fw, daemon, watch, probe = start_follow_rig(stack, tmp_path, pty, cfg_path, port)
         # no lead yet: the daemon is up and holds the truck (lead lost -> stop)
         first = watch.wait_state(lambda m: m["mode"] in ("SAFE_STOP", "ACTIVE"), 60.0)
         assert first is not None, daemon.stderr()

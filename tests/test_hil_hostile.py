@@ -26,7 +26,17 @@ from typing import Any
 
 import pytest
 import yaml
-from hil_support import PY, ROOT, Daemon, Firmware, StallProbe, Watch, end_process, hil_config
+from hil_support import (
+    PY,
+    ROOT,
+    Daemon,
+    Firmware,
+    StallProbe,
+    Watch,
+    end_process,
+    hil_config,
+    start_follow_rig,
+)
 from hil_support import new_port as new_port
 from runtime_support import endpoint
 from stall_probe import excused
@@ -105,14 +115,7 @@ def rig(tmp_path: Path) -> Iterator[Rig]:
     cfg_path.write_text(yaml.safe_dump(doc))
     cfg = load_config(cfg_path)
     with contextlib.ExitStack() as stack:
-        fw = Firmware(pty, cfg_path, "--no-lead")
-        stack.callback(fw.stop)
-        daemon = Daemon(cfg_path, tmp_path / "daemon.log")
-        stack.callback(daemon.stop)
-        watch = Watch(port)
-        stack.callback(watch.close)
-        probe = StallProbe()
-        stack.callback(probe.stop)
+        fw, daemon, watch, probe = start_follow_rig(stack, tmp_path, pty, cfg_path, port)
         assert watch.wait_state(lambda m: True, 60.0) is not None, daemon.stderr()
         yield Rig(fw, daemon, watch, probe, cfg, port)
 
