@@ -15,11 +15,13 @@ import random
 import time
 from collections.abc import Callable
 
+import lab_path  # noqa: F401 - tests/ on sys.path, for labkit
+from labkit.fuzz import fuzz_codec, fuzz_deframer
+
 from firmware_protocol.busload import can_bus_load, can_frame_bits, loads, serial_load
 from firmware_protocol.checks import RxChecker
 from firmware_protocol.codec import decode, encode
 from firmware_protocol.framing import Deframer, frame_to_bytes
-from firmware_protocol.fuzz import fuzz_codec, fuzz_deframer
 from firmware_protocol.messages import (
     FirmwareFault,
     FirmwareHeartbeat,
