@@ -191,3 +191,17 @@ def test_loading_the_car_side_loads_nothing_of_the_lab() -> None:
 def test_the_load_check_sees_a_lab_module() -> None:
     """The check above can fail: the lab's backend loads the simulator."""
     assert "truckd.sim.plant" in _loaded("import truckd.sim.backend")
+
+
+def test_the_test_helpers_are_not_shipped() -> None:
+    """pyproject's package list finds the two packages, and neither the tests nor their
+    helpers (``labkit``)."""
+    import tomllib
+
+    from setuptools import find_namespace_packages
+
+    find = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]
+    found = find_namespace_packages(str(REPO), include=find["packages"]["find"]["include"])
+    assert {"truckd", "truckd.sim", "truckd.ident", "firmware_protocol"} <= set(found)
+    assert not [p for p in found if "labkit" in p or p.split(".")[0] == "tests"]
+    assert (REPO / "tests" / "labkit" / "synth.py").is_file()
