@@ -51,12 +51,12 @@ def _sim_cycle_us(mode: str, cycles: int = 2000) -> float:
     step (plant + messages), companion receive with checks."""
     from truckd.config.truck import load_config
     from truckd.io.port import companion_port
-    from truckd.sim.firmware import constant_speed_lead, simulated_truck
-    from truckd.sim.plant import Plant
+    from truckd.sim.firmware import constant_speed_lead
+    from truckd.sim.truck import build_truck, truck_spec
 
-    cfg = load_config()
-    plant = Plant(cfg.vehicle, cfg.plant)
-    link, fw, _ = simulated_truck(plant, constant_speed_lead(2.0, 1.0), mode)  # type: ignore[arg-type]
+    truck = build_truck(truck_spec(load_config()), constant_speed_lead(2.0, 1.0), mode=mode)  # type: ignore[arg-type]
+    fw, link = truck.firmware, truck.link
+    assert link is not None
     port = companion_port(link, clock=lambda: fw.t)
     t0 = time.perf_counter()
     for _ in range(cycles):
