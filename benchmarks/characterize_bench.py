@@ -62,11 +62,7 @@ def _quiet(_: str) -> None:
 
 
 def _gap_rms(cfg: TruckConfig, model: ControlModel) -> float:
-    setup = SimSetup(
-        cfg.plant_vehicle, cfg.plant, cfg.control, model,
-        ticks_per_rev=cfg.link.encoder_ticks_per_rev, supervisor=cfg.runtime.supervisor,
-        stop_ramp_v_per_s=cfg.runtime.stop_ramp_v_per_s,
-    )  # fmt: skip
+    setup = SimSetup.from_config(cfg, model)
     m, _ = run_scenario(make_scenario(SCENARIO, cfg.plant_vehicle, cfg.control), setup, SIM_S)
     return float(m["gap_error_rms_m"])
 

@@ -36,11 +36,12 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
+import lab_path  # noqa: F401 - tests/ on sys.path, for labkit
 import yaml
+from labkit.synth import plant_log
 
 from truckd.cli.main import main as truckd
 from truckd.config.truck import default_config_path, load_config
-from truckd.ident.synth import plant_log
 from truckd.logfile import write_log
 from truckd.model.effects import Effects
 from truckd.modelfile import ModelFile, write_model

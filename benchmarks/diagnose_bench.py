@@ -1,7 +1,7 @@
 """Diagnosis benchmark: hit rate over many random seeds per effect, and speed.
 
 For each effect: ``--seeds`` plant logs (random magnitude in
-truckd.ident.synth.EFFECT_RANGES, random excitation, 0.01 m/s and 0.3 A noise, 50 s at
+labkit.synth.EFFECT_RANGES, random excitation, 0.01 m/s and 0.3 A noise, 50 s at
 100 Hz).  A *hit* names exactly that effect, recovers its parameter within the tests'
 tolerance and improves the fit.  Also: logs without effect (hit = nothing named, not
 unexplained), two effects at once (hit = both named), a periodic disturbance outside
@@ -11,8 +11,8 @@ samples at 100 Hz, median of 3, with the load average (``--speed-only``).
 ``--trucks drawn``: the wider draw.  Every log comes from a different truck with 0.1x..10x
 the default motor constant and inertia (log-uniform), logged at 50-200 Hz with jittered
 timing, dropped rows and coarse speed steps, without current (with current for
-viscous friction, which needs it) (:func:`truckd.ident.synth.draw_truck`); the effect
-magnitudes scale with the motor constant (:func:`truckd.ident.synth.scaled_effect`).
+viscous friction, which needs it) (:func:`labkit.synth.draw_truck`); the effect
+magnitudes scale with the motor constant (:func:`labkit.synth.scaled_effect`).
 Diagnosis is always started from the *default* configuration.  Also reported: false
 causes per 100 logs (named effects that were not hidden, over every log of the run).
 Terrain cases ``hill`` (a load on 5 m of road, crossed repeatedly) and ``rolling`` (a
@@ -37,12 +37,9 @@ import sys
 import time
 from typing import Any
 
+import lab_path  # noqa: F401 - tests/ on sys.path, for labkit
 import numpy as np
-
-from truckd.config.truck import load_config
-from truckd.ident import ckernel
-from truckd.ident.api import diagnose_log
-from truckd.ident.synth import (
+from labkit.synth import (
     draw_truck,
     drawn_log,
     hill_effects,
@@ -54,6 +51,10 @@ from truckd.ident.synth import (
     visibility,
     with_effect,
 )
+
+from truckd.config.truck import load_config
+from truckd.ident import ckernel
+from truckd.ident.api import diagnose_log
 from truckd.logfile import Log
 from truckd.model.effects import COMPANIONS, EFFECT_NAMES, Effects
 
@@ -80,7 +81,7 @@ PAIR_PARTNERS = (*NEW_CAUSES, "load_force", "input_delay", "sensor_lag")
 """The ``pair`` case hides one new cause with another cause from this list."""
 VISIBLE = 2.0
 """A new cause is observable in a log when it moves it by this many noise units
-(:func:`truckd.ident.synth.visibility`, as ``tests/test_diagnose_causes.py``)."""
+(:func:`labkit.synth.visibility`, as ``tests/test_diagnose_causes.py``)."""
 WITH_CURRENT = ("viscous_friction", "resistance_drift")
 """Drawn logs with a current column (what shows these causes)."""
 

@@ -49,15 +49,14 @@ import zenoh
 from results import write_json
 
 from truckd.config.truck import default_config_path, load_config
-from truckd.control.qp import ControlModel
 from truckd.logfile import read_log
 from truckd.runtime.telemetry import zenoh_config
 from truckd.sim.closed_loop import SimSetup, run_scenario
 from truckd.sim.firmware import constant_speed_lead
 from truckd.sim.mcap_export import write_trace_mcap
-from truckd.sim.pil import EmulatedBoard, build_pil_elf
-from truckd.sim.plant import Plant
+from truckd.sim.pil import build_pil_elf
 from truckd.sim.scenarios import make_scenario
+from truckd.sim.truck import emulated_board, truck_spec
 
 PY = sys.executable
 ROOT = Path(__file__).resolve().parent.parent
@@ -160,15 +159,10 @@ def run(seconds: float) -> dict[str, Any]:
     elf = build_pil_elf()
     cfg = load_config(None)
     tmp = Path(tempfile.mkdtemp(prefix="pil-bench-"))
-    plant = Plant(cfg.vehicle, cfg.plant)
-    plant.reset(v=0.0)
-    board = EmulatedBoard(
-        plant,
-        constant_speed_lead(LEAD_GAP, LEAD_SPEED),
-        tmp / "ttyPIL",
-        ticks_per_rev=cfg.ticks_per_rev,
-        elf=elf,
+    board = emulated_board(
+        truck_spec(cfg), constant_speed_lead(LEAD_GAP, LEAD_SPEED), tmp / "ttyPIL", elf=elf
     )
+    plant = board.plant
     port = _free_port()
     board.start()
     daemon = subprocess.Popen(
@@ -252,7 +246,7 @@ def run(seconds: float) -> dict[str, Any]:
         rows = len(read_log(mcap.with_suffix(".csv"))["t"])
         counts = {t.rsplit("/", 1)[1]: len(m) for t, m in doc["messages"].items()}
         res["readers"]["daemon_mcap"] = {"csv_rows": rows, "mcap_core_counts": counts}
-        setup = SimSetup(cfg.vehicle, cfg.plant, cfg.control, ControlModel(cfg.vehicle))
+        setup = SimSetup.from_config(cfg)
         _, tr = run_scenario(make_scenario("follow", cfg.vehicle, cfg.control), setup, seconds)
         every = cfg.runtime.recorder.mcap_plan_every
         write_trace_mcap(tmp / "sim.mcap", cfg.vehicle_id, "follow", tr, every)

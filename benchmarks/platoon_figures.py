@@ -20,7 +20,6 @@ from typing import Any
 
 from truckd.config.truck import load_config
 from truckd.control.platoon import PlatoonConfig
-from truckd.control.qp import ControlModel
 from truckd.sim.closed_loop import SimSetup
 from truckd.sim.platoon import make_platoon_scenario, run_platoon
 
@@ -30,15 +29,7 @@ DELAYS = (0.0, 0.15)
 
 def _run(name: str, pcfg: PlatoonConfig, loss: float, delay: float, n: int) -> dict[str, Any]:
     cfg = load_config()
-    setup = SimSetup(
-        cfg.vehicle,
-        cfg.plant,
-        cfg.control,
-        ControlModel(cfg.vehicle),
-        ticks_per_rev=cfg.link.encoder_ticks_per_rev,
-        supervisor=cfg.runtime.supervisor,
-        stop_ramp_v_per_s=cfg.runtime.stop_ramp_v_per_s,
-    )
+    setup = SimSetup.from_config(cfg)
     sc = replace(make_platoon_scenario(name), input_delay=delay)
     m, _ = run_platoon(sc, setup, pcfg, n, loss=loss)
     return m

@@ -28,7 +28,6 @@ import numpy as np
 
 from truckd.config.truck import load_config
 from truckd.control.platoon import PlatoonConfig
-from truckd.control.qp import ControlModel
 from truckd.sim.closed_loop import SimSetup
 from truckd.sim.platoon import ACTUATION_DELAY_S, PlatoonScenario, run_platoon
 
@@ -73,15 +72,7 @@ def main() -> int:
     ap.add_argument("--trucks", type=int, default=4)
     args = ap.parse_args()
     cfg = load_config()
-    setup = SimSetup(
-        cfg.vehicle,
-        cfg.plant,
-        cfg.control,
-        ControlModel(cfg.vehicle),
-        ticks_per_rev=cfg.link.encoder_ticks_per_rev,
-        supervisor=cfg.runtime.supervisor,
-        stop_ramp_v_per_s=cfg.runtime.stop_ramp_v_per_s,
-    )
+    setup = SimSetup.from_config(cfg)
     t0 = time.monotonic()
     rows: list[dict[str, Any]] = []
     for h in HEADWAYS_S:

@@ -22,7 +22,6 @@ from dataclasses import replace
 from typing import Any
 
 from truckd.config.truck import load_config
-from truckd.control.qp import ControlModel
 from truckd.sim.closed_loop import SimSetup
 from truckd.sim.platoon import make_platoon_scenario, run_platoon
 
@@ -74,8 +73,7 @@ def main() -> int:
     ap.add_argument("--duration", type=float, default=12.0)
     args = ap.parse_args()
     cfg = load_config()
-    setup = SimSetup(cfg.vehicle, cfg.plant, cfg.control, ControlModel(cfg.vehicle),
-                     ticks_per_rev=cfg.link.encoder_ticks_per_rev)  # fmt: skip
+    setup = SimSetup.from_config(cfg)
     rows: list[dict[str, Any]] = []
     for n in (int(x) for x in args.trucks.split(",")):
         for label, kw in CASES:

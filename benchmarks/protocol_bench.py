@@ -15,11 +15,13 @@ import random
 import time
 from collections.abc import Callable
 
+import lab_path  # noqa: F401 - tests/ on sys.path, for labkit
+from labkit.fuzz import fuzz_codec, fuzz_deframer
+
 from firmware_protocol.busload import can_bus_load, can_frame_bits, loads, serial_load
 from firmware_protocol.checks import RxChecker
 from firmware_protocol.codec import decode, encode
 from firmware_protocol.framing import Deframer, frame_to_bytes
-from firmware_protocol.fuzz import fuzz_codec, fuzz_deframer
 from firmware_protocol.messages import (
     FirmwareFault,
     FirmwareHeartbeat,
@@ -49,12 +51,12 @@ def _sim_cycle_us(mode: str, cycles: int = 2000) -> float:
     step (plant + messages), companion receive with checks."""
     from truckd.config.truck import load_config
     from truckd.io.port import companion_port
-    from truckd.sim.firmware import constant_speed_lead, simulated_truck
-    from truckd.sim.plant import Plant
+    from truckd.sim.firmware import constant_speed_lead
+    from truckd.sim.truck import build_truck, truck_spec
 
-    cfg = load_config()
-    plant = Plant(cfg.vehicle, cfg.plant)
-    link, fw, _ = simulated_truck(plant, constant_speed_lead(2.0, 1.0), mode)  # type: ignore[arg-type]
+    truck = build_truck(truck_spec(load_config()), constant_speed_lead(2.0, 1.0), mode=mode)  # type: ignore[arg-type]
+    fw, link = truck.firmware, truck.link
+    assert link is not None
     port = companion_port(link, clock=lambda: fw.t)
     t0 = time.perf_counter()
     for _ in range(cycles):

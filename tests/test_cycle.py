@@ -177,15 +177,7 @@ SOLVE_US = LOG_COLUMNS.index("solve_us")
 
 
 def _run(tc: TruckConfig, name: str, duration: float) -> tuple[dict[str, Any], Trace]:
-    setup = SimSetup(
-        tc.vehicle,
-        tc.plant,
-        tc.control,
-        ControlModel(tc.vehicle),
-        tc.link.encoder_ticks_per_rev,
-        supervisor=tc.runtime.supervisor,
-        stop_ramp_v_per_s=tc.runtime.stop_ramp_v_per_s,
-    )
+    setup = SimSetup.from_config(tc)
     return run_scenario(make_scenario(name, tc.vehicle, tc.control), setup, duration)
 
 

@@ -3,7 +3,7 @@ current limit, gear backlash, Stribeck friction and winding resistance drift.
 
 Each is hidden in a log of a truck drawn over a wide range (0.1x..10x the default motor
 constant and inertia, 50-200 Hz, jittered timing, dropped rows, coarse speed steps, speed
-noise scaled to the truck, 0.3 A current noise; :func:`truckd.ident.synth.draw_truck`),
+noise scaled to the truck, 0.3 A current noise; :func:`labkit.synth.draw_truck`),
 with its magnitude scaled to the truck; diagnosis starts from the default configuration.
 Seeds come from one fixed SeedSequence (not picked per case); hit rates over many seeds
 are measured by ``benchmarks/diagnose_bench.py --trucks drawn --cases new``.
@@ -15,10 +15,7 @@ import dataclasses
 
 import numpy as np
 import pytest
-
-from truckd.ident.api import diagnose_log
-from truckd.ident.result import Diagnosis
-from truckd.ident.synth import (
+from labkit.synth import (
     DrawnTruck,
     draw_truck,
     drawn_log,
@@ -26,6 +23,9 @@ from truckd.ident.synth import (
     random_effects,
     visibility,
 )
+
+from truckd.ident.api import diagnose_log
+from truckd.ident.result import Diagnosis
 from truckd.model.effects import COMPANIONS, Effects
 from truckd.model.params import VehicleParams
 
@@ -43,7 +43,7 @@ TOLERANCE: dict[str, float] = {
 
 VISIBLE = 2.0
 """A hidden cause moves the log by at least this many noise units (speed and current,
-:func:`truckd.ident.synth.visibility`): a cause the log can show (a Stribeck friction
+:func:`labkit.synth.visibility`): a cause the log can show (a Stribeck friction
 moving it by 1.9 lowered the validation cost by 45 % but gained 0.4 points of fit, below
 the 0.5 a cause must gain where it acts).  Trucks and magnitudes
 are drawn from the seed until one is; the benchmark reports both rates."""

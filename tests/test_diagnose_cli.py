@@ -7,9 +7,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from labkit.synth import plant_log, with_effect
 
 from truckd.cli.main import main
-from truckd.ident.synth import plant_log, with_effect
 from truckd.logfile import write_log
 from truckd.model.params import VehicleParams
 from truckd.modelfile import read_model

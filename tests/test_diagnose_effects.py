@@ -1,7 +1,7 @@
 """Hide an effect in a plant log; diagnose must name it, recover it and gain fit.
 
 Logs come from the reference plant (truckd.sim.plant) with random excitation, a random
-magnitude (ranges in truckd.ident.synth.EFFECT_RANGES), 0.01 m/s speed noise and 0.3 A
+magnitude (ranges in labkit.synth.EFFECT_RANGES), 0.01 m/s speed noise and 0.3 A
 current noise (the causes beyond the contract's eight: tests/test_diagnose_causes.py).
 The seeds come from one fixed SeedSequence, not picked per case; the
 hit rate over many seeds is measured by benchmarks/diagnose_bench.py.
@@ -11,10 +11,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from labkit.synth import plant_log, random_effect, with_effect
 
 from truckd.ident.api import diagnose_log
 from truckd.ident.result import Diagnosis
-from truckd.ident.synth import plant_log, random_effect, with_effect
 from truckd.logfile import Log
 from truckd.model.effects import EFFECT_NAMES, Effects
 from truckd.model.params import VehicleParams

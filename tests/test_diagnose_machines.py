@@ -13,10 +13,10 @@ import re
 
 import numpy as np
 import pytest
+from labkit.synth import plant_log
 
 from truckd.config.truck import load_config
 from truckd.ident.api import diagnose_log
-from truckd.ident.synth import plant_log
 from truckd.model.effects import Effects
 from truckd.model.params import VehicleParams
 

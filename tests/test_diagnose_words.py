@@ -75,9 +75,10 @@ def test_a_sampled_and_held_speed_is_explained_by_the_clean_model(hold: int) -> 
     """A clean truck whose speed sensor updates every ``hold``-th sample: compared at its
     fresh readings, the model explains it (nothing named, not unexplained) and beats the
     least squares, which the staircase biases (a held value is a stale one)."""
+    from labkit.synth import plant_log
+
     from truckd.config.truck import load_config
     from truckd.ident.api import diagnose_log
-    from truckd.ident.synth import plant_log
     from truckd.logfile import Log
     from truckd.model.effects import Effects
 

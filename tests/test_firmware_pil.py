@@ -38,7 +38,7 @@ from runtime_support import wait_for
 from truckd.config.truck import TruckConfig, load_config
 from truckd.sim.firmware import constant_speed_lead
 from truckd.sim.pil import EmulatedBoard, build_pil_elf
-from truckd.sim.plant import Plant
+from truckd.sim.truck import emulated_board, truck_spec
 
 pytestmark = [
     pytest.mark.hil,
@@ -69,13 +69,10 @@ def rig(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Rig]:
     elf = build_pil_elf()
     tmp = tmp_path_factory.mktemp("pil")
     cfg = load_config(None)
-    plant = Plant(cfg.vehicle, cfg.plant)
-    plant.reset(v=0.0)
-    board = EmulatedBoard(
-        plant,
+    board = emulated_board(
+        truck_spec(cfg),
         constant_speed_lead(LEAD_GAP, LEAD_SPEED),
         tmp / "ttyPIL",
-        ticks_per_rev=cfg.ticks_per_rev,
         elf=elf,
         qemu=qemu,
     )

@@ -12,10 +12,10 @@ import zlib
 
 import numpy as np
 import pytest
+from labkit.synth import EFFECT_RANGES, excitation
 
 from truckd.ident.data import Series
 from truckd.ident.fastsim import ForceModel, simulate_force, simulate_voltage, timeline
-from truckd.ident.synth import EFFECT_RANGES, excitation
 from truckd.ident.voltage import predict
 from truckd.model.effects import EFFECT_NAMES, Effects
 from truckd.model.params import VehicleParams

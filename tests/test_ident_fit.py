@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from labkit.synth import plant_log
 
 from truckd.errors import InputError
 from truckd.ident.api import identify_log
 from truckd.ident.data import series_from_log
 from truckd.ident.residuals import autocorr, band, binned, crosscorr, whiteness
-from truckd.ident.synth import plant_log
 from truckd.ident.voltage import speed_fit
 from truckd.logfile import Log
 from truckd.model.effects import Effects

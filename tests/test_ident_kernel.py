@@ -5,10 +5,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from labkit.synth import draw_truck, plant_log
 
 from truckd.config.truck import load_config
 from truckd.ident import ckernel, fastsim
-from truckd.ident.synth import draw_truck, plant_log
 from truckd.model.effects import Effects
 
 EFFECTS = [

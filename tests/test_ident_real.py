@@ -3,7 +3,7 @@ from the configured one, physically impossible best fits.
 
 Drawn trucks have 0.1x..10x the default motor constant and inertia (log-uniform),
 logged at 50-200 Hz with jittered timing, dropped rows and coarse speed steps
-(:func:`truckd.ident.synth.draw_truck`); the seeds come from one fixed SeedSequence,
+(:func:`labkit.synth.draw_truck`); the seeds come from one fixed SeedSequence,
 not picked per case.  The wide draw (every effect, many seeds) is in
 benchmarks/diagnose_bench.py.
 """
@@ -14,13 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from truckd.cli.main import main
-from truckd.errors import InputError
-from truckd.ident.api import diagnose_log, identify_log
-from truckd.ident.data import runs_from_logs
-from truckd.ident.linear import feedforward_of
-from truckd.ident.synth import (
+from labkit.synth import (
     draw_truck,
     drawn_log,
     plant_log,
@@ -28,6 +22,12 @@ from truckd.ident.synth import (
     scaled_effect,
     with_effect,
 )
+
+from truckd.cli.main import main
+from truckd.errors import InputError
+from truckd.ident.api import diagnose_log, identify_log
+from truckd.ident.data import runs_from_logs
+from truckd.ident.linear import feedforward_of
 from truckd.logfile import Log, write_log
 from truckd.model.effects import Effects
 from truckd.model.params import VehicleParams

@@ -19,7 +19,7 @@ from firmware_protocol.codec import Frame
 from firmware_protocol.framing import Deframer
 from truckd.config.truck import load_config
 from truckd.control.supervisor import Mode
-from truckd.io import LinkConfig, open_link
+from truckd.io import LinkConfig
 from truckd.io.can_link import CanLink
 from truckd.io.devlock import DeviceBusyError, claim_device, serial_keys
 from truckd.io.serial_link import SerialLink
@@ -117,7 +117,7 @@ def test_missing_serial_device_is_named_once_and_retried(
 ) -> None:
     path = str(tmp_path / "ttyACM9")
     caplog.set_level(logging.DEBUG, logger="truckd")
-    link = open_link("serial", LinkConfig(serial_device=path, reconnect_interval=0.0))
+    link = SerialLink(path, reconnect_interval=0.0)
     for _ in range(5):  # five more attempts (interval 0: every call retries)
         assert not link.send(F1)
     errs = [r for r in caplog.records if r.levelno >= logging.WARNING]

@@ -4,6 +4,7 @@ backends by name, and the typed port on top."""
 from __future__ import annotations
 
 import array
+import dataclasses
 import fcntl
 import os
 import select
@@ -24,12 +25,14 @@ from firmware_protocol.messages import (
     RangeReading,
     RangeStatus,
 )
-from truckd.io import LinkConfig, open_link
+from truckd.config.truck import load_config
+from truckd.io import LinkConfig
 from truckd.io.can_link import CanLink
 from truckd.io.inproc import inproc_pair
 from truckd.io.link import FramedStreamLink, Link
 from truckd.io.port import companion_port, firmware_port
 from truckd.io.serial_link import SerialLink
+from truckd.runtime.backend import open_backend
 from truckd.sim.pty_link import PtyDevice
 
 F1 = Frame(0x100, b"\x01\x02\x03\x04")
@@ -245,6 +248,12 @@ def test_the_poll_never_reads_or_selects_an_empty_tty(
         dev.close()
 
 
+def open_link(name: str, link: LinkConfig) -> Link:
+    """The link of backend ``name`` opened through the registry, as the daemon does."""
+    cfg = dataclasses.replace(load_config(None), link=link)
+    return open_backend(name, cfg, cfg.control).link
+
+
 def test_missing_serial_device_reported(tmp_path: Path) -> None:
     link = open_link("serial", LinkConfig(serial_device=str(tmp_path / "nope")))
     assert not link.connected and link.last_error
@@ -254,7 +263,7 @@ def test_missing_serial_device_reported(tmp_path: Path) -> None:
 
 
 def test_unknown_backend() -> None:
-    with pytest.raises(ValueError, match="unknown link backend"):
+    with pytest.raises(ValueError, match="unknown backend 'carrier-pigeon'"):
         open_link("carrier-pigeon", LinkConfig())
 
 

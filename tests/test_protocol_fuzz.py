@@ -4,7 +4,7 @@ frame is lost after garbage."""
 
 from __future__ import annotations
 
-from firmware_protocol.fuzz import fuzz_codec, fuzz_deframer
+from labkit.fuzz import fuzz_codec, fuzz_deframer
 
 N = 100_000
 

@@ -38,15 +38,7 @@ def shipped_setup() -> SimSetup:
     """The shipped configuration, as ``truckd sim`` runs it (simulated time: the solver is
     judged by what it did, so the runs do not depend on the machine's load)."""
     tc = load_config()
-    return SimSetup(
-        tc.vehicle,
-        tc.plant,
-        tc.control,
-        ControlModel(tc.vehicle),
-        tc.link.encoder_ticks_per_rev,
-        supervisor=tc.runtime.supervisor,
-        stop_ramp_v_per_s=tc.runtime.stop_ramp_v_per_s,
-    )
+    return SimSetup.from_config(tc)
 
 
 @pytest.fixture(scope="module")

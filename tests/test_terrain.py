@@ -2,7 +2,7 @@
 located in position, on trucks unlike the configured one.
 
 The trucks come from one fixed SeedSequence (drawn with
-:func:`truckd.ident.synth.draw_truck`: 0.1x-10x motor constant and inertia, 50-200 Hz);
+:func:`labkit.synth.draw_truck`: 0.1x-10x motor constant and inertia, 50-200 Hz);
 the hit rate over more draws is measured by benchmarks/diagnose_bench.py.
 """
 
@@ -12,10 +12,7 @@ import dataclasses
 
 import numpy as np
 import pytest
-
-from truckd.ident.api import diagnose_log
-from truckd.ident.data import runs_from_logs, with_position
-from truckd.ident.synth import (
+from labkit.synth import (
     DrawnTruck,
     draw_truck,
     drawn_log,
@@ -23,6 +20,9 @@ from truckd.ident.synth import (
     hill_force_for,
     rolling_effects,
 )
+
+from truckd.ident.api import diagnose_log
+from truckd.ident.data import runs_from_logs, with_position
 from truckd.ident.terrain import both_ways_agree, hill_problem, locate, rolling_problem
 from truckd.model.effects import Effects
 from truckd.model.params import VehicleParams

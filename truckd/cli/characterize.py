@@ -28,6 +28,7 @@ import numpy as np
 
 from truckd.config.truck import TruckConfig, load_config
 from truckd.errors import InputError, TruckdError
+from truckd.io.backends import BACKEND_NAMES
 from truckd.logfile import Log, read_log, write_log
 from truckd.runtime.backend import Backend
 from truckd.runtime.characterize import (
@@ -57,7 +58,7 @@ def add_subparser(sub: Any) -> None:
         "characterize", help="bring-up checks, identification experiments, diagnosed model"
     )
     p.add_argument("--config", help="configuration file (default: the shipped one)")
-    p.add_argument("--backend", choices=("sim", "serial", "can"), help="default: runtime.backend")
+    p.add_argument("--backend", choices=BACKEND_NAMES, help="default: runtime.backend")
     p.add_argument(
         "--out",
         metavar="DIR",
@@ -111,10 +112,12 @@ class CharacterizeDaemon(Daemon):
             self.telemetry.subscribe(
                 "stop", lambda _payload: routine.request_stop("stop request over Zenoh")
             )
-        fw = self.backend.firmware
-        if fw is not None:  # the simulated track: a wall beyond its end
+        if self.backend.name == "sim":  # the simulated track: a wall beyond its end
+            from truckd.sim.backend import SimBackend
+
+            assert isinstance(self.backend, SimBackend)
             wall = self.cfg.characterize.track_length_m + SIM_WALL_BEYOND_M
-            fw.range_fn = lambda _t, x: wall - x
+            self.backend.firmware.range_fn = lambda _t, x: wall - x
         if self.prepare is not None:
             self.prepare(self.backend)
         self.companion.command_source = routine

@@ -11,6 +11,7 @@ from truckd.cli.args import run_duration
 from truckd.config.truck import load_config
 from truckd.control.effect_use import startup_line
 from truckd.control.qp import ControlModel
+from truckd.io.backends import BACKEND_NAMES
 from truckd.modelfile import read_model
 from truckd.runtime.daemon import Daemon
 
@@ -18,7 +19,7 @@ from truckd.runtime.daemon import Daemon
 def add_subparser(sub: Any) -> None:
     p = sub.add_parser("run", help="the daemon (as systemd starts it on the car)")
     p.add_argument("--config", required=True, help="configuration file (truck.yaml)")
-    p.add_argument("--backend", choices=("sim", "serial", "can"), help="override runtime.backend")
+    p.add_argument("--backend", choices=BACKEND_NAMES, help="override runtime.backend")
     p.add_argument(
         "--duration", type=run_duration, metavar="S", help="stop cleanly after S seconds"
     )

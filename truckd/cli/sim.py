@@ -79,15 +79,7 @@ def _run(args: argparse.Namespace) -> int:
     if note is not None:
         print(f"truckd sim: {note}", file=sys.stderr)
     trace_dir = ensure_dir(args.trace, "trace directory") if args.trace else None
-    setup = SimSetup(
-        cfg.plant_vehicle,
-        cfg.plant,
-        cfg.control,
-        model,
-        ticks_per_rev=cfg.link.encoder_ticks_per_rev,
-        supervisor=cfg.runtime.supervisor,
-        stop_ramp_v_per_s=cfg.runtime.stop_ramp_v_per_s,
-    )
+    setup = SimSetup.from_config(cfg, model)
     names = SCENARIO_NAMES if args.scenario == "all" else (args.scenario,)
     mcaps = mcap_paths(args.mcap, names) if args.mcap is not None else {}
     results, traces = [], []

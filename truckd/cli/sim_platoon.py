@@ -134,15 +134,7 @@ def run_platoon_cli(args: argparse.Namespace) -> int:
     if args.model:
         mf = read_model(args.model)
         model = ControlModel(mf.vehicle, mf.effects)
-    setup = SimSetup(
-        cfg.vehicle,
-        cfg.plant,
-        cfg.control,
-        model,
-        ticks_per_rev=cfg.link.encoder_ticks_per_rev,
-        supervisor=cfg.runtime.supervisor,
-        stop_ramp_v_per_s=cfg.runtime.stop_ramp_v_per_s,
-    )
+    setup = SimSetup.from_config(cfg, model)
     names = PLATOON_SCENARIOS if args.scenario == "all" else (args.scenario,)
     low = max(MIN_TRUCKS.get(make_platoon_scenario(n).kind, 2) for n in names)
     if args.platoon < low:

@@ -6,6 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from truckd.control.supervisor import SupervisorConfig
+from truckd.io.backends import BACKEND_NAMES
 from truckd.schema import spec
 
 
@@ -70,7 +71,7 @@ class RuntimeConfig:
 
     backend: str = spec(
         "link backend (device settings in the link: section)",
-        choices=("sim", "serial", "can"),
+        choices=BACKEND_NAMES,
         default="sim",
     )
     realtime: bool = spec("try SCHED_FIFO and mlockall (logged when not permitted)", default=True)

@@ -185,8 +185,7 @@ class Daemon:
                 self.rxlog.start()
                 log.info("recording received messages to %s", self.rxlog.path)
         self.backend = open_backend(
-            self.backend_name, self.cfg, self.control_cfg, self.ticks_per_rev, self.clock,
-            lock=self.claim,
+            self.backend_name, self.cfg, self.control_cfg, self.clock, lock=self.claim
         )  # fmt: skip
         self.port = companion_port(self.backend.link, self.clock, self.cfg.link.timeout_periods)
         log.info(

@@ -1,24 +1,45 @@
-"""The daemon's ``sim`` backend: the simulated firmware and plant on an in-process link,
-the lead driving the ``follow`` scenario.  Loaded by name from
-:func:`truckd.runtime.backend.open_backend` only when ``sim`` is asked for."""
+"""The daemon's ``sim`` backend: the configuration's simulated truck
+(:func:`truckd.sim.truck.truck_spec`) on an in-process link, the lead driving the
+``follow`` scenario.  Registered by name in :data:`truckd.io.backends.BACKENDS` and
+imported only when ``sim`` is asked for."""
 
 from __future__ import annotations
 
 from truckd.config.truck import TruckConfig
 from truckd.control.config import ControlConfig
+from truckd.io.devlock import DeviceLock
 from truckd.io.link import Link
-from truckd.sim.firmware import FirmwareSimConfig, SimulatedFirmware, simulated_truck
-from truckd.sim.plant import Plant
+from truckd.runtime.backend import Backend, Clock
+from truckd.sim.firmware import SimulatedFirmware
 from truckd.sim.scenarios import World, make_scenario
+from truckd.sim.truck import build_truck, truck_spec
 
 
-def open_sim(
-    cfg: TruckConfig, control: ControlConfig, ticks_per_rev: int
-) -> tuple[Link, SimulatedFirmware]:
-    """(companion link, firmware to advance after each command)."""
-    plant = Plant(cfg.plant_vehicle, cfg.plant)
-    world = World(make_scenario("follow", cfg.vehicle, control))
-    link, fw, _wire = simulated_truck(
-        plant, world.range_fn, "frames", FirmwareSimConfig(ticks_per_rev=ticks_per_rev)
-    )
-    return link, fw
+class SimBackend(Backend):
+    """The simulated truck; :meth:`tick` advances its firmware and plant."""
+
+    name = "sim"
+
+    def __init__(
+        self, link: Link, firmware: SimulatedFirmware, lock: DeviceLock | None = None
+    ) -> None:
+        super().__init__(link, lock)
+        self.firmware = firmware
+        """The simulated firmware (its ``range_fn`` and faults can be changed)."""
+
+    @classmethod
+    def open(
+        cls,
+        cfg: TruckConfig,
+        control: ControlConfig,
+        clock: Clock,
+        lock: DeviceLock | None,
+    ) -> SimBackend:
+        """The truck of ``cfg``; ``control`` is the daemon's (the lead's scenario)."""
+        world = World(make_scenario("follow", cfg.vehicle, control))
+        truck = build_truck(truck_spec(cfg), world.range_fn)
+        assert truck.link is not None
+        return cls(truck.link, truck.firmware, lock)
+
+    def tick(self, dt: float) -> None:
+        self.firmware.step(dt)

@@ -21,7 +21,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -32,12 +32,15 @@ from truckd.control.qp import ControlModel
 from truckd.control.supervisor import Mode, SupervisorConfig
 from truckd.io.port import companion_port
 from truckd.model.params import VehicleParams
-from truckd.model.plant_config import encoder_ticks_per_rev
 from truckd.runtime.cycle import CompanionCycle, CycleInputs
 from truckd.runtime.platoon_link import cycle_plan
-from truckd.sim.firmware import FirmwareSimConfig, simulated_truck
-from truckd.sim.plant import Plant, PlantConfig
+from truckd.sim.firmware import FirmwareSimConfig
+from truckd.sim.plant import PlantConfig
 from truckd.sim.scenarios import Scenario, World
+from truckd.sim.truck import TruckSpec, build_truck
+
+if TYPE_CHECKING:
+    from truckd.config.truck import TruckConfig
 
 STEADY_AFTER_S = 5.0
 """``gap_error_rms_m`` is taken after this time (reference section 1)."""
@@ -84,6 +87,27 @@ class SimSetup:
     stop_ramp_v_per_s: float = 60.0
     """The SAFE_STOP ramp (``runtime.stop_ramp_v_per_s``)."""
 
+    @classmethod
+    def from_config(cls, cfg: TruckConfig, model: ControlModel | None = None) -> SimSetup:
+        """The simulated truck of a configuration (:func:`truckd.sim.truck.truck_spec`)
+        driven by ``model`` (default: the configured vehicle, no effects)."""
+        return cls(
+            cfg.plant_vehicle,
+            cfg.plant,
+            cfg.control,
+            model if model is not None else ControlModel(cfg.vehicle),
+            ticks_per_rev=cfg.link.encoder_ticks_per_rev,
+            supervisor=cfg.runtime.supervisor,
+            stop_ramp_v_per_s=cfg.runtime.stop_ramp_v_per_s,
+        )
+
+    @property
+    def truck(self) -> TruckSpec:
+        """The simulated truck (plant, firmware, sensor limits) this setup drives."""
+        return TruckSpec.of(
+            self.plant_params, self.plant_config, self.control, self.ticks_per_rev, self.firmware
+        )
+
 
 def _percentile(xs: list[float], q: float) -> float:
     return float(np.percentile(xs, q)) if xs else math.nan
@@ -97,19 +121,16 @@ def run_scenario(
     dt = cfg.period
     dur = sc.duration if duration is None else duration
     world = World(sc)
-    ticks = encoder_ticks_per_rev(setup.plant_config.encoder_ticks_per_rev, setup.ticks_per_rev)
-    fw_cfg = setup.firmware or FirmwareSimConfig(
-        ticks_per_rev=ticks, range_max=cfg.estimator.range_max
-    )
-    plant = Plant(setup.plant_params, setup.plant_config)
-    plant.reset(v=sc.v0)
-    link, fw, _wire = simulated_truck(plant, world.range_fn, mode="frames", config=fw_cfg)
+    spec = setup.truck
+    truck = build_truck(spec, world.range_fn, v0=sc.v0)
+    plant, fw, link = truck.plant, truck.firmware, truck.link
+    assert link is not None
     port = companion_port(link, clock=lambda: plant.t)
     cyc = CompanionCycle(
         setup.model,
         cfg,
         setup.supervisor,
-        fw_cfg.ticks_per_rev,
+        spec.firmware.ticks_per_rev,
         setup.stop_ramp_v_per_s,
         time_budget=False,  # simulated time: judged by what the solver did
     )

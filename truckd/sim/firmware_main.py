@@ -43,15 +43,10 @@ from typing import Any
 
 from truckd.config.truck import TruckConfig, load_config
 from truckd.errors import InputError
-from truckd.sim.firmware import (
-    FirmwareSimConfig,
-    RangeFn,
-    SimulatedFirmware,
-    constant_speed_lead,
-)
-from truckd.sim.plant import Plant
+from truckd.sim.firmware import RangeFn, SimulatedFirmware, constant_speed_lead
 from truckd.sim.pty_link import PtyDevice
 from truckd.sim.slcan_peer import SlcanDevice
+from truckd.sim.truck import build_truck, truck_spec
 
 
 def _no_lead(t: float, x: float) -> float | None:
@@ -145,6 +140,18 @@ def _handle(
     return {"ok": True}, False
 
 
+def serve_truck(
+    cfg: TruckConfig, range_fn: RangeFn, link: str, pty: str, v0: float = 0.0
+) -> SimulatedFirmware:
+    """The configuration's simulated truck (:func:`truckd.sim.truck.truck_spec`) serving
+    a pty at ``pty``: COBS frames (``link`` ``serial``) or a simulated slcan adapter."""
+    kind = SlcanDevice if link == "slcan" else PtyDevice
+    truck = build_truck(
+        truck_spec(cfg), range_fn, device=lambda clock: kind(pty, clock=clock), v0=v0
+    )
+    return truck.firmware
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
         prog="python -m truckd.sim.firmware_main", description=__doc__.split("\n")[0]
@@ -184,15 +191,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not 1e-4 <= args.tick <= 0.05:
         print("firmware_main: --tick must be in [0.0001, 0.05] s", file=sys.stderr)
         return 2
-    plant = Plant(cfg.plant_vehicle, cfg.plant)
-    plant.reset(v=v0)
-    fw_cfg = FirmwareSimConfig(ticks_per_rev=cfg.ticks_per_rev)
-    dev: PtyDevice | SlcanDevice
-    if args.link == "slcan":
-        dev = SlcanDevice(args.pty, clock=lambda: plant.t)
-    else:
-        dev = PtyDevice(args.pty, clock=lambda: plant.t)
-    fw = SimulatedFirmware(plant, range_fn, dev, fw_cfg, dev.unplug, dev.replug)
+    fw = serve_truck(cfg, range_fn, args.link, args.pty, v0)
+    dev = fw.link
     ctl = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     ctl.bind(("127.0.0.1", args.control_port))
     ctl.setblocking(False)

@@ -65,13 +65,11 @@ from truckd.control.platoon_order import (
 )
 from truckd.control.qp import ControlModel
 from truckd.io.port import companion_port
-from truckd.model.plant_config import encoder_ticks_per_rev
 from truckd.runtime.cycle import CompanionCycle, CycleInputs, CycleOutputs
 from truckd.runtime.platoon_clock import PlanClock
 from truckd.runtime.platoon_link import cycle_plan, follower_inputs
 from truckd.sim.closed_loop import SimSetup
-from truckd.sim.firmware import FirmwareSimConfig, simulated_truck
-from truckd.sim.plant import Plant
+from truckd.sim.truck import build_truck
 
 PLATOON_SCENARIOS: tuple[str, ...] = (
     "platoon-brake",
@@ -370,20 +368,16 @@ class _Truck:
     ) -> None:
         self.vid = vid
         cfg = setup.control
-        ticks = encoder_ticks_per_rev(setup.plant_config.encoder_ticks_per_rev, setup.ticks_per_rev)
-        fw_cfg = setup.firmware or FirmwareSimConfig(
-            ticks_per_rev=ticks, range_max=cfg.estimator.range_max
-        )
-        self.plant = Plant(setup.plant_params, setup.plant_config)
-        self.plant.reset(v=v0)
-        self.plant.x = x0
-        self.link, self.fw, _ = simulated_truck(self.plant, range_fn, mode="frames", config=fw_cfg)
+        spec = setup.truck
+        truck = build_truck(spec, range_fn, v0=v0, x0=x0)
+        assert truck.link is not None
+        self.plant, self.fw, self.link = truck.plant, truck.firmware, truck.link
         self.port = companion_port(self.link, clock=lambda: self.plant.t)
         self.cyc = CompanionCycle(
             setup.model,
             cfg,
             setup.supervisor,
-            fw_cfg.ticks_per_rev,
+            spec.firmware.ticks_per_rev,
             setup.stop_ramp_v_per_s,
             time_budget=False,  # simulated time: judged by what the solver did
         )

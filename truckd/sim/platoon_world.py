@@ -27,15 +27,17 @@ import signal
 import socket
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
+from functools import partial
 from pathlib import Path
 from typing import Any
 
 from truckd.config.truck import load_config
 from truckd.errors import InputError
-from truckd.sim.firmware import FirmwareSimConfig, SimulatedFirmware
+from truckd.sim.firmware import SimulatedFirmware
 from truckd.sim.plant import Plant
 from truckd.sim.pty_link import PtyDevice
+from truckd.sim.truck import build_truck, truck_spec
 
 
 class VirtualLead:
@@ -52,35 +54,22 @@ class VirtualLead:
         self.v = v_new
 
 
-def _clock(plant: Plant) -> Callable[[], float]:
-    return lambda: plant.t
-
-
 class World:
     """The trucks, their firmware and the lead (see module docstring)."""
 
     def __init__(self, pty_dir: Path, n: int, gap: float, config: str | None) -> None:
-        cfg = load_config(config)
+        spec = truck_spec(load_config(config))
         self.lead = VirtualLead(gap)
         self.plants: list[Plant] = []
         self.fws: list[SimulatedFirmware] = []
         self.devices: list[PtyDevice] = []
         for i in range(n):
-            plant = Plant(cfg.vehicle, cfg.plant)
-            plant.reset(v=0.0)
-            plant.x = -i * gap
-            dev = PtyDevice(str(pty_dir / f"tty{i}"), clock=_clock(plant))
-            fw = SimulatedFirmware(
-                plant,
-                self._range_fn(i),
-                dev,
-                FirmwareSimConfig(ticks_per_rev=cfg.ticks_per_rev),
-                dev.unplug,
-                dev.replug,
-            )
-            self.plants.append(plant)
-            self.devices.append(dev)
-            self.fws.append(fw)
+            device = partial(PtyDevice, str(pty_dir / f"tty{i}"))
+            truck = build_truck(spec, self._range_fn(i), device=device, x0=-i * gap)
+            assert isinstance(truck.firmware.link, PtyDevice)
+            self.plants.append(truck.plant)
+            self.devices.append(truck.firmware.link)
+            self.fws.append(truck.firmware)
 
     def _range_fn(self, i: int) -> Any:
         def fn(t: float, x: float) -> float | None:
