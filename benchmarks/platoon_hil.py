@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import itertools
 import json
 import os
 import signal
@@ -116,6 +117,22 @@ def _end(p: subprocess.Popen[Any], timeout: float = 10.0) -> int | None:
     return p.poll()
 
 
+def _summary(
+    events: list[tuple[float, str, str | None, str]], t_go: float | None, causes: dict[str, int]
+) -> dict[str, Any]:
+    """After the lead drove off: per daemon, how often it left ACTIVE (DEGRADED,
+    SAFE_STOP, FAULT) and how often it switched between CACC and ACC; the faults named."""
+    after = [e for e in events if t_go is not None and e[0] >= t_go]
+    vids = sorted({e[1] for e in events}, key=lambda v: int(v[1:]))
+    left, switches = {}, {}
+    for vid in vids:
+        mine = [e for e in after if e[1] == vid]
+        left[vid] = sum(1 for e in mine if e[3] in ("DEGRADED", "SAFE_STOP", "FAULT"))
+        plat = [e[2] for e in mine]
+        switches[vid] = sum(1 for a, b in itertools.pairwise(plat) if a != b)
+    return {"left_active": left, "platoon_switches": switches, "faults_named": causes}
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--json", help="write the results here")
@@ -138,6 +155,7 @@ def main() -> int:
     daemons: list[subprocess.Popen[Any]] = []
     states: dict[str, dict[str, Any]] = {}
     events: list[tuple[float, str, str | None, str]] = []  # (t, vehicle, platoon, mode)
+    causes: dict[str, int] = {}  # the faults named when a daemon left ACTIVE
     gaps: list[list[float]] = []
     stop_poll = threading.Event()
     t0 = time.monotonic()
@@ -183,6 +201,9 @@ def main() -> int:
             old = states.get(vid, {})
             if (old.get("platoon"), old.get("mode")) != (m.get("platoon"), m.get("mode")):
                 events.append((time.monotonic() - t0, vid, m.get("platoon"), m.get("mode")))
+                if m.get("mode") not in ("ACTIVE", "INIT"):
+                    for c in m.get("faults") or ["(none)"]:
+                        causes[c] = causes.get(c, 0) + 1
             states[vid] = m
 
         session.declare_subscriber("truckd/*/state", on_state)
@@ -258,6 +279,7 @@ def main() -> int:
     result["min_true_gap_m"] = [min(r[k] for r in g) for k in range(N)] if g else None
     result["collision"] = bool(g) and min(min(r) for r in g) <= 0.0
     result["events"] = events
+    result["summary_after_lead_go"] = _summary(events, result.get("lead_go_s"), causes)
     result["load_average_end"] = os.getloadavg()
     result["daemon_stderr_tail"] = {
         f"p{i}": (tmp / f"p{i}.stderr").read_text()[-600:] for i in range(N)

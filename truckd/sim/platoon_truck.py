@@ -162,7 +162,11 @@ class PlatoonTruck:
         plan = self.plan_in(self._sync)
         m = self.mode
         fc = None
-        if m.mode == CACC and plan is not None and m.fresh(plan, self._now):
+        if (
+            m.mode == CACC
+            and plan is not None
+            and (m.fresh(plan, self._now) or m.held(plan, self._now))
+        ):
             fc = lead_forecast(plan, self._now, m.period, m.horizon)
         if self.dec is not None:
             self.dec = replace(self.dec, headway=m.headway, forecast=fc)
