@@ -143,6 +143,9 @@ def test_a_burst_of_lost_plans_is_ridden_out_on_the_last_plan_shifted_in_time() 
     m0.update(t_last - 0.01, last, 1.0, 0.7, 0.4)
     modes = [m0.update(t_last + k * 0.01, last, 1.0, 0.7, 0.4).mode for k in range(50)]
     assert modes[5] == CACC and modes[-1] == ACC
+    # a plan never seen fresh (a clock that disagrees: always 0.5 s old) is not held
+    m1 = PlatoonMode(cfg, 0.01, 30, initial=CACC)
+    assert m1.update(10.0, kinematic_plan(9.5, 1, 0.01, 1.0, 0.0, 55), 1.0, 0.7, 0.4).mode == ACC
     # and once a held plan is older than plan_hold_s: ACC, the forecast dropped
     d = m.update(t + cfg.plan_hold_s + 0.02, last, 1.0, 0.7, 0.4)
     assert d.mode == ACC and d.forecast is None

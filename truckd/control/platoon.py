@@ -319,6 +319,8 @@ class PlatoonMode:
         self.extra_headway = 0.0
         """Added to the headway target (s): room for a joining truck, opened and closed
         at ``headway_rate`` like every headway change."""
+        self._fresh_key: tuple[str, int] | None = None
+        """``(vehicle_id, seq)`` of the last plan seen fresh (see :meth:`held`)."""
 
     def retarget(self, headway: float) -> None:
         """Another truck ahead (a join, a leave): start the headway ramp from the time gap
@@ -338,8 +340,11 @@ class PlatoonMode:
 
     def held(self, plan: Plan | None, t: float) -> bool:
         """Whether ``plan``, no longer fresh, is still followed at time t (s): not older
-        than ``plan_hold_s`` (a burst of lost plans ridden out on the last one)."""
-        if plan is None:
+        than ``plan_hold_s`` and from the sender of the last fresh plan, not older than
+        that one (a burst of lost plans ridden out on the last plan; a plan that was
+        never fresh, e.g. from a clock that disagrees, is not held)."""
+        key = self._fresh_key
+        if plan is None or key is None or plan.vehicle_id != key[0] or plan.seq < key[1]:
             return False
         age = plan_age(plan, t)
         return self.cfg.plan_timeout_s < age <= self.cfg.plan_hold_s
@@ -369,6 +374,8 @@ class PlatoonMode:
         if math.isnan(self._t_start):
             self._t_start = t
         fresh = self.fresh(plan, t)
+        if fresh and plan is not None:
+            self._fresh_key = (plan.vehicle_id, plan.seq)
         # In CACC an older plan is still followed while held (a burst of lost plans);
         # it does not count towards the return to CACC.
         usable = fresh or (self.mode == CACC and self.held(plan, t))
@@ -381,8 +388,9 @@ class PlatoonMode:
         ):
             fresh = usable = False
             self.disagreements += 1
-        if plan is None and t - self._t_start <= cfg.plan_timeout_s:
-            # Just started: the first plan may still be on its way (no forecast yet).
+        if plan is None and t - self._t_start <= max(cfg.plan_timeout_s, cfg.plan_hold_s):
+            # Just started: the first plan may still be on its way, or lost in a burst
+            # (no forecast yet; waited for as long as a plan would be held).
             fresh = usable = self.mode == CACC
         if fresh:
             if self._fresh_since == math.inf:
