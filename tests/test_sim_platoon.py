@@ -56,7 +56,8 @@ def test_acc_alone_at_the_cacc_headway_is_not_string_stable(name: str) -> None:
     shipped = load_config().platoon
     pcfg = replace(shipped, acc_headway=shipped.cacc_headway)
     m, _ = run_platoon(make_platoon_scenario(name), _setup(), pcfg, 5, loss=1.0)
-    assert max(m["cacc_fraction"]) < 0.02  # ACC alone (CACC only until the first timeout)
+    # ACC alone: CACC only while the first plan is waited for (plan_hold_s from the start)
+    assert max(m["cacc_fraction"]) <= (shipped.plan_hold_s + 0.02) / m["duration_s"]
     assert not m["collision"]
     assert max(m["string_ratio_l2"] + m["string_ratio_max"]) > 1.0
 
