@@ -8,6 +8,12 @@ links' timeout is the shipped 0.1 s, and 0.1 s after the slowest delivery with d
 delays (``plan_timeout_s`` = 0.1 s + the largest delay).
 
     python benchmarks/platoon_scale.py --json benchmarks/platoon_scale.json [--trucks 10,100]
+        [--cases LABEL,...] [--key KEY]
+
+With ``--key`` the run is stored under that key of the JSON file (the file's other keys
+kept: earlier runs stay as they were measured); ``--cases`` runs only the cases whose
+label starts with one of the given prefixes.  The links' plans are held for the shipped
+``plan_hold_s`` (a burst of lost plans ridden out on the last plan).
 """
 
 from __future__ import annotations
@@ -19,6 +25,7 @@ import os
 import platform
 import time
 from dataclasses import replace
+from pathlib import Path
 from typing import Any
 
 from truckd.config.truck import load_config
@@ -32,9 +39,30 @@ CASES: tuple[tuple[str, dict[str, Any]], ...] = (
     ("delay 0-50 ms", {"delay_s": (0.0, 0.05)}),
     ("clocks +-2 s, 100 ppm", {"clock_offset_s": 2.0, "clock_drift_ppm": 100.0}),
     (
+        "bursts: 30 % loss in bursts, 0-50 ms, +-2 s, 100 ppm",
+        {
+            "loss": 0.3,
+            "burst_loss": True,
+            "delay_s": (0.0, 0.05),
+            "clock_offset_s": 2.0,
+            "clock_drift_ppm": 100.0,
+        },
+    ),
+    (
         "all: 30 % loss, 0-50 ms, +-2 s, 100 ppm, mixed trucks",
         {
             "loss": 0.3,
+            "delay_s": (0.0, 0.05),
+            "clock_offset_s": 2.0,
+            "clock_drift_ppm": 100.0,
+            "mixed": True,
+        },
+    ),
+    (
+        "all with bursts: 30 % loss in bursts, 0-50 ms, +-2 s, 100 ppm, mixed trucks",
+        {
+            "loss": 0.3,
+            "burst_loss": True,
             "delay_s": (0.0, 0.05),
             "clock_offset_s": 2.0,
             "clock_drift_ppm": 100.0,
@@ -71,12 +99,17 @@ def main() -> int:
     ap.add_argument("--json", help="write the figures here")
     ap.add_argument("--trucks", default="10,100")
     ap.add_argument("--duration", type=float, default=12.0)
+    ap.add_argument("--cases", help="comma-separated label prefixes (default: every case)")
+    ap.add_argument("--key", help="store the run under this key of the --json file")
     args = ap.parse_args()
+    prefixes = args.cases.split(",") if args.cases else [""]
     cfg = load_config()
     setup = SimSetup.from_config(cfg)
     rows: list[dict[str, Any]] = []
     for n in (int(x) for x in args.trucks.split(",")):
         for label, kw in CASES:
+            if not any(label.startswith(p) for p in prefixes):
+                continue
             hi = kw.get("delay_s", (0.02, 0.02))[1]
             timeout = 0.1 + hi if hi > 0.02 else cfg.platoon.plan_timeout_s
             pcfg = replace(cfg.platoon, plan_timeout_s=timeout)
@@ -93,8 +126,14 @@ def main() -> int:
             "machine": f"{platform.machine()}, {os.cpu_count()} cores",
             "load_average_1min_at_end": round(os.getloadavg()[0], 2),
             "plan_timeout_s": "0.1 s (shipped); 0.1 s + the largest delay with drawn delays",
+            "plan_hold_s": cfg.platoon.plan_hold_s,
             "rows": rows,
         }
+        if args.key:
+            path = Path(args.json)
+            whole = json.loads(path.read_text()) if path.exists() else {}
+            whole[args.key] = doc
+            doc = whole
         with open(args.json, "w") as f:
             json.dump(doc, f, indent=2)
             f.write("\n")

@@ -83,7 +83,7 @@ def test_cacc_while_fresh_acc_when_stale_and_back_after_the_return_time() -> Non
         t += 0.01
     last = plan
     switched = None
-    while t < 3.0:  # plans stop: ACC once the last one is older than the timeout
+    while t < 3.0:  # plans stop: ACC once the last one is older than the hold time
         d = m.update(t, last, 1.0, 0.4 + 1.0 * m.headway, 0.4)
         if d.mode == ACC and switched is None:
             switched = t
@@ -91,7 +91,8 @@ def test_cacc_while_fresh_acc_when_stale_and_back_after_the_return_time() -> Non
             assert d.mode == ACC and d.forecast is None
         t += 0.01
     assert switched is not None
-    assert switched - last.t == pytest.approx(cfg.plan_timeout_s, abs=0.011)
+    assert switched - last.t == pytest.approx(cfg.plan_hold_s, abs=0.011)
+    assert cfg.plan_hold_s > cfg.plan_timeout_s
     # the headway ramps up at the configured rate, never jumps
     assert m.headway == pytest.approx(
         min(cfg.cacc_headway + cfg.headway_rate * (t - switched), cfg.acc_headway), abs=0.01
@@ -107,6 +108,47 @@ def test_cacc_while_fresh_acc_when_stale_and_back_after_the_return_time() -> Non
     assert back is not None
     assert back - t_fresh == pytest.approx(cfg.cacc_return_s, abs=0.011)
     assert m.switches == 2
+
+
+def test_a_burst_of_lost_plans_is_ridden_out_on_the_last_plan_shifted_in_time() -> None:
+    """Plans stop for 0.5 s (a burst): the follower stays in CACC on the last plan, its
+    forecast the plan's speeds at the follower's own times (so the plan's braking goes on
+    in the forecast as time passes), past the plan's end the lead speed the range sensor
+    measures when lower; plans again: fresh at once, no switch.  Without the hold
+    (``plan_hold_s`` at most the timeout) the same burst switches to ACC."""
+    cfg = PlatoonConfig()
+    m = PlatoonMode(cfg, 0.01, 30, initial=CACC)
+    t = 0.0
+    for _ in range(100):
+        d = m.update(t, kinematic_plan(t, round(t * 100), 0.01, 1.0, 0.0, 55), 1.0, 0.7, 0.4)
+        t += 0.01
+    # the last plan: brakes at 1 m/s^2 to 0.7 m/s, then holds it (0.55 s in all)
+    last = make_plan(t, round(t * 100), 0.01, [max(1.0 - 0.01 * k, 0.7) for k in range(56)])
+    t_last = t
+    for k in range(50):  # the burst: 0.5 s without a plan; the range sensor: 0.6 m/s
+        t = t_last + k * 0.01
+        d = m.update(t, last, 1.0, 0.7, 0.4, v_lead=0.6)
+        assert d.mode == CACC and d.forecast is not None
+        # the plan aged: its speed at this truck's time t, not its first speed
+        assert d.forecast[0] == pytest.approx(max(1.0 - (t - t_last), 0.7), abs=1e-9)
+        assert d.plan_age_s == pytest.approx(t - t_last)
+    # 0.49 s old: past the plan's end (0.55 s) the range sensor's lower 0.6 m/s
+    assert d.forecast[5] == pytest.approx(0.7) and d.forecast[7] == pytest.approx(0.6)
+    assert m.switches == 0
+    t += 0.01
+    d = m.update(t, kinematic_plan(t, 999, 0.01, 0.6, 0.0, 55), 0.6, 0.58, 0.4)
+    assert d.mode == CACC and m.switches == 0
+    # the same burst without the hold: ACC
+    m0 = PlatoonMode(replace(cfg, plan_hold_s=0.0), 0.01, 30, initial=CACC)
+    m0.update(t_last - 0.01, last, 1.0, 0.7, 0.4)
+    modes = [m0.update(t_last + k * 0.01, last, 1.0, 0.7, 0.4).mode for k in range(50)]
+    assert modes[5] == CACC and modes[-1] == ACC
+    # a plan never seen fresh (a clock that disagrees: always 0.5 s old) is not held
+    m1 = PlatoonMode(cfg, 0.01, 30, initial=CACC)
+    assert m1.update(10.0, kinematic_plan(9.5, 1, 0.01, 1.0, 0.0, 55), 1.0, 0.7, 0.4).mode == ACC
+    # and once a held plan is older than plan_hold_s: ACC, the forecast dropped
+    d = m.update(t + cfg.plan_hold_s + 0.02, last, 1.0, 0.7, 0.4)
+    assert d.mode == ACC and d.forecast is None
 
 
 def test_headway_ramp_starts_from_the_gap_actually_driven() -> None:

@@ -59,20 +59,37 @@ def test_ten_drawn_trucks_on_lossy_links_with_their_own_clocks(name: str) -> Non
     assert sum(m["solver_failures"]) == 0
 
 
-def test_identical_trucks_stay_string_stable_on_lossy_links_and_clocks() -> None:
-    """10 identical trucks, the same links and clocks as above: the acceleration ratios
-    at most 1, and no follower's spacing error above the first follower's.  (The
-    pairwise spacing-error ratios fall from 0.85 towards 1 down the platoon as the errors
-    reach their floor of about a centimetre; docs/platoon.md gives the figures.)"""
+def test_identical_trucks_ride_out_bursts_of_lost_plans_string_stable() -> None:
+    """10 identical trucks, 30 % of the plans lost in bursts (runs of 8 on average, some
+    of 30 and more), delays drawn in 0-50 ms, clocks +-2 s and 100 ppm apart: every
+    follower stays in CACC throughout on its last plan shifted in time
+    (``plan_hold_s``), and the spacing-error string ratios (L2 and max) are at most 1
+    from the second follower on.  (Without the hold, the same bursts switched followers to
+    ACC and back many times and the ratios reached 11: docs/platoon.md.)"""
     m, _ = run_platoon(
-        make_platoon_scenario("platoon-brake"), _setup(), _pcfg(), 10, seed=2, **LINK
-    )
+        make_platoon_scenario("platoon-brake"), _setup(), _pcfg(), 10, seed=1,
+        burst_loss=True, **LINK,  # type: ignore[arg-type]
+    )  # fmt: skip
     assert not m["collision"] and m["min_gap_m"] >= load_config().control.d_min
-    assert max(m["accel_ratio_l2"] + m["accel_ratio_max"]) <= 1.0, m
-    e = m["spacing_error_max_m"]
-    assert max(e[1:]) <= e[0] and e[-1] < 0.7 * e[0], e
-    assert m["string_ratio_l2"][0] <= 1.0 and m["string_ratio_max"][0] <= 1.0
     assert m["plans_lost"] > 0.25 * m["plans_sent"]
+    assert min(m["cacc_fraction"]) == 1.0 and max(m["mode_switches"]) == 0
+    assert len(m["string_ratio_l2"]) == 8
+    assert max(m["string_ratio_l2"] + m["string_ratio_max"]) <= 1.0, m
+    e = m["spacing_error_max_m"]
+    assert max(e[1:]) <= e[0], e
+
+
+def test_without_the_hold_bursts_switch_followers_to_acc() -> None:
+    """The control experiment of the test above, 3 trucks: the same kind of link with
+    ``plan_hold_s`` at the timeout (ACC once the newest plan is 0.15 s old): bursts
+    switch the followers to ACC; with the shipped hold they do not."""
+    sc = make_platoon_scenario("platoon-brake")
+    kw = {"seed": 1, "burst_loss": True, "duration": 8.0, **LINK}
+    off, _ = run_platoon(sc, _setup(), replace(_pcfg(), plan_hold_s=0.0), 3, **kw)  # type: ignore[arg-type]
+    on, _ = run_platoon(sc, _setup(), _pcfg(), 3, **kw)  # type: ignore[arg-type]
+    assert off["plans_lost"] > 0.2 * off["plans_sent"]
+    assert max(off["mode_switches"]) >= 2
+    assert max(on["mode_switches"]) == 0 and min(on["cacc_fraction"]) == 1.0
 
 
 def test_without_the_clock_estimate_offset_clocks_lose_the_plans() -> None:
@@ -108,8 +125,9 @@ def test_a_truck_joins_in_the_middle_and_one_at_the_tail() -> None:
     assert sc.event_s < merged < sc.duration - 3.0
     # truck 5 found the tail (truck 3) and drives CACC behind it at the end
     assert pre[0, 5] == "" and pre[-1, 5] == "truck3" and tr.mode[-1][5] == CACC
-    # the gap opened smoothly: every truck from 1 on, from the announcement on
-    for j in range(1, 5):
+    # the gap opened smoothly: every truck from 1 on (the joining ones too), from the
+    # announcement on
+    for j in range(1, 6):
         a, ta = _window_accel(tr, j)
         assert np.min(a[ta > sc.event_s]) >= -pcfg.comfort_decel, (j, np.min(a[ta > sc.event_s]))
     # the room was opened by truck 2 before the merge: its gap grew by a CACC gap

@@ -5,7 +5,8 @@ the speeds its MPC predicts over the horizon, sampled every ``dt`` from the send
 ``t``.  A follower turns its predecessor's latest plan into the lead-speed forecast of its
 own MPC (:func:`lead_forecast`: shifted by the plan's age, the last speed held past the
 plan's end, a braking plan extrapolated to standstill) and drives the CACC headway while
-the plan is fresh; when the plan is older than ``plan_timeout_s``, missing, or at odds
+the plan is fresh (and on the last plan, shifted in time, while it is held: a burst of
+lost plans); when the plan is older than ``plan_hold_s``, missing, or at odds
 with the lead speed the range sensor measures (by more than ``plan_speed_tolerance``) it
 falls back to ACC on the range sensor alone, ramping the headway up to the ACC headway
 (the gap opens smoothly, no hard braking), and back to CACC once plans have been fresh
@@ -60,7 +61,23 @@ class PlatoonConfig:
         default=1.1,
     )
     plan_timeout_s: float = spec(
-        "a plan older than this is stale: ACC", unit="s", lo=0.0, lo_open=True, hi=10.0, default=0.1
+        "a plan older than this is stale: it no longer counts towards the return to CACC "
+        "(cacc_return_s); ACC once it is older than plan_hold_s too",
+        unit="s",
+        lo=0.0,
+        lo_open=True,
+        hi=10.0,
+        default=0.1,
+    )
+    plan_hold_s: float = spec(
+        "a plan older than plan_timeout_s is still followed until it is this old (CACC on "
+        "the plan shifted in time on this truck's clock; past the plan's end on the lead "
+        "speed the range sensor measures, when lower): lost plans in bursts are ridden "
+        "out; older: ACC.  At most plan_timeout_s (e.g. 0): ACC at plan_timeout_s",
+        unit="s",
+        lo=0.0,
+        hi=10.0,
+        default=0.8,
     )
     cacc_return_s: float = spec(
         "plans fresh this long before CACC again (hysteresis)",
@@ -302,6 +319,8 @@ class PlatoonMode:
         self.extra_headway = 0.0
         """Added to the headway target (s): room for a joining truck, opened and closed
         at ``headway_rate`` like every headway change."""
+        self._fresh_key: tuple[str, int] | None = None
+        """``(vehicle_id, seq)`` of the last plan seen fresh (see :meth:`held`)."""
 
     def retarget(self, headway: float) -> None:
         """Another truck ahead (a join, a leave): start the headway ramp from the time gap
@@ -312,12 +331,23 @@ class PlatoonMode:
             self.headway = min(max(headway, self.cfg.cacc_headway), self.cfg.acc_headway)
 
     def fresh(self, plan: Plan | None, t: float) -> bool:
-        """Whether ``plan`` is usable at time t (s): not older than the timeout, not from
+        """Whether ``plan`` is fresh at time t (s): not older than the timeout, not from
         the future beyond the allowed clock skew."""
         if plan is None:
             return False
         age = plan_age(plan, t)
         return -self.cfg.max_clock_skew_s <= age <= self.cfg.plan_timeout_s
+
+    def held(self, plan: Plan | None, t: float) -> bool:
+        """Whether ``plan``, no longer fresh, is still followed at time t (s): not older
+        than ``plan_hold_s`` and from the sender of the last fresh plan, not older than
+        that one (a burst of lost plans ridden out on the last plan; a plan that was
+        never fresh, e.g. from a clock that disagrees, is not held)."""
+        key = self._fresh_key
+        if plan is None or key is None or plan.vehicle_id != key[0] or plan.seq < key[1]:
+            return False
+        age = plan_age(plan, t)
+        return self.cfg.plan_timeout_s < age <= self.cfg.plan_hold_s
 
     def update(
         self,
@@ -344,24 +374,30 @@ class PlatoonMode:
         if math.isnan(self._t_start):
             self._t_start = t
         fresh = self.fresh(plan, t)
+        if fresh and plan is not None:
+            self._fresh_key = (plan.vehicle_id, plan.seq)
+        # In CACC an older plan is still followed while held (a burst of lost plans);
+        # it does not count towards the return to CACC.
+        usable = fresh or (self.mode == CACC and self.held(plan, t))
         if (
-            fresh
+            usable
             and plan is not None
             and math.isfinite(v_lead)
             and abs(plan_speed(plan, t) - v_lead)
             > cfg.plan_speed_tolerance + 3.0 * (v_lead_std if math.isfinite(v_lead_std) else 0.0)
         ):
-            fresh = False
+            fresh = usable = False
             self.disagreements += 1
-        if plan is None and t - self._t_start <= cfg.plan_timeout_s:
-            # Just started: the first plan may still be on its way (no forecast yet).
-            fresh = self.mode == CACC
+        if plan is None and t - self._t_start <= max(cfg.plan_timeout_s, cfg.plan_hold_s):
+            # Just started: the first plan may still be on its way, or lost in a burst
+            # (no forecast yet; waited for as long as a plan would be held).
+            fresh = usable = self.mode == CACC
         if fresh:
             if self._fresh_since == math.inf:
                 self._fresh_since = t
         else:
             self._fresh_since = math.inf
-        if self.mode == CACC and not fresh:
+        if self.mode == CACC and not usable:
             self.mode = ACC
             self.switches += 1
             if math.isfinite(gap) and math.isfinite(v) and v > 0.1:
@@ -375,6 +411,11 @@ class PlatoonMode:
         self.headway = min(max(target, self.headway - step), self.headway + step)
         if self.mode == CACC and plan is not None:
             forecast = lead_forecast(plan, t, self.period, self.horizon)
+            if not fresh and math.isfinite(v_lead):
+                # a held plan: past its end the lead speed the range sensor measures when
+                # lower (the plan's last speed says nothing of what came after it)
+                k_end = max(0, math.ceil((plan.t_end - t) / self.period))
+                forecast[k_end:] = [min(f, v_lead) for f in forecast[k_end:]]
             return PlatoonDecision(CACC, self.headway, forecast, plan_age(plan, t))
         age = plan_age(plan, t) if plan is not None else math.nan
         return PlatoonDecision(self.mode, self.headway, None, age)

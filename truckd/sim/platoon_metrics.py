@@ -1,0 +1,181 @@
+"""The platoon's trace and metrics (reference section 1): spacing errors, string ratios,
+minimum gaps, switches, accelerations."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from truckd.control.platoon import ACC, CACC, PlatoonConfig
+from truckd.sim.plan_channel import PlanChannel
+from truckd.sim.platoon_scenarios import SETTLE_S
+from truckd.sim.platoon_truck import PlatoonTruck
+
+ACCEL_WINDOW_S = 0.5
+"""The acceleration ratios' moving mean (s)."""
+
+
+@dataclass
+class PlatoonTrace:
+    """Per-truck time series (SI): position, speed, gap to the vehicle the truck's range
+    sensor sees (NaN: none; a truck in the next lane before it merges: to its
+    predecessor), the reference gap at the headway in use, the headway, the mode
+    (CACC/ACC, truck 0: LEAD, a truck that left: OUT), the voltage, the lane (0 the
+    platoon's)."""
+
+    t: list[float] = field(default_factory=list)
+    x: list[list[float]] = field(default_factory=list)
+    v: list[list[float]] = field(default_factory=list)
+    gap: list[list[float]] = field(default_factory=list)
+    gap_ref: list[list[float]] = field(default_factory=list)
+    headway: list[list[float]] = field(default_factory=list)
+    mode: list[list[str]] = field(default_factory=list)
+    u: list[list[float]] = field(default_factory=list)
+    accel: list[list[float]] = field(default_factory=list)
+    lane: list[list[int]] = field(default_factory=list)
+    predecessor: list[list[str]] = field(default_factory=list)
+    supervisor: list[list[str]] = field(default_factory=list)
+    rows: list[list[tuple[float, ...]]] = field(default_factory=list)
+    """Per truck (truck 0, the lead, first): the daemon's log row each cycle with the truth
+    appended, as :class:`~truckd.sim.closed_loop.Trace` rows (``--trace``)."""
+
+
+def record_cycle(
+    tr: PlatoonTrace,
+    t: float,
+    v_driver: float,
+    d_0: float,
+    trucks: list[PlatoonTruck],
+    gaps: list[float],
+) -> None:
+    tr.t.append(t)
+    nan = math.nan
+    xs: list[float] = []
+    vs: list[float] = []
+    refs: list[float] = []
+    hs: list[float] = []
+    modes: list[str] = []
+    us: list[float] = []
+    acc: list[float] = []
+    lanes: list[int] = []
+    pres: list[str] = []
+    for i, f in enumerate(trucks):
+        live = f.active and f.dec is not None and f.out is not None
+        xs.append(f.plant.x if live else nan)
+        vs.append(f.plant.v if live else nan)
+        refs.append(d_0 + f.dec.headway * f.plant.v if live and f.dec is not None else nan)
+        hs.append(f.dec.headway if live and f.dec is not None else nan)
+        modes.append(("LEAD" if i == 0 else f.dec.mode) if live and f.dec is not None else "OUT")
+        us.append(f.out.command.voltage if live and f.out is not None else nan)
+        acc.append(nan)
+        lanes.append(f.lane)
+        pres.append(f.predecessor)
+    tr.x.append(xs)
+    tr.v.append(vs)
+    tr.gap.append(list(gaps))
+    tr.gap_ref.append(refs)
+    tr.headway.append(hs)
+    tr.mode.append(modes)
+    tr.u.append(us)
+    tr.accel.append(acc)
+    tr.lane.append(lanes)
+    tr.predecessor.append(pres)
+    tr.supervisor.append(
+        [f.out.mode.value if f.active and f.out is not None else "OUT" for f in trucks[1:]]
+    )
+    if not tr.rows:
+        tr.rows = [[] for _ in trucks]
+    by_id = {f.vid: f for f in trucks}
+    for j, f in enumerate(trucks):
+        if not f.active or f.out is None:
+            continue
+        ahead = by_id.get(f.predecessor)
+        v_ahead = v_driver if j == 0 else (ahead.plant.v if ahead is not None else nan)
+        tr.rows[j].append(
+            (*f.cyc.log_row(f.out), f.plant.v, gaps[j], v_ahead, f.plant.x, f.plant.motor.i)
+        )
+
+
+def string_ratios(err: np.ndarray) -> tuple[list[float], list[float]]:
+    """``(l2, max)`` ratios for each follower i >= 2 from spacing errors ``err`` (rows:
+    samples; columns: followers 1..N-1)."""
+    l2, mx = [], []
+    for j in range(1, err.shape[1]):
+        a, b = err[:, j - 1], err[:, j]
+        l2.append(float(np.linalg.norm(b) / np.linalg.norm(a)) if np.any(a) else math.inf)
+        mx.append(float(np.max(np.abs(b)) / np.max(np.abs(a))) if np.any(a) else math.inf)
+    return l2, mx
+
+
+def platoon_metrics(
+    name: str,
+    n_trucks: int,
+    tr: PlatoonTrace,
+    followers: list[PlatoonTruck],
+    channels: list[PlanChannel],
+    pcfg: PlatoonConfig,
+) -> dict[str, Any]:
+    """The contract keys (reference section 1) plus switch times and decelerations.
+    Columns are trucks by index (with joins and leaves, the pairs of the ratios are the
+    trucks' indices, not their order on the road); collision and minimum gap are over
+    the platoon's lane."""
+    t = np.asarray(tr.t)
+    lane = np.asarray(tr.lane)[:, 1:]
+    all_gaps = np.asarray(tr.gap, dtype=float)[:, 1:]
+    gaps = np.where(lane == 0, all_gaps, np.nan)
+    err = np.nan_to_num(gaps - np.asarray(tr.gap_ref, dtype=float)[:, 1:])
+    keep = t >= SETTLE_S if len(t) and t[-1] >= 2.0 * SETTLE_S else np.ones(len(t), dtype=bool)
+    l2, mx = string_ratios(err[keep])
+    modes = np.asarray(tr.mode)[:, 1:]
+    v = np.asarray(tr.v, dtype=float)
+    dt = float(t[1] - t[0]) if len(t) > 1 else 1.0
+    accel = np.diff(v, axis=0) / dt
+    min_gap = float(np.nanmin(gaps))
+    first_acc = [
+        float(t[np.argmax(modes[:, j] == ACC)]) if np.any(modes[:, j] == ACC) else None
+        for j in range(modes.shape[1])
+    ]
+    live = modes != "OUT"
+    # acceleration ratios: the 0.5 s mean of each truck's true acceleration (the lead's
+    # manoeuvre as it travels down the platoon; a truck's own actuation ripple, from a
+    # dead zone or the encoder, averaged out), pairs as above
+    win = max(1, round(ACCEL_WINDOW_S / dt))
+    smooth = np.array(
+        [
+            np.convolve(np.nan_to_num(accel[:, j]), np.ones(win) / win, "same")
+            for j in range(1, accel.shape[1])
+        ]
+    ).T.reshape(len(accel), -1)
+    a_l2, a_mx = string_ratios(smooth[keep[1:]])
+    return {
+        "scenario": name,
+        "trucks": n_trucks,
+        "collision": bool(min_gap <= 0.0),
+        "min_gap_m": min_gap,
+        "string_ratio_l2": l2,
+        "string_ratio_max": mx,
+        "cacc_fraction": [
+            float(np.mean(modes[live[:, j], j] == CACC)) for j in range(modes.shape[1])
+        ],
+        # Extensions:
+        "min_gap_per_follower_m": [
+            float(np.nanmin(gaps[:, j])) if np.any(np.isfinite(gaps[:, j])) else None
+            for j in range(gaps.shape[1])
+        ],
+        "spacing_error_max_m": [float(np.max(np.abs(err[keep, j]))) for j in range(err.shape[1])],
+        "first_acc_s": first_acc,
+        "mode_switches": [f.mode.switches for f in followers],
+        "min_accel_m_s2": [float(np.nanmin(accel[keep[1:], j])) for j in range(1, accel.shape[1])],
+        "accel_ratio_l2": a_l2,
+        "accel_ratio_max": a_mx,
+        "cacc_headway_s": pcfg.cacc_headway,
+        "acc_headway_s": pcfg.acc_headway,
+        "plans_sent": sum(c.sent for c in channels),
+        "plans_lost": sum(c.lost for c in channels),
+        "solver_failures": [f.cyc.controller.solver_failures for f in followers],
+        "supervisor_modes": [sorted(set(m)) for m in zip(*tr.supervisor, strict=True)],
+        "duration_s": round(float(t[-1] + dt), 6),
+    }

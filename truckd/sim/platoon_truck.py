@@ -1,0 +1,219 @@
+"""One simulated truck of a platoon (``truckd sim --platoon``): plant, simulated firmware
+and the daemon's companion cycle with the platoon's part around it; its plan sources
+(predecessor and standby, each with its clock estimate); and the drawn trucks of a mixed
+platoon."""
+
+from __future__ import annotations
+
+import math
+import random
+from collections.abc import Callable, Sequence
+from dataclasses import replace
+from typing import Any
+
+from truckd.control.controller import ControlOutput
+from truckd.control.estimator import Estimate
+from truckd.control.platoon import (
+    CACC,
+    Plan,
+    PlatoonConfig,
+    PlatoonDecision,
+    PlatoonMode,
+    lead_forecast,
+)
+from truckd.control.qp import ControlModel
+from truckd.io.port import companion_port
+from truckd.runtime.cycle import CompanionCycle, CycleInputs, CycleOutputs
+from truckd.runtime.platoon_clock import PlanClock
+from truckd.runtime.platoon_link import follower_inputs
+from truckd.sim.closed_loop import SimSetup
+from truckd.sim.truck import build_truck
+
+MIXED_EFFECTS: tuple[tuple[str, float, float], ...] = (
+    ("viscous_friction", 0.0, 3e-5),
+    ("aero_drag", 0.0, 0.8),
+    ("load_force", 0.0, 1.5),
+    ("battery_sag", 0.0, 0.05),
+    ("dead_zone", 0.0, 0.4),
+)
+"""``--mixed``: the effects a truck draws one of, and its range (SI, truckd/model/effects.py)."""
+
+
+def draw_platoon_truck(setup: SimSetup, rng: random.Random) -> SimSetup:
+    """A truck of a mixed platoon: mass 0.6-2x the configured (the inertia reflected to the
+    motor with it), motor constant 0.8-1.3x (friction torques with it), armature
+    resistance 0.8-1.5x, and one effect of :data:`MIXED_EFFECTS` at a drawn magnitude.
+    Its controller's model is the drawn truck itself (its true parameters and effects, as
+    a perfect ``diagnose`` would give them)."""
+    p = setup.plant_params
+    m = p.m * rng.uniform(0.6, 2.0)
+    k = rng.uniform(0.8, 1.3)
+    reflected = p.ratio**2  # (r_w / (n_g n_fd))^2: kg at the wheel -> kg m^2 at the motor
+    q = p.replace(
+        m=m,
+        J_S=max(p.J_S + (m - p.m) * reflected, 0.2 * p.J_S),
+        K_v=p.K_v * k,
+        K_T=p.K_T * k,
+        K_coulomb=p.K_coulomb * k,
+        K_stiction=p.K_stiction * k,
+        R_m=p.R_m * rng.uniform(0.8, 1.5),
+    )
+    name, lo, hi = MIXED_EFFECTS[rng.randrange(len(MIXED_EFFECTS))]
+    eff = replace(setup.plant_config.effects, **{name: rng.uniform(lo, hi)})
+    # Tuned in acceleration, not volts: the rate weight scaled by the square of the
+    # acceleration a volt gives (K_T / (R_m J_S)), so every truck responds alike.
+    gain = (q.K_T / (q.R_m * q.J_S)) / (p.K_T / (p.R_m * p.J_S))
+    return replace(
+        setup,
+        control=replace(setup.control, r_du=setup.control.r_du * gain**2),
+        plant_params=q,
+        plant_config=replace(setup.plant_config, effects=eff),
+        model=ControlModel(q, eff),
+    )
+
+
+class PlanSource:
+    """A sender's plans as one receiver holds them: the newest (by ``seq``, or a sender
+    that restarted) and the sender's clock."""
+
+    def __init__(self, sender: str) -> None:
+        self.sender = sender
+        self.clock = PlanClock()
+        self.held: Plan | None = None
+
+    def take(self, arrivals: list[tuple[float, Plan]], own: Callable[[float], float]) -> None:
+        for at, plan in arrivals:
+            self.clock.observe(plan, own(at))
+            old = self.held
+            if old is None or plan.seq > old.seq or plan.t > old.t + 1.0:
+                self.held = plan
+
+
+class PlatoonTruck:
+    def __init__(
+        self,
+        vid: str,
+        setup: SimSetup,
+        pcfg: PlatoonConfig,
+        x0: float,
+        v0: float,
+        range_fn: Any,
+        clock: tuple[float, float],
+        predecessor: str,
+        initial: str = CACC,
+    ) -> None:
+        self.vid = vid
+        cfg = setup.control
+        spec = setup.truck
+        truck = build_truck(spec, range_fn, v0=v0, x0=x0)
+        assert truck.link is not None
+        self.plant, self.fw, self.link = truck.plant, truck.firmware, truck.link
+        self.port = companion_port(self.link, clock=lambda: self.plant.t)
+        self.cyc = CompanionCycle(
+            setup.model,
+            cfg,
+            setup.supervisor,
+            spec.firmware.ticks_per_rev,
+            setup.stop_ramp_v_per_s,
+            time_budget=False,  # simulated time: judged by what the solver did
+        )
+        self.mode = PlatoonMode(pcfg, cfg.period, self.cyc.controller.forecast_steps, initial)
+        self.clock_offset, self.clock_drift = clock
+        self.predecessor = predecessor
+        self.source = PlanSource(predecessor)
+        self.standby = PlanSource("")
+        self.lane = 0
+        self.active = True
+        self.announce = True
+        """Publishes its plans (a truck about to join in the middle is silent until it
+        announces)."""
+        self.range_prev: float | None = None
+        self.pred_since = 0.0
+        """When this truck took its predecessor (simulated time, s)."""
+        self.out: CycleOutputs | None = None
+        self.dec: PlatoonDecision | None = None
+        self.order: Callable[[float | None], bool] | None = None
+        """Who to follow, given the gap the lead filter measures this cycle (None: no
+        lead); True when the predecessor changed."""
+        self._sync = True
+        self._now = 0.0
+        ctl = self.cyc.controller
+        law = ctl.control
+
+        def control(
+            est: Estimate, forecast: Sequence[float] | None = None, headway: float | None = None
+        ) -> ControlOutput:
+            # Between the estimate and the control law: a new vehicle ahead is seen by
+            # the order and the controller in the same cycle (no step on a stale headway).
+            if self.order is not None and self.order(est.gap if est.lead_valid else None):
+                forecast, headway = self._redecide()
+            return law(est, forecast, headway)
+
+        setattr(ctl, "control", control)  # noqa: B010 (an instance's own control law)
+
+    def _redecide(self) -> tuple[list[float] | None, float]:
+        """After a change of predecessor within the cycle: the new headway and forecast."""
+        plan = self.plan_in(self._sync)
+        m = self.mode
+        fc = None
+        if (
+            m.mode == CACC
+            and plan is not None
+            and (m.fresh(plan, self._now) or m.held(plan, self._now))
+        ):
+            fc = lead_forecast(plan, self._now, m.period, m.horizon)
+        if self.dec is not None:
+            self.dec = replace(self.dec, headway=m.headway, forecast=fc)
+        return fc, m.headway
+
+    def own(self, t: float) -> float:
+        """This truck's clock at simulated time t (s)."""
+        return self.clock_offset + (1.0 + self.clock_drift) * t
+
+    def plan_in(self, sync: bool) -> Plan | None:
+        """The predecessor's newest plan on this truck's clock (as received when the
+        clocks are taken as synchronised)."""
+        return self.source.clock.to_own(self.source.held) if sync else self.source.held
+
+    def cycle(self, t: float, plan: Plan | None) -> None:
+        """One cycle at simulated time t (s): the daemon's companion cycle with the
+        platoon's forecast and headway (decided on the truck's own clock); the command
+        goes to the simulated firmware."""
+        self._now = self.own(t)
+        self.dec = follower_inputs(self.mode, self._now, plan, self.out, self.cyc.control_cfg.d_0)
+        self.out = self.cyc.step(
+            CycleInputs(
+                t,
+                self.port.poll(),
+                self.link.connected,
+                lead_forecast=self.dec.forecast,
+                headway=self.dec.headway,
+            )
+        )
+        self.port.send(self.out.command)
+        if self.out.heartbeat is not None:
+            self.port.send(self.out.heartbeat)
+
+    def time_gap(self, gap: float) -> float:
+        d_0 = self.cyc.control_cfg.d_0
+        return (gap - d_0) / self.plant.v if self.plant.v > 0.1 else math.nan
+
+
+def with_delay(s: SimSetup, delay: float) -> SimSetup:
+    pc, model = s.plant_config, s.model
+    d = max(pc.effects.input_delay, delay)
+    return replace(
+        s,
+        plant_config=replace(pc, effects=replace(pc.effects, input_delay=d)),
+        model=replace(model, effects=replace(model.effects, input_delay=d)),
+    )
+
+
+def drawn_summary(s: SimSetup) -> dict[str, Any]:
+    p, eff = s.plant_params, s.plant_config.effects
+    return {
+        "m": p.m,
+        "K_v": p.K_v,
+        "R_m": p.R_m,
+        "effects": {n: getattr(eff, n) for n in eff.active()},
+    }
