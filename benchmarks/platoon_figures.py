@@ -35,8 +35,12 @@ def _run(name: str, pcfg: PlatoonConfig, loss: float, delay: float, n: int) -> d
     return m
 
 
+def _ratios(xs: list[float | None]) -> list[float | None]:
+    return [None if x is None else round(x, 3) for x in xs]
+
+
 def _stable(m: dict[str, Any]) -> bool:
-    return all(r <= 1.0 for r in m["string_ratio_l2"] + m["string_ratio_max"])
+    return all(r is None or r <= 1.0 for r in m["string_ratio_l2"] + m["string_ratio_max"])
 
 
 def main() -> int:
@@ -61,8 +65,8 @@ def main() -> int:
                         "policy": policy,
                         "collision": m["collision"],
                         "min_gap_m": round(m["min_gap_m"], 4),
-                        "string_ratio_l2": [round(x, 3) for x in m["string_ratio_l2"]],
-                        "string_ratio_max": [round(x, 3) for x in m["string_ratio_max"]],
+                        "string_ratio_l2": _ratios(m["string_ratio_l2"]),
+                        "string_ratio_max": _ratios(m["string_ratio_max"]),
                         "spacing_error_max_m": [round(x, 4) for x in m["spacing_error_max_m"]],
                         "string_stable": _stable(m),
                     }

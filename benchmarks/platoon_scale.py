@@ -74,14 +74,17 @@ CASES: tuple[tuple[str, dict[str, Any]], ...] = (
 
 def _summary(m: dict[str, Any], seconds: float) -> dict[str, Any]:
     def mx(key: str) -> float:
-        return max(m[key]) if m[key] else float("nan")
+        known = [r for r in m[key] if r is not None]
+        return max(known) if known else float("nan")
 
     return {
         "collision": m["collision"],
         "min_gap_m": round(m["min_gap_m"], 4),
         "string_ratio_l2_max": round(mx("string_ratio_l2"), 3),
         "string_ratio_max_max": round(mx("string_ratio_max"), 3),
-        "string_ratios_above_1": sum(r > 1.0 for r in m["string_ratio_l2"] + m["string_ratio_max"]),
+        "string_ratios_above_1": sum(
+            r is not None and r > 1.0 for r in m["string_ratio_l2"] + m["string_ratio_max"]
+        ),
         "accel_ratio_l2_max": round(mx("accel_ratio_l2"), 3),
         "accel_ratio_max_max": round(mx("accel_ratio_max"), 3),
         "spacing_error_max_first_last_m": [

@@ -297,6 +297,10 @@ def test_huge_values_are_not_rendered(tmp_path: Path) -> None:
         (["sim", "--duration", "1e308"], "expected a number of seconds in (0, 86400] (24 h)"),
         (["sim", "--duration", "-1"], "expected a number of seconds in (0, 86400]"),
         (["sim", "--duration", "nan"], "expected a number of seconds"),
+        (
+            ["sim", "--platoon", "4", "--duration", "0.5"],
+            "--duration: a platoon run needs at least 1 s",
+        ),
         (["monitor", "--interval", "inf"], "expected a number of seconds in (0, 3600]"),
         (["monitor", "--duration", "-1"], "expected a number of seconds in [0,"),
         (["run", "--config", "x.yaml", "--duration", "inf"], "expected a number of seconds"),

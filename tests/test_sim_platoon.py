@@ -105,6 +105,15 @@ def test_string_ratios_of_growing_errors_exceed_one() -> None:
     assert l2 == pytest.approx([1.5, 0.8]) and mx == pytest.approx([1.5, 0.8], rel=1e-3)
 
 
+def test_a_ratio_against_a_truck_not_yet_in_the_lane_is_none() -> None:
+    # the second column is a truck that joins after the window: no error to compare with
+    t = np.linspace(0.0, 10.0, 1001)
+    base = np.sin(t)
+    l2, mx = string_ratios(np.column_stack([base, np.zeros_like(base), 0.5 * base]))
+    assert l2[0] == 0.0 and mx[0] == 0.0
+    assert l2[1] is None and mx[1] is None
+
+
 def test_comm_loss_falls_back_to_acc_and_returns_to_cacc(monkeypatch: pytest.MonkeyPatch) -> None:
     delivered: dict[str, list[float]] = {}
     original = PlanChannel.receive

@@ -23,6 +23,9 @@ from truckd.sim.platoon import (
 )
 from truckd.sim.report import json_safe, trace_text
 
+# the shortest platoon run whose spacing errors the string ratios can compare (s)
+MIN_PLATOON_DURATION_S = 1.0
+
 
 def add_platoon_arguments(p: argparse.ArgumentParser) -> None:
     """The platoon options of ``truckd sim``."""
@@ -106,6 +109,11 @@ def _check(args: argparse.Namespace) -> None:
         raise InputError(f"--plan-loss: expected a share from 0 to 1, got {args.plan_loss}")
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
         raise InputError(f"--duration: expected a positive number of seconds, got {args.duration}")
+    if args.duration is not None and args.duration < MIN_PLATOON_DURATION_S:
+        raise InputError(
+            f"--duration: a platoon run needs at least {MIN_PLATOON_DURATION_S:g} s to measure"
+            f" string ratios, got {args.duration:g}"
+        )
     for opt in ("realtime", "plot", "mcap"):  # --mcap was silently ignored
         if getattr(args, opt, None):
             raise InputError(f"--{opt}: not available with --platoon")
@@ -123,8 +131,8 @@ def parse_delay(text: str) -> tuple[float, float]:
     return lo, hi
 
 
-def _fmt(xs: list[float]) -> str:
-    return " ".join(f"{x:.2f}" for x in xs)
+def _fmt(xs: list[float | None]) -> str:
+    return " ".join("-" if x is None else f"{x:.2f}" for x in xs)
 
 
 def run_platoon_cli(args: argparse.Namespace) -> int:

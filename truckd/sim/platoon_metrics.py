@@ -99,14 +99,18 @@ def record_cycle(
         )
 
 
-def string_ratios(err: np.ndarray) -> tuple[list[float], list[float]]:
+def string_ratios(err: np.ndarray) -> tuple[list[float | None], list[float | None]]:
     """``(l2, max)`` ratios for each follower i >= 2 from spacing errors ``err`` (rows:
-    samples; columns: followers 1..N-1)."""
-    l2, mx = [], []
+    samples; columns: followers 1..N-1). A ratio is ``None`` where the truck ahead made no
+    spacing error in the window (it was not yet in the lane: a truck that joins after the
+    run ends), so there is nothing to compare with."""
+    l2: list[float | None] = []
+    mx: list[float | None] = []
     for j in range(1, err.shape[1]):
         a, b = err[:, j - 1], err[:, j]
-        l2.append(float(np.linalg.norm(b) / np.linalg.norm(a)) if np.any(a) else math.inf)
-        mx.append(float(np.max(np.abs(b)) / np.max(np.abs(a))) if np.any(a) else math.inf)
+        defined = bool(np.any(a))
+        l2.append(float(np.linalg.norm(b) / np.linalg.norm(a)) if defined else None)
+        mx.append(float(np.max(np.abs(b)) / np.max(np.abs(a))) if defined else None)
     return l2, mx
 
 
@@ -142,7 +146,8 @@ def platoon_metrics(
     # acceleration ratios: the 0.5 s mean of each truck's true acceleration (the lead's
     # manoeuvre as it travels down the platoon; a truck's own actuation ripple, from a
     # dead zone or the encoder, averaged out), pairs as above
-    win = max(1, round(ACCEL_WINDOW_S / dt))
+    # (no wider than the run: a run shorter than the window averages over all of it)
+    win = max(1, min(round(ACCEL_WINDOW_S / dt), len(accel)))
     smooth = np.array(
         [
             np.convolve(np.nan_to_num(accel[:, j]), np.ones(win) / win, "same")
