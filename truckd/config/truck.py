@@ -10,15 +10,15 @@ from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 
+from truckd.config.characterize import CharacterizeConfig
 from truckd.config.ids import vehicle_id_problem
+from truckd.config.runtime import RuntimeConfig
 from truckd.control.config import ControlConfig
 from truckd.control.platoon import PlatoonConfig
 from truckd.inputs import read_text
 from truckd.io.config import LinkConfig
 from truckd.model.params import VehicleParams
 from truckd.model.plant_config import PlantConfig, encoder_ticks_per_rev
-from truckd.runtime.characterize_config import CharacterizeConfig
-from truckd.runtime.config import RuntimeConfig
 from truckd.schema import load_dataclass, spec
 from truckd.yamlsafe import MAX_BYTES, load_yaml
 

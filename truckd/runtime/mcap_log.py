@@ -42,7 +42,7 @@ from mcap.records import Channel, Footer, Message, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
-from truckd.runtime.config import RecorderConfig
+from truckd.config.runtime import RecorderConfig
 from truckd.runtime.deferred import MessageSource, resolve
 from truckd.runtime.msg_schemas import KINDS, MESSAGE_ENCODING, SCHEMA_ENCODING, schema_bytes
 from truckd.runtime.msg_schemas import topic as topic_of

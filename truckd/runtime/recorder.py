@@ -24,8 +24,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import BinaryIO, Protocol
 
+from truckd.config.runtime import RecorderConfig
 from truckd.errors import TruckdError
-from truckd.runtime.config import RecorderConfig
 
 log = logging.getLogger("truckd.recorder")
 
