@@ -45,6 +45,7 @@ from firmware_protocol.fwcore import (
     FirmwareCore,
 )
 from firmware_protocol.messages import FirmwareFault, FirmwareState, MotorCommand
+from firmware_protocol.timing import timing
 from truckd.io.inproc import Wire, inproc_pair
 from truckd.io.link import FramedStreamLink, Link
 from truckd.model.plant_config import encoder_ticks_per_rev as encoder_ticks_per_rev
@@ -66,11 +67,11 @@ class FirmwareSimConfig:
     """Behaviour of the simulated microcontroller and its sensors."""
 
     cmd_timeout: float = spec(
-        "motor off when no valid command for this long",
+        "motor off when no valid command for this long (truck.dbc: MOTOR_CMD's TruckTimeoutTime)",
         unit="s",
         lo=0.001,
         hi=10.0,
-        default=0.1,
+        default=timing().cmd_timeout,
     )
     ticks_per_rev: int = spec("encoder ticks per wheel revolution", lo=1, hi=65535, default=512)
     range_min: float = spec(
