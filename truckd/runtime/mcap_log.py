@@ -151,6 +151,9 @@ class McapLog:
     times at most).
     """
 
+    suffix = ".mcap"
+    """Beside each CSV file: ``<log>.mcap``."""
+
     def __init__(
         self,
         vehicle_id: str,
@@ -247,8 +250,9 @@ class McapLog:
         if self.errors <= 3:
             log.error("mcap %s failed: %s", what, exc)
 
-    def open(self, path: Path) -> None:
-        """Finish the current file and start ``path`` (the recorder rotated its CSV)."""
+    def open(self, path: Path, rows: int = 0) -> None:
+        """Finish the current file and start ``path`` (the recorder rotated its CSV after
+        ``rows`` rows: not used, messages go to the file open when they are written)."""
         with self._lock:
             self._finish()
             try:
