@@ -54,9 +54,13 @@ def cycle_from_params(params: dict[str, Any], t0: float, source: str) -> Compani
         sup = load_dataclass(SupervisorConfig, params["runtime"]["supervisor"], source)
         ramp = float(params["runtime"]["stop_ramp_v_per_s"])
         ticks = int(params["ticks_per_rev"])
-    except (KeyError, TypeError) as exc:
+        # A run recorded before `runtime.stall_limit_s` existed detected no stalls.
+        stall = float(params["runtime"].get("stall_limit_s", math.inf))
+    except (KeyError, TypeError, ValueError) as exc:
         raise InputError(f"{source}: line 1: parameters incomplete: missing {exc}") from None
-    return CompanionCycle(model, control, sup, ticks, ramp, time_budget=False, t0=t0)
+    return CompanionCycle(
+        model, control, sup, ticks, ramp, time_budget=False, t0=t0, stall_limit_s=stall
+    )
 
 
 class _CarFailures:
