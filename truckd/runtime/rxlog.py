@@ -29,6 +29,7 @@ from __future__ import annotations
 import json
 import logging
 import threading
+import time
 from collections import deque
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
@@ -48,6 +49,7 @@ from firmware_protocol.messages import (
 from truckd.errors import InputError
 from truckd.io.port import Received
 from truckd.runtime.cycle import CycleInputs, CycleOutputs
+from truckd.runtime.mcap_log import YIELD_S
 
 log = logging.getLogger("truckd.rxlog")
 
@@ -243,8 +245,13 @@ class RxLog:
             self.dropped += len(self._q)
             self._q.clear()
             return
+        last_yield = time.perf_counter()
         try:
             while self._q and (upto is None or self._q[0][0] < upto):
+                now = time.perf_counter()
+                if now - last_yield > YIELD_S:  # let a waking loop thread take the GIL
+                    time.sleep(0)
+                    last_yield = time.perf_counter()
                 seq, inp, failure = self._q.popleft()
                 if self._header_due:
                     head = {"format": FORMAT, "t0": self.t0, "seq0": seq}
