@@ -147,12 +147,17 @@ def test_the_received_message_log_rotates_and_is_deleted_with_the_csv(tmp_path: 
     rec = Recorder(cfg, LOG_COLUMNS, sidecars=(rx,))
     rec.start()
     cyc = cycle_from_params(params, t0, "run")
-    outs = []
+    rows = []
     for inp in cycles:
         out = cyc.step(inp)
-        outs.append(out)
         rx.record(inp, out)
-        rec.record(cyc.log_row(out))
+        rows.append(cyc.log_row(out))
+    # the received messages queued well ahead of the CSV rows, and the writer's turn (as
+    # the recorder's thread takes it): it must not run ahead of the CSV
+    rx.write_pending(rec.rows)
+    assert rx.rows == 0
+    for row in rows:
+        rec.record(row)
     rec.stop()
     csvs = sorted(tmp_path.glob("*.csv"))
     rxs = sorted(tmp_path.glob("*.rx.jsonl"))

@@ -274,8 +274,8 @@ class McapLog:
                 except OSError as exc:
                     log.warning("cannot delete old log %s: %s", old, exc.strerror)
 
-    def write_pending(self) -> None:
-        """Encode and write every queued message."""
+    def write_pending(self, rows: int | None = None) -> None:
+        """Encode and write every queued message (``rows``, the CSV's, not used)."""
         with self._lock:
             f = self._file
             origin = self.origin_ns or 0

@@ -43,7 +43,11 @@ class Sidecar(Protocol):
         after them)."""
         ...
 
-    def write_pending(self) -> None: ...
+    def write_pending(self, rows: int | None = None) -> None:
+        """Write what is queued; ``rows``: the rows the CSV files hold so far (a sidecar
+        with one record per row writes no further)."""
+        ...
+
     def flush(self, force: bool = False) -> None: ...
     def close(self) -> None: ...
 
@@ -202,7 +206,7 @@ class Recorder:
             try:
                 self._write_pending()  # unbuffered: every row is with the OS
                 for sc in self.sidecars:
-                    sc.write_pending()
+                    sc.write_pending(self.rows)
                     sc.flush()
             except OSError as exc:
                 self.errors += 1

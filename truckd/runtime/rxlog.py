@@ -233,10 +233,12 @@ class RxLog:
                 except OSError as exc:
                     log.warning("cannot delete old log %s: %s", old, exc.strerror)
 
-    def write_pending(self) -> None:
-        """Write every queued cycle (the header first, once the run has started)."""
+    def write_pending(self, rows: int | None = None) -> None:
+        """Write the queued cycles (the header first, once the run has started): those
+        before cycle ``rows`` when given (the CSV's rows so far, one per cycle: this file
+        never runs ahead of its CSV, so each holds its CSV's cycles), else every one."""
         with self._lock:
-            self._write(None)
+            self._write(rows)
 
     def _write(self, upto: int | None) -> None:
         """Write the queued cycles (those before cycle ``upto`` when given)."""
