@@ -60,6 +60,8 @@ from truckd.sim.closed_loop import SimSetup, run_scenario
 from truckd.sim.plant import Plant
 from truckd.sim.scenarios import World, make_scenario
 
+TICKS = load_config().ticks_per_rev
+
 SPARSE_EPS_UNTIL_2026_11_23 = 1e-5
 """The OSQP tolerance the sparse QP shipped with until 2026-11-23 (``sparse_1e-5`` rows)."""
 
@@ -96,7 +98,7 @@ def record_sequence(
 ) -> list[tuple[str, QpInputs]]:
     """QPs the controller solves in a closed-loop stop-and-go run with ideal estimates
     (the true speed and gap: smoother than on the car, so warm starts fare better)."""
-    ctrl = Controller(model, cfg.in_simulated_time())
+    ctrl = Controller(model, cfg.in_simulated_time(), TICKS)
     seq: list[tuple[str, QpInputs]] = []
     inner = ctrl.mpc.solve
 

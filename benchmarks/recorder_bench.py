@@ -40,7 +40,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from truckd.runtime.config import RecorderConfig  # noqa: E402
+from truckd.config.runtime import RecorderConfig  # noqa: E402
 from truckd.runtime.daemon import LOG_COLUMNS  # noqa: E402
 from truckd.runtime.mcap_log import McapFile, McapLog, to_json  # noqa: E402
 from truckd.runtime.recorder import Recorder  # noqa: E402

@@ -30,12 +30,16 @@ from collections.abc import Iterable
 from dataclasses import asdict, dataclass, field
 
 from firmware_protocol.codec import Decoded, DecodeError, Frame, decode, specs
+from firmware_protocol.timing import timing
 
-MAX_DELTA = 3
-"""The largest forward counter jump taken as lost frames (two lost in a row)."""
-RESYNC = 16
+MAX_DELTA = timing().counter_max_delta
+"""The largest forward counter jump taken as lost frames (two lost in a row; truck.dbc's
+``TruckCounterMaxDelta``)."""
+RESYNC = timing().counter_resync
 """In-sequence frames needed after a larger jump before frames are accepted again (more
-than any replay loop a 4-bit counter can tell)."""
+than any replay loop a 4-bit counter can tell; truck.dbc's ``TruckCounterResync``)."""
+COUNTER_MODULO = timing().counter_modulo
+"""COUNTER counts 0 .. COUNTER_MODULO - 1 (the width of truck.dbc's COUNTER signals)."""
 
 
 @dataclass
@@ -85,8 +89,8 @@ class RxChecker:
     """
 
     expect: Iterable[str]
-    timeout_periods: float = 5.0
-    max_wrong_counters: int = 5
+    timeout_periods: float = float(timing().freshness_periods)
+    max_wrong_counters: int = timing().counter_max_wrong
     stats: RxStats = field(default_factory=RxStats)
     resync: int = 0
     """In-sequence frames needed after a jump beyond :data:`MAX_DELTA` (0: no such rule)."""
@@ -124,7 +128,7 @@ class RxChecker:
             st.counter_errors += 1  # stuck sender or replay, even after a timeout
             return None
         if ms.resync > 0:  # after a large jump: a run of in-sequence frames first
-            step = (dec.counter - ms.chain) % 16
+            step = (dec.counter - ms.chain) % COUNTER_MODULO
             ms.resync = ms.resync - 1 if 1 <= step <= MAX_DELTA else self.resync
             ms.chain = dec.counter
             if ms.resync > 0:
@@ -132,7 +136,7 @@ class RxChecker:
                 return None
             # the run restarts the sequence, as after a timeout: accepted below, unscored
         elif ms.last_counter is not None and not ms.stale:
-            jump = (dec.counter - ms.last_counter) % 16
+            jump = (dec.counter - ms.last_counter) % COUNTER_MODULO
             if self.resync and jump > MAX_DELTA:
                 ms.resync, ms.chain = self.resync, dec.counter
                 st.counter_errors += 1

@@ -102,12 +102,14 @@ def _bit_range(f: Field) -> tuple[int, int]:
 class Layout:
     """Packs and unpacks one message's raw signal values (compiled from the DBC)."""
 
-    __slots__ = ("checked", "checksum", "fields", "length")
+    __slots__ = ("checked", "checksum", "counter_mask", "fields", "length")
 
     def __init__(self, fields: tuple[Field, ...], length: int) -> None:
         self.fields = fields
         self.length = length
         self.checksum = next(f for f in fields if f.name == "CHECKSUM")
+        self.counter_mask = next(f.mask for f in fields if f.name == "COUNTER")
+        """COUNTER wraps at ``counter_mask + 1`` (its width in the DBC)."""
         self.checked = tuple(f for f in fields if (f.lo, f.hi) != _bit_range(f))
         """The fields whose raw range is narrower than their bits (the only ones a
         received value can fall outside of)."""
@@ -283,9 +285,10 @@ def encode_raw(name: str, raw: Mapping[str, int], counter: int) -> Frame:
     Raises :class:`EncodeError` for a missing or unknown signal or a raw value outside the
     DBC's range (as cantools' strict encoding does)."""
     values = dict(raw)
-    values["COUNTER"] = counter & 0xF
+    spec = specs()[name]
+    values["COUNTER"] = counter & spec.layout.counter_mask
     values["CHECKSUM"] = 0
-    return _pack(specs()[name], values)
+    return _pack(spec, values)
 
 
 def _pack(spec: MessageSpec, values: Mapping[str, int]) -> Frame:
@@ -299,15 +302,16 @@ def _pack(spec: MessageSpec, values: Mapping[str, int]) -> Frame:
 
 
 def encode(msg: Message, counter: int) -> Frame:
-    """The frame of a typed message with COUNTER = ``counter`` mod 16.
+    """The frame of a typed message with COUNTER = ``counter`` modulo its range (16).
 
     Values are rounded to the signal resolution and clamped to its range; a non-finite
     value raises ValueError (nothing is sent).
     """
     name, raw = _signals(msg)  # a new dict: completed in place
-    raw["COUNTER"] = counter & 0xF
+    spec = specs()[name]
+    raw["COUNTER"] = counter & spec.layout.counter_mask
     raw["CHECKSUM"] = 0
-    return _pack(specs()[name], raw)
+    return _pack(spec, raw)
 
 
 def decode_raw(frame: Frame) -> tuple[MessageSpec, dict[str, int]]:

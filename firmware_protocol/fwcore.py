@@ -29,6 +29,8 @@ from functools import cache
 from pathlib import Path
 from typing import Any, Literal, Protocol, TypeVar
 
+from firmware_protocol.timing import timing
+
 FIRMWARE_DIR = Path(__file__).with_name("firmware")
 """Sources and Makefile of the firmware core."""
 
@@ -180,6 +182,7 @@ def _sources() -> list[Path]:
         d.parent / "c" / "truck.h",
         d.parent / "c" / "truck_framing.c",
         d.parent / "c" / "truck_framing.h",
+        d.parent / "c" / "truck_timing.h",
     ]
 
 
@@ -341,9 +344,9 @@ class CoreConfig:
     """struct truck_fw_config (see truck_fw.h)."""
 
     link: Literal["serial", "can"] = "serial"
-    cmd_timeout_ms: int = 100
-    timeout_periods: int = 5
-    max_wrong_counters: int = 5
+    cmd_timeout_ms: int = round(timing().cmd_timeout * 1000.0)
+    timeout_periods: int = timing().freshness_periods
+    max_wrong_counters: int = timing().counter_max_wrong
     undervoltage_mv: int = 5500
     range_min_mm: int = 20
     range_max_mm: int = 4000

@@ -1,11 +1,15 @@
-"""Generate the microcontroller's C pack/unpack code from truck.dbc, or check it is in sync.
+"""Generate the microcontroller's C pack/unpack code and protocol timing from truck.dbc, or
+check they are in sync.
 
-    python -m firmware_protocol.generate          # write c/truck.h and c/truck.c
+    python -m firmware_protocol.generate          # write c/truck.h, c/truck.c, c/truck_timing.h
     python -m firmware_protocol.generate --check  # exit 1 when they differ from the DBC
 
 Uses cantools' C generator (``cantools generate_c_source``, rounding on); the timestamp
-in the banner is removed so the output is reproducible.  The framing and checksum C
-code (``c/truck_framing.[ch]``) is hand-written and tested against Python.
+in the banner is removed so the output is reproducible.  ``c/truck_timing.h`` holds the
+protocol timing (command timeout, counter width and limits, freshness periods) from the
+DBC's attributes (:mod:`firmware_protocol.timing`, which Python reads the same numbers
+from).  The framing and checksum C code (``c/truck_framing.[ch]``) is hand-written and
+tested against Python.
 """
 
 from __future__ import annotations
@@ -19,6 +23,7 @@ from pathlib import Path
 from cantools.database.can.c_source import generate
 
 from firmware_protocol.codec import DBC_PATH, database
+from firmware_protocol.timing import c_header
 
 C_DIR = Path(__file__).with_name("c")
 NAME = "truck"
@@ -34,6 +39,7 @@ def render() -> dict[str, str]:
     return {
         f"{NAME}.h": _BANNER.sub(banner, header),
         f"{NAME}.c": _BANNER.sub(banner, source),
+        f"{NAME}_timing.h": c_header(),
     }
 
 

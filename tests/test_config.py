@@ -112,3 +112,22 @@ def test_plant_vehicle_takes_any_subset_of_the_vehicle_keys() -> None:
     others = [k for k in GOOD["vehicle"] if k not in ("m", "K_v")]
     assert all(getattr(p, k) == getattr(cfg.vehicle, k) for k in others)
     assert load_config().plant_vehicle == load_config().vehicle  # none given: the same truck
+
+
+def test_the_configuration_imports_nothing_of_the_runtime() -> None:
+    """config is below runtime: loading the configuration (every section, the runtime's and
+    characterize's included) loads no truckd.runtime module (the runtime imports config)."""
+    import json
+    import subprocess
+    import sys
+
+    probe = (
+        "import json, sys\nimport truckd.config.truck\n"
+        "print(json.dumps(sorted(m for m in sys.modules if m.startswith('truckd.'))))"
+    )
+    r = subprocess.run(
+        [sys.executable, "-c", probe], capture_output=True, text=True, timeout=120, check=True
+    )
+    loaded = set(json.loads(r.stdout))
+    assert "truckd.config.runtime" in loaded and "truckd.config.characterize" in loaded
+    assert not {m for m in loaded if m.startswith("truckd.runtime")}

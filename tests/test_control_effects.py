@@ -32,6 +32,8 @@ from truckd.sim.closed_loop import SimSetup, run_scenario
 from truckd.sim.plant import Plant, PlantConfig
 from truckd.sim.scenarios import make_scenario
 
+TICKS = load_config().ticks_per_rev
+
 # -- closed loop ---------------------------------------------------------------------------
 
 
@@ -219,7 +221,7 @@ def test_delay_predictor_predicts_the_plants_speed_when_the_command_acts() -> No
     tc = load_config()
     p, delay, dt = _truck(), 0.08, tc.control.period
     eff = Effects(input_delay=delay)
-    ctrl = Controller(ControlModel(p, eff), tc.control)
+    ctrl = Controller(ControlModel(p, eff), tc.control, TICKS)
     plant = Plant(p, PlantConfig(effects=eff))
     plant.reset(v=0.8)
     commands = [2.6] * 40 + [4.5, 5.0, 5.5, 5.5, 5.5, 3.0, 2.0, 2.0]
@@ -242,7 +244,7 @@ def test_delay_predictor_predicts_the_plants_speed_when_the_command_acts() -> No
 
 def test_clean_truck_gap_error_unchanged_by_an_empty_model() -> None:
     """No effect in the model: the maps are identities (the default controller)."""
-    ctrl = Controller(ControlModel(_truck()), load_config().control)
+    ctrl = Controller(ControlModel(_truck()), load_config().control, TICKS)
     assert not ctrl.dead_zone.active
     assert ctrl._command(3.3) == 3.3
     assert np.isnan(ctrl.current)
@@ -254,7 +256,7 @@ def test_saturated_plan_stays_within_the_drivers_limit_without_wind_up() -> None
     integrator (which grows while the command ramps up) does not wind up at the limit."""
     tc = load_config()
     cfg = dataclasses.replace(tc.control, disturbance_gain=0.05)
-    ctrl = Controller(ControlModel(_truck(), Effects(voltage_saturation=3.0)), cfg)
+    ctrl = Controller(ControlModel(_truck(), Effects(voltage_saturation=3.0)), cfg, TICKS)
     assert ctrl.u_max == 3.0
     est = Estimate(0.5, True, math.nan, math.nan, False, "none", math.nan, 0, 0, 0, 0)
     us, dist = [], []

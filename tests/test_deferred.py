@@ -15,8 +15,8 @@ from typing import Any
 import zenoh
 from runtime_support import endpoint, free_port, wait_for
 
+from truckd.config.runtime import RecorderConfig, TelemetryConfig
 from truckd.control.platoon import PlatoonDecision
-from truckd.runtime.config import RecorderConfig, TelemetryConfig
 from truckd.runtime.cycle import state_message
 from truckd.runtime.daemon import _state_message
 from truckd.runtime.deferred import Deferred, resolve

@@ -26,7 +26,7 @@ from runtime_support import endpoint, free_port
 from websockets.sync.client import connect
 
 from truckd.cli.main import main
-from truckd.runtime.config import TelemetryConfig
+from truckd.config.runtime import TelemetryConfig
 from truckd.runtime.foxglove_relay import clean_payload
 from truckd.runtime.msg_schemas import SCHEMAS
 from truckd.runtime.telemetry import Telemetry, open_session, zenoh_config

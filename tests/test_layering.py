@@ -51,12 +51,8 @@ LAB = ("truckd.sim", "truckd.ident")
 CAR = tuple(u for layer in LAYERS[: LAYERS.index(("truckd.sim", "truckd.ident"))] for u in layer)
 """What the daemon on the truck needs: every unit below the lab."""
 
-ALLOWED_UP = {
-    ("truckd.config.truck", "truckd.runtime.config"),
-    ("truckd.config.truck", "truckd.runtime.characterize_config"),
-}
-"""Known imports back up, to be removed: the ``runtime:`` and ``characterize:`` sections
-still live in truckd/runtime/ (they move into truckd/config/)."""
+ALLOWED_UP: set[tuple[str, str]] = set()
+"""Known imports back up (``(module, imported)`` pairs), to be removed: none today."""
 
 
 def _allowed(module: str, name: str) -> bool:

@@ -19,9 +19,9 @@ import pytest
 from runtime_support import write_config
 
 from truckd.cli.main import main
+from truckd.config.runtime import RecorderConfig
 from truckd.config.truck import load_config
 from truckd.logfile import read_log
-from truckd.runtime.config import RecorderConfig
 from truckd.runtime.daemon import Daemon
 from truckd.runtime.mcap_log import McapContent, McapLog, read_mcap
 from truckd.runtime.msg_schemas import SCHEMAS

@@ -13,6 +13,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from truckd.config.truck import load_config
 from truckd.control.config import ControlConfig
 from truckd.control.controller import Controller
 from truckd.control.estimator import Estimate
@@ -20,6 +21,9 @@ from truckd.control.mpc import MpcSolver
 from truckd.control.qp import ControlModel, QpInputs, prediction_model
 from truckd.model.params import VehicleParams
 from truckd.sim.plant import Plant
+
+TICKS = load_config().ticks_per_rev
+"""Encoder ticks per wheel revolution of the shipped configuration."""
 
 FIRST_MOVE_TOL_V = 1e-3
 """OSQP at eps 1e-6 against CLARABEL: first moves agree to 1 mV (of a 14.4 V range); the
@@ -187,7 +191,7 @@ def _estimate(v: float, gap: float, v_lead: float, lead: bool = True) -> Estimat
 
 def test_solver_failure_holds_the_plan_then_brakes(params: VehicleParams) -> None:
     cfg = dataclasses.replace(ControlConfig(), plan_hold_steps=3).in_simulated_time()
-    ctrl = Controller(ControlModel(params), cfg)
+    ctrl = Controller(ControlModel(params), cfg, TICKS)
     est = _estimate(1.2, 1.12, 1.2)
     for _ in range(5):
         good = ctrl.control(est)
@@ -227,7 +231,7 @@ def test_command_is_always_finite_and_within_limits(
     assert abs(out.u - before) <= ctrl.cfg.du_max * ctrl.cfg.period + 1e-9
 
 
-_CTRL = Controller(ControlModel(_default_params()), dataclasses.replace(ControlConfig()))
+_CTRL = Controller(ControlModel(_default_params()), dataclasses.replace(ControlConfig()), TICKS)
 
 
 def test_lead_lost_stop_policy_brakes_and_cruise_policy_holds(params: VehicleParams) -> None:
@@ -235,7 +239,7 @@ def test_lead_lost_stop_policy_brakes_and_cruise_policy_holds(params: VehiclePar
     u_hold = params.K_v * params.omega(v)
     for policy in ("stop", "cruise"):
         cfg = dataclasses.replace(ControlConfig(), on_lead_lost=policy).in_simulated_time()
-        ctrl = Controller(ControlModel(params), cfg)
+        ctrl = Controller(ControlModel(params), cfg, TICKS)
         ctrl.u_prev = u_hold
         out = ctrl.control(_estimate(v, math.nan, math.nan, lead=False))
         assert out.fallback_reason is None
@@ -251,7 +255,7 @@ def test_lead_forecast_hook_changes_the_plan(params: VehicleParams) -> None:
     est = _estimate(1.2, 1.12, 1.2)
     end_speeds = []
     for forecast in (None, list(np.linspace(1.2, 0.0, cfg.horizon))):
-        ctrl = Controller(ControlModel(params), cfg)
+        ctrl = Controller(ControlModel(params), cfg, TICKS)
         ctrl.u_prev = params.K_v * params.omega(1.2)
         assert ctrl.control(est, forecast).fallback_reason is None
         z = ctrl.mpc.last_solution
@@ -279,7 +283,7 @@ def test_a_lead_forecast_is_padded_capped_and_refused_when_not_finite(
     assert horizon(est, None, n, 0.8) == [0.8] * n
     assert all(type(x) is float for x in horizon(est, list(np.linspace(1, 0, n)), n, cap))
     # and what the solver then saw: the filled inputs end with the capped forecast
-    ctrl = Controller(ControlModel(params), cfg)
+    ctrl = Controller(ControlModel(params), cfg, TICKS)
     ctrl.u_prev = params.K_v * params.omega(1.2)
     assert ctrl.control(est, [0.5, math.nan]).fallback_reason is None
     cq = ctrl.mpc.condensed
@@ -324,7 +328,7 @@ def test_without_any_plan_a_failure_holds_the_last_command_then_brakes(
     params: VehicleParams,
 ) -> None:
     cfg = dataclasses.replace(ControlConfig(), max_iter=1, plan_hold_steps=2).in_simulated_time()
-    ctrl = Controller(ControlModel(params), cfg)
+    ctrl = Controller(ControlModel(params), cfg, TICKS)
     ctrl.u_prev = 2.5
     outs = [ctrl.control(_estimate(1.2, 1.12, 1.2)) for _ in range(4)]
     reasons = [o.fallback_reason or "" for o in outs]
@@ -338,7 +342,7 @@ def test_a_non_finite_speed_marked_valid_is_no_speed(params: VehicleParams, bad:
     """Taking it as 0 m/s would plan for a truck at rest (breakaway kick, no braking)
     while it may be moving: the fallback runs instead, and the command stays in limits."""
     cfg = ControlConfig().in_simulated_time()
-    ctrl = Controller(ControlModel(params), cfg)
+    ctrl = Controller(ControlModel(params), cfg, TICKS)
     ctrl.u_prev = 3.0
     out = ctrl.control(_estimate(bad, 0.5, 1.0))
     assert out.fallback_reason is not None and out.solver_status == "not-run"
@@ -352,7 +356,7 @@ def test_standstill_hold_enters_at_rest_and_releases_with_hysteresis(
     Noise between the entry and release thresholds keeps the hold; a release condition must
     last hold_release_cycles; then the MPC starts the truck with the breakaway feedforward."""
     cfg = ControlConfig().in_simulated_time()
-    ctrl = Controller(ControlModel(params), cfg)
+    ctrl = Controller(ControlModel(params), cfg, TICKS)
     ctrl.u_prev = 0.4  # the creep's last command
     gap = cfg.d_0 + 0.8 * cfg.hold_gap_tol
     out = ctrl.control(_estimate(0.0, gap, 0.0))
@@ -392,10 +396,10 @@ def test_standstill_hold_not_entered_when_moving_far_or_lead_moving(
         _estimate(0.0, near, 2.0 * cfg.hold_lead_speed),  # lead moving
         _estimate(0.0, math.nan, math.nan, lead=False),  # no lead
     ):
-        ctrl = Controller(ControlModel(params), cfg)
+        ctrl = Controller(ControlModel(params), cfg, TICKS)
         assert ctrl.control(est).mode != "hold"
     # A gap below d_0 (stopped short) is held too: never reverse to open it.
-    ctrl = Controller(ControlModel(params), cfg)
+    ctrl = Controller(ControlModel(params), cfg, TICKS)
     assert ctrl.control(_estimate(0.0, cfg.d_min + 0.01, 0.0)).mode == "hold"
 
 
@@ -442,7 +446,7 @@ def test_a_stale_speed_ramps_to_zero_volts_never_brakes_on_it(params: VehiclePar
     estimator refusing a rebooted microcontroller's samples): without a speed the command
     goes to 0 V at the rate limit and stays there, never below."""
     cfg = ControlConfig().in_simulated_time()
-    ctrl = Controller(ControlModel(params), cfg)
+    ctrl = Controller(ControlModel(params), cfg, TICKS)
     ctrl.u_prev = 3.0
     stale = dataclasses.replace(_estimate(1.25, 1.0, 1.25), speed_valid=False)
     outs = [ctrl.control(stale) for _ in range(300)]

@@ -14,11 +14,11 @@ from typing import Any
 import pytest
 from runtime_support import endpoint, free_port
 
+from truckd.config.runtime import TelemetryConfig
 from truckd.config.truck import load_config
 from truckd.control.platoon import PlatoonConfig, encode_plan, kinematic_plan
 from truckd.control.qp import ControlModel
 from truckd.runtime import platoon_link
-from truckd.runtime.config import TelemetryConfig
 from truckd.runtime.cycle import CompanionCycle
 from truckd.runtime.monitor import FleetView
 from truckd.runtime.platoon_link import MAX_PLAN_BYTES, DaemonPlatoon, PlanReceiver

@@ -8,6 +8,7 @@ from dataclasses import replace
 
 import pytest
 
+from truckd.config.truck import load_config
 from truckd.control.platoon import (
     ACC,
     CACC,
@@ -20,6 +21,8 @@ from truckd.control.platoon import (
     make_plan,
     plan_speed,
 )
+
+TICKS = load_config().ticks_per_rev
 
 
 def test_plan_round_trip_and_accelerations() -> None:
@@ -190,7 +193,7 @@ def test_controller_headway_hook_sets_the_spacing_it_drives() -> None:
     est = Estimate(v, True, gap, v, True, "tracking", 0.01, 0, 0, 10, 10)
     ends = {}
     for h in (1.1, None):
-        ctrl = Controller(ControlModel(cfg.vehicle), control)
+        ctrl = Controller(ControlModel(cfg.vehicle), control, TICKS)
         ctrl.u_prev = cfg.vehicle.K_v * cfg.vehicle.omega(v)
         out = ctrl.control(est, None, h)
         assert out.fallback_reason is None

@@ -13,9 +13,9 @@ import pytest
 import zenoh
 from runtime_support import endpoint, free_port, wait_for, write_config
 
+from truckd.config.runtime import TelemetryConfig
 from truckd.config.truck import load_config
 from truckd.control.platoon import encode_plan, kinematic_plan
-from truckd.runtime.config import TelemetryConfig
 from truckd.runtime.daemon import Daemon
 from truckd.runtime.platoon_link import PlanReceiver
 from truckd.runtime.telemetry import Telemetry, zenoh_config

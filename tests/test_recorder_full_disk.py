@@ -12,8 +12,8 @@ from typing import BinaryIO
 from cli_support import run_limited
 from runtime_support import write_config
 
+from truckd.config.runtime import RecorderConfig
 from truckd.logfile import read_log
-from truckd.runtime.config import RecorderConfig
 from truckd.runtime.recorder import Recorder
 
 

@@ -11,7 +11,7 @@ from collections.abc import Callable
 
 from runtime_support import endpoint, free_port
 
-from truckd.runtime.config import TelemetryConfig
+from truckd.config.runtime import TelemetryConfig
 from truckd.runtime.monitor import MAX_VEHICLES, STALE_S, FleetView
 from truckd.runtime.telemetry import Telemetry
 

@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from truckd.config.runtime import RecorderConfig
 from truckd.errors import TruckdError
 from truckd.logfile import read_log
-from truckd.runtime.config import RecorderConfig
 from truckd.runtime.recorder import Recorder
 
 COLS = ("t", "u", "v", "i", "gap", "mode")

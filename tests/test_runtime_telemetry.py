@@ -13,8 +13,8 @@ import pytest
 import zenoh
 from runtime_support import endpoint, free_port, wait_for, write_config
 
+from truckd.config.runtime import TelemetryConfig
 from truckd.errors import InputError
-from truckd.runtime.config import TelemetryConfig
 from truckd.runtime.telemetry import Telemetry, keys, zenoh_config
 
 

@@ -135,7 +135,7 @@ extern "C" {
 /**
  * Signals in message MOTOR_CMD.
  *
- * Armature voltage command; the MCU switches the motor off when no valid command arrives for 100 ms.
+ * Armature voltage command; the MCU switches the motor off when no valid command arrives for TruckTimeoutTime (100 ms).
  *
  * All signal values are as on the CAN bus.
  */

@@ -42,9 +42,9 @@ static uint32_t now_ms(const struct truck_fw *fw)
 void truck_fw_default_config(struct truck_fw_config *cfg)
 {
     cfg->link = TRUCK_FW_LINK_SERIAL;
-    cfg->timeout_periods = 5u;
-    cfg->max_wrong_counters = 5u;
-    cfg->cmd_timeout_ms = 100u;
+    cfg->timeout_periods = TRUCK_FRESHNESS_PERIODS; /* truck.dbc, via truck_timing.h */
+    cfg->max_wrong_counters = TRUCK_COUNTER_MAX_WRONG;
+    cfg->cmd_timeout_ms = TRUCK_MOTOR_CMD_TIMEOUT_MS;
     cfg->undervoltage_mv = 5500;
     cfg->range_min_mm = 20;
     cfg->range_max_mm = 4000;
@@ -232,7 +232,7 @@ void truck_fw_rx_frame(struct truck_fw *fw, uint16_t can_id, const uint8_t *data
         /* After a jump beyond TRUCK_FW_MAX_DELTA (a replayed loop of the last frames, or a
          * broken sender): a run of in-sequence frames first, timeouts included.  The loop
          * 6, 7, 6, 7, ... was accepted before and kept the motor driven. */
-        unsigned step = ((unsigned)counter - ms->chain) & 0xFu;
+        unsigned step = ((unsigned)counter - ms->chain) & TRUCK_COUNTER_MASK;
         ms->resync = (step >= 1u && step <= TRUCK_FW_MAX_DELTA) ? (uint8_t)(ms->resync - 1u)
                                                                  : TRUCK_FW_RESYNC;
         ms->chain = (uint8_t)counter;
@@ -243,7 +243,7 @@ void truck_fw_rx_frame(struct truck_fw *fw, uint16_t can_id, const uint8_t *data
         }
         /* the run restarts the sequence, as after a timeout: accepted below, unscored */
     } else if (ms->has_counter && !ms->stale) {
-        unsigned jump = ((unsigned)counter - ms->last_counter) & 0xFu;
+        unsigned jump = ((unsigned)counter - ms->last_counter) & TRUCK_COUNTER_MASK;
         if (jump > TRUCK_FW_MAX_DELTA) {
             ms->resync = TRUCK_FW_RESYNC;
             ms->chain = (uint8_t)counter;
@@ -490,7 +490,7 @@ static void publish(struct truck_fw *fw, unsigned i, uint32_t now)
     }
     uint8_t counter = tx->counter;
     if (!(hooks & TRUCK_FW_TX_STUCK_COUNTER)) {
-        tx->counter = (uint8_t)((counter + 1u) & 0xFu);
+        tx->counter = (uint8_t)((counter + 1u) & TRUCK_COUNTER_MASK);
     }
 #ifdef TRUCK_FW_FAULT_HOOKS
     if (fw->silent) {

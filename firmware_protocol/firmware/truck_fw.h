@@ -25,6 +25,7 @@
 
 #include "truck.h"
 #include "truck_framing.h"
+#include "truck_timing.h"
 #include "truck_hal.h"
 
 #ifdef __cplusplus
@@ -33,11 +34,11 @@ extern "C" {
 
 #define TRUCK_FW_ABI_VERSION 1u
 
-/** The largest forward counter jump taken as lost frames (two lost in a row). */
-#define TRUCK_FW_MAX_DELTA 3u
+/** The largest forward counter jump taken as lost frames (two lost in a row; truck.dbc). */
+#define TRUCK_FW_MAX_DELTA TRUCK_COUNTER_MAX_DELTA
 /** In-sequence frames needed after a larger jump before commands are accepted again (more
- *  than any replay loop a 4-bit counter can tell). */
-#define TRUCK_FW_RESYNC 16u
+ *  than any replay loop a 4-bit counter can tell; truck.dbc). */
+#define TRUCK_FW_RESYNC TRUCK_COUNTER_RESYNC
 
 /* Link kinds. */
 #define TRUCK_FW_LINK_SERIAL 0u

@@ -33,6 +33,7 @@ SUBCOMMANDS: dict[str, str] = {
     "identify": "truckd.cli.identify",
     "diagnose": "truckd.cli.diagnose",
     "recover": "truckd.cli.recover",
+    "replay": "truckd.cli.replay",
     "characterize": "truckd.cli.characterize",
 }
 

@@ -10,15 +10,16 @@ from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 
+from truckd.config.characterize import CharacterizeConfig
+from truckd.config.cross import cross_section_problem
 from truckd.config.ids import vehicle_id_problem
+from truckd.config.runtime import RuntimeConfig
 from truckd.control.config import ControlConfig
 from truckd.control.platoon import PlatoonConfig
 from truckd.inputs import read_text
 from truckd.io.config import LinkConfig
 from truckd.model.params import VehicleParams
 from truckd.model.plant_config import PlantConfig, encoder_ticks_per_rev
-from truckd.runtime.characterize_config import CharacterizeConfig
-from truckd.runtime.config import RuntimeConfig
 from truckd.schema import load_dataclass, spec
 from truckd.yamlsafe import MAX_BYTES, load_yaml
 
@@ -52,19 +53,15 @@ class TruckConfig:
     )
 
     def validate(self) -> str | None:
-        """Cross-field checks after loading (None when fine)."""
-        stall, period = self.runtime.stall_limit_s, 1.0 / self.control.rate_hz
-        if stall < 2.0 * period:
-            return (
-                f"key 'runtime.stall_limit_s' = {stall:g}: expected at least two control "
-                f"periods ({2.0 * period:g} s at control.rate_hz {self.control.rate_hz:g})"
-            )
+        """Checks across sections after loading (None when fine): the vehicle id, the
+        simulated truck, and every pair of keys that cannot work together
+        (:mod:`truckd.config.cross`)."""
         problem = vehicle_id_problem(self.vehicle_id)
         if problem is None and self.plant.vehicle.given():
             why = self.plant_vehicle.validate()
             if why is not None:
                 problem = f"plant.vehicle: the simulated truck is not physical: {why}"
-        return problem
+        return problem or cross_section_problem(self)
 
     @property
     def plant_vehicle(self) -> VehicleParams:

@@ -72,8 +72,9 @@ class ControlOutput:
 class Controller:
     """Adaptive cruise control for one truck (see module docstring)."""
 
-    def __init__(self, model: ControlModel, cfg: ControlConfig, ticks_per_rev: int = 512) -> None:
-        """``ticks_per_rev``: encoder ticks per wheel revolution (the ``link:`` section)."""
+    def __init__(self, model: ControlModel, cfg: ControlConfig, ticks_per_rev: int) -> None:
+        """``ticks_per_rev``: encoder ticks per wheel revolution (``TruckConfig.ticks_per_rev``:
+        the configuration's, computed in one place)."""
         self.model = model
         self.cfg = cfg
         self.mpc = MpcSolver(model, cfg)

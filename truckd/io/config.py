@@ -6,6 +6,11 @@ from dataclasses import dataclass
 
 from truckd.schema import spec
 
+ENCODER_TICKS_PER_REV = 512
+"""The default of ``link.encoder_ticks_per_rev`` (the firmware's encoder).  Everything else
+takes the configured value (``TruckConfig.ticks_per_rev``); the simulator's own defaults
+take this one."""
+
 
 @dataclass(frozen=True)
 class LinkConfig:
@@ -38,5 +43,5 @@ class LinkConfig:
         "uses plant.encoder_ticks_per_rev instead when that is > 0)",
         lo=1,
         hi=65535,
-        default=512,
+        default=ENCODER_TICKS_PER_REV,
     )

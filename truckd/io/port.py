@@ -12,7 +12,7 @@ import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
-from firmware_protocol.checks import RESYNC, RxChecker
+from firmware_protocol.checks import COUNTER_MODULO, RESYNC, RxChecker
 from firmware_protocol.codec import encode, message_name
 from firmware_protocol.messages import Message
 from truckd.io.link import Link
@@ -59,7 +59,7 @@ class Port:
         name = message_name(msg)
         c = self._counters.get(name, 0)
         frame = encode(msg, c)
-        self._counters[name] = (c + 1) & 0xF
+        self._counters[name] = (c + 1) % COUNTER_MODULO
         return self.link.send(frame)
 
     def recv(self, timeout: float = 0.0) -> Received | None:

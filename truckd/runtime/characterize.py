@@ -34,9 +34,9 @@ from collections.abc import Callable, Generator
 from dataclasses import dataclass, field
 from typing import Any
 
+from truckd.config.characterize import CharacterizeConfig
 from truckd.control.estimator import Estimate
 from truckd.control.supervisor import Decision, Mode
-from truckd.runtime.characterize_config import CharacterizeConfig
 from truckd.runtime.sensors import SensorState
 
 EXIT_DONE, EXIT_CHECK, EXIT_STOPPED = 0, 3, 4

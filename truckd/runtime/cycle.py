@@ -33,6 +33,7 @@ from dataclasses import dataclass
 from typing import Any, Protocol
 
 from firmware_protocol.messages import CompanionHeartbeat, CompanionState, MotorCommand
+from firmware_protocol.timing import timing
 from truckd.control.config import ControlConfig
 from truckd.control.controller import Controller, ControlOutput
 from truckd.control.estimator import EncoderSample, Estimate, RangeSample
@@ -60,8 +61,8 @@ LOG_COLUMNS = (
 ``gap`` and ``v_lead`` are the estimates, NaN while no lead is tracked; ``solve_us`` is
 OSQP's own run time of this cycle's solve (NaN when the controller raised)."""
 
-HEARTBEAT_PERIOD_S = 0.1
-"""The companion heartbeat's period (firmware protocol: 100 ms)."""
+HEARTBEAT_PERIOD_S = timing().heartbeat_period
+"""The companion heartbeat's period (truck.dbc's ``GenMsgCycleTime``: 100 ms)."""
 
 
 class CommandSource(Protocol):

@@ -177,13 +177,13 @@ class Daemon:
         if self.rt.recorder.enabled:
             self._recover_logs()
             self.mcap = McapLog.for_recorder(self.cfg.vehicle_id, self.rt.recorder)
-            self.recorder = Recorder(self.rt.recorder, LOG_COLUMNS, sidecar=self.mcap)
+            if self.rt.recorder.messages:  # for replay, rotated with the CSV
+                self.rxlog = RxLog(self.params(), keep=self.rt.recorder.keep)
+            self.recorder = Recorder(
+                self.rt.recorder, LOG_COLUMNS, sidecar=self.mcap, sidecars=(self.rxlog,)
+            )
             self.recorder.start()
             log.info("recording to %s", self.recorder.path)
-            if self.rt.recorder.messages and self.recorder.path is not None:
-                self.rxlog = RxLog(self.recorder.path.with_suffix(".rx.jsonl"), self.params())
-                self.rxlog.start()
-                log.info("recording received messages to %s", self.rxlog.path)
         self.backend = open_backend(
             self.backend_name, self.cfg, self.control_cfg, self.clock, lock=self.claim
         )  # fmt: skip
@@ -249,8 +249,6 @@ class Daemon:
             self.backend.tick(self.period)  # sim: let the firmware apply it
 
     def _close_logs(self) -> None:
-        if self.rxlog is not None:
-            self.rxlog.stop()
         if self.telemetry is not None or self.mcap is not None:
             self.publish_health(self.clock() - self.t0)  # the last health, also into the MCAP
         if self.recorder is not None and self.port is None:
@@ -330,9 +328,9 @@ class Daemon:
             lead_forecast=pl.forecast if pl is not None else None,
             headway=pl.headway if pl is not None else None,
         )
-        if self.rxlog is not None:
-            self.rxlog.record(inp)
         out = self.companion.step(inp)
+        if self.rxlog is not None:
+            self.rxlog.record(inp, out)
         self.after_step(out)
         self.send_command(out)
         self.backend.tick(self.period)

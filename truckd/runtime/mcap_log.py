@@ -42,7 +42,7 @@ from mcap.records import Channel, Footer, Message, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
-from truckd.runtime.config import RecorderConfig
+from truckd.config.runtime import RecorderConfig
 from truckd.runtime.deferred import MessageSource, resolve
 from truckd.runtime.msg_schemas import KINDS, MESSAGE_ENCODING, SCHEMA_ENCODING, schema_bytes
 from truckd.runtime.msg_schemas import topic as topic_of
@@ -151,6 +151,9 @@ class McapLog:
     times at most).
     """
 
+    suffix = ".mcap"
+    """Beside each CSV file: ``<log>.mcap``."""
+
     def __init__(
         self,
         vehicle_id: str,
@@ -247,8 +250,9 @@ class McapLog:
         if self.errors <= 3:
             log.error("mcap %s failed: %s", what, exc)
 
-    def open(self, path: Path) -> None:
-        """Finish the current file and start ``path`` (the recorder rotated its CSV)."""
+    def open(self, path: Path, rows: int = 0) -> None:
+        """Finish the current file and start ``path`` (the recorder rotated its CSV after
+        ``rows`` rows: not used, messages go to the file open when they are written)."""
         with self._lock:
             self._finish()
             try:
@@ -270,8 +274,8 @@ class McapLog:
                 except OSError as exc:
                     log.warning("cannot delete old log %s: %s", old, exc.strerror)
 
-    def write_pending(self) -> None:
-        """Encode and write every queued message."""
+    def write_pending(self, rows: int | None = None) -> None:
+        """Encode and write every queued message (``rows``, the CSV's, not used)."""
         with self._lock:
             f = self._file
             origin = self.origin_ns or 0

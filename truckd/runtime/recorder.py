@@ -24,18 +24,30 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import BinaryIO, Protocol
 
+from truckd.config.runtime import RecorderConfig
 from truckd.errors import TruckdError
-from truckd.runtime.config import RecorderConfig
 
 log = logging.getLogger("truckd.recorder")
 
 
 class Sidecar(Protocol):
     """A second log written on the recorder's thread and rotated with the CSV (the MCAP
-    log, :class:`truckd.runtime.mcap_log.McapLog`).  Its methods never raise."""
+    log, :class:`truckd.runtime.mcap_log.McapLog`; the received-message log,
+    :class:`truckd.runtime.rxlog.RxLog`), opened as ``<csv stem><suffix>``.  Its methods
+    never raise."""
 
-    def open(self, path: Path) -> None: ...
-    def write_pending(self) -> None: ...
+    @property
+    def suffix(self) -> str: ...
+    def open(self, path: Path, rows: int = 0) -> None:
+        """Start ``path``; ``rows``: the rows the CSV files hold so far (the CSV rotated
+        after them)."""
+        ...
+
+    def write_pending(self, rows: int | None = None) -> None:
+        """Write what is queued; ``rows``: the rows the CSV files hold so far (a sidecar
+        with one record per row writes no further)."""
+        ...
+
     def flush(self, force: bool = False) -> None: ...
     def close(self) -> None: ...
 
@@ -50,6 +62,7 @@ class Recorder:
         prefix: str = "truckd",
         maxlen: int = 100_000,
         sidecar: Sidecar | None = None,
+        sidecars: Sequence[Sidecar | None] = (),
     ) -> None:
         if len(set(columns)) != len(columns) or "t" not in columns:
             raise ValueError(f"columns must be unique and include 't': {columns!r}")
@@ -57,7 +70,8 @@ class Recorder:
         self.columns = tuple(columns)
         self.dir = Path(cfg.dir)
         self.prefix = prefix
-        self.sidecar = sidecar  # opened beside each CSV as <stem>.mcap, written after it
+        self.sidecars = [s for s in (sidecar, *sidecars) if s is not None]
+        """Opened beside each CSV as ``<stem><suffix>``, written after it."""
         self._q: deque[tuple[float, ...]] = deque(maxlen=maxlen)
         self._event = threading.Event()
         self._stop = False
@@ -102,8 +116,8 @@ class Recorder:
         self._fh = fh
         self._bytes = self._on_disk = 0
         self.files.append(p)
-        if self.sidecar is not None:
-            self.sidecar.open(p.with_suffix(".mcap"))
+        for sc in self.sidecars:
+            sc.open(p.with_suffix(sc.suffix), self.rows)
         while len(self.files) > self.cfg.keep:
             old = self.files.pop(0)
             try:
@@ -191,9 +205,9 @@ class Recorder:
             self._event.clear()
             try:
                 self._write_pending()  # unbuffered: every row is with the OS
-                if self.sidecar is not None:
-                    self.sidecar.write_pending()
-                    self.sidecar.flush()
+                for sc in self.sidecars:
+                    sc.write_pending(self.rows)
+                    sc.flush()
             except OSError as exc:
                 self.errors += 1
                 if self.errors <= 3:
@@ -229,5 +243,5 @@ class Recorder:
                 self.errors += 1
                 log.error("log close failed: %s", exc.strerror)
             self._fh = None
-        if self.sidecar is not None:
-            self.sidecar.close()
+        for sc in self.sidecars:
+            sc.close()

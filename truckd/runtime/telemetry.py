@@ -24,9 +24,9 @@ from typing import Any
 
 import zenoh
 
+from truckd.config.runtime import TelemetryConfig
 from truckd.errors import InputError, TruckdError
 from truckd.inputs import open_regular
-from truckd.runtime.config import TelemetryConfig
 from truckd.runtime.deferred import MessageSource, resolve
 
 log = logging.getLogger("truckd.telemetry")

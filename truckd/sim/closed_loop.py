@@ -30,6 +30,7 @@ from truckd.control.controller import Controller
 from truckd.control.platoon import Plan
 from truckd.control.qp import ControlModel
 from truckd.control.supervisor import Mode, SupervisorConfig
+from truckd.io.config import ENCODER_TICKS_PER_REV
 from truckd.io.port import companion_port
 from truckd.model.params import VehicleParams
 from truckd.runtime.cycle import CompanionCycle, CycleInputs
@@ -81,7 +82,8 @@ class SimSetup:
     plant_config: PlantConfig
     control: ControlConfig
     model: ControlModel
-    ticks_per_rev: int = 512
+    ticks_per_rev: int = ENCODER_TICKS_PER_REV
+    """``link.encoder_ticks_per_rev`` (the plant's own encoder, when it models one, wins)."""
     firmware: FirmwareSimConfig | None = None
     supervisor: SupervisorConfig = field(default_factory=SupervisorConfig)
     stop_ramp_v_per_s: float = 60.0

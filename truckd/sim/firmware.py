@@ -45,6 +45,8 @@ from firmware_protocol.fwcore import (
     FirmwareCore,
 )
 from firmware_protocol.messages import FirmwareFault, FirmwareState, MotorCommand
+from firmware_protocol.timing import timing
+from truckd.io.config import ENCODER_TICKS_PER_REV
 from truckd.io.inproc import Wire, inproc_pair
 from truckd.io.link import FramedStreamLink, Link
 from truckd.model.plant_config import encoder_ticks_per_rev as encoder_ticks_per_rev
@@ -66,13 +68,18 @@ class FirmwareSimConfig:
     """Behaviour of the simulated microcontroller and its sensors."""
 
     cmd_timeout: float = spec(
-        "motor off when no valid command for this long",
+        "motor off when no valid command for this long (truck.dbc: MOTOR_CMD's TruckTimeoutTime)",
         unit="s",
         lo=0.001,
         hi=10.0,
-        default=0.1,
+        default=timing().cmd_timeout,
     )
-    ticks_per_rev: int = spec("encoder ticks per wheel revolution", lo=1, hi=65535, default=512)
+    ticks_per_rev: int = spec(
+        "encoder ticks per wheel revolution (link.encoder_ticks_per_rev)",
+        lo=1,
+        hi=65535,
+        default=ENCODER_TICKS_PER_REV,
+    )
     range_min: float = spec(
         "range sensor minimum distance", unit="m", lo=0.0, hi=10.0, default=0.02
     )

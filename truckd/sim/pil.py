@@ -46,6 +46,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from truckd.errors import TruckdError
+from truckd.io.config import ENCODER_TICKS_PER_REV
 from truckd.sim.plant import Plant
 
 RangeFn = Callable[[float, float], float | None]
@@ -137,7 +138,7 @@ class EmulatedBoard:
         range_fn: RangeFn,
         link_path: str | Path,
         *,
-        ticks_per_rev: int = 512,
+        ticks_per_rev: int = ENCODER_TICKS_PER_REV,
         range_max: float = 4.0,
         elf: Path | None = None,
         qemu: str = "qemu-system-arm",

@@ -58,9 +58,9 @@ class RecorderConfig:
         "MCAP chunk compression", choices=("zstd", "lz4", "none"), default="zstd"
     )
     messages: bool = spec(
-        "also record every received message (JSON lines beside the CSV, not rotated) so "
-        "the run can be replayed through the control cycle",
-        default=False,
+        "also record every received message (<log>.rx.jsonl beside each CSV, rotated and "
+        "deleted with it) so the run can be replayed through the control cycle",
+        default=True,
     )
 
 
