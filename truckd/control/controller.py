@@ -19,6 +19,8 @@ import numpy as np
 from truckd.control.config import ControlConfig
 from truckd.control.effect_use import (
     DeadZoneLaw,
+    Winding,
+    current_window,
     sag_command,
     sag_limit,
     startup_line,
@@ -89,6 +91,11 @@ class Controller:
         """The command map of a driver dead zone (see :mod:`truckd.control.effect_use`)."""
         self._terms = torque_terms(eff)
         """The feedforward torque terms of the model's effects (fixed: found once)."""
+        self.winding = Winding(model.params, eff)
+        """The winding's temperature and resistance (``resistance_drift``): not forgotten
+        on :meth:`reinitialise` (the motor stays as warm as it was)."""
+        self._r_scale = 1.0
+        """The winding's resistance over ``R_m``: every feedforward voltage scales by it."""
         self.startup_note = startup_line(eff)
         """One line naming the effects of the model the controller cannot use (None: all
         used); the daemon and ``truckd sim`` log it at start-up."""
@@ -124,6 +131,8 @@ class Controller:
         self.holding = False
         """Standstill hold active (see :meth:`_update_hold`)."""
         self._release_cycles = 0
+        self._limited = False
+        """The last command was cut to the driver's current limit (no wind-up)."""
         self._sent.clear()
         self.dead_zone.reset()
         self.pipeline_v: list[float] = []
@@ -208,6 +217,7 @@ class Controller:
         """
         cfg = self.cfg
         v = est.v if math.isfinite(est.v) else 0.0
+        self._update_winding(v)
         if not (est.speed_valid and math.isfinite(est.v)):
             # A non-finite speed said to be valid is no speed either: planning with 0 m/s
             # in its place would take a moving truck for one at rest.
@@ -269,6 +279,8 @@ class Controller:
         self._v_act = x0[1]
         at_rest = abs(self._v_act) <= cfg.moving_speed
         u_prev_mpc = 0.0 if at_rest else self._applied_prev() - ff
+        # The driver's current limit at the speed when the first move acts bounds the whole
+        # plan (conservative braking as the truck slows; the first move is exact).
         inp = QpInputs(
             x0=x0,
             u_prev=u_prev_mpc,
@@ -313,6 +325,23 @@ class Controller:
         else:
             self._a_lead = 0.0
         return self._a_lead
+
+    def _update_winding(self, v: float) -> None:
+        """One period of the winding's thermal model (``resistance_drift``) at the current
+        measured (else the quasi-static one of the voltage applied at speed v, m/s)."""
+        w = self.winding
+        if w.active:
+            p = self.model.params
+            r = w.update(self.cfg.period, self.current, self._applied_prev(), p.omega(v))
+            self._r_scale = r / p.R_m
+
+    def _current_limited(self, wanted: float, v: float) -> float:
+        """The voltage (V) the driver applies for ``wanted`` under its current limit at
+        speed v (m/s), within ``u_max``; sets :attr:`_limited`."""
+        p = self.model.params
+        lo, hi = current_window(p, self.model.effects, p.omega(v), self.winding.resistance)
+        self._limited = not lo <= wanted <= hi
+        return min(max(wanted, lo, -self.u_max), hi, self.u_max)
 
     def _applied_prev(self) -> float:
         """The voltage the previous command applies at the motor (V): what it was meant to
@@ -387,6 +416,7 @@ class Controller:
         w = self._wanted  # at the driver's limit the model's error is no disturbance
         if (
             gain > 0.0
+            and not self._limited
             and math.isfinite(expected)
             and abs(v) > self.cfg.moving_speed
             and -self.u_max + SATURATED_V < w < self._u_hi() - SATURATED_V
@@ -407,7 +437,7 @@ class Controller:
             if cfg.feedforward
             else 0.0
         )
-        return ff + self.disturbance_v
+        return ff * self._r_scale + self.disturbance_v
 
     def _initial_state(
         self,
@@ -535,20 +565,27 @@ class Controller:
         v_act, self._v_act = self._v_act, math.nan  # speed when this command acts
         rest_act = abs(v_act) <= cfg.moving_speed if math.isfinite(v_act) else at_rest
         if cfg.feedforward and rest_act and u_mpc > cfg.start_voltage and mode != "fallback":
-            ff = breakaway_feedforward(
+            ff = self._r_scale * breakaway_feedforward(
                 self.model.params, self.model.effects, cfg.stiction_margin, est.x
             )
         u = u_mpc + ff
         if at_rest and u < 0.0:
             u = 0.0  # never drive backwards from rest
         wanted = limit_command(u, self._applied_prev(), self.u_max, self._du)
+        # The driver's current limit: it applies K_v omega +- R I_max at most, at the
+        # motor's speed as it changes within the cycle (the command is sent as wanted: a
+        # command cut at the speed estimated now starves a start).  What the controller
+        # records as acting (the rate limit's base, the MPC's previous input, x_0's current,
+        # the delay pipeline) is the limited voltage, and the offset-free integrator stops
+        # while the limit binds: no wind-up.
+        acting = self._current_limited(wanted, v_act if math.isfinite(v_act) else v)
         # The known driver effects (battery sag, dead zone): the command that makes the
         # driver apply the wanted voltage, as near as it can (a dead zone may exceed the
         # rate limit by its width, never the voltage limit).
         u = self._command(wanted)
         self.u_prev = self._out = u
-        self._wanted = wanted
-        self._sent.append(wanted)
+        self._wanted = acting
+        self._sent.append(acting)
         return ControlOutput(
             u=u,
             u_ff=ff,
