@@ -1,8 +1,10 @@
 """The controller the daemon calls once per cycle: plain inputs in, command out.
 
 Each cycle: estimate (encoders, range) -> standstill hold or the MPC mode -> friction
-feedforward -> warm-started MPC solve -> on failure the shifted previous plan, then a braking law ->
-limits (finite, ``|u| <= u_max``, rate limit, no reversing from rest).  Everything the
+feedforward (the model's known effects: :mod:`truckd.control.effect_use`) -> warm-started MPC
+solve -> on failure the shifted previous plan, then a braking law -> limits (finite,
+``|u| <= u_max``, rate limit, no reversing from rest) -> the driver's maps (battery sag, dead
+zone; the current limit in the record of what acts).  Everything the
 supervisor and telemetry need comes back in :class:`ControlOutput`.  No clock: the
 caller passes its time ``t`` (s); the MPC step is the configured period.
 """
@@ -214,6 +216,12 @@ class Controller:
         ramped between them): the reference gap is ``d_0 + h v``; the QP, whose cost is
         built with the configured headway, sees the gap less ``(h - time_headway) v``, so
         it drives the same spacing error without a new factorisation.
+
+        The steps: the winding's thermal model (:meth:`_update_winding`); without a valid
+        speed the fallback; the standstill hold (:meth:`_update_hold`); the mode
+        (:meth:`_mode`); the offset-free action (:meth:`_update_disturbance`); the lead's
+        speeds (:meth:`_lead_speeds`); the plan and its first move (:meth:`_solve`), made a
+        command by :meth:`_finish` (breakaway, limits, the driver's maps).
         """
         cfg = self.cfg
         v = est.v if math.isfinite(est.v) else 0.0
@@ -227,49 +235,83 @@ class Controller:
         gap_ref = cfg.d_0 + h * v if lead else math.nan
         if self._update_hold(est, v, lead):
             return self._hold(est, v, gap_ref)
-        # Follow a lead that is near and either slower than the set speed or too close;
-        # otherwise cruise at the set speed (the minimum gap is still a constraint).
+        mode, v_ref = self._mode(est, lead, gap_ref)
+        self._update_disturbance(v)
+        n_pipe = self._pipeline_steps()
+        v_lead_all = self._lead_speeds(est, forecast, mode, lead, n_pipe)
+        gap = est.gap - (h - cfg.time_headway) * v if lead else 0.0
+        return self._solve(est, v, gap, v_lead_all, n_pipe, (mode, v_ref, lead), gap_ref)
+
+    def _mode(self, est: Estimate, lead: bool, gap_ref: float) -> tuple[str, float]:
+        """The MPC's mode and speed reference (m/s): follow a lead that is near and either
+        slower than the set speed or too close; otherwise cruise at the set speed (the
+        minimum gap is still a constraint), or stop without a lead when so configured."""
+        cfg = self.cfg
         near = lead and est.gap - gap_ref < cfg.follow_window
         if near and (est.v_lead <= cfg.v_set or est.gap < gap_ref):
-            mode, v_ref = "follow", cfg.v_set
-        elif lead or cfg.on_lead_lost == "cruise":
-            mode, v_ref = "cruise", cfg.v_set
-        else:
-            mode, v_ref = "stop", 0.0
-        self._update_disturbance(v)
-        ff_now = self._feedforward(v, est.x)
-        at_rest = abs(v) <= cfg.moving_speed
-        n_pipe = self._pipeline_steps()
+            return "follow", cfg.v_set
+        if lead or cfg.on_lead_lost == "cruise":
+            return "cruise", cfg.v_set
+        return "stop", 0.0
+
+    def _lead_speeds(
+        self,
+        est: Estimate,
+        forecast: Sequence[float] | None,
+        mode: str,
+        lead: bool,
+        n_pipe: int,
+    ) -> list[float]:
+        """The lead's speed (m/s) over the ``n_pipe`` commands in the pipeline, then the
+        QP's horizon (0 without a lead)."""
+        cfg = self.cfg
         n_all = n_pipe + self.mpc.horizon
-        if lead:
-            # Never follow faster than the set speed: a faster lead is taken as driving at
-            # v_set (conservative, the predicted gap is smaller than the real one).
-            # Cruising, a lead faster than v_max is taken as driving at v_max (a forecast
-            # of a wrong plan can say anything: it never reaches the QP beyond that).
-            cap = cfg.v_set if mode == "follow" else cfg.v_max
-            v_lead_all = self._lead_horizon(est, forecast, n_all, cap)
-            if n_pipe and not forecast:
-                # Over the input delay a braking lead keeps braking (what happens before
-                # the first planned command acts; held constant after).  An accelerating
-                # lead is not assumed to go on (conservative: measured, it made
-                # stop-and-go's starts 2-3 % worse than the seed model's).
-                a_lead = min(self._lead_accel(est.v_lead), 0.0)
-                v_end = min(max(est.v_lead + a_lead * n_pipe * cfg.period, 0.0), cap)
-                for k in range(n_all):
-                    vk = est.v_lead + a_lead * min(k, n_pipe) * cfg.period
-                    v_lead_all[k] = min(max(vk, 0.0), cap) if k < n_pipe else v_end
-        else:
-            v_lead_all = [0.0] * n_all
+        if not lead:
             self._v_lead_prev = math.nan
+            return [0.0] * n_all
+        # Never follow faster than the set speed: a faster lead is taken as driving at
+        # v_set (conservative, the predicted gap is smaller than the real one).
+        # Cruising, a lead faster than v_max is taken as driving at v_max (a forecast
+        # of a wrong plan can say anything: it never reaches the QP beyond that).
+        cap = cfg.v_set if mode == "follow" else cfg.v_max
+        v_lead_all = self._lead_horizon(est, forecast, n_all, cap)
+        if n_pipe and not forecast:
+            # Over the input delay a braking lead keeps braking (what happens before
+            # the first planned command acts; held constant after).  An accelerating
+            # lead is not assumed to go on (conservative: measured, it made
+            # stop-and-go's starts 2-3 % worse than the seed model's).
+            a_lead = min(self._lead_accel(est.v_lead), 0.0)
+            v_end = min(max(est.v_lead + a_lead * n_pipe * cfg.period, 0.0), cap)
+            for k in range(n_all):
+                vk = est.v_lead + a_lead * min(k, n_pipe) * cfg.period
+                v_lead_all[k] = min(max(vk, 0.0), cap) if k < n_pipe else v_end
+        return v_lead_all
+
+    def _solve(
+        self,
+        est: Estimate,
+        v: float,
+        gap: float,
+        v_lead_all: list[float],
+        n_pipe: int,
+        how: tuple[str, float, bool],
+        gap_ref: float,
+    ) -> ControlOutput:
+        """The MPC's plan from the state when its first move acts, and the command from it
+        (or the fallback's).  ``gap`` (m) as the QP sees it (the headway's share moved
+        out), ``how``: the mode, the speed reference (m/s) and whether a lead is tracked."""
+        cfg = self.cfg
+        mode, v_ref, lead = how
+        ff_now = self._feedforward(v, est.x)
         v_lead_h = v_lead_all[n_pipe:]
         # With an input delay the plan's first command acts at the end of the pipeline:
         # the state, and the feedforward (speed, terrain), are those predicted there.
         x0, ff = self._initial_state(
             v,
-            est.gap - (h - cfg.time_headway) * v if lead else 0.0,
+            gap,
             ff_now,
             v_lead_all[:n_pipe] if n_pipe else v_lead_h[:1],
-            held=at_rest or self._applied_prev() == ff_now,
+            held=abs(v) <= cfg.moving_speed or self._applied_prev() == ff_now,
             x_pos=est.x,
         )
         # At rest the previous voltage moved nothing (stiction), so to the friction-free
@@ -278,12 +320,9 @@ class Controller:
         # (With an input delay: at rest when the first planned command acts.)
         self._v_act = x0[1]
         at_rest = abs(self._v_act) <= cfg.moving_speed
-        u_prev_mpc = 0.0 if at_rest else self._applied_prev() - ff
-        # The driver's current limit at the speed when the first move acts bounds the whole
-        # plan (conservative braking as the truck slows; the first move is exact).
         inp = QpInputs(
             x0=x0,
-            u_prev=u_prev_mpc,
+            u_prev=0.0 if at_rest else self._applied_prev() - ff,
             v_lead=v_lead_h,
             lead=lead,
             v_ref=v_ref,
