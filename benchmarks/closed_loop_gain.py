@@ -58,14 +58,21 @@ CASES: dict[str, tuple[float, ...]] = {
     "voltage_saturation": (5.0, 3.5),  # V (the battery is 7.4 V)
     "battery_sag": (0.2, 0.3),  # ohm (0.5: the firmware cuts out at 5.5 V on a start)
     "sensor_lag": (0.05, 0.15),  # s
+    "current_limit": (30.0, 20.0),  # A (the stall current at 7.2 V is 85 A)
+    "backlash": (1.0, 3.0),  # rad at the motor shaft: 2 / 6 degrees at the wheel
+    "stribeck": (0.006, 0.015),  # N m above K_coulomb (0.015 N m) at rest, v_s 0.1 m/s
+    "resistance_drift": (1.0, 2.0),  # K/W, tau 20 s (2.5: 200 K over the diagnosis log)
 }
 
 COMPANIONS: dict[str, dict[str, float]] = {
     "load_force_amplitude": {"load_force_wavelength": 3.6},
     "hill_force": {"hill_start": 7.0, "hill_length": 5.0},
+    "stribeck": {"stribeck_speed": 0.1},
+    "resistance_drift": {"winding_time_constant": 20.0},
 }
-"""The other parameters of a position-dependent effect (m): the diagnosis log (seed 2026)
-drives over 0 .. 14.4 m, most of its time near 9.3 m; the scenarios start at 0 m."""
+"""The other parameters of an effect: a position-dependent effect's (m: the diagnosis log,
+seed 2026, drives over 0 .. 14.4 m, most of its time near 9.3 m; the scenarios start at
+0 m), the Stribeck speed (m/s), the winding's thermal time constant (s)."""
 
 COST_MIN_M = 0.002
 """An effect that costs less RMS gap error than this has nothing to recover."""
