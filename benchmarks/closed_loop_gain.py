@@ -11,10 +11,12 @@ per row: gap error RMS (after the first 5 s) clean / seed / extended, the minimu
 collisions, ``found`` (the diagnosis named the effect) and ``recovered = (seed - extended)
 / (seed - clean)`` (null when the effect costs under 2 mm).
 
-    .venv/bin/python benchmarks/closed_loop_gain.py [--json FILE] [--scenarios a,b]
-        [--effects NAME[,NAME]] [--value NAME=VALUE ...] [--true] [--models DIR]
+    .venv/bin/python benchmarks/closed_loop_gain.py [--json FILE [--key NAME]]
+        [--scenarios a,b] [--effects NAME[,NAME]] [--value NAME=VALUE ...] [--true]
+        [--models DIR] [--note TEXT]
 
-``--json FILE`` writes ``{date, machine, argv, rows}``.  ``--true`` skips the diagnosis
+``--json FILE`` writes ``{date, machine, argv, rows}`` (``--key NAME``: under that key,
+keeping the file's other measurements; see ``results.py``).  ``--true`` skips the diagnosis
 and gives the controller the plant's true effects (fast, for development; rows say
 ``"diagnosed": false``).  ``--models DIR`` keeps the diagnosed model files in DIR and
 reuses those already there (the diagnosis does not depend on the controller).  ``--value
@@ -37,6 +39,7 @@ from pathlib import Path
 from typing import Any
 
 import yaml
+from results import write_json
 
 from truckd.cli.main import main as truckd
 from truckd.config.truck import default_config_path, load_config
@@ -124,6 +127,8 @@ def _parse_values(items: list[str]) -> dict[str, float]:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--json", metavar="FILE")
+    ap.add_argument("--key", help="store the run under this key (what_YYYY-MM-DD)")
+    ap.add_argument("--note", help="a note stored with the run")
     ap.add_argument("--scenarios", default="follow,stop-and-go,lead-brake")
     ap.add_argument("--effects", default=",".join(CASES), help="NAME[,NAME]")
     ap.add_argument("--value", action="append", default=[], metavar="NAME=VALUE")
@@ -233,13 +238,15 @@ def main() -> int:
                         flush=True,
                     )
     if args.json:
-        doc = {
+        doc: dict[str, Any] = {
             "date": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d"),
-            "machine": {"cpus": os.cpu_count(), "loadavg_1_5_15": list(os.getloadavg())},
+            "machine": {"cpus": os.cpu_count(), "loadavg_1_5_15_at_end": list(os.getloadavg())},
             "argv": sys.argv[1:],
             "rows": rows,
         }
-        Path(args.json).write_text(json.dumps(doc, indent=1))
+        if args.note:
+            doc["note"] = args.note
+        write_json(args.json, doc, args.key)
     return 0
 
 
