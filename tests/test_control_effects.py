@@ -17,6 +17,7 @@ from truckd.config.truck import load_config
 from truckd.control.controller import SATURATED_V, Controller
 from truckd.control.effect_use import (
     EFFECT_USES,
+    RISE_MAX,
     DeadZoneLaw,
     Winding,
     current_window,
@@ -416,6 +417,11 @@ def test_winding_model_settles_where_the_plants_winding_does() -> None:
     assert cold.rise == pytest.approx(2.0 * i_qs * i_qs * p.R_m * (1.0 - math.exp(-0.1)))
     off = Winding(p, Effects())
     assert off.update(0.01, 30.0) == p.R_m and off.rise == 0.0
+    # A wrong current reading cannot heat the model beyond a winding that has burnt.
+    cold.update(1.0, 1e9)
+    assert cold.rise == RISE_MAX and math.isfinite(cold.resistance)
+    cold.update(1.0, math.inf, math.nan, 0.0)
+    assert cold.rise == RISE_MAX
 
 
 def test_warm_winding_scales_the_feedforward() -> None:

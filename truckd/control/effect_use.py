@@ -16,7 +16,13 @@ where one exists:
 * dead zone (threshold and offset forms): :class:`DeadZoneLaw`, the right inverse outside
   the zone and, inside it, a hysteresis between 0 V and the smallest voltage the driver
   makes, so a wanted voltage hovering at the zone's edge does not flip the command every
-  cycle.  Pure numerics: no I/O, no clock.
+  cycle.
+
+Two more pieces serve the controller's record of what acts: :func:`current_window`, the
+voltages a current-limiting driver applies (``current_limit``), and :class:`Winding`, the
+winding's thermal model whose resistance scales the feedforward voltages
+(``resistance_drift``).  ``backlash`` has no entry (named at start-up: it costs under 2 mm
+of gap error, docs/controller.md).  Pure numerics: no I/O, no clock.
 """
 
 from __future__ import annotations
@@ -273,13 +279,19 @@ def current_window(p: VehicleParams, eff: Effects, omega: float, r: float) -> tu
     return emf - room, emf + room
 
 
+RISE_MAX = 200.0
+"""The largest winding temperature rise (K) the model believes: above it the insulation
+(class H, 180 C) would have burnt, so a larger one comes from a wrong current reading."""
+
+
 @dataclass
 class Winding:
     """The winding's temperature rise (K) from its thermal model (``resistance_drift``
     K/W, ``winding_time_constant`` s: ``tau drise/dt = R_th P - rise`` with the copper
     loss ``P = i^2 R``), started cold (rise 0), and the resistance it gives,
     ``R_m (1 + alpha_Cu rise)``.  The current is the driver's measurement when there is
-    one, else the quasi-static ``(u - K_v omega) / R`` of the voltage applied."""
+    one, else the quasi-static ``(u - K_v omega) / R`` of the voltage applied; the rise
+    stays within :data:`RISE_MAX`."""
 
     p: VehicleParams
     eff: Effects
@@ -302,5 +314,6 @@ class Winding:
         r = self.resistance
         i = current if math.isfinite(current) else (volts - self.p.K_v * omega) / r
         if math.isfinite(i):
-            self.rise = winding_rise_step(self.eff, self.rise, i * i * r, h)
+            rise = winding_rise_step(self.eff, self.rise, i * i * r, h)
+            self.rise = min(rise, RISE_MAX) if math.isfinite(rise) else self.rise
         return self.resistance
