@@ -11,10 +11,12 @@ per row: gap error RMS (after the first 5 s) clean / seed / extended, the minimu
 collisions, ``found`` (the diagnosis named the effect) and ``recovered = (seed - extended)
 / (seed - clean)`` (null when the effect costs under 2 mm).
 
-    .venv/bin/python benchmarks/closed_loop_gain.py [--json FILE] [--scenarios a,b]
-        [--effects NAME[,NAME]] [--value NAME=VALUE ...] [--true] [--models DIR]
+    .venv/bin/python benchmarks/closed_loop_gain.py [--json FILE [--key NAME]]
+        [--scenarios a,b] [--effects NAME[,NAME]] [--value NAME=VALUE ...] [--true]
+        [--models DIR] [--note TEXT]
 
-``--json FILE`` writes ``{date, machine, argv, rows}``.  ``--true`` skips the diagnosis
+``--json FILE`` writes ``{date, machine, argv, rows}`` (``--key NAME``: under that key,
+keeping the file's other measurements; see ``results.py``).  ``--true`` skips the diagnosis
 and gives the controller the plant's true effects (fast, for development; rows say
 ``"diagnosed": false``).  ``--models DIR`` keeps the diagnosed model files in DIR and
 reuses those already there (the diagnosis does not depend on the controller).  ``--value
@@ -39,6 +41,7 @@ from typing import Any
 import lab_path  # noqa: F401 - tests/ on sys.path, for labkit
 import yaml
 from labkit.synth import plant_log
+from results import write_json
 
 from truckd.cli.main import main as truckd
 from truckd.config.truck import default_config_path, load_config
@@ -59,14 +62,21 @@ CASES: dict[str, tuple[float, ...]] = {
     "voltage_saturation": (5.0, 3.5),  # V (the battery is 7.4 V)
     "battery_sag": (0.2, 0.3),  # ohm (0.5: the firmware cuts out at 5.5 V on a start)
     "sensor_lag": (0.05, 0.15),  # s
+    "current_limit": (30.0, 20.0),  # A (the stall current at 7.2 V is 85 A)
+    "backlash": (1.0, 3.0),  # rad at the motor shaft: 2 / 6 degrees at the wheel
+    "stribeck": (0.006, 0.015),  # N m above K_coulomb (0.015 N m) at rest, v_s 0.1 m/s
+    "resistance_drift": (1.0, 2.0),  # K/W, tau 20 s (2.5: 200 K over the diagnosis log)
 }
 
 COMPANIONS: dict[str, dict[str, float]] = {
     "load_force_amplitude": {"load_force_wavelength": 3.6},
     "hill_force": {"hill_start": 7.0, "hill_length": 5.0},
+    "stribeck": {"stribeck_speed": 0.1},
+    "resistance_drift": {"winding_time_constant": 20.0},
 }
-"""The other parameters of a position-dependent effect (m): the diagnosis log (seed 2026)
-drives over 0 .. 14.4 m, most of its time near 9.3 m; the scenarios start at 0 m."""
+"""The other parameters of an effect: a position-dependent effect's (m: the diagnosis log,
+seed 2026, drives over 0 .. 14.4 m, most of its time near 9.3 m; the scenarios start at
+0 m), the Stribeck speed (m/s), the winding's thermal time constant (s)."""
 
 COST_MIN_M = 0.002
 """An effect that costs less RMS gap error than this has nothing to recover."""
@@ -118,6 +128,8 @@ def _parse_values(items: list[str]) -> dict[str, float]:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--json", metavar="FILE")
+    ap.add_argument("--key", help="store the run under this key (what_YYYY-MM-DD)")
+    ap.add_argument("--note", help="a note stored with the run")
     ap.add_argument("--scenarios", default="follow,stop-and-go,lead-brake")
     ap.add_argument("--effects", default=",".join(CASES), help="NAME[,NAME]")
     ap.add_argument("--value", action="append", default=[], metavar="NAME=VALUE")
@@ -227,13 +239,15 @@ def main() -> int:
                         flush=True,
                     )
     if args.json:
-        doc = {
+        doc: dict[str, Any] = {
             "date": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d"),
-            "machine": {"cpus": os.cpu_count(), "loadavg_1_5_15": list(os.getloadavg())},
+            "machine": {"cpus": os.cpu_count(), "loadavg_1_5_15_at_end": list(os.getloadavg())},
             "argv": sys.argv[1:],
             "rows": rows,
         }
-        Path(args.json).write_text(json.dumps(doc, indent=1))
+        if args.note:
+            doc["note"] = args.note
+        write_json(args.json, doc, args.key)
     return 0
 
 

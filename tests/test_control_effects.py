@@ -1,7 +1,8 @@
 """The controller uses every effect of its model: closed loop per effect on a truck unlike
 the shipped one, the extended model against the seed model on the same plant and seed;
-and the pieces (the delay predictor, the battery sag map, the dead-zone law, the table)
-on known inputs."""
+and the pieces (the delay predictor, the battery sag map, the dead-zone law, the current
+limit's record, the Stribeck feedforward, the winding's thermal model, the table) on known
+inputs."""
 
 from __future__ import annotations
 
@@ -16,7 +17,10 @@ from truckd.config.truck import load_config
 from truckd.control.controller import SATURATED_V, Controller
 from truckd.control.effect_use import (
     EFFECT_USES,
+    RISE_MAX,
     DeadZoneLaw,
+    Winding,
+    current_window,
     feedforward_torque,
     sag_command,
     sag_limit,
@@ -24,9 +28,20 @@ from truckd.control.effect_use import (
     unused_effects,
 )
 from truckd.control.estimator import Estimate
-from truckd.control.feedforward import dead_zone_command
+from truckd.control.feedforward import (
+    breakaway_feedforward,
+    dead_zone_command,
+    moving_feedforward,
+    torque_to_voltage,
+)
 from truckd.control.qp import ControlModel
-from truckd.model.effects import EFFECT_NAMES, Effects, driver_output
+from truckd.model.effects import (
+    COPPER_TEMPCO,
+    EFFECT_NAMES,
+    Effects,
+    current_limited,
+    driver_output,
+)
 from truckd.model.params import VehicleParams
 from truckd.sim.closed_loop import SimSetup, run_scenario
 from truckd.sim.plant import Plant, PlantConfig
@@ -66,7 +81,30 @@ CASES: dict[str, tuple[Effects, str, float]] = {
     "voltage_saturation": (Effects(voltage_saturation=4.0), "lead-brake", 15.0),
     "battery_sag": (Effects(battery_sag=0.25), "follow", 10.0),
     "sensor_lag": (Effects(sensor_lag=0.1), "follow", 10.0),
+    # Stop-and-go's starts at 12 A (a seventh of the stall current): the truck accelerates
+    # at the limit; cutting the command at the speed estimated now made it 24 % worse.
+    "current_limit": (Effects(current_limit=12.0), "stop-and-go", 18.0),
+    "stribeck": (Effects(stribeck=0.01, stribeck_speed=0.1), "stop-and-go", 18.0),
+    "resistance_drift": (
+        Effects(resistance_drift=10.0, winding_time_constant=10.0),
+        "follow",
+        10.0,
+    ),
 }
+
+CAPPED = {
+    "current_limit": "a current-limited motor cannot accelerate harder: stop-and-go's starts "
+    "lag the lead whatever the plan (seed and extended both command beyond the limit)",
+}
+"""Effects whose cost physics keeps (docs/controller.md, known gaps): the extended model is
+held to never being worse than the seed's, not to recovering half."""
+
+UNUSED: dict[str, tuple[Effects, str, float]] = {
+    # 3 rad at the motor: 6 degrees at the wheel, the largest the scenarios measured.
+    "backlash": (Effects(backlash=3.0), "lead-brake", 15.0),
+}
+"""Effects the diagnosis names that the controller does not use (named at start-up), with
+the case showing that they cost under 2 mm of RMS gap error (nothing to recover)."""
 
 
 def _run(plant_eff: Effects, model_eff: Effects, scenario: str, duration: float) -> Any:
@@ -99,6 +137,7 @@ def test_every_effect_has_a_use_or_is_named_at_start_up() -> None:
     """Each effect the table covers has a closed-loop case here; any other effect (one the
     model gains later) is named by the start-up line, never silently ignored."""
     assert set(CASES) == set(EFFECT_USES)
+    assert set(EFFECT_NAMES) <= set(CASES) | set(UNUSED)
     for name in (*EFFECT_NAMES, "load_force_amplitude", "hill_force"):
         eff = dataclasses.replace(Effects(), **{name: 0.5})
         line = startup_line(eff)
@@ -117,8 +156,22 @@ def test_extended_model_recovers_what_the_effect_costs(name: str) -> None:
     assert not ext["collision"]
     s, e = seed["gap_error_rms_m"], ext["gap_error_rms_m"]
     assert e <= 1.05 * s + 2e-4, (name, clean, s, e)
-    if s - clean > 0.002:
+    if s - clean > 0.002 and name not in CAPPED:
         assert (s - e) / (s - clean) >= 0.5, (name, clean, s, e)
+
+
+@pytest.mark.parametrize("name", list(UNUSED))
+def test_an_unused_effect_costs_too_little_to_recover(name: str) -> None:
+    """The effects without a use cost under 2 mm of RMS gap error at their larger value
+    (backlash: the rotor crosses the gap within about a cycle at a torque reversal)."""
+    eff, scenario, duration = UNUSED[name]
+    clean = _clean(scenario, duration)["gap_error_rms_m"]
+    seed = _run(eff, Effects(), scenario, duration)
+    assert not seed["collision"]
+    assert seed["gap_error_rms_m"] - clean < 0.002, (name, clean, seed["gap_error_rms_m"])
+    assert seed["gap_error_rms_m"] > clean  # the effect is there: it costs something
+    line = startup_line(eff)
+    assert line is not None and name in line
 
 
 # -- the pieces ----------------------------------------------------------------------------
@@ -267,3 +320,123 @@ def test_saturated_plan_stays_within_the_drivers_limit_without_wind_up() -> None
     first = next(k for k, u in enumerate(us) if u > 3.0 - SATURATED_V)
     assert min(us[first:]) > 3.0 - SATURATED_V  # at the limit from here on
     assert dist[first + 1 :] == [dist[first]] * (len(us) - first - 1)
+
+
+def test_current_window_is_what_the_driver_clips_to() -> None:
+    p = _truck()
+    eff = Effects(current_limit=12.0)
+    omega, r = 800.0, p.R_m * 1.1
+    lo, hi = current_window(p, eff, omega, r)
+    assert (lo, hi) == pytest.approx((p.K_v * omega - r * 12.0, p.K_v * omega + r * 12.0))
+    for volts in (-7.0, lo, 0.5 * (lo + hi), 7.0):
+        assert min(max(volts, lo), hi) == current_limited(p, eff, volts, omega, r)
+    assert current_window(p, Effects(), omega, r) == (-math.inf, math.inf)
+
+
+def test_current_limit_records_the_limited_voltage_without_wind_up() -> None:
+    """A truck held at 0.5 m/s while the plan asks for the driver's top: the command goes
+    out as wanted (the driver limits it at the true speed), the controller's record of the
+    voltage acting is the limited one (``K_v omega + R I_max``, not the command), and the
+    offset-free integrator stops while the limit binds."""
+    tc = load_config()
+    cfg = dataclasses.replace(tc.control, disturbance_gain=0.05)
+    p = _truck()
+    ctrl = Controller(ControlModel(p, Effects(current_limit=12.0)), cfg, TICKS)
+    est = Estimate(0.5, True, math.nan, math.nan, False, "none", math.nan, 0, 0, 0, 0)
+    top = p.K_v * p.omega(0.5) + p.R_m * 12.0
+    us, acting, dist = [], [], []
+    for _ in range(200):
+        us.append(ctrl.control(est).u)
+        acting.append(ctrl._applied_prev())
+        dist.append(ctrl.disturbance_v)
+    assert max(us) > top + 1.0  # the command itself is not cut
+    assert max(acting) == pytest.approx(top)
+    first = next(k for k, a in enumerate(acting) if a >= top - 1e-12)
+    assert dist[first + 1 :] == [dist[first]] * (len(us) - first - 1)
+    # Without the limit in the model the record is the command (what the seed believes).
+    seed = Controller(ControlModel(p), cfg, TICKS)
+    for _ in range(200):
+        seed.control(est)
+    assert seed._applied_prev() > top + 1.0
+
+
+@pytest.mark.parametrize("v", [-0.4, 0.05, 0.1, 0.3])
+def test_stribeck_feedforward_follows_the_curve(v: float) -> None:
+    """Moving, the feedforward cancels ``K_coulomb + F_s exp(-(v/v_s)^2)``; the start
+    breaks the curve's peak ``K_coulomb + F_s`` when it exceeds the stiction."""
+    p = _truck()
+    f_s, v_s = 0.02, 0.1
+    eff = Effects(stribeck=f_s, stribeck_speed=v_s)
+    friction = p.K_coulomb + f_s * math.exp(-((v / v_s) ** 2))
+    got = moving_feedforward(p, eff, v, 0.02)
+    assert got == pytest.approx(math.copysign(torque_to_voltage(p, friction), v))
+    peak = p.K_coulomb + f_s
+    assert peak > p.K_stiction
+    assert breakaway_feedforward(p, eff, 1.1) == pytest.approx(torque_to_voltage(p, 1.1 * peak))
+    assert breakaway_feedforward(p, Effects(), 1.1) == pytest.approx(
+        torque_to_voltage(p, 1.1 * p.K_stiction)
+    )
+
+
+def test_stribeck_feedforward_holds_the_plants_speed() -> None:
+    """``K_v omega + u_ff`` on a plant with Stribeck friction settles at omega (at twice
+    v_s, where the curve's slope cannot destabilise the voltage-driven motor)."""
+    p = _truck()
+    eff = Effects(stribeck=0.02, stribeck_speed=0.1)
+    v = 0.2
+    plant = Plant(p, PlantConfig(effects=eff))
+    plant.reset(v=v)
+    plant.command(p.K_v * p.omega(v) + moving_feedforward(p, eff, v, 0.02))
+    for _ in range(300):
+        plant.advance(0.01)
+    assert plant.v == pytest.approx(v, rel=1e-3)
+    seed = Plant(p, PlantConfig(effects=eff))
+    seed.reset(v=v)
+    seed.command(p.K_v * p.omega(v) + moving_feedforward(p, Effects(), v, 0.02))
+    for _ in range(300):
+        seed.advance(0.01)
+    assert seed.v < 0.95 * v  # the Coulomb-only feedforward falls short
+
+
+def test_winding_model_settles_where_the_plants_winding_does() -> None:
+    """At a constant current the rise settles where ``rise = R_th i^2 R_m (1 + alpha
+    rise)``; the resistance follows; the quasi-static current serves without a
+    measurement; without the effect the resistance stays R_m."""
+    p = _truck()
+    eff = Effects(resistance_drift=2.0, winding_time_constant=5.0)
+    w = Winding(p, eff)
+    i = 9.0
+    for _ in range(10000):
+        r = w.update(0.01, i)
+    q = 2.0 * i * i * p.R_m
+    rise = q / (1.0 - COPPER_TEMPCO * q)
+    assert w.rise == pytest.approx(rise, rel=1e-6)
+    assert r == pytest.approx(p.R_m * (1.0 + COPPER_TEMPCO * rise))
+    # One step from cold: exact first order, at the quasi-static current of 1 V at rest.
+    cold = Winding(p, eff)
+    cold.update(0.5, math.nan, 1.0, 0.0)
+    i_qs = 1.0 / p.R_m
+    assert cold.rise == pytest.approx(2.0 * i_qs * i_qs * p.R_m * (1.0 - math.exp(-0.1)))
+    off = Winding(p, Effects())
+    assert off.update(0.01, 30.0) == p.R_m and off.rise == 0.0
+    # A wrong current reading cannot heat the model beyond a winding that has burnt.
+    cold.update(1.0, 1e9)
+    assert cold.rise == RISE_MAX and math.isfinite(cold.resistance)
+    cold.update(1.0, math.inf, math.nan, 0.0)
+    assert cold.rise == RISE_MAX
+
+
+def test_warm_winding_scales_the_feedforward() -> None:
+    """The controller's feedforward voltages use the winding's resistance: after a long
+    high current the friction feedforward is ``R / R_m`` times the cold one."""
+    tc = load_config()
+    p = _truck()
+    eff = Effects(resistance_drift=10.0, winding_time_constant=2.0)
+    ctrl = Controller(ControlModel(p, eff), tc.control, TICKS)
+    ctrl.current = 8.0
+    for _ in range(2000):
+        ctrl._update_winding(0.5)
+    cold = Controller(ControlModel(p), tc.control, TICKS)
+    ratio = ctrl.winding.resistance / p.R_m
+    assert ratio > 1.2
+    assert ctrl._feedforward(0.5, 0.0) == pytest.approx(ratio * cold._feedforward(0.5, 0.0))

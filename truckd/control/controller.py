@@ -1,8 +1,10 @@
 """The controller the daemon calls once per cycle: plain inputs in, command out.
 
 Each cycle: estimate (encoders, range) -> standstill hold or the MPC mode -> friction
-feedforward -> warm-started MPC solve -> on failure the shifted previous plan, then a braking law ->
-limits (finite, ``|u| <= u_max``, rate limit, no reversing from rest).  Everything the
+feedforward (the model's known effects: :mod:`truckd.control.effect_use`) -> warm-started MPC
+solve -> on failure the shifted previous plan, then a braking law -> limits (finite,
+``|u| <= u_max``, rate limit, no reversing from rest) -> the driver's maps (battery sag, dead
+zone; the current limit in the record of what acts).  Everything the
 supervisor and telemetry need comes back in :class:`ControlOutput`.  No clock: the
 caller passes its time ``t`` (s); the MPC step is the configured period.
 """
@@ -19,6 +21,8 @@ import numpy as np
 from truckd.control.config import ControlConfig
 from truckd.control.effect_use import (
     DeadZoneLaw,
+    Winding,
+    current_window,
     sag_command,
     sag_limit,
     startup_line,
@@ -90,6 +94,11 @@ class Controller:
         """The command map of a driver dead zone (see :mod:`truckd.control.effect_use`)."""
         self._terms = torque_terms(eff)
         """The feedforward torque terms of the model's effects (fixed: found once)."""
+        self.winding = Winding(model.params, eff)
+        """The winding's temperature and resistance (``resistance_drift``): not forgotten
+        on :meth:`reinitialise` (the motor stays as warm as it was)."""
+        self._r_scale = 1.0
+        """The winding's resistance over ``R_m``: every feedforward voltage scales by it."""
         self.startup_note = startup_line(eff)
         """One line naming the effects of the model the controller cannot use (None: all
         used); the daemon and ``truckd sim`` log it at start-up."""
@@ -125,6 +134,8 @@ class Controller:
         self.holding = False
         """Standstill hold active (see :meth:`_update_hold`)."""
         self._release_cycles = 0
+        self._limited = False
+        """The last command was cut to the driver's current limit (no wind-up)."""
         self._sent.clear()
         self.dead_zone.reset()
         self.pipeline_v: list[float] = []
@@ -206,9 +217,16 @@ class Controller:
         ramped between them): the reference gap is ``d_0 + h v``; the QP, whose cost is
         built with the configured headway, sees the gap less ``(h - time_headway) v``, so
         it drives the same spacing error without a new factorisation.
+
+        The steps: the winding's thermal model (:meth:`_update_winding`); without a valid
+        speed the fallback; the standstill hold (:meth:`_update_hold`); the mode
+        (:meth:`_mode`); the offset-free action (:meth:`_update_disturbance`); the lead's
+        speeds (:meth:`_lead_speeds`); the plan and its first move (:meth:`_solve`), made a
+        command by :meth:`_finish` (breakaway, limits, the driver's maps).
         """
         cfg = self.cfg
         v = est.v if math.isfinite(est.v) else 0.0
+        self._update_winding(v)
         if not (est.speed_valid and math.isfinite(est.v)):
             # A non-finite speed said to be valid is no speed either: planning with 0 m/s
             # in its place would take a moving truck for one at rest.
@@ -218,49 +236,83 @@ class Controller:
         gap_ref = cfg.d_0 + h * v if lead else math.nan
         if self._update_hold(est, v, lead):
             return self._hold(est, v, gap_ref)
-        # Follow a lead that is near and either slower than the set speed or too close;
-        # otherwise cruise at the set speed (the minimum gap is still a constraint).
+        mode, v_ref = self._mode(est, lead, gap_ref)
+        self._update_disturbance(v)
+        n_pipe = self._pipeline_steps()
+        v_lead_all = self._lead_speeds(est, forecast, mode, lead, n_pipe)
+        gap = est.gap - (h - cfg.time_headway) * v if lead else 0.0
+        return self._solve(est, v, gap, v_lead_all, n_pipe, (mode, v_ref, lead), gap_ref)
+
+    def _mode(self, est: Estimate, lead: bool, gap_ref: float) -> tuple[str, float]:
+        """The MPC's mode and speed reference (m/s): follow a lead that is near and either
+        slower than the set speed or too close; otherwise cruise at the set speed (the
+        minimum gap is still a constraint), or stop without a lead when so configured."""
+        cfg = self.cfg
         near = lead and est.gap - gap_ref < cfg.follow_window
         if near and (est.v_lead <= cfg.v_set or est.gap < gap_ref):
-            mode, v_ref = "follow", cfg.v_set
-        elif lead or cfg.on_lead_lost == "cruise":
-            mode, v_ref = "cruise", cfg.v_set
-        else:
-            mode, v_ref = "stop", 0.0
-        self._update_disturbance(v)
-        ff_now = self._feedforward(v, est.x)
-        at_rest = abs(v) <= cfg.moving_speed
-        n_pipe = self._pipeline_steps()
+            return "follow", cfg.v_set
+        if lead or cfg.on_lead_lost == "cruise":
+            return "cruise", cfg.v_set
+        return "stop", 0.0
+
+    def _lead_speeds(
+        self,
+        est: Estimate,
+        forecast: Sequence[float] | None,
+        mode: str,
+        lead: bool,
+        n_pipe: int,
+    ) -> list[float]:
+        """The lead's speed (m/s) over the ``n_pipe`` commands in the pipeline, then the
+        QP's horizon (0 without a lead)."""
+        cfg = self.cfg
         n_all = n_pipe + self.mpc.horizon
-        if lead:
-            # Never follow faster than the set speed: a faster lead is taken as driving at
-            # v_set (conservative, the predicted gap is smaller than the real one).
-            # Cruising, a lead faster than v_max is taken as driving at v_max (a forecast
-            # of a wrong plan can say anything: it never reaches the QP beyond that).
-            cap = cfg.v_set if mode == "follow" else cfg.v_max
-            v_lead_all = self._lead_horizon(est, forecast, n_all, cap)
-            if n_pipe and not forecast:
-                # Over the input delay a braking lead keeps braking (what happens before
-                # the first planned command acts; held constant after).  An accelerating
-                # lead is not assumed to go on (conservative: measured, it made
-                # stop-and-go's starts 2-3 % worse than the seed model's).
-                a_lead = min(self._lead_accel(est.v_lead), 0.0)
-                v_end = min(max(est.v_lead + a_lead * n_pipe * cfg.period, 0.0), cap)
-                for k in range(n_all):
-                    vk = est.v_lead + a_lead * min(k, n_pipe) * cfg.period
-                    v_lead_all[k] = min(max(vk, 0.0), cap) if k < n_pipe else v_end
-        else:
-            v_lead_all = [0.0] * n_all
+        if not lead:
             self._v_lead_prev = math.nan
+            return [0.0] * n_all
+        # Never follow faster than the set speed: a faster lead is taken as driving at
+        # v_set (conservative, the predicted gap is smaller than the real one).
+        # Cruising, a lead faster than v_max is taken as driving at v_max (a forecast
+        # of a wrong plan can say anything: it never reaches the QP beyond that).
+        cap = cfg.v_set if mode == "follow" else cfg.v_max
+        v_lead_all = self._lead_horizon(est, forecast, n_all, cap)
+        if n_pipe and not forecast:
+            # Over the input delay a braking lead keeps braking (what happens before
+            # the first planned command acts; held constant after).  An accelerating
+            # lead is not assumed to go on (conservative: measured, it made
+            # stop-and-go's starts 2-3 % worse than the seed model's).
+            a_lead = min(self._lead_accel(est.v_lead), 0.0)
+            v_end = min(max(est.v_lead + a_lead * n_pipe * cfg.period, 0.0), cap)
+            for k in range(n_all):
+                vk = est.v_lead + a_lead * min(k, n_pipe) * cfg.period
+                v_lead_all[k] = min(max(vk, 0.0), cap) if k < n_pipe else v_end
+        return v_lead_all
+
+    def _solve(
+        self,
+        est: Estimate,
+        v: float,
+        gap: float,
+        v_lead_all: list[float],
+        n_pipe: int,
+        how: tuple[str, float, bool],
+        gap_ref: float,
+    ) -> ControlOutput:
+        """The MPC's plan from the state when its first move acts, and the command from it
+        (or the fallback's).  ``gap`` (m) as the QP sees it (the headway's share moved
+        out), ``how``: the mode, the speed reference (m/s) and whether a lead is tracked."""
+        cfg = self.cfg
+        mode, v_ref, lead = how
+        ff_now = self._feedforward(v, est.x)
         v_lead_h = v_lead_all[n_pipe:]
         # With an input delay the plan's first command acts at the end of the pipeline:
         # the state, and the feedforward (speed, terrain), are those predicted there.
         x0, ff = self._initial_state(
             v,
-            est.gap - (h - cfg.time_headway) * v if lead else 0.0,
+            gap,
             ff_now,
             v_lead_all[:n_pipe] if n_pipe else v_lead_h[:1],
-            held=at_rest or self._applied_prev() == ff_now,
+            held=abs(v) <= cfg.moving_speed or self._applied_prev() == ff_now,
             x_pos=est.x,
         )
         # At rest the previous voltage moved nothing (stiction), so to the friction-free
@@ -269,10 +321,9 @@ class Controller:
         # (With an input delay: at rest when the first planned command acts.)
         self._v_act = x0[1]
         at_rest = abs(self._v_act) <= cfg.moving_speed
-        u_prev_mpc = 0.0 if at_rest else self._applied_prev() - ff
         inp = QpInputs(
             x0=x0,
-            u_prev=u_prev_mpc,
+            u_prev=0.0 if at_rest else self._applied_prev() - ff,
             v_lead=v_lead_h,
             lead=lead,
             v_ref=v_ref,
@@ -314,6 +365,23 @@ class Controller:
         else:
             self._a_lead = 0.0
         return self._a_lead
+
+    def _update_winding(self, v: float) -> None:
+        """One period of the winding's thermal model (``resistance_drift``) at the current
+        measured (else the quasi-static one of the voltage applied at speed v, m/s)."""
+        w = self.winding
+        if w.active:
+            p = self.model.params
+            r = w.update(self.cfg.period, self.current, self._applied_prev(), p.omega(v))
+            self._r_scale = r / p.R_m
+
+    def _current_limited(self, wanted: float, v: float) -> float:
+        """The voltage (V) the driver applies for ``wanted`` under its current limit at
+        speed v (m/s), within ``u_max``; sets :attr:`_limited`."""
+        p = self.model.params
+        lo, hi = current_window(p, self.model.effects, p.omega(v), self.winding.resistance)
+        self._limited = not lo <= wanted <= hi
+        return min(max(wanted, lo, -self.u_max), hi, self.u_max)
 
     def _applied_prev(self) -> float:
         """The voltage the previous command applies at the motor (V): what it was meant to
@@ -388,6 +456,7 @@ class Controller:
         w = self._wanted  # at the driver's limit the model's error is no disturbance
         if (
             gain > 0.0
+            and not self._limited
             and math.isfinite(expected)
             and abs(v) > self.cfg.moving_speed
             and -self.u_max + SATURATED_V < w < self._u_hi() - SATURATED_V
@@ -408,7 +477,7 @@ class Controller:
             if cfg.feedforward
             else 0.0
         )
-        return ff + self.disturbance_v
+        return ff * self._r_scale + self.disturbance_v
 
     def _initial_state(
         self,
@@ -536,20 +605,27 @@ class Controller:
         v_act, self._v_act = self._v_act, math.nan  # speed when this command acts
         rest_act = abs(v_act) <= cfg.moving_speed if math.isfinite(v_act) else at_rest
         if cfg.feedforward and rest_act and u_mpc > cfg.start_voltage and mode != "fallback":
-            ff = breakaway_feedforward(
+            ff = self._r_scale * breakaway_feedforward(
                 self.model.params, self.model.effects, cfg.stiction_margin, est.x
             )
         u = u_mpc + ff
         if at_rest and u < 0.0:
             u = 0.0  # never drive backwards from rest
         wanted = limit_command(u, self._applied_prev(), self.u_max, self._du)
+        # The driver's current limit: it applies K_v omega +- R I_max at most, at the
+        # motor's speed as it changes within the cycle (the command is sent as wanted: a
+        # command cut at the speed estimated now starves a start).  What the controller
+        # records as acting (the rate limit's base, the MPC's previous input, x_0's current,
+        # the delay pipeline) is the limited voltage, and the offset-free integrator stops
+        # while the limit binds: no wind-up.
+        acting = self._current_limited(wanted, v_act if math.isfinite(v_act) else v)
         # The known driver effects (battery sag, dead zone): the command that makes the
         # driver apply the wanted voltage, as near as it can (a dead zone may exceed the
         # rate limit by its width, never the voltage limit).
         u = self._command(wanted)
         self.u_prev = self._out = u
-        self._wanted = wanted
-        self._sent.append(wanted)
+        self._wanted = acting
+        self._sent.append(acting)
         return ControlOutput(
             u=u,
             u_ff=ff,

@@ -16,7 +16,13 @@ where one exists:
 * dead zone (threshold and offset forms): :class:`DeadZoneLaw`, the right inverse outside
   the zone and, inside it, a hysteresis between 0 V and the smallest voltage the driver
   makes, so a wanted voltage hovering at the zone's edge does not flip the command every
-  cycle.  Pure numerics: no I/O, no clock.
+  cycle.
+
+Two more pieces serve the controller's record of what acts: :func:`current_window`, the
+voltages a current-limiting driver applies (``current_limit``), and :class:`Winding`, the
+winding's thermal model whose resistance scales the feedforward voltages
+(``resistance_drift``).  ``backlash`` has no entry (named at start-up: it costs under 2 mm
+of gap error, docs/controller.md).  Pure numerics: no I/O, no clock.
 """
 
 from __future__ import annotations
@@ -26,7 +32,14 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from truckd.model.effects import COMPANIONS, Effects, terrain_force
+from truckd.model.effects import (
+    COMPANIONS,
+    Effects,
+    stribeck_torque,
+    terrain_force,
+    winding_resistance,
+    winding_rise_step,
+)
 from truckd.model.params import VehicleParams
 
 Torque = Callable[[VehicleParams, Effects, float, float], float]
@@ -44,6 +57,20 @@ def _load_torque(p: VehicleParams, e: Effects, v: float, x: float) -> float:
 
 def _terrain_torque(p: VehicleParams, e: Effects, v: float, x: float) -> float:
     return p.force_to_torque(terrain_force(e, x))
+
+
+def _stribeck_torque(p: VehicleParams, e: Effects, v: float, x: float) -> float:
+    """The Stribeck friction above Coulomb while moving (at rest: 0, the breakaway
+    feedforward holds the zero-speed peak, :func:`breakaway_torque`)."""
+    if v == 0.0:
+        return 0.0
+    return math.copysign(stribeck_torque(p, e, p.omega(v)), v)
+
+
+def breakaway_torque(p: VehicleParams, e: Effects) -> float:
+    """The static friction (N m) a start has to overcome: ``K_stiction``, or Coulomb plus
+    the Stribeck peak at zero speed when that is larger (as the plant has it)."""
+    return max(p.K_stiction, p.K_coulomb + stribeck_torque(p, e, 0.0))
 
 
 @dataclass(frozen=True)
@@ -71,6 +98,16 @@ EFFECT_USES: dict[str, EffectUse] = {
     "dead_zone_offset": EffectUse("command map: offset added (DeadZoneLaw)"),
     "voltage_saturation": EffectUse("MPC input bounds at the driver's limit"),
     "battery_sag": EffectUse("command map: sag inverse from current or battery voltage"),
+    "current_limit": EffectUse(
+        "the voltage recorded as acting is K_v omega +- R I_max at most (no wind-up)"
+    ),
+    "stribeck": EffectUse(
+        "feedforward torque of the Stribeck curve; breakaway at its zero-speed peak",
+        _stribeck_torque,
+    ),
+    "resistance_drift": EffectUse(
+        "feedforward voltages at the winding's resistance from its thermal model (Winding)"
+    ),
 }
 """Every effect the controller uses, by the :class:`~truckd.model.effects.Effects` field
 that switches it on."""
@@ -228,3 +265,55 @@ class DeadZoneLaw:
 
     def reset(self) -> None:
         self._state = 0.0
+
+
+def current_window(p: VehicleParams, eff: Effects, omega: float, r: float) -> tuple[float, float]:
+    """The motor voltages (V) a driver holding the armature current within
+    ``+-current_limit`` can apply at motor speed ``omega`` (rad/s) through the circuit
+    resistance ``r`` (ohm): ``K_v omega -+ r I_max`` (the whole line when off), what
+    :func:`truckd.model.effects.current_limited` clips to."""
+    if eff.current_limit <= 0.0 or not math.isfinite(omega):
+        return -math.inf, math.inf
+    emf = p.K_v * omega
+    room = r * eff.current_limit
+    return emf - room, emf + room
+
+
+RISE_MAX = 200.0
+"""The largest winding temperature rise (K) the model believes: above it the insulation
+(class H, 180 C) would have burnt, so a larger one comes from a wrong current reading."""
+
+
+@dataclass
+class Winding:
+    """The winding's temperature rise (K) from its thermal model (``resistance_drift``
+    K/W, ``winding_time_constant`` s: ``tau drise/dt = R_th P - rise`` with the copper
+    loss ``P = i^2 R``), started cold (rise 0), and the resistance it gives,
+    ``R_m (1 + alpha_Cu rise)``.  The current is the driver's measurement when there is
+    one, else the quasi-static ``(u - K_v omega) / R`` of the voltage applied; the rise
+    stays within :data:`RISE_MAX`."""
+
+    p: VehicleParams
+    eff: Effects
+    rise: float = 0.0
+
+    @property
+    def active(self) -> bool:
+        return self.eff.resistance_drift > 0.0
+
+    @property
+    def resistance(self) -> float:
+        """The winding's resistance (ohm) now."""
+        return winding_resistance(self.p, self.eff, self.rise) if self.active else self.p.R_m
+
+    def update(self, h: float, current: float, volts: float = 0.0, omega: float = 0.0) -> float:
+        """Advance h s at ``current`` (A; NaN: the quasi-static current of ``volts`` V at
+        ``omega`` rad/s); returns the resistance (ohm) at the end."""
+        if not self.active:
+            return self.p.R_m
+        r = self.resistance
+        i = current if math.isfinite(current) else (volts - self.p.K_v * omega) / r
+        if math.isfinite(i):
+            rise = winding_rise_step(self.eff, self.rise, i * i * r, h)
+            self.rise = min(rise, RISE_MAX) if math.isfinite(rise) else self.rise
+        return self.resistance

@@ -8,8 +8,8 @@ its command, the armature voltage whose steady current produces the missing torq
   controller's model knows (the feedforward terms of
   :data:`truckd.control.effect_use.EFFECT_USES`: ``load_force``, aero drag at the current
   speed, the terrain at the position ``x`` where the command acts);
-* at rest with a start commanded: ``T = margin * K_stiction`` (breaks stiction) plus the
-  known load at ``x``;
+* at rest with a start commanded: ``T = margin * K_stiction`` (breaks stiction; the
+  Stribeck peak ``K_coulomb + stribeck`` when larger) plus the known load at ``x``;
 * otherwise 0.
 
 A known driver dead zone is not an offset: the driver (``truckd.model.effects.driver_output``)
@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import math
 
-from truckd.control.effect_use import Torque, feedforward_torque
+from truckd.control.effect_use import Torque, breakaway_torque, feedforward_torque
 from truckd.model.effects import Effects
 from truckd.model.params import VehicleParams
 
@@ -59,8 +59,9 @@ def moving_feedforward(
 
 def breakaway_feedforward(p: VehicleParams, eff: Effects, margin: float, x: float = 0.0) -> float:
     """Forward start voltage (V) that breaks stiction (and holds the known load at road
-    position x, m)."""
-    torque = margin * p.K_stiction + feedforward_torque(p, eff, 0.0, x)
+    position x, m): ``margin`` times the static friction (``K_stiction``, or the Stribeck
+    curve's peak at zero speed when the model knows a larger one)."""
+    torque = margin * breakaway_torque(p, eff) + feedforward_torque(p, eff, 0.0, x)
     return torque_to_voltage(p, torque)
 
 
