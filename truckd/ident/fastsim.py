@@ -299,12 +299,34 @@ def _simulate(
     )
     w0 = p.omega(v0)
     meas, raw, pos = run(kin, tl, n, w0, eff.sensor_lag)
+    rotor = raw if kin.gap is None else kin.gap.rotor_out
+    cur, v_at = _sample_currents(p, eff, t, t_cmd, volts, r_tot, v_pre, raw, rotor)
+    return VoltagePrediction(
+        v=meas * p.ratio, v_true=raw * p.ratio, i=cur, x=pos * p.ratio, volts=v_at
+    )
+
+
+def _sample_currents(
+    p: VehicleParams,
+    eff: Effects,
+    t: Array,
+    t_cmd: Array,
+    volts: Array,
+    r_tot: Array,
+    v_pre: float,
+    raw: Array,
+    rotor: Array,
+) -> tuple[Array, Array]:
+    """Motor current (A) and driver voltage (V) at each sample of a run: quasi-static
+    under the command active at the sample (``volts`` through ``r_tot`` per command,
+    ``v_pre`` before the first), still settling from the previous command when one
+    acted just before, within the current limit; ``raw`` the load's speed, ``rotor``
+    the rotor's (rad/s)."""
     # Active command at each sample instant (for the quasi-static current).
     act = t_cmd + eff.input_delay
     idx = np.searchsorted(act, t, "left") - 1
     v_at = np.where(idx >= 0, volts[np.maximum(idx, 0)], v_pre)
     r_at = np.where(idx >= 0, r_tot[np.maximum(idx, 0)], p.R_m)
-    rotor = raw if kin.gap is None else kin.gap.rotor_out
     cur = (v_at - p.K_v * rotor) / r_at
     # A command that acted just before the sample: the current is still settling.
     prev = idx - 1
@@ -317,9 +339,7 @@ def _simulate(
         cur = np.clip(cur, -eff.current_limit, eff.current_limit)
         room = r_at * eff.current_limit
         v_at = np.clip(v_at, p.K_v * raw - room, p.K_v * raw + room)
-    return VoltagePrediction(
-        v=meas * p.ratio, v_true=raw * p.ratio, i=cur, x=pos * p.ratio, volts=v_at
-    )
+    return cur, v_at
 
 
 @dataclass(frozen=True)

@@ -298,21 +298,42 @@ def run(
     instantaneous speed, ``pos`` the integral of speed.
     """
     if use_kernel and kernel_handles(kin):
-        tr = kin.terrain
-        ter = None
-        if isinstance(tr, Terrain):
-            e = tr.eff
-            ter = (
-                tr.per_newton, tr.ratio, tr.x0, e.load_force_amplitude,
-                e.load_force_wavelength, e.load_force_phase, e.hill_force, e.hill_start,
-                e.hill_length,
-            )  # fmt: skip
-        done = ckernel.run(
-            kin.a, kin.b, kin.a_idle, kin.b_idle, kin.c, kin.sigma, kin.d, kin.drag,
-            kin.scale, kin.lag, tl.dt, tl.cmd, tl.sample_end, n, w0, sensor_lag, ter,
-        )  # fmt: skip
+        done = _run_in_c(kin, tl, n, w0, sensor_lag)
         if done is not None:
             return done
+    return _run_in_python(kin, tl, n, w0, sensor_lag)
+
+
+def _run_in_c(
+    kin: Kinetics, tl: Timeline, n: int, w0: float, sensor_lag: float
+) -> tuple[Array, Array, Array] | None:
+    """:func:`run` by the C kernel (None: it is not built)."""
+    tr = kin.terrain
+    ter = None
+    if isinstance(tr, Terrain):
+        e = tr.eff
+        ter = (
+            tr.per_newton, tr.ratio, tr.x0, e.load_force_amplitude,
+            e.load_force_wavelength, e.load_force_phase, e.hill_force, e.hill_start,
+            e.hill_length,
+        )  # fmt: skip
+    return ckernel.run(
+        kin.a, kin.b, kin.a_idle, kin.b_idle, kin.c, kin.sigma, kin.d, kin.drag,
+        kin.scale, kin.lag, tl.dt, tl.cmd, tl.sample_end, n, w0, sensor_lag, ter,
+    )  # fmt: skip
+
+
+def _run_in_python(
+    kin: Kinetics, tl: Timeline, n: int, w0: float, sensor_lag: float
+) -> tuple[Array, Array, Array]:
+    """:func:`run` as a Python loop over the sub-intervals: the reference the C kernel
+    (``kernel/fastrun.c``) follows step by step, and the only runner of the effects the
+    kernel does not model (current limit, Stribeck friction, backlash).
+
+    Long because it is one loop kept whole on purpose: it mirrors the C kernel's loop
+    line for line (``tests/test_ident_kernel.py`` compares them), and its fast path is
+    inlined (it saves a function call per sub-interval).
+    """
     out = np.empty(n)
     raw = np.empty(n)
     pos = np.empty(n)

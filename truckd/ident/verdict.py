@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -30,10 +31,7 @@ from truckd.ident.physics import (
 )
 from truckd.ident.refit import Refit
 from truckd.ident.residuals import Whiteness, looks_like
-from truckd.ident.result import (
-    Diagnosis,
-    Traces,
-)
+from truckd.ident.result import CandidateRow, Diagnosis, Finding, ModelSummary, Traces
 from truckd.ident.runs import Prepared
 from truckd.ident.scoring import Progress, residual_signals, summary, whiteness_of
 from truckd.ident.seed import DETERMINED, Seed, value_of
@@ -178,32 +176,27 @@ def report_stage(
     """Stage 7 of the diagnosis: the extended model held against the least-squares
     model, the limits it ends on, what the runs cannot determine, and whether its
     residual leaves structure (``unexplained``)."""
-    by_name, rows = trials.by_name, dict(refit.rows)
-    findings, kept, ext_sum, y_ext = refit.findings, refit.kept, refit.ext_sum, refit.y_ext
+    by_name = trials.by_name
+    kept = refit.kept
     switched_off = {by_name[a].param.name: 0.0 for a in choice.accepted if a not in kept}
     final, base_pol = refit.final, refit.base_pol
-    ext_params = final.params if kept else base_pol.params
-    ext_effects = dataclasses.replace(final.effects, **switched_off) if kept else base_pol.effects
+    ext = _Extended(
+        findings=refit.findings,
+        kept=kept,
+        summary=refit.ext_sum,
+        y=refit.y_ext,
+        params=final.params if kept else base_pol.params,
+        effects=dataclasses.replace(final.effects, **switched_off) if kept else base_pol.effects,
+        rows=dict(refit.rows),
+    )
     notes = [*_notes(prep.runs, start.ff, seed.fisher)]
     ls_json: dict[str, float | None] | None = None
-    ls = start.ls
-    if ls is not None:
-        ls_sum, y_ls = summary(ls.params, Effects(), prep.report)
-        ls_json = _least_squares_json(ls, ls_sum.fit_percent)
-        progress(f"least squares (SysId's model): fit {ls_sum.fit_percent:.2f} %")
-        if ext_sum.fit_percent < ls_sum.fit_percent:
-            notes.append(
-                f"the simulation-error fit ({ext_sum.fit_percent:.1f} %) does not beat the "
-                f"data's own least-squares model ({ls_sum.fit_percent:.1f} %) on the "
-                "validation data: the extended model is the least-squares model"
-            )
-            for name in kept:
-                rows[name] = dataclasses.replace(
-                    rows[name], accepted=False, note="below least squares: not accepted"
-                )
-            findings, kept = [], []
-            ext_sum, y_ext = ls_sum, y_ls
-            ext_params, ext_effects = ls.params, Effects()
+    if start.ls is not None:
+        ext, ls_json, below = _against_least_squares(ext, start.ls, prep.report, progress)
+        if below is not None:
+            notes.append(below)
+    findings, kept, ext_sum, y_ext = ext.findings, ext.kept, ext.summary, ext.y
+    ext_params, ext_effects, rows = ext.params, ext.effects, ext.rows
     free = [*seed.free, *[by_name[a].param for a in kept]]
     binding = _binding_limits(
         ext_params, ext_effects, free, prep.polish_data, prep.report, seed.grid, progress
@@ -239,14 +232,7 @@ def report_stage(
         ),
         vehicle=ext_params,
         model_effects=ext_effects,
-        residual_stats={
-            "rms": wt.rms,
-            "noise": wt.noise,
-            "structure": wt.structure,
-            "acf_outside_fraction": wt.acf_outside,
-            "ccf_outside_fraction": wt.ccf_outside,
-            **{f"corr_{k}": c for k, c in looks.items()},
-        },
+        residual_stats=_residual_stats(wt, looks),
         rejected=trials.judge.rejected,
         linear=None if start.ff is None else start.ff.to_json(),
         least_squares=ls_json,
@@ -269,3 +255,52 @@ def _unexplained_line(wt: Whiteness, looks: dict[str, float]) -> str:
         f"of lags outside the band, RMS {wt.rms:.3g} against noise {wt.noise:.3g} m/s); "
         f"it correlates with {what}"
     )
+
+
+@dataclass(frozen=True)
+class _Extended:
+    """The extended model as the report states it."""
+
+    findings: list[Finding]
+    kept: list[str]
+    summary: ModelSummary
+    y: np.ndarray
+    params: VehicleParams
+    effects: Effects
+    rows: dict[str, CandidateRow]
+
+
+def _against_least_squares(
+    ext: _Extended, ls: LeastSquares, report: Sequence[Series], progress: Progress
+) -> tuple[_Extended, dict[str, float | None], str | None]:
+    """The extended model, or SysId's least-squares model when that fits the report
+    data better (then with a note saying so); and the ``least_squares`` JSON object."""
+    ls_sum, y_ls = summary(ls.params, Effects(), report)
+    ls_json = _least_squares_json(ls, ls_sum.fit_percent)
+    progress(f"least squares (SysId's model): fit {ls_sum.fit_percent:.2f} %")
+    if not ext.summary.fit_percent < ls_sum.fit_percent:
+        return ext, ls_json, None
+    note = (
+        f"the simulation-error fit ({ext.summary.fit_percent:.1f} %) does not beat the "
+        f"data's own least-squares model ({ls_sum.fit_percent:.1f} %) on the "
+        "validation data: the extended model is the least-squares model"
+    )
+    rows = dict(ext.rows)
+    for name in ext.kept:
+        rows[name] = dataclasses.replace(
+            rows[name], accepted=False, note="below least squares: not accepted"
+        )
+    below = _Extended([], [], ls_sum, y_ls, ls.params, Effects(), rows)
+    return below, ls_json, note
+
+
+def _residual_stats(wt: Whiteness, looks: dict[str, float]) -> dict[str, float]:
+    """The ``residual_stats`` of the diagnosis: whiteness and correlations."""
+    return {
+        "rms": wt.rms,
+        "noise": wt.noise,
+        "structure": wt.structure,
+        "acf_outside_fraction": wt.acf_outside,
+        "ccf_outside_fraction": wt.ccf_outside,
+        **{f"corr_{k}": c for k, c in looks.items()},
+    }
