@@ -17,12 +17,13 @@ from truckd.ident.candidates import (
     Candidate,
 )
 from truckd.ident.extend import fit_candidate
+from truckd.ident.judge import passes_over
 from truckd.ident.pairs import best_pair, pair_order
 from truckd.ident.result import (
     CandidateRow,
 )
 from truckd.ident.runs import Prepared
-from truckd.ident.scoring import Model, Progress, passes_over, still_structured, val_cost
+from truckd.ident.scoring import Model, Progress, still_structured, val_cost
 from truckd.ident.seed import Seed
 from truckd.ident.selection import (
     close,

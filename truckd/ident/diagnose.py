@@ -37,10 +37,10 @@ from truckd.ident.refit import refit_stage
 from truckd.ident.result import Diagnosis
 from truckd.ident.runs import FIT_BUDGET, budget, prepare, supply_for
 from truckd.ident.scoring import Progress, quiet
-from truckd.ident.seed import fit_seed, restick, seed_stage
+from truckd.ident.seed import fit_seed, seed_stage
 from truckd.ident.trials import candidates_stage
 from truckd.ident.verdict import report_stage
-from truckd.ident.voltage import FitResult, seed_params, stiction_grid, weights_for
+from truckd.ident.voltage import FitResult, restick, seed_params, stiction_grid, weights_for
 from truckd.model.params import VehicleParams
 
 

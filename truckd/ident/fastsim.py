@@ -18,15 +18,13 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from truckd.ident.freerun import (
-    GapRun,
-    Kinetics,
-    Terrain,
-    Timeline,
-    _merge_equal,
-    run,
-    timeline,
-)
+from truckd.ident.data import Series
+from truckd.ident.freerun import GapRun, _merge_equal
+from truckd.ident.freerun import Kinetics as Kinetics  # re-exported: the run's inputs
+from truckd.ident.freerun import Terrain as Terrain
+from truckd.ident.freerun import Timeline as Timeline
+from truckd.ident.freerun import run as run
+from truckd.ident.freerun import timeline as timeline
 from truckd.model.effects import (
     ARRAYS,
     EFFECT_FIELDS,
@@ -42,18 +40,6 @@ from truckd.model.effects import (
 from truckd.model.params import VehicleParams
 
 Array = NDArray[np.float64]
-
-__all__ = [
-    "ForceModel",
-    "Kinetics",
-    "Terrain",
-    "Timeline",
-    "VoltagePrediction",
-    "run",
-    "simulate_force",
-    "simulate_voltage",
-    "timeline",
-]
 
 
 @dataclass(frozen=True)
@@ -340,6 +326,26 @@ def _sample_currents(
         room = r_at * eff.current_limit
         v_at = np.clip(v_at, p.K_v * raw - room, p.K_v * raw + room)
     return cur, v_at
+
+
+def predict(p: VehicleParams, e: Effects, s: Series) -> VoltagePrediction:
+    """Free run of the model over ``s`` from its measured start (speed, and current when
+    logged: it tells which voltage acts before the log's first command does)."""
+    v0 = s.start_speed
+    i0 = None if s.i is None else float(s.i[0])
+    v_pre = prelog_voltage(p, e, p.omega(v0), i0)
+    x0 = 0.0 if s.x is None else float(s.x[0])
+    rise0 = _winding_rise_before(p, e, s)
+    return simulate_voltage(p, e, s.t, s.inp, v0, s.hist_t, s.hist_inp, v_pre, x0, rise0)
+
+
+def _winding_rise_before(p: VehicleParams, e: Effects, s: Series) -> float:
+    """The winding's temperature rise (K) at the start of ``s`` (``resistance_drift``):
+    the run it was cut from simulated up to there (0 when ``s`` starts the run)."""
+    if e.resistance_drift == 0.0 or s.origin is None or s.offset < 1:
+        return 0.0
+    head = s.origin.slice(0, s.offset + 1)
+    return float(winding_rises(p, e, head.t, predict(p, e, head).i, 0.0)[-1])
 
 
 @dataclass(frozen=True)

@@ -2,7 +2,7 @@
 stages of :mod:`truckd.ident.diagnose`.
 
 Besides the information criterion and the validation cost
-(:func:`truckd.ident.scoring.passes_over`), a cause must raise the validation fit
+(:func:`passes_over`), a cause must raise the validation fit
 where it acts (:data:`truckd.ident.scoring.GAIN_MIN`) and be physically possible; a
 hill, which changes nothing off its stretch, is validated where it acts, or on
 held-out crossings of its stretch.  Pure numerics.
@@ -35,11 +35,8 @@ from truckd.ident.scoring import (
     MIN_SUPPORT,
     Model,
     gain_where_acting,
-    passes_over,
 )
-from truckd.ident.selection import (
-    REL_MIN,
-)
+from truckd.ident.selection import BIC_MIN, REL_MIN, delta_bic, passes
 from truckd.ident.terrain import (
     hill_problem,
     rolling_problem,
@@ -138,6 +135,23 @@ def held_out_crossings(
         if not float(r_new @ r_new) < (1.0 - REL_MIN) * float(r_old @ r_old):
             return False
     return True
+
+
+def bic_change(new: FitResult, old: FitResult, extra: int) -> float:
+    return delta_bic(new.sse, old.sse, old.n, extra)
+
+
+def passes_over(
+    new: Model, old: Model, extra: int, hill_ok: bool | None = None
+) -> tuple[bool, float]:
+    """Whether ``new`` earns its place over ``old`` (:func:`selection.passes`) and the
+    change of the information criterion.  When the difference is a hill, ``hill_ok``
+    replaces the validation test (a load on a stretch of road changes nothing
+    elsewhere: it is validated where it acts)."""
+    dbic = bic_change(new.fit, old.fit, extra)
+    if hill_ok is None:
+        return passes(dbic, new.val_cost, old.val_cost), dbic
+    return dbic < -BIC_MIN and hill_ok, dbic
 
 
 class Judge:

@@ -30,11 +30,12 @@ from truckd.ident.result import (
 )
 from truckd.ident.runs import Prepared
 from truckd.ident.scoring import Progress, summary
-from truckd.ident.seed import Seed, restick
+from truckd.ident.seed import Seed
 from truckd.ident.trials import Trials
 from truckd.ident.voltage import (
     FitResult,
     fit_with_stiction,
+    restick,
     weights_for,
 )
 

@@ -1,7 +1,6 @@
-"""How the diagnosis scores a model: its validation cost, its free-run figures, the
-structure left in its residual and the selection's tests (:mod:`truckd.ident.selection`)
-applied to two models.  Shared by the stages of :mod:`truckd.ident.diagnose`; pure
-numerics.
+"""How the diagnosis scores a model: its validation cost, its free-run figures, the gain
+of one model over another where they differ, and the structure left in its residual.
+Shared by the stages of :mod:`truckd.ident.diagnose`; pure numerics.
 """
 
 from __future__ import annotations
@@ -25,9 +24,6 @@ from truckd.ident.result import (
     ModelSummary,
 )
 from truckd.ident.selection import (
-    BIC_MIN,
-    delta_bic,
-    passes,
     structured,
 )
 from truckd.ident.voltage import (
@@ -60,23 +56,6 @@ class Model:
 def val_cost(m: FitResult, val: Sequence[Series], w: Weights) -> float:
     r = residuals(m.params, m.effects, val, w)
     return float(r @ r)
-
-
-def bic_change(new: FitResult, old: FitResult, extra: int) -> float:
-    return delta_bic(new.sse, old.sse, old.n, extra)
-
-
-def passes_over(
-    new: Model, old: Model, extra: int, hill_ok: bool | None = None
-) -> tuple[bool, float]:
-    """Whether ``new`` earns its place over ``old`` (:func:`selection.passes`) and the
-    change of the information criterion.  When the difference is a hill, ``hill_ok``
-    replaces the validation test (a load on a stretch of road changes nothing
-    elsewhere: it is validated where it acts)."""
-    dbic = bic_change(new.fit, old.fit, extra)
-    if hill_ok is None:
-        return passes(dbic, new.val_cost, old.val_cost), dbic
-    return dbic < -BIC_MIN and hill_ok, dbic
 
 
 def still_structured(m: FitResult, runs: Sequence[Series]) -> bool:

@@ -7,7 +7,6 @@ and how well the data determine its constants (Fisher information).  Pure numeri
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -39,6 +38,7 @@ from truckd.ident.voltage import (
     seed_params,
     stiction_grid,
     theta_of,
+    value_of,
 )
 from truckd.model.effects import Effects
 from truckd.model.params import VehicleParams
@@ -103,20 +103,9 @@ NEAR_SSE = 0.5
 """Seed fits within this fraction of the best estimation cost go to the validation data."""
 
 
-def restick(m: FitResult, grid: Sequence[float], data: list[Series], w: Weights) -> FitResult:
-    """``m`` with K_stiction re-scanned on ``data`` (the other parameters held)."""
-    p, sse = scan_stiction(m.params, m.effects, grid, data, w)
-    return dataclasses.replace(m, params=p, sse=sse)
-
-
 DETERMINED = 0.1
 """A constant of the linear estimate is called determined when its relative standard
 error is below this."""
-
-
-def value_of(p: VehicleParams, e: Effects, name: str) -> float:
-    """A free parameter's value in a model (vehicle parameter or effect)."""
-    return float(getattr(p, name)) if hasattr(p, name) else float(getattr(e, name))
 
 
 def fisher_rel_se(

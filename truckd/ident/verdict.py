@@ -34,7 +34,7 @@ from truckd.ident.residuals import Whiteness, looks_like
 from truckd.ident.result import CandidateRow, Diagnosis, Finding, ModelSummary, Traces
 from truckd.ident.runs import Prepared
 from truckd.ident.scoring import Progress, residual_signals, summary, whiteness_of
-from truckd.ident.seed import DETERMINED, Seed, value_of
+from truckd.ident.seed import DETERMINED, Seed
 from truckd.ident.selection import (
     white,
 )
@@ -42,6 +42,7 @@ from truckd.ident.trials import Trials
 from truckd.ident.voltage import (
     Param,
     fit_with_stiction,
+    value_of,
     weights_for,
 )
 from truckd.model.effects import Effects
