@@ -19,7 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from truckd.ident.data import Series
-from truckd.ident.freerun import GapRun, _merge_equal
+from truckd.ident.freerun import GapRun, merge_equal
 from truckd.ident.freerun import Kinetics as Kinetics  # re-exported: the run's inputs
 from truckd.ident.freerun import Terrain as Terrain
 from truckd.ident.freerun import Timeline as Timeline
@@ -250,7 +250,7 @@ def _simulate(
         a = k_arr * p.K_T / p.J_S * volts / r_tot
         b = k_arr * (p.K_T * p.K_v / r_tot + eff.viscous_friction) / p.J_S
         lag_cmd = lag_e if eff.backlash == 0.0 else 0.0
-        tl = _merge_equal(timeline(t, eff.input_delay + lag_cmd, hist, t_cmd), a, b)
+        tl = merge_equal(timeline(t, eff.input_delay + lag_cmd, hist, t_cmd), a, b)
         if cached:
             if len(_PREP) >= PREP_CACHE:
                 del _PREP[next(iter(_PREP))]

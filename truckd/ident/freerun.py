@@ -500,7 +500,7 @@ class GapRun:
         return gap_free_motion(p, eff, g, w, volts, r, coulomb, load, viscous, dt)
 
 
-def _merge_equal(tl: Timeline, a: Array, b: Array) -> Timeline:
+def merge_equal(tl: Timeline, a: Array, b: Array) -> Timeline:
     """Join a split sub-interval to the next when the inputs on both sides are equal.
 
     Exact (the inputs do not change at the split); it halves the work of a delay for
