@@ -44,16 +44,22 @@ MIN_SUPPORT = 50
 """Fewest validation samples under a hill's influence to validate it at all."""
 
 SEED_NAMES = ("R_m", "L_m", "K_v", "K_T", "J_S", "K_coulomb", "K_stiction")
+"""The seed's parameters, reported with every model."""
 
 
 @dataclass(frozen=True)
 class Model:
+    """A fitted model as the selection compares it."""
+
     fit: FitResult
     names: tuple[str, ...]
+    """The candidates it adds to the seed, in order."""
     val_cost: float
+    """Its cost on the validation data (:func:`val_cost`)."""
 
 
 def val_cost(m: FitResult, val: Sequence[Series], w: Weights) -> float:
+    """The weighted sum of squared free-run residuals of ``m`` on ``val``."""
     r = residuals(m.params, m.effects, val, w)
     return float(r @ r)
 
@@ -166,4 +172,5 @@ Progress = Callable[[str], None]
 
 
 def quiet(_: str) -> None:
+    """Progress that says nothing."""
     return None
