@@ -24,7 +24,7 @@ clipped to the driven range; a constant ``load_force`` when it covers all of it)
 ``hit_rate`` the hill as placed.
 
     nice .venv/bin/python benchmarks/diagnose_bench.py [--seeds N] [--trucks default|drawn]
-        [--speed-only | --no-speed] [--json FILE]
+        [--speed-only | --no-speed] [--sizes N,M] [--json FILE]
 """
 
 from __future__ import annotations
@@ -368,25 +368,29 @@ SPEED_SAMPLES = (10000, 60000)
 SPEED_REPEATS = 3
 
 
-def _speed(p: Any) -> dict[str, Any]:
-    """Diagnose time of a log with a hidden sensor lag at each of :data:`SPEED_SAMPLES`:
-    median of :data:`SPEED_REPEATS`, with the 1-minute load average around each run."""
+def _speed(p: Any, sizes: tuple[int, ...] = SPEED_SAMPLES) -> dict[str, Any]:
+    """Diagnose time of a log with a hidden sensor lag at each of ``sizes``: median of
+    :data:`SPEED_REPEATS`, with the 1-minute load average around each run; also the
+    process's CPU time, which other jobs on a loaded machine stretch far less."""
     rows = []
-    for n in SPEED_SAMPLES:
+    for n in sizes:
         log = plant_log(p, with_effect("sensor_lag", 0.06), seed=3, n=n)
-        secs, loads = [], []
+        secs, cpu, loads = [], [], []
         named: list[str] = []
         for _ in range(SPEED_REPEATS):
             loads.append(os.getloadavg()[0])
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             d = diagnose_log(log, p)
             secs.append(time.perf_counter() - t0)
+            cpu.append(time.process_time() - c0)
             named = [f.name for f in d.effects]
         rows.append(
             {
                 "samples": n,
                 "seconds": secs,
                 "median_s": float(np.median(secs)),
+                "cpu_seconds": cpu,
+                "median_cpu_s": float(np.median(cpu)),
                 "loadavg_1min": [round(x, 2) for x in loads],
                 "named": named,
             }
@@ -405,6 +409,11 @@ def main() -> int:
     )
     ap.add_argument(
         "--trucks", choices=("default", "drawn"), default="default", help="which trucks"
+    )
+    ap.add_argument(
+        "--sizes",
+        metavar="N,M",
+        help="log lengths of the speed runs (default: 10000,60000)",
     )
     ap.add_argument(
         "--cases",
@@ -462,7 +471,8 @@ def main() -> int:
         false_per_100 = 100.0 * sum(r["false_causes"] for r in rows) / len(rows)
     speed: dict[str, Any] = {}
     if not args.no_speed:
-        speed = _speed(p)
+        sizes = tuple(int(x) for x in args.sizes.split(",")) if args.sizes else SPEED_SAMPLES
+        speed = _speed(p, sizes)
     print(f"\n{'case':20s} {'runs':>5s} {'hit rate':>9s} {'named':>7s} {'median s':>9s}")
     for case, r in table.items():
         named = f"{r['named_rate']:.2f}" if "named_rate" in r else ""
@@ -476,7 +486,8 @@ def main() -> int:
     for row in speed.get("rows", []):
         print(
             f"\ndiagnose on {row['samples']} samples: median {row['median_s']:.2f} s of "
-            f"{[round(x, 2) for x in row['seconds']]} (load {row['loadavg_1min']})"
+            f"{[round(x, 2) for x in row['seconds']]}, CPU {row['median_cpu_s']:.2f} s "
+            f"(load {row['loadavg_1min']})"
         )
     machine = {
         "platform": platform.platform(),

@@ -76,22 +76,23 @@ def test_a_limit_that_binds_is_reported_with_the_fit_without_it(
     """Seed bounds narrowed to 1.05x around the start and a truck whose inertia the start
     gets 30 % wrong: J_S ends on a limit, and the note gives the fit with it and after a
     refit without it (which cannot be worse)."""
-    import truckd.ident.diagnose as diagnose
+    import truckd.ident.linear as linear
     import truckd.ident.voltage as voltage
     from truckd.ident.linear import Feedforward
 
     p = load_config().vehicle
     q = _truck(p, 0.5, 1.0)
     log = plant_log(q, Effects(), seed=5, n=3000, with_current=False)
-    real = diagnose.start_model
+    real = linear.start_model
 
     def off_start(p0: VehicleParams, runs: object) -> tuple[VehicleParams, Feedforward | None]:
         p_lin, ff = real(p0, runs)  # type: ignore[arg-type]
         return p_lin.replace(J_S=1.3 * p_lin.J_S), ff
 
     monkeypatch.setattr(voltage, "SEED_ROOM", 1.05)
-    monkeypatch.setattr(diagnose, "start_model", off_start)
-    monkeypatch.setattr(diagnose, "least_squares_model", lambda *a: None)
+    # The least-squares stage (linear.least_squares_stage) starts from these.
+    monkeypatch.setattr(linear, "start_model", off_start)
+    monkeypatch.setattr(linear, "least_squares_model", lambda *a: None)
     d = diagnose_log(log, p)
     notes = [n for n in d.notes if n.startswith("limit binds: J_S")]
     assert notes, d.notes

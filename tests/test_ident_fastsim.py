@@ -12,10 +12,17 @@ import zlib
 
 import numpy as np
 import pytest
-from labkit.synth import EFFECT_RANGES, excitation
+from labkit.synth import EFFECT_RANGES, excitation, plant_log
 
-from truckd.ident.data import Series
-from truckd.ident.fastsim import ForceModel, simulate_force, simulate_voltage, timeline
+from truckd.ident.candidates import voltage_candidates
+from truckd.ident.data import Series, series_from_log
+from truckd.ident.fastsim import (
+    ForceModel,
+    simulate_force,
+    simulate_voltage,
+    timeline,
+    unsupported_effects,
+)
 from truckd.ident.voltage import predict
 from truckd.model.effects import EFFECT_NAMES, Effects
 from truckd.model.params import VehicleParams
@@ -177,3 +184,18 @@ def test_fast_simulator_starts_terrain_at_the_given_position(params: VehiclePara
     at_zero = simulate_voltage(params, eff, t[k:], u[k:], v0, v_pre=pre)
     assert np.max(np.abs(part.v - whole.v[k:])) < 1e-3
     assert np.max(np.abs(at_zero.v - whole.v[k:])) > 1e-2
+
+
+def test_the_fast_simulator_models_every_field_of_the_effects() -> None:
+    """What the fast simulator models comes from truckd.model.effects: every field of
+    Effects switched on at once is accepted (a field it did not know would be refused)."""
+    every = Effects(**{f.name: 0.5 for f in dataclasses.fields(Effects)})
+    assert unsupported_effects(every) == []
+
+
+def test_every_effect_is_a_candidate_of_the_diagnosis(params: VehicleParams) -> None:
+    """Each effect of EFFECT_NAMES is tried by the diagnosis (a log with current and
+    several command levels: no candidate is left out for want of data)."""
+    log = plant_log(params, Effects(), seed=4, n=3000)
+    names = {c.param.name for c in voltage_candidates(params, series_from_log(log))}
+    assert set(EFFECT_NAMES) <= names

@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
 import pytest
 
-from truckd.model.effects import EFFECT_NAMES, Effects
+from truckd.model.effects import ARRAYS, EFFECT_FIELDS, EFFECT_NAMES, Effects, driver_output
 from truckd.model.motor import steady_speed
 from truckd.model.params import VehicleParams
 from truckd.sim.plant import Plant, PlantConfig, simulate_open_loop
@@ -41,6 +42,33 @@ def test_all_contract_effects_are_switches() -> None:
     }
     assert Effects().active() == ()
     assert Effects(dead_zone=1.0, sensor_lag=0.1).active() == ("dead_zone", "sensor_lag")
+
+
+def test_every_field_of_effects_is_named_once() -> None:
+    """The effects, their companions and the terrain fields name every field of Effects
+    exactly once: the fast simulator, the candidates and the model file follow them."""
+    assert len(EFFECT_FIELDS) == len(set(EFFECT_FIELDS))
+    assert set(EFFECT_FIELDS) == {f.name for f in dataclasses.fields(Effects)}
+
+
+@pytest.mark.parametrize(
+    "eff",
+    [
+        Effects(),
+        Effects(dead_zone=1.3),
+        Effects(dead_zone_offset=0.7, battery_sag=0.2),
+        Effects(dead_zone=0.9, dead_zone_offset=0.4, voltage_saturation=4.5, battery_sag=0.1),
+    ],
+)
+def test_the_driver_on_a_log_is_the_driver_on_each_command(eff: Effects) -> None:
+    """The fast simulator calls the driver on a whole log (ARRAYS): the same numbers as
+    the plant's call per command."""
+    u = np.random.default_rng(5).uniform(-9.0, 9.0, 500)
+    u[:4] = (0.0, eff.dead_zone, -eff.dead_zone_offset, 7.2)
+    volts, r_x = driver_output(u, eff, 7.2, ARRAYS)
+    each = [driver_output(x, eff, 7.2) for x in u.tolist()]
+    assert volts.tolist() == [v for v, _ in each]
+    assert r_x.tolist() == [r for _, r in each]
 
 
 def test_input_delay_shifts_the_step_response_by_the_delay(params: VehicleParams) -> None:

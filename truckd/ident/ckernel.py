@@ -1,7 +1,7 @@
 """The C free-run kernel (truckd/ident/kernel/fastrun.c) through ctypes, when built.
 
 ``make firmware`` (and ``make setup-dev firmware``) builds it next to its source; without
-it :func:`truckd.ident.fastsim.run` runs its Python loop (the reference: same results,
+it :func:`truckd.ident.freerun.run` runs its Python loop (the reference: same results,
 about fifty times slower).  Loading the library is the only thing this module does
 besides computing.
 """
@@ -73,11 +73,11 @@ def run(
     sensor_lag: float,
     terrain: tuple[float, ...] | None = None,
 ) -> tuple[Array, Array, Array] | None:
-    """:func:`truckd.ident.fastsim.run` in C (None: the kernel is not built).
+    """:func:`truckd.ident.freerun.run` in C (None: the kernel is not built).
 
     ``terrain``: ``(per_newton, ratio, x0, amplitude, wavelength, phase, hill_force,
     hill_start, hill_length)`` of a position-dependent load (see
-    :class:`truckd.ident.fastsim.Terrain`), None for none."""
+    :class:`truckd.ident.freerun.Terrain`), None for none."""
     lib = library()
     if lib is None:
         return None

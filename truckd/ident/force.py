@@ -29,6 +29,7 @@ from truckd.ident.residuals import whiteness
 from truckd.ident.result import CandidateRow, Diagnosis, Finding, ModelSummary, Traces
 from truckd.ident.selection import close, delta_bic, passes, structured
 from truckd.ident.voltage import fit_percent, rmse
+from truckd.model.effects import EFFECT_NAMES
 
 Array = NDArray[np.float64]
 
@@ -40,14 +41,8 @@ FORCE_CANDIDATES: dict[str, str] = {
 }
 """Candidate effect -> the IDM parameter it adds (N s/m, N, N/(m/s)^2)."""
 
-NOT_APPLICABLE = (
-    "input_delay",
-    "dead_zone",
-    "dead_zone_offset",
-    "voltage_saturation",
-    "battery_sag",
-    "sensor_lag",
-)
+NOT_APPLICABLE = tuple(n for n in EFFECT_NAMES if n not in FORCE_CANDIDATES)
+"""The effects that concern a voltage drive: not candidates for a force input."""
 
 
 @dataclass(frozen=True)
@@ -159,64 +154,15 @@ def diagnose_force(
     validate: Series | None = None,
     progress: Callable[[str], None] = _quiet,
 ) -> Diagnosis:
-    """Diagnose a force-input log (see module docstring)."""
+    """Diagnose a force-input log (see module docstring): each candidate alone, then
+    forward stepwise selection, then the report of the chosen inverse model."""
     est, val = (data, validate) if validate is not None else split(data)
     report = validate if validate is not None else data
     progress("inverse dynamics: filtering and differentiating")
     d_est, d_val = idm_signals(est), idm_signals(val)
     base = fit_idm(d_est, ())
-    base_val = _val_sse(d_val, base)
-    tried = {n: fit_idm(d_est, (n,)) for n in FORCE_CANDIDATES}
-
-    def dbic(new: IdmFit, old: IdmFit) -> float:
-        return delta_bic(new.sse, old.sse, new.n, 1)
-
-    rows: dict[str, CandidateRow] = {}
-    for n, f in tried.items():
-        vs = _val_sse(d_val, f)
-        physical = n == "load_force" or f.theta[2] > 0.0
-        ok = physical and passes(dbic(f, base), vs, base_val)
-        rows[n] = CandidateRow(
-            name=n,
-            params={FORCE_CANDIDATES[n]: float(f.theta[2])},
-            fit_percent=100.0 - relerr(d_val, f),
-            gain_percent=relerr(d_val, base) - relerr(d_val, f),
-            cost_ratio=vs / base_val,
-            delta_bic=dbic(f, base),
-            accepted=False,
-            note="passes alone" if ok else ("" if physical else "unphysical sign"),
-        )
-    # Forward stepwise: each round adds the candidate that lowers the validation error
-    # most, if it passes both tests against the current model.
-    current, cur_val = base, base_val
-    accepted: list[str] = []
-    steps = [base]
-    ambiguous: list[tuple[str, str]] = []
-    # Every candidate of a physical sign alone competes in each round, not only those that
-    # pass alone: an offset hidden under viscous friction passes only on top of it.
-    remaining = [n for n in FORCE_CANDIDATES if rows[n].note != "unphysical sign"]
-    while remaining:
-        trials = {n: fit_idm(d_est, (*accepted, n)) for n in remaining}
-        scored = sorted(remaining, key=lambda n: _val_sse(d_val, trials[n]))
-        best = scored[0]
-        f = trials[best]
-        vs = _val_sse(d_val, f)
-        physical = all(f.theta[2 + k] > 0.0 for k, n in enumerate(f.names) if n != "load_force")
-        if not (physical and passes(dbic(f, current), vs, cur_val)):
-            for n in remaining:
-                if rows[n].note == "passes alone":
-                    rows[n] = _note(rows[n], "adds nothing once others are in")
-            break
-        for n in scored[1:]:
-            if close(_val_sse(d_val, trials[n]), vs, absolute=0.0):
-                ambiguous.append((best, n))
-                rows[n] = _note(rows[n], f"ambiguous with {best}")
-        accepted.append(best)
-        rows[best] = _note(rows[best], "accepted", True)
-        current, cur_val = f, vs
-        steps.append(f)
-        remaining = [n for n in remaining if n != best and not rows[n].note.startswith("amb")]
-
+    rows = _alone(d_est, d_val, base)
+    current, accepted, steps, ambiguous = _stepwise(d_est, d_val, base, rows)
     d_rep = d_val if validate is not None else idm_signals(report)
     base_sum, y_base = _summary(base, d_rep, report)
     findings: list[Finding] = []
@@ -274,6 +220,70 @@ def diagnose_force(
             "ccf_outside_fraction": wt.ccf_outside,
         },
     )
+
+
+def _dbic(new: IdmFit, old: IdmFit) -> float:
+    return delta_bic(new.sse, old.sse, new.n, 1)
+
+
+def _alone(d_est: Idm, d_val: Idm, base: IdmFit) -> dict[str, CandidateRow]:
+    """Each candidate fitted alone on top of the seed: its row of the table."""
+    base_val = _val_sse(d_val, base)
+    tried = {n: fit_idm(d_est, (n,)) for n in FORCE_CANDIDATES}
+    rows: dict[str, CandidateRow] = {}
+    for n, f in tried.items():
+        vs = _val_sse(d_val, f)
+        physical = n == "load_force" or f.theta[2] > 0.0
+        ok = physical and passes(_dbic(f, base), vs, base_val)
+        rows[n] = CandidateRow(
+            name=n,
+            params={FORCE_CANDIDATES[n]: float(f.theta[2])},
+            fit_percent=100.0 - relerr(d_val, f),
+            gain_percent=relerr(d_val, base) - relerr(d_val, f),
+            cost_ratio=vs / base_val,
+            delta_bic=_dbic(f, base),
+            accepted=False,
+            note="passes alone" if ok else ("" if physical else "unphysical sign"),
+        )
+    return rows
+
+
+def _stepwise(
+    d_est: Idm, d_val: Idm, base: IdmFit, rows: dict[str, CandidateRow]
+) -> tuple[IdmFit, list[str], list[IdmFit], list[tuple[str, str]]]:
+    """Forward stepwise: each round adds the candidate that lowers the validation error
+    most, if it passes both tests against the current model.  Returns the final model,
+    the accepted names in order, the model after each step (the seed first) and the
+    ambiguous pairs; updates the notes of ``rows``."""
+    current, cur_val = base, _val_sse(d_val, base)
+    accepted: list[str] = []
+    steps = [base]
+    ambiguous: list[tuple[str, str]] = []
+    # Every candidate of a physical sign alone competes in each round, not only those that
+    # pass alone: an offset hidden under viscous friction passes only on top of it.
+    remaining = [n for n in FORCE_CANDIDATES if rows[n].note != "unphysical sign"]
+    while remaining:
+        trials = {n: fit_idm(d_est, (*accepted, n)) for n in remaining}
+        scored = sorted(remaining, key=lambda n: _val_sse(d_val, trials[n]))
+        best = scored[0]
+        f = trials[best]
+        vs = _val_sse(d_val, f)
+        physical = all(f.theta[2 + k] > 0.0 for k, n in enumerate(f.names) if n != "load_force")
+        if not (physical and passes(_dbic(f, current), vs, cur_val)):
+            for n in remaining:
+                if rows[n].note == "passes alone":
+                    rows[n] = _note(rows[n], "adds nothing once others are in")
+            break
+        for n in scored[1:]:
+            if close(_val_sse(d_val, trials[n]), vs, absolute=0.0):
+                ambiguous.append((best, n))
+                rows[n] = _note(rows[n], f"ambiguous with {best}")
+        accepted.append(best)
+        rows[best] = _note(rows[best], "accepted", True)
+        current, cur_val = f, vs
+        steps.append(f)
+        remaining = [n for n in remaining if n != best and not rows[n].note.startswith("amb")]
+    return current, accepted, steps, ambiguous
 
 
 def _note(row: CandidateRow, note: str, accepted: bool = False) -> CandidateRow:

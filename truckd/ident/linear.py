@@ -19,7 +19,7 @@ gives ``R_m`` and ``K_v`` on their own.  Pure numerics.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -303,3 +303,41 @@ def least_squares_model(p0: VehicleParams, runs: Sequence[Series]) -> LeastSquar
     kc = max(ks_v, 0.0) * p.K_T / p.R_m
     j = ff.kA * p.K_T * r / p.R_m
     return LeastSquares(p.replace(J_S=j, K_coulomb=kc, K_stiction=kc), ff)
+
+
+@dataclass(frozen=True)
+class LinearStart:
+    """What the least-squares stage hands on: the starting truck and both estimates."""
+
+    p_lin: VehicleParams
+    """The configured truck with the linear estimate's constants (or as configured)."""
+    ff: Feedforward | None
+    """The windowed SysId estimate (None: too few sliding samples)."""
+    ls: LeastSquares | None
+    """SysId's own least-squares model (None: it could not be fitted)."""
+
+
+def linear_start(
+    p0: VehicleParams, runs: Sequence[Series], progress: Callable[[str], None]
+) -> tuple[VehicleParams, Feedforward | None]:
+    """:func:`start_model`, saying what it found."""
+    p_lin, ff = start_model(p0, runs)
+    if ff is None:
+        progress("linear estimate: too few sliding samples; starting from the configuration")
+    else:
+        progress(
+            f"linear estimate (SysId form): kS={ff.kS:.4g} V, kV={ff.kV:.4g} V s/m, "
+            f"kA={ff.kA:.4g} V s^2/m -> K_v={p_lin.K_v:.4g}, J_S={p_lin.J_S:.4g}, "
+            f"K_coulomb={p_lin.K_coulomb:.4g}"
+        )
+    return p_lin, ff
+
+
+def least_squares_stage(
+    p0: VehicleParams, est: Sequence[Series], progress: Callable[[str], None]
+) -> LinearStart:
+    """Stage 2 of the diagnosis: the linear estimate on the estimation runs ``est`` (the
+    seed fit's start) and SysId's least-squares model (a start, and the bar the
+    extended model must clear)."""
+    p_lin, ff = linear_start(p0, est, progress)
+    return LinearStart(p_lin, ff, least_squares_model(p0, est))

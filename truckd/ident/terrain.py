@@ -10,7 +10,7 @@ so every start and end on a grid of position bins is scored at once (the sum of 
 it removes, by partial regression on the other inputs).  The stretch is chosen with a
 constant load allowed (where the level steps), then oriented without it (a load on the
 stretch, or on the rest of the road, whichever is a hill).  The simulation-error fit
-then refines its force, start and length (:mod:`truckd.ident.diagnose`).
+then refines its force, start and length (:func:`truckd.ident.extend.refine_stretch`).
 
 Why output error and not the equation error (force = u - kS sign v - kV v - kA a): the
 equation error differentiates the measured speed, whose noise then grows as ``kA`` over

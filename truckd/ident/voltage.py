@@ -24,12 +24,7 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from truckd.ident.data import Series, noise_std
-from truckd.ident.fastsim import (
-    VoltagePrediction,
-    prelog_voltage,
-    simulate_voltage,
-    winding_rises,
-)
+from truckd.ident.fastsim import predict as predict  # the free run of one series
 from truckd.model.effects import Effects
 from truckd.model.params import VehicleParams
 
@@ -130,24 +125,15 @@ def weights_for(data: Sequence[Series]) -> Weights:
     return Weights(v=1.0 / sv)
 
 
-def predict(p: VehicleParams, e: Effects, s: Series) -> VoltagePrediction:
-    """Free run of the model over ``s`` from its measured start (speed, and current when
-    logged: it tells which voltage acts before the log's first command does)."""
-    v0 = s.start_speed
-    i0 = None if s.i is None else float(s.i[0])
-    v_pre = prelog_voltage(p, e, p.omega(v0), i0)
-    x0 = 0.0 if s.x is None else float(s.x[0])
-    rise0 = _winding_rise_before(p, e, s)
-    return simulate_voltage(p, e, s.t, s.inp, v0, s.hist_t, s.hist_inp, v_pre, x0, rise0)
+def value_of(p: VehicleParams, e: Effects, name: str) -> float:
+    """A free parameter's value in a model (vehicle parameter or effect)."""
+    return float(getattr(p, name)) if hasattr(p, name) else float(getattr(e, name))
 
 
-def _winding_rise_before(p: VehicleParams, e: Effects, s: Series) -> float:
-    """The winding's temperature rise (K) at the start of ``s`` (``resistance_drift``):
-    the run it was cut from simulated up to there (0 when ``s`` starts the run)."""
-    if e.resistance_drift == 0.0 or s.origin is None or s.offset < 1:
-        return 0.0
-    head = s.origin.slice(0, s.offset + 1)
-    return float(winding_rises(p, e, head.t, predict(p, e, head).i, 0.0)[-1])
+def restick(m: FitResult, grid: Sequence[float], data: list[Series], w: Weights) -> FitResult:
+    """``m`` with K_stiction re-scanned on ``data`` (the other parameters held)."""
+    p, sse = scan_stiction(m.params, m.effects, grid, data, w)
+    return dataclasses.replace(m, params=p, sse=sse)
 
 
 def residuals(p: VehicleParams, e: Effects, data: Sequence[Series], w: Weights) -> Array:

@@ -54,7 +54,12 @@ both call them.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any, overload
+
+import numpy as np
+from numpy.typing import NDArray
 
 from truckd.model.params import VehicleParams
 from truckd.schema import spec
@@ -83,6 +88,23 @@ COMPANIONS: dict[str, tuple[str, ...]] = {
     "resistance_drift": ("winding_time_constant",),
 }
 """Fields that shape an effect beside the one that switches it on (reported with it)."""
+
+TERRAIN_FIELDS: tuple[str, ...] = (
+    "load_force_amplitude",
+    "load_force_wavelength",
+    "load_force_phase",
+    "hill_force",
+    "hill_start",
+    "hill_length",
+)
+"""Fields of the position-dependent part of ``load_force`` (:func:`terrain_force`)."""
+
+EFFECT_FIELDS: tuple[str, ...] = (
+    *EFFECT_NAMES,
+    *(c for n in EFFECT_NAMES for c in COMPANIONS.get(n, ())),
+    *TERRAIN_FIELDS,
+)
+"""Every field of :class:`Effects`, each named once above (a test keeps the two equal)."""
 
 COPPER_TEMPCO = 3.93e-3
 """Temperature coefficient of copper's resistance near 20 C, 1/K."""
@@ -205,18 +227,55 @@ class Effects:
         return tuple(n for n in EFFECT_NAMES if getattr(self, n) != 0.0)
 
 
-def driver_output(u_cmd: float, eff: Effects, v_batt: float) -> tuple[float, float]:
+@dataclass(frozen=True)
+class Ops:
+    """The few operations the driver's physics needs, on a float or on numpy arrays
+    element-wise: one body of :func:`driver_output` serves the plant (one command) and
+    the fast simulator of the fit (a log's commands at once)."""
+
+    where: Callable[[Any, Any, Any], Any]
+    copysign: Callable[[Any, Any], Any]
+    maximum: Callable[[Any, Any], Any]
+    clip: Callable[[Any, Any, Any], Any]
+
+
+SCALAR = Ops(
+    where=lambda c, a, b: a if c else b,
+    copysign=math.copysign,
+    maximum=max,
+    clip=lambda u, lo, hi: max(lo, min(hi, u)),
+)
+"""Ops on one float (the plant)."""
+
+ARRAYS = Ops(where=np.where, copysign=np.copysign, maximum=np.maximum, clip=np.clip)
+"""Ops element-wise on numpy arrays (the fast simulator)."""
+
+
+@overload
+def driver_output(
+    u_cmd: float, eff: Effects, v_batt: float, ops: Ops = SCALAR
+) -> tuple[float, float]: ...
+
+
+@overload
+def driver_output(
+    u_cmd: NDArray[np.float64], eff: Effects, v_batt: float, ops: Ops
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]: ...
+
+
+def driver_output(u_cmd: Any, eff: Effects, v_batt: float, ops: Ops = SCALAR) -> tuple[Any, Any]:
     """What the motor driver makes of a voltage command (V).
 
     Returns ``(open-circuit voltage at the motor (V), extra series resistance (ohm))``:
     dead zone (threshold form, then offset form), then the clip at the battery voltage
     (and ``voltage_saturation``), then the battery's resistance seen through the duty cycle.
+    ``u_cmd`` is a float (``ops`` :data:`SCALAR`) or an array of commands (:data:`ARRAYS`).
     """
-    u = u_cmd if abs(u_cmd) >= eff.dead_zone else 0.0
+    u = ops.where(abs(u_cmd) >= eff.dead_zone, u_cmd, 0.0)
     if eff.dead_zone_offset != 0.0:
-        u = math.copysign(max(abs(u) - eff.dead_zone_offset, 0.0), u)
+        u = ops.copysign(ops.maximum(abs(u) - eff.dead_zone_offset, 0.0), u)
     limit = v_batt if eff.voltage_saturation == 0.0 else min(v_batt, eff.voltage_saturation)
-    u = max(-limit, min(limit, u))
+    u = ops.clip(u, -limit, limit)
     duty = u / v_batt
     return u, eff.battery_sag * duty * duty
 

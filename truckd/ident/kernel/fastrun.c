@@ -1,7 +1,7 @@
-/* The free-run loop of truckd/ident/fastsim.py (function run) in C, for the fitting loop.
+/* The free-run loop of truckd/ident/freerun.py (function run) in C, for the fitting loop.
  *
  * Same arithmetic, same order, as the Python reference: a first-order drivetrain with
- * Coulomb friction and stiction, each sub-interval solved exactly (truckd/ident/fastsim.py
+ * Coulomb friction and stiction, each sub-interval solved exactly (truckd/ident/freerun.py
  * explains the model).  The Python loop stays the reference and the fallback; tests
  * check both give the same speeds (tests/test_ident_kernel.py).  Pure computation.
  */
@@ -73,7 +73,7 @@ static double segment(double w, double a, double b, double c, double sigma, doub
     return w;
 }
 
-/* Position-dependent load per unit inertia at motor angle x (fastsim.Terrain): ter =
+/* Position-dependent load per unit inertia at motor angle x (freerun.Terrain): ter =
  * {per_newton, ratio, x0, amplitude, wavelength, phase, hill_force, hill_start,
  * hill_length}, as truckd.model.effects.terrain_force. */
 static double terrain(const double *ter, double angle)
@@ -90,7 +90,7 @@ static double terrain(const double *ter, double angle)
     return ter[0] * force;
 }
 
-/* See fastsim.run.  scale may be NULL (1 everywhere), ter NULL (no terrain).  Returns 0. */
+/* See freerun.run.  scale may be NULL (1 everywhere), ter NULL (no terrain).  Returns 0. */
 int truckd_fastrun(const double *a, const double *b, double a_idle, double b_idle, double kc,
                    double ksigma, double kd, double kdrag, const double *scale, double lag,
                    const double *dt, const int64_t *cmd, const int64_t *sample_end, int64_t m,

@@ -1,0 +1,232 @@
+"""Stage 5 of the diagnosis (:mod:`truckd.ident.diagnose`): the selection.
+
+The candidates that passed alone are taken greedily, strongest first, each refitted
+jointly with those already accepted; while the validation residual keeps structure the
+rest are tried on top; when one cause is not enough, the best pair
+(:mod:`truckd.ident.pairs`); last, a backward check drops a cause the others make
+redundant.  Pure numerics.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+from truckd.ident.candidates import (
+    Candidate,
+)
+from truckd.ident.extend import fit_candidate
+from truckd.ident.judge import passes_over
+from truckd.ident.pairs import best_pair, pair_order
+from truckd.ident.result import (
+    CandidateRow,
+)
+from truckd.ident.runs import Prepared
+from truckd.ident.scoring import Model, Progress, still_structured, val_cost
+from truckd.ident.seed import Seed
+from truckd.ident.selection import (
+    close,
+)
+from truckd.ident.trials import Trials
+from truckd.ident.voltage import (
+    FitResult,
+    Param,
+    fit_with_stiction,
+)
+
+MAX_EXTRA_ROUNDS = 2
+"""Rounds of trying the remaining candidates on top of the accepted ones."""
+
+
+@dataclass(frozen=True)
+class Choice:
+    """What the selection stage hands on."""
+
+    current: Model
+    """The selected model (the seed with the accepted causes, jointly fitted)."""
+    accepted: list[str]
+    """The accepted candidates, in the order they were taken."""
+    ambiguous: list[tuple[str, str]]
+    """Pairs (accepted, other) the data cannot tell apart."""
+    rows: dict[str, CandidateRow]
+    """The candidates' rows with the selection's notes."""
+
+
+@dataclass
+class _Selecting:
+    """The selection under way: what each of its steps reads and changes."""
+
+    prep: Prepared
+    seed: Seed
+    trials: Trials
+    progress: Progress
+    current: Model
+    accepted: list[str] = field(default_factory=list)
+    ambiguous: list[tuple[str, str]] = field(default_factory=list)
+    rows: dict[str, CandidateRow] = field(default_factory=dict)
+
+    def fit(self, base: FitResult, extra: list[Param], cand: Candidate) -> FitResult:
+        """``base`` + ``cand`` fitted (:func:`fit_candidate`) with ``extra`` freed."""
+        p = self.prep
+        return fit_candidate(
+            base, self.seed.free, extra, cand, p.fit_data, p.w, self.seed.grid, self.progress,
+            p.val_data,
+        )  # fmt: skip
+
+    def smooth_params(self, names: Sequence[str]) -> list[Param]:
+        """The parameters of ``names`` a joint refit frees (the smooth ones)."""
+        by_name = self.trials.by_name
+        return [by_name[a].param for a in names if by_name[a].smooth]
+
+    def note(self, name: str, note: str, accepted: bool | None = None) -> None:
+        row = self.rows[name]
+        self.rows[name] = dataclasses.replace(
+            row, note=note, accepted=row.accepted if accepted is None else accepted
+        )
+
+
+def selection_stage(prep: Prepared, seed: Seed, trials: Trials, progress: Progress) -> Choice:
+    """Stage 5 of the diagnosis: the candidates that passed alone taken greedily, the
+    rest tried on top while structure remains, a pair of causes when one is not
+    enough, then a backward check (see :mod:`truckd.ident.diagnose`)."""
+    s = _Selecting(prep, seed, trials, progress, seed.model, rows=dict(trials.rows))
+    _greedy(s)
+    _extra_rounds(s)
+    if len(s.accepted) < 2:
+        _pair(s)
+    if len(s.accepted) > 1:
+        _backward(s)
+    return Choice(s.current, s.accepted, s.ambiguous, s.rows)
+
+
+def _greedy(s: _Selecting) -> None:
+    """The candidates that passed alone, strongest first, each refitted jointly with
+    those already accepted; one that adds nothing is ambiguous with a rival or not
+    taken."""
+    tried, by_name, judge = s.trials.tried, s.trials.by_name, s.trials.judge
+    passing = sorted(
+        (n for n, r in s.rows.items() if r.note == "passes alone"), key=lambda n: tried[n].val_cost
+    )
+    for name in passing:
+        cand = by_name[name]
+        if not s.accepted:
+            new = tried[name]
+        else:
+            s.progress(f"joint refit: {', '.join(s.accepted)} + {name}")
+            f = s.fit(s.current.fit, s.smooth_params(s.accepted), cand)
+            new = Model(f, (*s.current.names, name), val_cost(f, s.prep.val_data, s.prep.w))
+        ok, _ = judge.takes(name, new, s.current)
+        if ok and judge.possible(new.fit, [*s.accepted, name]):
+            s.accepted.append(name)
+            s.current = new
+            s.note(name, "accepted", True)
+            continue
+        rival = _rival(s, name)
+        if rival is not None:
+            s.ambiguous.append((rival, name))
+            s.note(name, f"ambiguous with {rival}")
+        else:
+            s.note(name, "adds nothing once others are in")
+
+
+def _extra_rounds(s: _Selecting) -> None:
+    """A weaker effect can be masked by a stronger one when tried alone: while the
+    validation residual still has structure, try the rest on top of the current model."""
+    judge = s.trials.judge
+    for _ in range(MAX_EXTRA_ROUNDS):
+        if not s.accepted or not still_structured(s.current.fit, s.prep.val):
+            break
+        taken = set(s.accepted) | {b for _, b in s.ambiguous}
+        rest = [c for c in s.trials.cands if c.name not in taken]
+        extra = s.smooth_params(s.accepted)
+        best: Model | None = None
+        for cand in rest:
+            s.progress(f"structure remains: trying {cand.name} on top of {', '.join(s.accepted)}")
+            f = s.fit(s.current.fit, extra, cand)
+            new = Model(f, (*s.current.names, cand.name), val_cost(f, s.prep.val_data, s.prep.w))
+            if (
+                judge.takes(cand.name, new, s.current)[0]
+                and judge.possible(new.fit, new.names)
+                and (best is None or new.val_cost < best.val_cost)
+            ):
+                best = new
+        if best is None:
+            break
+        name = best.names[-1]
+        s.accepted.append(name)
+        s.current = best
+        s.note(name, "accepted on top of the others", True)
+
+
+def _pair(s: _Selecting) -> None:
+    """Pairs of causes, when one is not enough (:mod:`truckd.ident.pairs`): each member
+    must earn its place against the other alone, the pair against the greedy model."""
+    tried, by_name, judge = s.trials.tried, s.trials.by_name, s.trials.judge
+
+    def fit_pair(a: str, b: str) -> Model | None:
+        s.progress(f"pair: {a} + {b}")
+        ca = by_name[a]
+        own = [ca.param, *ca.extra] if ca.smooth else []
+        f = s.fit(tried[a].fit, own, by_name[b])
+        m = Model(f, (a, b), val_cost(f, s.prep.val_data, s.prep.w))
+        return m if judge.possible(m.fit, [a, b]) else None
+
+    def member_earns(m: Model, name: str) -> bool:
+        other = tried[m.names[1] if name == m.names[0] else m.names[0]]
+        return judge.takes(name, m, other)[0]
+
+    single = {n: m.val_cost for n, m in tried.items()}
+    impossible = [n for n, r in s.rows.items() if r.note.startswith("physically impossible")]
+    order = pair_order(single, s.seed.model.val_cost, skip=impossible, accepted=s.accepted)
+    pair = best_pair(order, s.current.val_cost, fit_pair, lambda m: m.val_cost, member_earns)
+    if pair is None:
+        return
+    for n in s.accepted:
+        if n not in pair.names:
+            s.note(n, "replaced by a pair of causes", False)
+    for n in pair.names:
+        other = pair.names[1] if n == pair.names[0] else pair.names[0]
+        s.note(n, f"accepted with {other} (a pair)", True)
+    s.accepted, s.current = list(pair.names), pair
+
+
+def _backward(s: _Selecting) -> None:
+    """An effect accepted early may be redundant once later ones are in."""
+    p, by_name = s.prep, s.trials.by_name
+    for name in list(s.accepted):
+        others = [a for a in s.accepted if a != name]
+        s.progress(f"backward check: {', '.join(others)} without {name}")
+        off = dataclasses.replace(s.current.fit.effects, **{by_name[name].param.name: 0.0})
+        base_wo = FitResult(s.current.fit.params, off, float("inf"), s.current.fit.n, 0)
+        free = [*s.seed.free, *s.smooth_params(others)]
+        f = fit_with_stiction(base_wo.params, off, free, p.fit_data, p.w, s.seed.grid, s.progress)
+        reduced = Model(f, tuple(others), val_cost(f, p.val_data, p.w))
+        ok_hill = s.trials.judge.hill_check(name, s.current, reduced)
+        if not passes_over(s.current, reduced, 1, ok_hill)[0]:
+            s.accepted.remove(name)
+            s.current = reduced
+            s.note(name, "redundant once the others are in", False)
+
+
+def _rival(s: _Selecting, name: str) -> str | None:
+    """The accepted effect that ``name`` can replace equally well, if any.
+
+    Tried only for rivals that explained about as much alone: swap one for the other
+    in the current model, refit, and compare the validation costs.
+    """
+    tried, by_name = s.trials.tried, s.trials.by_name
+    for a in s.accepted:
+        if not close(tried[name].val_cost, tried[a].val_cost):
+            continue
+        s.progress(f"swap test: {name} instead of {a}")
+        off = dataclasses.replace(s.current.fit.effects, **{by_name[a].param.name: 0.0})
+        base = FitResult(s.current.fit.params, off, float("inf"), s.current.fit.n, 0)
+        extra = s.smooth_params([x for x in s.accepted if x != a])
+        f = fit_candidate(
+            base, s.seed.free, extra, by_name[name], s.prep.fit_data, s.prep.w, s.seed.grid,
+            s.progress,
+        )  # fmt: skip
+        if close(val_cost(f, s.prep.val_data, s.prep.w), s.current.val_cost):
+            return a
+    return None

@@ -1,0 +1,159 @@
+"""Stage 6 of the diagnosis (:mod:`truckd.ident.diagnose`): the joint refit.
+
+The selected model refitted jointly on more of the data, and each accepted cause kept
+only when it raises the fit on the report data.  Pure numerics.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from truckd.ident.candidates import (
+    Candidate,
+)
+from truckd.ident.choice import Choice
+from truckd.ident.data import (
+    Series,
+)
+from truckd.ident.extend import params_of, profile_of
+from truckd.ident.physics import (
+    effects_problems,
+)
+from truckd.ident.result import (
+    CandidateRow,
+    Finding,
+    ModelSummary,
+)
+from truckd.ident.runs import Prepared
+from truckd.ident.scoring import Progress, summary
+from truckd.ident.seed import Seed
+from truckd.ident.trials import Trials
+from truckd.ident.voltage import (
+    FitResult,
+    fit_with_stiction,
+    restick,
+    weights_for,
+)
+
+FINAL_NFEV = 80
+"""Evaluations of the final joint refit (R_m and battery sag correlate: they need room)."""
+
+
+@dataclass(frozen=True)
+class Refit:
+    """What the joint-refit stage hands on."""
+
+    final: FitResult
+    """The extended model fitted jointly on more of the data (or the selection's)."""
+    base_pol: FitResult
+    """The seed with its stiction re-scanned on all the fit runs."""
+    base_sum: ModelSummary
+    y_base: np.ndarray
+    """The seed's figures and free-run speed on the report runs."""
+    findings: list[Finding]
+    """The causes kept, each with the report fit it adds."""
+    kept: list[str]
+    """The accepted candidates that raise the report fit, in order."""
+    ext_sum: ModelSummary
+    y_ext: np.ndarray
+    """The extended model's figures and free-run speed on the report runs."""
+    rows: dict[str, CandidateRow]
+
+
+def refit_stage(
+    prep: Prepared, seed: Seed, trials: Trials, choice: Choice, progress: Progress
+) -> Refit:
+    """Stage 6 of the diagnosis: the final joint refit of the extended model on more of
+    the data, then each accepted cause kept only when it raises the report fit.
+
+    Stiction shows only at the breakaways, which chunks may miss: a last look at it on
+    all the data.  The final joint refit never drops a cause that earned its place in
+    the selection's model: when it would, the selection's model stays.
+    """
+    grid, accepted, current = seed.grid, choice.accepted, choice.current
+    by_name, rows = trials.by_name, dict(choice.rows)
+    base_pol = restick(seed.fit, grid, prep.fit_runs, prep.w)
+    final = base_pol
+    if accepted:
+        progress("final joint refit on more data")
+        extra = [by_name[a].param for a in accepted if by_name[a].smooth]
+        final = fit_with_stiction(
+            current.fit.params,
+            current.fit.effects,
+            [*seed.free, *extra],
+            prep.polish_data,
+            weights_for(prep.polish_data),
+            grid,
+            progress,
+            max_nfev=FINAL_NFEV,
+        )
+        final = restick(final, grid, prep.fit_runs, prep.w)
+        if effects_problems(final.effects, final.params, prep.runs, prep.p0):
+            final = restick(current.fit, grid, prep.fit_runs, prep.w)  # it left the limits
+    base_sum, y_base = summary(base_pol.params, base_pol.effects, prep.report)
+
+    def keep(model: FitResult) -> _Kept:
+        return _keep(model, accepted, by_name, prep.report, base_sum, y_base)
+
+    # Never worse: each accepted cause must raise the report fit; one that does not is
+    # switched off (a cause that lowers the validation fit is no cause).
+    findings, kept, ext_sum, y_ext = keep(final)
+    if accepted and final is not current.fit:
+        sel = restick(current.fit, grid, prep.fit_runs, prep.w)
+        alt = keep(sel)
+        if len(alt[1]) > len(kept) or (
+            len(alt[1]) == len(kept) and alt[2].fit_percent > ext_sum.fit_percent
+        ):
+            progress("the final joint refit loses a cause: the selection's model stays")
+            final = sel
+            findings, kept, ext_sum, y_ext = alt
+    for name in accepted:
+        if name not in kept:
+            progress(f"{name} does not raise the report fit: not accepted")
+            rows[name] = dataclasses.replace(
+                rows[name],
+                accepted=False,
+                note="lowers the report fit: not accepted",
+            )
+    return Refit(final, base_pol, base_sum, y_base, findings, kept, ext_sum, y_ext, rows)
+
+
+_Kept = tuple[list[Finding], list[str], ModelSummary, np.ndarray]
+
+
+def _keep(
+    model: FitResult,
+    accepted: Sequence[str],
+    by_name: dict[str, Candidate],
+    report: Sequence[Series],
+    base_sum: ModelSummary,
+    y_base: np.ndarray,
+) -> _Kept:
+    """The accepted causes that earn their place in ``model`` on the report data,
+    in order: each must raise the report fit by :data:`GAIN_MIN` points (a hill, on
+    its stretch only, validated where it acts: by any gain)."""
+    found: list[Finding] = []
+    kept_: list[str] = []
+    y_e, e_sum = y_base, base_sum
+    for name in accepted:
+        later = {by_name[a].param.name: 0.0 for a in accepted if a not in (*kept_, name)}
+        trial = dataclasses.replace(model.effects, **later)
+        s_k, y_k = summary(model.params, trial, report)
+        if s_k.fit_percent <= e_sum.fit_percent:
+            continue
+        found.append(
+            Finding(
+                name=by_name[name].output or name,
+                params=params_of(by_name[name], model.effects),
+                profile=profile_of(by_name[name], model.effects),
+                fit_percent=s_k.fit_percent,
+                fit_gain_percent=s_k.fit_percent - e_sum.fit_percent,
+            )
+        )
+        kept_.append(name)
+        e_sum, y_e = s_k, y_k
+    return found, kept_, e_sum, y_e
