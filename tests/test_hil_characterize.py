@@ -70,7 +70,7 @@ def sim_gap_rms(config: Path, tmp: Path, model: Path | None) -> float:
     return float(json.loads(out.read_text())["gap_error_rms_m"])
 
 
-@pytest.mark.parametrize(("seed", "effect"), [(11, "load_force"), (23, "input_delay")])
+@pytest.mark.parametrize(("seed", "effect"), [(11, "load_force"), (23, "input_delay"), (37, "dead_zone"), (41, "battery_sag")])
 def test_characterize_finds_the_truck_it_was_not_told_about(
     tmp_path: Path, seed: int, effect: str
 ) -> None:

@@ -30,12 +30,8 @@ from truckd.config.truck import TruckConfig, load_config
 from truckd.errors import InputError, TruckdError
 from truckd.logfile import Log, read_log, write_log
 from truckd.runtime.backend import Backend
-from truckd.runtime.characterize import (
-    EXIT_DONE,
-    Experiment,
-    Result,
-    Routine,
-)
+from truckd.runtime.characterize import Routine
+from truckd.runtime.characterize_plan import EXIT_DONE, Experiment, Result
 from truckd.runtime.daemon import Daemon
 
 LOG_COLUMNS = ("t", "u", "v", "vbat", "x", "range_raw")
