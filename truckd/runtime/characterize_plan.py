@@ -96,7 +96,7 @@ def plan_experiments(cfg: CharacterizeConfig) -> list[Experiment]:
                 Experiment(f"dynamic-{name}-{level:g}V", "dynamic", d, cfg.step_duration_s, level)
             )
     out.append(
-        Experiment("validation-chirp", "validation", 0, cfg.validation_duration_s, cfg.validation_v)
+        Experiment("validation-chirp", "validation", 0, cfg.validation_duration_s, cfg.chirp_v)
     )
     return out
 
