@@ -626,6 +626,45 @@ def _passes(
     return dbic < -BIC_MIN and hill_ok, dbic
 
 
+def _evidence(m: _Model, base: _Model) -> float:
+    """How much better ``m`` explains all the data than ``base`` (lower: better): the
+    product of its cost ratios on the fit data and on the validation data.  Either set
+    alone can mislead: a short validation chirp can prefer a sensor lag (with a smaller
+    inertia) to the dead zone the steps show plainly."""
+    fit_ratio = m.fit.sse / base.fit.sse if base.fit.sse > 0.0 else 1.0
+    val_ratio = m.val_cost / base.val_cost if base.val_cost > 0.0 else 1.0
+    return fit_ratio * val_ratio
+
+
+def _together(
+    model: FitResult, causes: Sequence[Candidate], report: Sequence[Series], best: ModelSummary
+) -> tuple[list[Finding], list[str], ModelSummary, np.ndarray] | None:
+    """All of ``causes`` in ``model``, when they earn their place only together: the model
+    with all of them beats ``best`` (what one at a time kept) on the report data, and
+    switching any one of them off lowers that fit (its ``fit_gain_percent``: what it adds
+    to the others).  A cause fitted jointly with another (the battery's sag with the
+    loop's own delay) may be worse alone than none at all; None when they do not."""
+    full, y_full = _summary(model.params, model.effects, report)
+    if full.fit_percent <= best.fit_percent:
+        return None
+    found: list[Finding] = []
+    for c in causes:
+        off = dataclasses.replace(model.effects, **{c.param.name: 0.0})
+        gain = full.fit_percent - _summary(model.params, off, report)[0].fit_percent
+        if gain <= 0.0:
+            return None
+        found.append(
+            Finding(
+                name=c.output or c.name,
+                params=_params_of(c, model.effects),
+                profile=_profile_of(c, model.effects),
+                fit_percent=full.fit_percent,
+                fit_gain_percent=gain,
+            )
+        )
+    return found, [c.name for c in causes], full, y_full
+
+
 def _summary(
     p: VehicleParams, e: Effects, runs: Sequence[Series]
 ) -> tuple[ModelSummary, np.ndarray]:
@@ -777,7 +816,8 @@ def diagnose_voltage(
             note=note,
         )
     passing = sorted(
-        (n for n, r in rows.items() if r.note == "passes alone"), key=lambda n: tried[n].val_cost
+        (n for n, r in rows.items() if r.note == "passes alone"),
+        key=lambda n: _evidence(tried[n], base),
     )
     current = base
     accepted: list[str] = []
@@ -954,6 +994,10 @@ def diagnose_voltage(
             )
             kept_.append(name)
             e_sum, y_e = s_k, y_k
+        if len(kept_) < len(accepted) > 1:  # causes that act together (a pair)
+            together = _together(model, [by_name[a] for a in accepted], report, e_sum)
+            if together is not None:
+                return together
         return found, kept_, e_sum, y_e
 
     # Never worse: each accepted cause must raise the report fit; one that does not is
