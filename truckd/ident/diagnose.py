@@ -44,7 +44,7 @@ from truckd.ident.linear import (
     least_squares_model,
     start_model,
 )
-from truckd.ident.pairs import best_pair, pair_order
+from truckd.ident.pairs import PAIR_TOP, best_pair, pair_order
 from truckd.ident.physics import (
     configuration_notes,
     effect_problem,
@@ -636,6 +636,22 @@ def _evidence(m: _Model, base: _Model) -> float:
     return fit_ratio * val_ratio
 
 
+def _with_delay(
+    tried: dict[str, _Model], base: _Model, skip: Sequence[str], order: Sequence[tuple[str, str]]
+) -> list[tuple[str, str]]:
+    """Pairs of the strongest causes on all the data (:func:`_evidence`) with an input
+    delay: every digital loop has one (a part of a period and more), and a cause fitted
+    without it can validate worse than none at all on a chirp, as can the delay alone."""
+    if "input_delay" not in tried or "input_delay" in skip:
+        return []
+    strongest = sorted(
+        (n for n in tried if n != "input_delay" and n not in skip),
+        key=lambda n: _evidence(tried[n], base),
+    )[:PAIR_TOP]
+    have = {frozenset(ab) for ab in order}
+    return [(n, "input_delay") for n in strongest if frozenset((n, "input_delay")) not in have]
+
+
 def _together(
     model: FitResult, causes: Sequence[Candidate], report: Sequence[Series], best: ModelSummary
 ) -> tuple[list[Finding], list[str], ModelSummary, np.ndarray] | None:
@@ -912,6 +928,7 @@ def diagnose_voltage(
         single = {n: m.val_cost for n, m in tried.items()}
         impossible = [n for n, r in rows.items() if r.note.startswith("physically impossible")]
         order = pair_order(single, base.val_cost, skip=impossible, accepted=accepted)
+        order += _with_delay(tried, base, impossible, order)
         pair = best_pair(order, current.val_cost, fit_pair, lambda m: m.val_cost, member_earns)
         if pair is not None:
             for n in accepted:
