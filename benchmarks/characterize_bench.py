@@ -10,6 +10,8 @@ real time, the simulated firmware):
   `truckd sim` on the drawn plant with the configured model and with the diagnosed one.
 
 Usage: python benchmarks/characterize_bench.py [--seeds N] [--json FILE]
+
+Each run adds a key ``characterize_sim_<UTC date and time>`` to the JSON file.
 """
 
 from __future__ import annotations
@@ -158,24 +160,28 @@ def main() -> int:
         else None,
     }
     print(f"summary: {summary}")
-    doc = {
-        "characterize_sim_2026-11-25": {
-            "what": "truckd characterize on the in-process sim backend, real time",
-            "scenario": SCENARIO,
-            "sim_s": SIM_S,
-            "defaults": defaults,
-            "drawn": rows,
-            "summary": summary,
-            "machine": {
-                "platform": platform.platform(),
-                "python": platform.python_version(),
-                "cpus": os.cpu_count(),
-                "loadavg_before": load_before,
-                "loadavg_after": os.getloadavg(),
-            },
-        }
+    # a new key per run, dated (the earlier figures stay for comparison)
+    key = time.strftime("characterize_sim_%Y-%m-%dT%H%MZ", time.gmtime())
+    path = Path(args.json)
+    doc: dict[str, Any] = json.loads(path.read_text()) if path.exists() else {}
+    doc[key] = {
+        "what": "truckd characterize on the in-process sim backend, real time",
+        "scenario": SCENARIO,
+        "sim_s": SIM_S,
+        "seeds_per_effect": args.seeds,
+        "defaults": defaults,
+        "drawn": rows,
+        "summary": summary,
+        "machine": {
+            "platform": platform.platform(),
+            "python": platform.python_version(),
+            "cpus": os.cpu_count(),
+            "loadavg_before": load_before,
+            "loadavg_after": os.getloadavg(),
+        },
     }
-    Path(args.json).write_text(json.dumps(doc, indent=1) + "\n")
+    path.write_text(json.dumps(doc, indent=1) + "\n")
+    print(f"written: {path} [{key}]")
     return 0
 
 

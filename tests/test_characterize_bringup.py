@@ -112,6 +112,27 @@ def test_a_truck_wired_the_wrong_way_round_fails_its_check(
     at_rest(track)
 
 
+@pytest.mark.parametrize("wiring", [{"motor_sign": -1}, {"encoder_sign": -1}])
+def test_without_a_target_ahead_a_reversed_motor_or_encoder_fails_and_asks_for_one(
+    tmp_path: Path, wiring: dict[str, Any]
+) -> None:
+    """Nothing ahead within the range sensor's reach: the counts fall either way, and
+    nothing else the truck measures tells a swapped motor from a swapped encoder (the
+    motor's current follows its own terminal voltage either way), so the one line names
+    both and asks for a target ahead."""
+    code, summary, lines, track = run(tmp_path, plant={"wiring": wiring}, wall=None)
+    assert code == 3
+    bad = failed(summary)
+    assert [c["name"] for c in bad] == ["motor_polarity"]
+    detail = bad[0]["detail"]
+    assert "motor leads or the encoder channels are swapped" in detail
+    assert "put a target" in detail and "\n" not in detail
+    assert any(detail in ln for ln in lines)
+    assert summary["experiments"][0]["t_start"] is None
+    assert summary["distance_m"] < 0.5
+    at_rest(track)
+
+
 def test_the_right_wiring_passes_every_check(tmp_path: Path) -> None:
     """The counterpart of the failures above (same world, wired right): every check passes
     and the experiments start (stopped early by a short track, to stay fast)."""
@@ -192,8 +213,33 @@ def test_bad_input_is_one_line_and_nothing_moves(
     err = capsys.readouterr().err
     assert "is not an empty directory" in err and err.count("\n") == 1
     assert sorted(p.name for p in busy.iterdir()) == ["log.csv"]
-    bad = write_config(tmp_path / "bad.yaml", {"characterize": {"speed_limit_m_s": -1.0}})
-    assert main(["characterize", "--config", str(bad), "--out", str(tmp_path / "o")]) == 2
-    err = capsys.readouterr().err
-    assert "'characterize.speed_limit_m_s' = -1.0" in err and err.count("\n") == 1
-    assert not (tmp_path / "o").exists()
+    for key, value, said in (
+        ("speed_limit_m_s", -1.0, "'characterize.speed_limit_m_s' = -1.0"),
+        ("validation_v", 0.05, "validation_v (0.05) must be 0 (the highest step) or >= 0.1"),
+    ):
+        bad = write_config(tmp_path / "bad.yaml", {"characterize": {key: value}})
+        assert main(["characterize", "--config", str(bad), "--out", str(tmp_path / "o")]) == 2
+        err = capsys.readouterr().err
+        assert said in err and err.count("\n") == 1
+        assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize(
+    ("section", "amplitude"),
+    [({}, 3.0), ({"step_voltages": [2.0, 4.5]}, 4.5), ({"validation_v": 2.5}, 2.5)],
+)
+def test_the_validation_chirp_reaches_the_highest_step_unless_set(
+    tmp_path: Path, section: dict[str, Any], amplitude: float
+) -> None:
+    """The chirp validates the effects the steps excite: by default its amplitude is the
+    highest step voltage (a battery's sag, a current limit act at a high duty only)."""
+    from truckd.runtime.characterize_plan import plan_experiments
+
+    cfg = load_config(write_config(tmp_path / "truck.yaml", {"characterize": section}))
+    chirp = [e for e in plan_experiments(cfg.characterize) if e.kind == "validation"]
+    assert len(chirp) == 1
+    peak = max(
+        abs(chirp[0].voltage(k * 0.001, cfg.characterize))
+        for k in range(int(chirp[0].duration_s / 0.001))
+    )
+    assert peak == pytest.approx(amplitude, rel=1e-3)

@@ -31,12 +31,8 @@ from truckd.errors import InputError, TruckdError
 from truckd.io.backends import BACKEND_NAMES
 from truckd.logfile import Log, read_log, write_log
 from truckd.runtime.backend import Backend
-from truckd.runtime.characterize import (
-    EXIT_DONE,
-    Experiment,
-    Result,
-    Routine,
-)
+from truckd.runtime.characterize import Routine
+from truckd.runtime.characterize_plan import EXIT_DONE, Experiment, Result
 from truckd.runtime.daemon import Daemon
 
 LOG_COLUMNS = ("t", "u", "v", "vbat", "x", "range_raw")

@@ -89,7 +89,13 @@ class CharacterizeConfig:
     )
     step_duration_s: float = spec("dynamic step length", unit="s", lo=0.2, hi=60.0, default=1.5)
     validation_v: float = spec(
-        "validation chirp amplitude", unit="V", lo=0.1, hi=100.0, default=2.5
+        "validation chirp amplitude; 0: the highest of step_voltages (the chirp must reach "
+        "the voltages the fit saw: effects that act at a high duty, a battery's sag or a "
+        "current limit, are told apart only there)",
+        unit="V",
+        lo=0.0,
+        hi=100.0,
+        default=0.0,
     )
     validation_duration_s: float = spec(
         "validation chirp length", unit="s", lo=0.2, hi=60.0, default=4.0
@@ -118,9 +124,16 @@ class CharacterizeConfig:
             )
         if not self.step_voltages:
             return "step_voltages must list at least one voltage"
+        if 0.0 < self.validation_v < 0.1:
+            return f"validation_v ({self.validation_v}) must be 0 (the highest step) or >= 0.1"
         if self.min_budget_m > self.track_length_m:
             return (
                 f"min_budget_m ({self.min_budget_m}) must not exceed track_length_m "
                 f"({self.track_length_m})"
             )
         return None
+
+    @property
+    def chirp_v(self) -> float:
+        """The validation chirp's amplitude (V): ``validation_v``, or the highest step."""
+        return self.validation_v if self.validation_v > 0.0 else max(self.step_voltages)

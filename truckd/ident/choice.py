@@ -18,7 +18,7 @@ from truckd.ident.candidates import (
 )
 from truckd.ident.extend import fit_candidate
 from truckd.ident.judge import passes_over
-from truckd.ident.pairs import best_pair, pair_order
+from truckd.ident.pairs import PAIR_TOP, best_pair, pair_order
 from truckd.ident.result import (
     CandidateRow,
 )
@@ -100,13 +100,40 @@ def selection_stage(prep: Prepared, seed: Seed, trials: Trials, progress: Progre
     return Choice(s.current, s.accepted, s.ambiguous, s.rows)
 
 
+def _evidence(m: Model, base: Model) -> float:
+    """How much better ``m`` explains all the data than ``base`` (lower: better): the
+    product of its cost ratios on the fit data and on the validation data.  Either set
+    alone can mislead: a short validation chirp can prefer a sensor lag (with a smaller
+    inertia) to the dead zone the steps show plainly."""
+    fit_ratio = m.fit.sse / base.fit.sse if base.fit.sse > 0.0 else 1.0
+    val_ratio = m.val_cost / base.val_cost if base.val_cost > 0.0 else 1.0
+    return fit_ratio * val_ratio
+
+
+def _with_delay(
+    tried: dict[str, Model], base: Model, skip: Sequence[str], order: Sequence[tuple[str, str]]
+) -> list[tuple[str, str]]:
+    """Pairs of the strongest causes on all the data (:func:`_evidence`) with an input
+    delay: every digital loop has one (a part of a period and more), and a cause fitted
+    without it can validate worse than none at all on a chirp, as can the delay alone."""
+    if "input_delay" not in tried or "input_delay" in skip:
+        return []
+    strongest = sorted(
+        (n for n in tried if n != "input_delay" and n not in skip),
+        key=lambda n: _evidence(tried[n], base),
+    )[:PAIR_TOP]
+    have = {frozenset(ab) for ab in order}
+    return [(n, "input_delay") for n in strongest if frozenset((n, "input_delay")) not in have]
+
+
 def _greedy(s: _Selecting) -> None:
     """The candidates that passed alone, strongest first, each refitted jointly with
     those already accepted; one that adds nothing is ambiguous with a rival or not
     taken."""
     tried, by_name, judge = s.trials.tried, s.trials.by_name, s.trials.judge
     passing = sorted(
-        (n for n, r in s.rows.items() if r.note == "passes alone"), key=lambda n: tried[n].val_cost
+        (n for n, r in s.rows.items() if r.note == "passes alone"),
+        key=lambda n: _evidence(tried[n], s.seed.model),
     )
     for name in passing:
         cand = by_name[name]
@@ -179,6 +206,7 @@ def _pair(s: _Selecting) -> None:
     single = {n: m.val_cost for n, m in tried.items()}
     impossible = [n for n, r in s.rows.items() if r.note.startswith("physically impossible")]
     order = pair_order(single, s.seed.model.val_cost, skip=impossible, accepted=s.accepted)
+    order += _with_delay(tried, s.seed.model, impossible, order)
     pair = best_pair(order, s.current.val_cost, fit_pair, lambda m: m.val_cost, member_earns)
     if pair is None:
         return

@@ -156,4 +156,37 @@ def _keep(
         )
         kept_.append(name)
         e_sum, y_e = s_k, y_k
+    if len(kept_) < len(accepted) > 1:  # causes that act together (a pair)
+        together = _together(model, [by_name[a] for a in accepted], report, e_sum)
+        if together is not None:
+            return together
     return found, kept_, e_sum, y_e
+
+
+def _together(
+    model: FitResult, causes: Sequence[Candidate], report: Sequence[Series], best: ModelSummary
+) -> _Kept | None:
+    """All of ``causes`` in ``model``, when they earn their place only together: the model
+    with all of them beats ``best`` (what one at a time kept) on the report data, and
+    switching any one of them off lowers that fit (its ``fit_gain_percent``: what it adds
+    to the others).  A cause fitted jointly with another (the battery's sag with the
+    loop's own delay) may be worse alone than none at all; None when they do not."""
+    full, y_full = summary(model.params, model.effects, report)
+    if full.fit_percent <= best.fit_percent:
+        return None
+    found: list[Finding] = []
+    for c in causes:
+        off = dataclasses.replace(model.effects, **{c.param.name: 0.0})
+        gain = full.fit_percent - summary(model.params, off, report)[0].fit_percent
+        if gain <= 0.0:
+            return None
+        found.append(
+            Finding(
+                name=c.output or c.name,
+                params=params_of(c, model.effects),
+                profile=profile_of(c, model.effects),
+                fit_percent=full.fit_percent,
+                fit_gain_percent=gain,
+            )
+        )
+    return found, [c.name for c in causes], full, y_full
