@@ -1,0 +1,173 @@
+/* The MPC's per-cycle numerics in one call: the condensed QP's vectors from the cycle's
+ * inputs, OSQP's update, warm start and solve (the embedded solver OSQP generated for the
+ * shipped QP, see tools/generate_mpc_solver.py), the solution's checks and the plan.  Loaded by
+ * truckd/control/ccycle.py; the same arithmetic as truckd/control/condensed.py (fill,
+ * plan) and truckd/control/mpc.py (solve) in Python.
+ *
+ * One instance per process (OSQP's generated workspaces are static): ccycle.py hands it
+ * to one solver at a time. */
+#define _POSIX_C_SOURCE 199309L /* clock_gettime */
+#include <math.h>
+#include <stdint.h>
+#include <string.h>
+#include <time.h>
+
+#include "osqp.h"
+#include "types.h"
+#include "algebra_impl.h"
+#include "follow_workspace.h"
+#include "cruise_workspace.h"
+
+#define TRUCKD_MPC_ABI 1
+
+static OSQPSolver *solver_of(int64_t mode) {
+    return mode == 0 ? &follow_solver : (mode == 1 ? &cruise_solver : NULL);
+}
+
+/* Where the per-cycle products and the plan find their matrices (owned by Python). */
+static struct {
+    const double *f_span;  /* 4 keys (mode * 2 + lead), each span_len x ns, row-major */
+    const double *f_const; /* 4 keys, each span_len x n_const */
+    double *buf;           /* [u; q; l] of the QP, nw + 2 m */
+    int64_t span_start, span_len, ns, n_const;
+    const double *plan_v; /* (horizon + 1) x (nw + nx) */
+    const int64_t *u_block;
+    int64_t horizon, nx;
+    int bound;
+} B;
+
+int64_t truckd_mpc_abi(void) { return TRUCKD_MPC_ABI; }
+
+/* The generated sizes: [n, m, nnz P follow, nnz A follow, nnz P cruise, nnz A cruise]. */
+void truckd_mpc_shape(int64_t *out) {
+    for (int64_t k = 0; k < 2; ++k) {
+        OSQPSolver *s = solver_of(k);
+        OSQPCscMatrix *p = s->work->data->P->csc;
+        OSQPCscMatrix *a = s->work->data->A->csc;
+        out[0] = a->n;
+        out[1] = a->m;
+        out[2 + 2 * k] = p->p[p->n];
+        out[3 + 2 * k] = a->p[a->n];
+    }
+}
+
+/* The sparsity pattern of one mode's P (upper triangle) and A, as int64 arrays of the
+ * sizes truckd_mpc_shape gives. */
+void truckd_mpc_pattern(int64_t mode, int64_t *pp, int64_t *pi, int64_t *ap, int64_t *ai) {
+    OSQPSolver *s = solver_of(mode);
+    OSQPCscMatrix *p = s->work->data->P->csc;
+    OSQPCscMatrix *a = s->work->data->A->csc;
+    for (OSQPInt j = 0; j <= p->n; ++j) pp[j] = p->p[j];
+    for (OSQPInt k = 0; k < p->p[p->n]; ++k) pi[k] = p->i[k];
+    for (OSQPInt j = 0; j <= a->n; ++j) ap[j] = a->p[j];
+    for (OSQPInt k = 0; k < a->p[a->n]; ++k) ai[k] = a->i[k];
+}
+
+/* This truck's matrix values (same pattern) and settings into one mode's solver. */
+int64_t truckd_mpc_setup(int64_t mode, const double *px, const double *ax, double eps_abs,
+                         double eps_rel, int64_t max_iter, int64_t check_termination,
+                         double rho) {
+    OSQPSolver *s = solver_of(mode);
+    if (s == NULL) return -1;
+    s->settings->eps_abs = eps_abs;
+    s->settings->eps_rel = eps_rel;
+    s->settings->max_iter = (OSQPInt)max_iter;
+    s->settings->check_termination = (OSQPInt)check_termination;
+    OSQPInt flag = osqp_update_data_mat(s, px, OSQP_NULL, 0, ax, OSQP_NULL, 0);
+    if (flag != 0) return (int64_t)flag;
+    return (int64_t)osqp_update_rho(s, rho);
+}
+
+int64_t truckd_mpc_update_rho(int64_t mode, double rho) {
+    OSQPSolver *s = solver_of(mode);
+    return s == NULL ? -1 : (int64_t)osqp_update_rho(s, rho);
+}
+
+void truckd_mpc_bind(const double *f_span, const double *f_const, double *buf,
+                     int64_t span_start, int64_t span_len, int64_t ns, int64_t n_const,
+                     const double *plan_v, const int64_t *u_block, int64_t horizon,
+                     int64_t nx) {
+    B.f_span = f_span;
+    B.f_const = f_const;
+    B.buf = buf;
+    B.span_start = span_start;
+    B.span_len = span_len;
+    B.ns = ns;
+    B.n_const = n_const;
+    B.plan_v = plan_v;
+    B.u_block = u_block;
+    B.horizon = horizon;
+    B.nx = nx;
+    B.bound = 1;
+}
+
+/* dst[r] = sum_c f[r, c] src[c], in order of c (as numpy's dot for one row). */
+static void product(const double *f, int64_t rows, int64_t cols, const double *src,
+                    double *dst) {
+    for (int64_t r = 0; r < rows; ++r) {
+        const double *row = f + r * cols;
+        double acc = 0.0;
+        for (int64_t c = 0; c < cols; ++c) acc += row[c] * src[c];
+        dst[r] = acc;
+    }
+}
+
+static double seconds(void) {
+    struct timespec ts;
+    clock_gettime(CLOCK_MONOTONIC, &ts);
+    return (double)ts.tv_sec + 1e-9 * (double)ts.tv_nsec;
+}
+
+/* One cycle: values = [x0; scalars; v_lead] (ns, checked by the caller); warm_x/warm_y
+ * the warm start (NULL: cold, from zero).  Out: x (n), y (m), u (horizon), v
+ * (horizon + 1), info = [status_val, iterations, run time (s), all finite (1/0)].
+ * Returns OSQP's status value, or a negative number when the call itself is wrong. */
+int64_t truckd_mpc_cycle(int64_t mode, int64_t lead, int64_t one_lead_speed,
+                         const double *values, const double *warm_x, const double *warm_y,
+                         double *x, double *y, double *u, double *v, double *info) {
+    OSQPSolver *s = solver_of(mode);
+    if (s == NULL || !B.bound || lead < 0 || lead > 1) return -1;
+    OSQPInt n = s->work->data->n, m = s->work->data->m;
+    int64_t key = mode * 2 + lead;
+    double *dst = B.buf + B.span_start;
+    if (one_lead_speed)
+        product(B.f_const + key * B.span_len * B.n_const, B.span_len, B.n_const, values, dst);
+    else
+        product(B.f_span + key * B.span_len * B.ns, B.span_len, B.ns, values, dst);
+    double t0 = seconds();
+    OSQPInt flag = osqp_update_data_vec(s, B.buf + m, B.buf + m + n, B.buf);
+    if (flag != 0) return -2;
+    if (warm_x != NULL && warm_y != NULL) {
+        flag = osqp_warm_start(s, warm_x, warm_y);
+    } else {
+        memset(x, 0, sizeof(double) * (size_t)n);
+        memset(y, 0, sizeof(double) * (size_t)m);
+        flag = osqp_warm_start(s, x, y);
+    }
+    if (flag != 0) return -3;
+    osqp_solve(s);
+    info[2] = seconds() - t0;
+    double sum = 0.0;
+    for (OSQPInt k = 0; k < n; ++k) {
+        x[k] = s->solution->x[k];
+        sum += x[k];
+    }
+    for (OSQPInt k = 0; k < m; ++k) {
+        y[k] = s->solution->y[k];
+        sum += y[k];
+    }
+    info[0] = (double)s->info->status_val;
+    info[1] = (double)s->info->iter;
+    info[3] = isfinite(sum) ? 1.0 : 0.0;
+    /* the plan: each step's input its block's; the speeds one product with [w; x0] */
+    for (int64_t k = 0; k < B.horizon; ++k) u[k] = x[B.u_block[k]];
+    int64_t cols = n + B.nx;
+    for (int64_t r = 0; r <= B.horizon; ++r) {
+        const double *row = B.plan_v + r * cols;
+        double acc = 0.0;
+        for (OSQPInt c = 0; c < n; ++c) acc += row[c] * x[c];
+        for (int64_t c = 0; c < B.nx; ++c) acc += row[n + c] * values[c];
+        v[r] = acc;
+    }
+    return (int64_t)s->info->status_val;
+}
