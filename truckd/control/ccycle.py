@@ -8,9 +8,9 @@ reference: the same commands, checked on a recorded replay by tests/test_mpc_com
 Why the compiled path is or is not used is one line (:attr:`MpcSolver.backend`), logged
 at start-up.  Loading the library is the only thing this module does besides computing.
 
-OSQP's generated workspaces are static: one :class:`CompiledCycle` per process holds them
-(:func:`claim`); another solver in the same process (a second truck in one simulation)
-runs the Python path.
+OSQP's generated workspaces are static: the library has a few instances (4 as generated),
+each held by one :class:`CompiledCycle` (:func:`claim`) until its solver is gone; a solver
+beyond them in the same process (a fifth truck in one simulation) runs the Python path.
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ Vec = NDArray[np.float64]
 LIBRARY = Path(__file__).resolve().parent / "kernel" / "build" / "libtruckd_mpc.so"
 """Where ``make firmware`` puts the compiled cycle."""
 
-ABI = 1
+ABI = 2
 """The interface version this module speaks (``truckd_mpc_abi`` of the library)."""
 
 _state: dict[str, object] = {}
@@ -56,18 +56,20 @@ def library() -> tuple[ctypes.CDLL | None, str]:
         if lib.truckd_mpc_abi() != ABI:
             why, lib = f"{LIBRARY.name} speaks another interface (rebuild: make firmware)", None
     if lib is not None:
+        lib.truckd_mpc_instances.restype = i
+        lib.truckd_mpc_instances.argtypes = []
         lib.truckd_mpc_shape.restype = None
         lib.truckd_mpc_shape.argtypes = [p]
         lib.truckd_mpc_pattern.restype = None
         lib.truckd_mpc_pattern.argtypes = [i, p, p, p, p]
         lib.truckd_mpc_setup.restype = i
-        lib.truckd_mpc_setup.argtypes = [i, p, p, d, d, i, i, d]
+        lib.truckd_mpc_setup.argtypes = [i, i, p, p, d, d, i, i, d]
         lib.truckd_mpc_update_rho.restype = i
-        lib.truckd_mpc_update_rho.argtypes = [i, d]
-        lib.truckd_mpc_bind.restype = None
-        lib.truckd_mpc_bind.argtypes = [p, p, p, i, i, i, i, p, p, i, i]
+        lib.truckd_mpc_update_rho.argtypes = [i, i, d]
+        lib.truckd_mpc_bind.restype = i
+        lib.truckd_mpc_bind.argtypes = [i, p, p, p, i, i, i, i, p, p, i, i]
         lib.truckd_mpc_cycle.restype = i
-        lib.truckd_mpc_cycle.argtypes = [i, i, i, p, p, p, p, p, p, p, p]
+        lib.truckd_mpc_cycle.argtypes = [i, i, i, i, p, p, p, p, p, p, p, p]
     _state["lib"], _state["why"] = lib, why
     return lib, why
 
@@ -79,8 +81,10 @@ def _addr(a: NDArray[np.float64] | NDArray[np.int64]) -> int:
 class CompiledCycle:
     """The compiled cycle bound to one condensed QP (made by :func:`claim`)."""
 
-    def __init__(self, lib: ctypes.CDLL, cq: CondensedQp) -> None:
+    def __init__(self, lib: ctypes.CDLL, instance: int, cq: CondensedQp) -> None:
         self._lib = lib
+        self.instance = instance
+        """Which of the library's instances this is."""
         self._cq = cq
         nw, m, n = cq.nw, cq.m, cq.qp.lay.N
         keys = [(mode, lead) for mode in MODES for lead in (False, True)]
@@ -93,6 +97,7 @@ class CompiledCycle:
         """The cycle's inputs ``[x0; scalars; v_lead]`` (written by the caller)."""
         span = cq.span
         lib.truckd_mpc_bind(
+            instance,
             _addr(self._f_span),
             _addr(self._f_const),
             _addr(cq.buffer),
@@ -125,12 +130,14 @@ class CompiledCycle:
         px = np.ascontiguousarray(p_x, dtype=np.float64)
         ax = np.ascontiguousarray(a_x, dtype=np.float64)
         return int(
-            self._lib.truckd_mpc_setup(mode, _addr(px), _addr(ax), eps, eps, max_iter, check, rho)
+            self._lib.truckd_mpc_setup(
+                self.instance, mode, _addr(px), _addr(ax), eps, eps, max_iter, check, rho
+            )
         )
 
     def update_rho(self, mode: int, rho: float) -> None:
         """OSQP's step size back to ``rho`` (refactors the KKT matrix)."""
-        self._lib.truckd_mpc_update_rho(mode, rho)
+        self._lib.truckd_mpc_update_rho(self.instance, mode, rho)
 
     def cycle(self, mode: int, lead: bool, one_speed: bool, warm: bool) -> int:
         """One cycle on :attr:`values`; warm: from the kept solution (:meth:`keep`).
@@ -140,7 +147,16 @@ class CompiledCycle:
         x, y = self._pair_addr[out]
         return int(
             self._fn(
-                mode, int(lead), int(one_speed), self._values_addr, wx, wy, x, y, *self._out_addr
+                self.instance,
+                mode,
+                int(lead),
+                int(one_speed),
+                self._values_addr,
+                wx,
+                wy,
+                x,
+                y,
+                *self._out_addr,
             )
         )
 
@@ -197,24 +213,22 @@ def status_text(status_val: int) -> str:
     return STATUS_TEXT[status_val] if 0 < status_val < len(STATUS_TEXT) else f"status {status_val}"
 
 
-_owner: list[weakref.ref[object]] = []
+_held: set[int] = set()
+"""The instances held by a live solver."""
 
 
-def release(owner: object) -> None:
-    """Give the compiled cycle back (``owner`` no longer uses it)."""
-    if _owner and _owner[0]() is owner:
-        _owner.clear()
+def release(instance: int) -> None:
+    """Give an instance back (its solver is gone or no longer uses it)."""
+    _held.discard(instance)
 
 
 def claim(owner: object, cq: CondensedQp) -> tuple[CompiledCycle | None, str]:
-    """The compiled cycle for ``owner`` (an :class:`~truckd.control.mpc.MpcSolver`) and
-    its condensed QP, or None and why not (not built, another shape or pattern, or held by
-    another live solver of this process)."""
+    """A compiled cycle for ``owner`` (an :class:`~truckd.control.mpc.MpcSolver`, which
+    holds it until it is garbage) and its condensed QP, or None and why not (not built,
+    another shape or pattern, or every instance held by another live solver)."""
     lib, why = library()
     if lib is None:
         return None, why
-    if _owner and _owner[0]() is not None and _owner[0]() is not owner:
-        return None, "held by another MPC solver of this process"
     sh = shape(lib)
     if (sh[0], sh[1]) != (cq.nw, cq.m):
         return None, (
@@ -222,11 +236,12 @@ def claim(owner: object, cq: CondensedQp) -> tuple[CompiledCycle | None, str]:
             f"{cq.nw} and {cq.m} (horizon or move blocks changed)"
         )
     for k, mode in enumerate(MODES):
-        p = cq.p_triu(mode)
-        if not pattern_matches(lib, k, p, cq.A):
-            return (
-                None,
-                f"this truck's {mode} QP has another sparsity pattern than the generated one",
-            )
-    _owner[:] = [weakref.ref(owner)]
-    return CompiledCycle(lib, cq), ""
+        if not pattern_matches(lib, k, cq.p_triu(mode), cq.A):
+            return None, f"this truck's {mode} QP has another sparsity pattern than the generated"
+    count = int(lib.truckd_mpc_instances())
+    free = [k for k in range(count) if k not in _held]
+    if not free:
+        return None, f"all {count} compiled instances held by other MPC solvers of this process"
+    _held.add(free[0])
+    weakref.finalize(owner, release, free[0])
+    return CompiledCycle(lib, free[0], cq), ""

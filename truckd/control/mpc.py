@@ -185,7 +185,7 @@ class MpcSolver:
                 self._rho0,
             )
             if flag != 0:
-                ccycle.release(self)
+                ccycle.release(cc.instance)
                 return None, f"the generated {mode} solver refused this truck's matrices ({flag})"
         return cc, ""
 

@@ -4,8 +4,8 @@
  * truckd/control/ccycle.py; the same arithmetic as truckd/control/condensed.py (fill,
  * plan) and truckd/control/mpc.py (solve) in Python.
  *
- * One instance per process (OSQP's generated workspaces are static): ccycle.py hands it
- * to one solver at a time. */
+ * OSQP's generated workspaces are static: TRUCKD_MPC_INSTANCES of them (each a solver
+ * per mode), which ccycle.py hands to one MPC solver each. */
 #define _POSIX_C_SOURCE 199309L /* clock_gettime */
 #include <math.h>
 #include <stdint.h>
@@ -15,16 +15,20 @@
 #include "osqp.h"
 #include "types.h"
 #include "algebra_impl.h"
-#include "follow_workspace.h"
-#include "cruise_workspace.h"
+#include "instances.h"
 
-#define TRUCKD_MPC_ABI 1
+#define TRUCKD_MPC_ABI 2
 
-static OSQPSolver *solver_of(int64_t mode) {
-    return mode == 0 ? &follow_solver : (mode == 1 ? &cruise_solver : NULL);
+static OSQPSolver *const SOLVERS[TRUCKD_MPC_INSTANCES][TRUCKD_MPC_MODES] = TRUCKD_MPC_SOLVERS;
+
+static OSQPSolver *solver_of(int64_t inst, int64_t mode) {
+    if (inst < 0 || inst >= TRUCKD_MPC_INSTANCES || mode < 0 || mode >= TRUCKD_MPC_MODES)
+        return NULL;
+    return SOLVERS[inst][mode];
 }
 
-/* Where the per-cycle products and the plan find their matrices (owned by Python). */
+/* Where each instance's per-cycle products and plan find their matrices (owned by
+ * Python). */
 static struct {
     const double *f_span;  /* 4 keys (mode * 2 + lead), each span_len x ns, row-major */
     const double *f_const; /* 4 keys, each span_len x n_const */
@@ -34,14 +38,17 @@ static struct {
     const int64_t *u_block;
     int64_t horizon, nx;
     int bound;
-} B;
+} BOUND[TRUCKD_MPC_INSTANCES];
 
 int64_t truckd_mpc_abi(void) { return TRUCKD_MPC_ABI; }
 
-/* The generated sizes: [n, m, nnz P follow, nnz A follow, nnz P cruise, nnz A cruise]. */
+int64_t truckd_mpc_instances(void) { return TRUCKD_MPC_INSTANCES; }
+
+/* The generated sizes: [n, m, nnz P follow, nnz A follow, nnz P cruise, nnz A cruise]
+ * (the same for every instance). */
 void truckd_mpc_shape(int64_t *out) {
-    for (int64_t k = 0; k < 2; ++k) {
-        OSQPSolver *s = solver_of(k);
+    for (int64_t k = 0; k < TRUCKD_MPC_MODES; ++k) {
+        OSQPSolver *s = solver_of(0, k);
         OSQPCscMatrix *p = s->work->data->P->csc;
         OSQPCscMatrix *a = s->work->data->A->csc;
         out[0] = a->n;
@@ -54,7 +61,7 @@ void truckd_mpc_shape(int64_t *out) {
 /* The sparsity pattern of one mode's P (upper triangle) and A, as int64 arrays of the
  * sizes truckd_mpc_shape gives. */
 void truckd_mpc_pattern(int64_t mode, int64_t *pp, int64_t *pi, int64_t *ap, int64_t *ai) {
-    OSQPSolver *s = solver_of(mode);
+    OSQPSolver *s = solver_of(0, mode);
     OSQPCscMatrix *p = s->work->data->P->csc;
     OSQPCscMatrix *a = s->work->data->A->csc;
     for (OSQPInt j = 0; j <= p->n; ++j) pp[j] = p->p[j];
@@ -64,10 +71,10 @@ void truckd_mpc_pattern(int64_t mode, int64_t *pp, int64_t *pi, int64_t *ap, int
 }
 
 /* This truck's matrix values (same pattern) and settings into one mode's solver. */
-int64_t truckd_mpc_setup(int64_t mode, const double *px, const double *ax, double eps_abs,
+int64_t truckd_mpc_setup(int64_t inst, int64_t mode, const double *px, const double *ax, double eps_abs,
                          double eps_rel, int64_t max_iter, int64_t check_termination,
                          double rho) {
-    OSQPSolver *s = solver_of(mode);
+    OSQPSolver *s = solver_of(inst, mode);
     if (s == NULL) return -1;
     s->settings->eps_abs = eps_abs;
     s->settings->eps_rel = eps_rel;
@@ -78,15 +85,17 @@ int64_t truckd_mpc_setup(int64_t mode, const double *px, const double *ax, doubl
     return (int64_t)osqp_update_rho(s, rho);
 }
 
-int64_t truckd_mpc_update_rho(int64_t mode, double rho) {
-    OSQPSolver *s = solver_of(mode);
+int64_t truckd_mpc_update_rho(int64_t inst, int64_t mode, double rho) {
+    OSQPSolver *s = solver_of(inst, mode);
     return s == NULL ? -1 : (int64_t)osqp_update_rho(s, rho);
 }
 
-void truckd_mpc_bind(const double *f_span, const double *f_const, double *buf,
+int64_t truckd_mpc_bind(int64_t inst, const double *f_span, const double *f_const, double *buf,
                      int64_t span_start, int64_t span_len, int64_t ns, int64_t n_const,
                      const double *plan_v, const int64_t *u_block, int64_t horizon,
                      int64_t nx) {
+    if (solver_of(inst, 0) == NULL) return -1;
+#define B BOUND[inst]
     B.f_span = f_span;
     B.f_const = f_const;
     B.buf = buf;
@@ -99,6 +108,8 @@ void truckd_mpc_bind(const double *f_span, const double *f_const, double *buf,
     B.horizon = horizon;
     B.nx = nx;
     B.bound = 1;
+#undef B
+    return 0;
 }
 
 /* dst[r] = sum_c f[r, c] src[c], in order of c (as numpy's dot for one row). */
@@ -122,11 +133,12 @@ static double seconds(void) {
  * the warm start (NULL: cold, from zero).  Out: x (n), y (m), u (horizon), v
  * (horizon + 1), info = [status_val, iterations, run time (s), all finite (1/0)].
  * Returns OSQP's status value, or a negative number when the call itself is wrong. */
-int64_t truckd_mpc_cycle(int64_t mode, int64_t lead, int64_t one_lead_speed,
+int64_t truckd_mpc_cycle(int64_t inst, int64_t mode, int64_t lead, int64_t one_lead_speed,
                          const double *values, const double *warm_x, const double *warm_y,
                          double *x, double *y, double *u, double *v, double *info) {
-    OSQPSolver *s = solver_of(mode);
-    if (s == NULL || !B.bound || lead < 0 || lead > 1) return -1;
+    OSQPSolver *s = solver_of(inst, mode);
+    if (s == NULL || !BOUND[inst].bound || lead < 0 || lead > 1) return -1;
+#define B BOUND[inst]
     OSQPInt n = s->work->data->n, m = s->work->data->m;
     int64_t key = mode * 2 + lead;
     double *dst = B.buf + B.span_start;
@@ -169,5 +181,6 @@ int64_t truckd_mpc_cycle(int64_t mode, int64_t lead, int64_t one_lead_speed,
         for (int64_t c = 0; c < B.nx; ++c) acc += row[n + c] * values[c];
         v[r] = acc;
     }
+#undef B
     return (int64_t)s->info->status_val;
 }
