@@ -30,7 +30,7 @@ Vec = NDArray[np.float64]
 LIBRARY = Path(__file__).resolve().parent / "kernel" / "build" / "libtruckd_mpc.so"
 """Where ``make firmware`` puts the compiled cycle."""
 
-ABI = 2
+ABI = 3
 """The interface version this module speaks (``truckd_mpc_abi`` of the library)."""
 
 _state: dict[str, object] = {}
@@ -63,7 +63,7 @@ def library() -> tuple[ctypes.CDLL | None, str]:
         lib.truckd_mpc_pattern.restype = None
         lib.truckd_mpc_pattern.argtypes = [i, p, p, p, p]
         lib.truckd_mpc_setup.restype = i
-        lib.truckd_mpc_setup.argtypes = [i, i, p, p, d, d, i, i, d]
+        lib.truckd_mpc_setup.argtypes = [i, i, p, p, p, p, p, d, d, i, i, d]
         lib.truckd_mpc_update_rho.restype = i
         lib.truckd_mpc_update_rho.argtypes = [i, i, d]
         lib.truckd_mpc_bind.restype = i
@@ -126,13 +126,16 @@ class CompiledCycle:
     def setup(
         self, mode: int, p_x: Vec, a_x: Vec, eps: float, max_iter: int, check: int, rho: float
     ) -> int:
-        """This truck's matrix values and the settings into one mode's solver (0: done)."""
+        """This truck's matrix values, the vectors :meth:`CondensedQp.fill` left in its
+        buffer (the solver's set-up inputs: OSQP scales the cost by them) and the settings
+        into one mode's solver (0: done)."""
         px = np.ascontiguousarray(p_x, dtype=np.float64)
         ax = np.ascontiguousarray(a_x, dtype=np.float64)
+        cq = self._cq
+        q, lo, hi = (_addr(a) for a in (cq.q_view, cq.lo_view, cq.hi_view))
+        fn = self._lib.truckd_mpc_setup
         return int(
-            self._lib.truckd_mpc_setup(
-                self.instance, mode, _addr(px), _addr(ax), eps, eps, max_iter, check, rho
-            )
+            fn(self.instance, mode, _addr(px), _addr(ax), q, lo, hi, eps, eps, max_iter, check, rho)
         )
 
     def update_rho(self, mode: int, rho: float) -> None:

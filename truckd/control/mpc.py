@@ -175,6 +175,7 @@ class MpcSolver:
             return None, why
         st = osqp_settings(self.cfg)
         for k, mode in enumerate(MODES):
+            self._vectors_into(mode, self.zero_inputs)  # as the Python solvers were set up
             flag = cc.setup(
                 k,
                 cq.p_triu(mode).data,

@@ -17,7 +17,7 @@
 #include "algebra_impl.h"
 #include "instances.h"
 
-#define TRUCKD_MPC_ABI 2
+#define TRUCKD_MPC_ABI 3
 
 static OSQPSolver *const SOLVERS[TRUCKD_MPC_INSTANCES][TRUCKD_MPC_MODES] = TRUCKD_MPC_SOLVERS;
 
@@ -70,8 +70,11 @@ void truckd_mpc_pattern(int64_t mode, int64_t *pp, int64_t *pi, int64_t *ap, int
     for (OSQPInt k = 0; k < a->p[a->n]; ++k) ai[k] = a->i[k];
 }
 
-/* This truck's matrix values (same pattern) and settings into one mode's solver. */
-int64_t truckd_mpc_setup(int64_t inst, int64_t mode, const double *px, const double *ax, double eps_abs,
+/* This truck's matrix values (same pattern), vectors and settings into one mode's solver:
+ * the vectors first, so that OSQP's scaling (of the cost too, which depends on q) is
+ * computed from this truck's problem, as a setup would. */
+int64_t truckd_mpc_setup(int64_t inst, int64_t mode, const double *px, const double *ax,
+                         const double *q, const double *l, const double *u, double eps_abs,
                          double eps_rel, int64_t max_iter, int64_t check_termination,
                          double rho) {
     OSQPSolver *s = solver_of(inst, mode);
@@ -80,7 +83,9 @@ int64_t truckd_mpc_setup(int64_t inst, int64_t mode, const double *px, const dou
     s->settings->eps_rel = eps_rel;
     s->settings->max_iter = (OSQPInt)max_iter;
     s->settings->check_termination = (OSQPInt)check_termination;
-    OSQPInt flag = osqp_update_data_mat(s, px, OSQP_NULL, 0, ax, OSQP_NULL, 0);
+    OSQPInt flag = osqp_update_data_vec(s, q, l, u);
+    if (flag != 0) return (int64_t)flag;
+    flag = osqp_update_data_mat(s, px, OSQP_NULL, 0, ax, OSQP_NULL, 0);
     if (flag != 0) return (int64_t)flag;
     return (int64_t)osqp_update_rho(s, rho);
 }
