@@ -1,12 +1,13 @@
-"""Generate OSQP's embedded C solver for the shipped move-blocked QP (run by the Makefile
-here, which ``make firmware`` runs).
+"""Generate OSQP's embedded C solver for the shipped move-blocked QP (run by
+truckd/control/kernel/Makefile, which ``make firmware`` runs).
 
 One workspace per cost mode and instance (``follow0_solver``, ``cruise0_solver``, ..; see
-:data:`INSTANCES`) in OSQP's embedded mode 2 (vectors and matrix values updatable), for the shipped configuration's QP: the sparsity
-pattern and the sizes are fixed by the horizon and the move blocks; the matrix values of
-the truck actually driven are written into it at start-up
-(:mod:`truckd.control.ccycle`), so one build serves every truck with the shipped horizon
-and blocks.  Another shape, or a pattern that differs, runs the Python path (reported).
+:data:`INSTANCES`) in OSQP's embedded mode 2 (vectors and matrix values updatable), for
+the shipped configuration's QP: the sparsity pattern and the sizes are fixed by the
+horizon and the move blocks; the matrix values of the truck actually driven are written
+into it at start-up (:mod:`truckd.control.ccycle`), so one build serves every truck with
+the shipped horizon and blocks.  Another shape, or a pattern that differs, runs the Python
+path (reported).
 
     .venv/bin/python tools/generate_mpc_solver.py OUTDIR
 """
@@ -21,7 +22,6 @@ import osqp
 from truckd.config.truck import load_config
 from truckd.control.mpc import MpcSolver, codegen_settings
 from truckd.control.qp import MODES, ControlModel
-
 
 INSTANCES = 4
 """Solvers one process can run compiled at once (each its own static workspaces): a test
