@@ -70,6 +70,7 @@ def main(argv: list[str]) -> int:
         + "\n".join(includes)
         + f"\n#define TRUCKD_MPC_INSTANCES {INSTANCES}\n"
         + f"#define TRUCKD_MPC_MODES {len(MODES)}\n"
+        + f"#define TRUCKD_MPC_N {cq.nw}\n#define TRUCKD_MPC_M {cq.m}\n"
         + f"#define TRUCKD_MPC_SOLVERS {{{', '.join(table)}}}\n"
     )
     return 0

@@ -13,6 +13,7 @@
 #include <time.h>
 
 #include "osqp.h"
+#include "lin_alg.h"
 #include "types.h"
 #include "algebra_impl.h"
 #include "instances.h"
@@ -39,6 +40,143 @@ static struct {
     int64_t horizon, nx;
     int bound;
 } BOUND[TRUCKD_MPC_INSTANCES];
+
+/* OSQP's linear system, solved reduced and dense.  OSQP's KKT system
+ *     [P + sigma I, A'; A, -diag(1/rho)] [x; nu] = [b1; b2]
+ * (n + m = 147 rows, its sparse LDL factor has some 900 nonzeros, solved twice per
+ * iteration: half of OSQP's instructions) is, with nu = rho (A x - b2),
+ *     (P + sigma I + A' diag(rho) A) x = b1 + A' (rho b2),   z~ = b2 + nu / rho = A x
+ * an n x n system (n = 10): its Cholesky factor is computed when rho or the matrices
+ * change (where OSQP refactors its KKT matrix), and each solve is two dense products
+ * with A and two triangular solves.  The same iterates as OSQP's own solver up to
+ * rounding (tests/test_mpc_compiled.py compares the commands). */
+typedef struct {
+    double a[TRUCKD_MPC_M * TRUCKD_MPC_N]; /* OSQP's scaled A, row-major */
+    double l[TRUCKD_MPC_N * TRUCKD_MPC_N]; /* Cholesky factor (lower) of the reduced matrix */
+    double rho[TRUCKD_MPC_M];
+    OSQPSolver *solver;
+} Dense;
+
+static Dense DENSE[TRUCKD_MPC_INSTANCES][TRUCKD_MPC_MODES];
+
+static Dense *dense_of(const LinSysSolver *ls) {
+    for (int64_t i = 0; i < TRUCKD_MPC_INSTANCES; ++i)
+        for (int64_t k = 0; k < TRUCKD_MPC_MODES; ++k)
+            if (SOLVERS[i][k]->work->linsys_solver == ls) return &DENSE[i][k];
+    return NULL;
+}
+
+static void dense_load_a(Dense *d) {
+    const OSQPCscMatrix *a = d->solver->work->data->A->csc;
+    memset(d->a, 0, sizeof d->a);
+    for (OSQPInt j = 0; j < a->n; ++j)
+        for (OSQPInt k = a->p[j]; k < a->p[j + 1]; ++k)
+            d->a[a->i[k] * TRUCKD_MPC_N + j] = a->x[k];
+}
+
+/* The reduced matrix from OSQP's scaled P (upper triangle) and A, factored. */
+static OSQPInt dense_factor(Dense *d) {
+    enum { N = TRUCKD_MPC_N, M = TRUCKD_MPC_M };
+    double k[N * N];
+    const OSQPCscMatrix *p = d->solver->work->data->P->csc;
+    double sigma = d->solver->settings->sigma;
+    memset(k, 0, sizeof k);
+    for (OSQPInt j = 0; j < p->n; ++j)
+        for (OSQPInt q = p->p[j]; q < p->p[j + 1]; ++q) {
+            OSQPInt i = p->i[q];
+            k[i * N + j] += p->x[q];
+            if (i != j) k[j * N + i] += p->x[q];
+        }
+    for (int i = 0; i < N; ++i) k[i * N + i] += sigma;
+    for (int r = 0; r < M; ++r) {
+        const double *row = d->a + r * N;
+        for (int i = 0; i < N; ++i) {
+            double ri = d->rho[r] * row[i];
+            if (ri == 0.0) continue;
+            for (int j = 0; j < N; ++j) k[i * N + j] += ri * row[j];
+        }
+    }
+    for (int j = 0; j < N; ++j) { /* Cholesky, lower, in place into d->l */
+        double s = k[j * N + j];
+        for (int q = 0; q < j; ++q) s -= d->l[j * N + q] * d->l[j * N + q];
+        if (!(s > 0.0)) return 1;
+        double ljj = sqrt(s);
+        d->l[j * N + j] = ljj;
+        for (int i = j + 1; i < N; ++i) {
+            double t = k[i * N + j];
+            for (int q = 0; q < j; ++q) t -= d->l[i * N + q] * d->l[j * N + q];
+            d->l[i * N + j] = t / ljj;
+        }
+        for (int i = 0; i < j; ++i) d->l[i * N + j] = 0.0;
+    }
+    return 0;
+}
+
+static OSQPInt dense_solve(LinSysSolver *ls, OSQPVectorf *b, OSQPInt admm_iter) {
+    enum { N = TRUCKD_MPC_N, M = TRUCKD_MPC_M };
+    Dense *d = dense_of(ls);
+    double r[N], x[N];
+    double *bv = b->values;
+    (void)admm_iter;
+    if (d == NULL) return 1;
+    for (int j = 0; j < N; ++j) r[j] = bv[j];
+    for (int i = 0; i < M; ++i) {
+        double w = d->rho[i] * bv[N + i];
+        const double *row = d->a + i * N;
+        for (int j = 0; j < N; ++j) r[j] += row[j] * w;
+    }
+    for (int i = 0; i < N; ++i) { /* L y = r */
+        double t = r[i];
+        for (int q = 0; q < i; ++q) t -= d->l[i * N + q] * x[q];
+        x[i] = t / d->l[i * N + i];
+    }
+    for (int i = N - 1; i >= 0; --i) { /* L' x = y */
+        double t = x[i];
+        for (int q = i + 1; q < N; ++q) t -= d->l[q * N + i] * x[q];
+        x[i] = t / d->l[i * N + i];
+    }
+    for (int j = 0; j < N; ++j) bv[j] = x[j];
+    for (int i = 0; i < M; ++i) {
+        const double *row = d->a + i * N;
+        double t = 0.0;
+        for (int j = 0; j < N; ++j) t += row[j] * x[j];
+        bv[N + i] = t;
+    }
+    return 0;
+}
+
+static OSQPInt dense_update_rho(LinSysSolver *ls, const OSQPVectorf *rho_vec, OSQPFloat rho_sc) {
+    Dense *d = dense_of(ls);
+    if (d == NULL) return 1;
+    for (int i = 0; i < TRUCKD_MPC_M; ++i) d->rho[i] = rho_vec != NULL ? rho_vec->values[i] : rho_sc;
+    return dense_factor(d);
+}
+
+static OSQPInt dense_update_matrices(LinSysSolver *ls, const OSQPMatrix *p, const OSQPInt *pi,
+                                     OSQPInt pn, const OSQPMatrix *a, const OSQPInt *ai,
+                                     OSQPInt an) {
+    Dense *d = dense_of(ls);
+    (void)p, (void)pi, (void)pn, (void)a, (void)ai, (void)an;
+    if (d == NULL) return 1;
+    dense_load_a(d);
+    return dense_factor(d);
+}
+
+/* The solver's linear system from now on dense (its current rho and matrices). */
+static OSQPInt dense_install(int64_t inst, int64_t mode) {
+    Dense *d = &DENSE[inst][mode];
+    OSQPSolver *s = SOLVERS[inst][mode];
+    LinSysSolver *ls = s->work->linsys_solver;
+    if (s->work->data->n != TRUCKD_MPC_N || s->work->data->m != TRUCKD_MPC_M) return 1;
+    d->solver = s;
+    for (int i = 0; i < TRUCKD_MPC_M; ++i) d->rho[i] = s->work->rho_vec->values[i];
+    dense_load_a(d);
+    if (dense_factor(d) != 0) return 1;
+    ls->solve = dense_solve;
+    ls->update_rho_vec = dense_update_rho;
+    ls->update_matrices = dense_update_matrices;
+    return 0;
+}
 
 int64_t truckd_mpc_abi(void) { return TRUCKD_MPC_ABI; }
 
@@ -87,7 +225,9 @@ int64_t truckd_mpc_setup(int64_t inst, int64_t mode, const double *px, const dou
     if (flag != 0) return (int64_t)flag;
     flag = osqp_update_data_mat(s, px, OSQP_NULL, 0, ax, OSQP_NULL, 0);
     if (flag != 0) return (int64_t)flag;
-    return (int64_t)osqp_update_rho(s, rho);
+    flag = osqp_update_rho(s, rho);
+    if (flag != 0) return (int64_t)flag;
+    return dense_install(inst, mode) == 0 ? 0 : -4;
 }
 
 int64_t truckd_mpc_update_rho(int64_t inst, int64_t mode, double rho) {
