@@ -2,7 +2,7 @@
 recording on: wake lateness p50/p99/max, compute p50/p99/max, deadline misses.
 
     .venv/bin/python benchmarks/loop_bench.py [--duration 60] [--backend serial|sim] [--json FILE]
-        [--stages] [--cpu-latency-us US] [--rate HZ] [--busy]
+        [--stages] [--cpu-latency-us US] [--rate HZ] [--busy] [--mpc compiled|python]
 
 ``serial`` (default) runs the daemon against the simulated firmware in its own process on
 a pty, as in the HIL tests (the loop's work is what it is on the car); ``sim`` steps the
@@ -17,7 +17,8 @@ car's work, in the sim backend ``backend.tick`` is the simulated truck's.
 the MPC's step is the period, its horizon stays 40 steps).  ``--busy`` starts a CPU-bound
 process beside the daemon for the whole run (a Python busy loop, as a recorder compressing
 or a second truck's process would keep one of the cores busy), ended by its pid after.
-The result names the MPC's path (``mpc_backend``: compiled or python and why).
+The result names the MPC's path (``mpc_backend``: compiled or python and why);
+``--mpc python`` runs the Python path although the compiled one is built (A/B runs).
 """
 
 from __future__ import annotations
@@ -44,6 +45,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from truckd.config.truck import default_config_path, load_config  # noqa: E402
+from truckd.control import ccycle  # noqa: E402
 from truckd.logfile import read_log  # noqa: E402
 from truckd.runtime.daemon import Daemon  # noqa: E402
 from truckd.runtime.realtime import unfreeze_gc  # noqa: E402
@@ -259,7 +261,11 @@ def main() -> int:
     )
     ap.add_argument("--rate", type=float, metavar="HZ", help="loop rate (default: configured)")
     ap.add_argument("--busy", action="store_true", help="a CPU-bound process beside the loop")
+    ap.add_argument("--mpc", choices=("compiled", "python"), default="compiled",
+                    help="the MPC's path (compiled: when built, the default)")  # fmt: skip
     args = ap.parse_args()
+    if args.mpc == "python":  # the loader's answer, as if the library were not built
+        ccycle._state.update(lib=None, why="loop_bench --mpc python")
     if args.rate is not None and not 1.0 <= args.rate <= 2000.0:
         print("loop_bench: --rate must be in [1, 2000] Hz", file=sys.stderr)
         return 2
