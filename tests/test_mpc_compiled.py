@@ -30,6 +30,14 @@ needs_library = pytest.mark.skipif(
 )
 
 
+@pytest.fixture(autouse=True)
+def every_instance_free(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The library's instances free for this test's solvers: solvers earlier tests left
+    alive (the cycle freezes the garbage collector's generations) hold theirs, and are
+    not called again."""
+    monkeypatch.setattr(ccycle, "_held", {})
+
+
 @pytest.fixture
 def no_library(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> Iterator[None]:
     """The library as if it were not built (the loader's cache emptied before and after)."""
@@ -176,7 +184,6 @@ def test_a_qp_of_another_shape_runs_the_python_path_and_says_why() -> None:
 
 @needs_library
 def test_solvers_beyond_the_instances_run_python_until_one_is_released() -> None:
-    gc.collect()  # solvers of earlier tests release theirs
     cfg = load_config().control
     lib, _ = ccycle.library()
     assert lib is not None
@@ -189,3 +196,24 @@ def test_solvers_beyond_the_instances_run_python_until_one_is_released() -> None
     del held[0]
     gc.collect()
     assert MpcSolver(_drawn(3), cfg).backend == "compiled"
+
+
+@needs_library
+def test_an_instance_used_before_gives_the_same_solves_bit_for_bit() -> None:
+    """A solver on an instance another truck used gives what a fresh one gave (a
+    simulation run twice in one process is deterministic)."""
+    cfg = dataclasses.replace(load_config().control, time_budget_s=float("inf"))
+    seq = _sequence(cfg, 5, 60)
+
+    def run(seed: int) -> tuple[int, list[float]]:
+        s = MpcSolver(_drawn(seed), cfg)
+        assert s._cc is not None
+        out = [s.solve(mode, inp).u0 for mode, inp in seq]
+        instance = s._cc.instance
+        del s
+        gc.collect()
+        return instance, out
+
+    first, other, again = run(5), run(6), run(5)
+    assert first[0] == other[0] == again[0]  # the same instance, reused
+    assert first[1] == again[1] and first[1] != other[1]

@@ -59,6 +59,7 @@ def main(argv: list[str]) -> int:
                 extension_name=None,
                 prefix=f"{mode}{k}_",
                 force_rewrite=True,
+                profiling_enable=True,  # the run time and the time limit (timing.c)
             )
             names.append(f"{mode}{k}_solver")
         table.append("{" + ", ".join(f"&{n}" for n in names) + "}")

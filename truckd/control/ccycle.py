@@ -16,6 +16,7 @@ beyond them in the same process (a fifth truck in one simulation) runs the Pytho
 from __future__ import annotations
 
 import ctypes
+import gc
 import weakref
 from pathlib import Path
 
@@ -30,7 +31,7 @@ Vec = NDArray[np.float64]
 LIBRARY = Path(__file__).resolve().parent / "kernel" / "build" / "libtruckd_mpc.so"
 """Where ``make firmware`` puts the compiled cycle."""
 
-ABI = 3
+ABI = 5
 """The interface version this module speaks (``truckd_mpc_abi`` of the library)."""
 
 _state: dict[str, object] = {}
@@ -63,7 +64,9 @@ def library() -> tuple[ctypes.CDLL | None, str]:
         lib.truckd_mpc_pattern.restype = None
         lib.truckd_mpc_pattern.argtypes = [i, p, p, p, p]
         lib.truckd_mpc_setup.restype = i
-        lib.truckd_mpc_setup.argtypes = [i, i, p, p, p, p, p, d, d, i, i, d]
+        lib.truckd_mpc_setup.argtypes = [i, i, p, p, p, p, p, d, d, i, i, d, d]
+        lib.truckd_mpc_set_max_iter.restype = i
+        lib.truckd_mpc_set_max_iter.argtypes = [i, i, i]
         lib.truckd_mpc_update_rho.restype = i
         lib.truckd_mpc_update_rho.argtypes = [i, i, d]
         lib.truckd_mpc_bind.restype = i
@@ -85,6 +88,8 @@ class CompiledCycle:
         self._lib = lib
         self.instance = instance
         """Which of the library's instances this is."""
+        self.claim_number = 0
+        """The claim that holds it (:func:`release`)."""
         self._cq = cq
         nw, m, n = cq.nw, cq.m, cq.qp.lay.N
         keys = [(mode, lead) for mode in MODES for lead in (False, True)]
@@ -124,19 +129,30 @@ class CompiledCycle:
         self._cur = 0
 
     def setup(
-        self, mode: int, p_x: Vec, a_x: Vec, eps: float, max_iter: int, check: int, rho: float
+        self,
+        mode: int,
+        p_x: Vec,
+        a_x: Vec,
+        eps: float,
+        max_iter: int,
+        check: int,
+        time_limit: float,
+        rho: float,
     ) -> int:
         """This truck's matrix values, the vectors :meth:`CondensedQp.fill` left in its
         buffer (the solver's set-up inputs: OSQP scales the cost by them) and the settings
-        into one mode's solver (0: done)."""
+        (``time_limit`` s, OSQP's) into one mode's solver (0: done)."""
         px = np.ascontiguousarray(p_x, dtype=np.float64)
         ax = np.ascontiguousarray(a_x, dtype=np.float64)
         cq = self._cq
         q, lo, hi = (_addr(a) for a in (cq.q_view, cq.lo_view, cq.hi_view))
         fn = self._lib.truckd_mpc_setup
-        return int(
-            fn(self.instance, mode, _addr(px), _addr(ax), q, lo, hi, eps, eps, max_iter, check, rho)
-        )
+        args = (eps, eps, max_iter, check, time_limit, rho)
+        return int(fn(self.instance, mode, _addr(px), _addr(ax), q, lo, hi, *args))
+
+    def set_max_iter(self, mode: int, max_iter: int) -> None:
+        """OSQP's iteration limit of one mode's solver."""
+        self._lib.truckd_mpc_set_max_iter(self.instance, mode, max_iter)
 
     def update_rho(self, mode: int, rho: float) -> None:
         """OSQP's step size back to ``rho`` (refactors the KKT matrix)."""
@@ -216,13 +232,17 @@ def status_text(status_val: int) -> str:
     return STATUS_TEXT[status_val] if 0 < status_val < len(STATUS_TEXT) else f"status {status_val}"
 
 
-_held: set[int] = set()
-"""The instances held by a live solver."""
+_held: dict[int, int] = {}
+"""The instances held by a live solver, each with the number of its claim."""
+
+_claims = [0]
 
 
-def release(instance: int) -> None:
-    """Give an instance back (its solver is gone or no longer uses it)."""
-    _held.discard(instance)
+def release(instance: int, claim_number: int) -> None:
+    """Give an instance back (the solver of that claim is gone or does not use it); a
+    later claim of the instance is left alone."""
+    if _held.get(instance) == claim_number:
+        del _held[instance]
 
 
 def claim(owner: object, cq: CondensedQp) -> tuple[CompiledCycle | None, str]:
@@ -243,8 +263,14 @@ def claim(owner: object, cq: CondensedQp) -> tuple[CompiledCycle | None, str]:
             return None, f"this truck's {mode} QP has another sparsity pattern than the generated"
     count = int(lib.truckd_mpc_instances())
     free = [k for k in range(count) if k not in _held]
+    if not free:  # solvers that are garbage in a reference cycle give theirs back
+        gc.collect()
+        free = [k for k in range(count) if k not in _held]
     if not free:
         return None, f"all {count} compiled instances held by other MPC solvers of this process"
-    _held.add(free[0])
-    weakref.finalize(owner, release, free[0])
-    return CompiledCycle(lib, free[0], cq), ""
+    _claims[0] += 1
+    _held[free[0]] = _claims[0]
+    weakref.finalize(owner, release, free[0], _claims[0])
+    cc = CompiledCycle(lib, free[0], cq)
+    cc.claim_number = _claims[0]
+    return cc, ""

@@ -90,11 +90,9 @@ def osqp_settings(cfg: ControlConfig) -> dict[str, float | int | bool]:
 
 
 def codegen_settings(cfg: ControlConfig) -> dict[str, float | int | bool]:
-    """:func:`osqp_settings` for OSQP's code generation (generated code has no clock: the
-    compiled cycle times the solve itself and checks the budget after it)."""
-    out = osqp_settings(cfg)
-    del out["time_limit"]
-    return out
+    """:func:`osqp_settings` for OSQP's code generation (the time limit, which depends on
+    the configuration, is set at start-up with the tolerance and the iteration limit)."""
+    return osqp_settings(cfg)
 
 
 class MpcSolver:
@@ -183,10 +181,11 @@ class MpcSolver:
                 float(st["eps_abs"]),
                 int(st["max_iter"]),
                 int(st["check_termination"]),
+                float(st["time_limit"]),
                 self._rho0,
             )
             if flag != 0:
-                ccycle.release(cc.instance)
+                ccycle.release(cc.instance, cc.claim_number)
                 return None, f"the generated {mode} solver refused this truck's matrices ({flag})"
         return cc, ""
 
@@ -238,6 +237,14 @@ class MpcSolver:
         if self._cc is not None:
             for k in range(len(MODES)):
                 self._cc.update_rho(k, self._rho0)
+
+    def set_max_iter(self, max_iter: int) -> None:
+        """OSQP's iteration limit of every mode's solver, in either path (tests: a solver
+        that stops short fails as OSQP does at its limit)."""
+        for k, s in enumerate(self._solvers.values()):
+            s.update_settings(max_iter=max_iter)
+            if self._cc is not None:
+                self._cc.set_max_iter(k, max_iter)
 
     def solve(self, mode: str, inp: QpInputs, warm: bool = True) -> MpcResult:
         """Update the vectors, warm start, solve, check.  Never raises on solver trouble."""

@@ -6,19 +6,18 @@
  *
  * OSQP's generated workspaces are static: TRUCKD_MPC_INSTANCES of them (each a solver
  * per mode), which ccycle.py hands to one MPC solver each. */
-#define _POSIX_C_SOURCE 199309L /* clock_gettime */
 #include <math.h>
 #include <stdint.h>
 #include <string.h>
-#include <time.h>
 
 #include "osqp.h"
 #include "lin_alg.h"
+#include "algebra_vector.h"
 #include "types.h"
 #include "algebra_impl.h"
 #include "instances.h"
 
-#define TRUCKD_MPC_ABI 3
+#define TRUCKD_MPC_ABI 5
 
 static OSQPSolver *const SOLVERS[TRUCKD_MPC_INSTANCES][TRUCKD_MPC_MODES] = TRUCKD_MPC_SOLVERS;
 
@@ -214,13 +213,27 @@ void truckd_mpc_pattern(int64_t mode, int64_t *pp, int64_t *pi, int64_t *ap, int
 int64_t truckd_mpc_setup(int64_t inst, int64_t mode, const double *px, const double *ax,
                          const double *q, const double *l, const double *u, double eps_abs,
                          double eps_rel, int64_t max_iter, int64_t check_termination,
-                         double rho) {
+                         double time_limit, double rho) {
     OSQPSolver *s = solver_of(inst, mode);
     if (s == NULL) return -1;
     s->settings->eps_abs = eps_abs;
     s->settings->eps_rel = eps_rel;
     s->settings->max_iter = (OSQPInt)max_iter;
     s->settings->check_termination = (OSQPInt)check_termination;
+    s->settings->time_limit = time_limit;
+    /* OSQP's scaling to one first: the vectors and matrices then arrive unrounded by the
+     * previous owner's scaling (or the generated truck's), and the scaling computed from
+     * them is a setup's, whatever the instance solved before (bit for bit: a simulation
+     * run twice in one process gives the same results). */
+    if (s->settings->scaling) {
+        OSQPScaling *sc = s->work->scaling;
+        sc->c = 1.0;
+        sc->cinv = 1.0;
+        OSQPVectorf_set_scalar(sc->D, 1.0);
+        OSQPVectorf_set_scalar(sc->Dinv, 1.0);
+        OSQPVectorf_set_scalar(sc->E, 1.0);
+        OSQPVectorf_set_scalar(sc->Einv, 1.0);
+    }
     OSQPInt flag = osqp_update_data_vec(s, q, l, u);
     if (flag != 0) return (int64_t)flag;
     flag = osqp_update_data_mat(s, px, OSQP_NULL, 0, ax, OSQP_NULL, 0);
@@ -228,6 +241,13 @@ int64_t truckd_mpc_setup(int64_t inst, int64_t mode, const double *px, const dou
     flag = osqp_update_rho(s, rho);
     if (flag != 0) return (int64_t)flag;
     return dense_install(inst, mode) == 0 ? 0 : -4;
+}
+
+int64_t truckd_mpc_set_max_iter(int64_t inst, int64_t mode, int64_t max_iter) {
+    OSQPSolver *s = solver_of(inst, mode);
+    if (s == NULL || max_iter < 1) return -1;
+    s->settings->max_iter = (OSQPInt)max_iter;
+    return 0;
 }
 
 int64_t truckd_mpc_update_rho(int64_t inst, int64_t mode, double rho) {
@@ -268,12 +288,6 @@ static void product(const double *f, int64_t rows, int64_t cols, const double *s
     }
 }
 
-static double seconds(void) {
-    struct timespec ts;
-    clock_gettime(CLOCK_MONOTONIC, &ts);
-    return (double)ts.tv_sec + 1e-9 * (double)ts.tv_nsec;
-}
-
 /* One cycle: values = [x0; scalars; v_lead] (ns, checked by the caller); warm_x/warm_y
  * the warm start (NULL: cold, from zero).  Out: x (n), y (m), u (horizon), v
  * (horizon + 1), info = [status_val, iterations, run time (s), all finite (1/0)].
@@ -291,7 +305,6 @@ int64_t truckd_mpc_cycle(int64_t inst, int64_t mode, int64_t lead, int64_t one_l
         product(B.f_const + key * B.span_len * B.n_const, B.span_len, B.n_const, values, dst);
     else
         product(B.f_span + key * B.span_len * B.ns, B.span_len, B.ns, values, dst);
-    double t0 = seconds();
     OSQPInt flag = osqp_update_data_vec(s, B.buf + m, B.buf + m + n, B.buf);
     if (flag != 0) return -2;
     if (warm_x != NULL && warm_y != NULL) {
@@ -303,7 +316,7 @@ int64_t truckd_mpc_cycle(int64_t inst, int64_t mode, int64_t lead, int64_t one_l
     }
     if (flag != 0) return -3;
     osqp_solve(s);
-    info[2] = seconds() - t0;
+    info[2] = s->info->run_time;
     double sum = 0.0;
     for (OSQPInt k = 0; k < n; ++k) {
         x[k] = s->solution->x[k];
