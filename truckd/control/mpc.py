@@ -5,7 +5,9 @@ each cycle only ``q``, ``l``, ``u`` are updated and the solver is warm started f
 previous solution (shifted one step in the sparse form).  With ``move_blocks`` > 0 the QP
 solved is the move-blocked, condensed one of :mod:`truckd.control.condensed` (10
 variables instead of 165 at N = 40); its solution is mapped back to the sparse layout, so
-:class:`MpcResult` and the plan look the same either way.
+:class:`MpcResult` and the plan look the same either way.  The move-blocked QP's cycle runs
+compiled when the library is built (:mod:`truckd.control.ccycle`; :attr:`MpcSolver.backend`
+says which path runs and why).
 
 The status is checked every cycle: anything but ``solved`` (or ``solved inaccurate``,
 counted) within the time budget (OSQP's ``time_limit``; the solver's own run time is
