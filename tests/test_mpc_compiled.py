@@ -155,7 +155,7 @@ def test_compiled_and_python_solvers_agree_for_drawn_trucks(seed: int) -> None:
 
 @needs_library
 def test_non_finite_inputs_are_refused_before_the_compiled_cycle() -> None:
-    cfg = load_config().control
+    cfg = load_config().control.in_simulated_time()  # no wall-clock budget
     s = MpcSolver(_drawn(7), cfg)
     assert s.backend == "compiled"
     _, inp = _sequence(cfg, 7, 1)[0]
@@ -167,9 +167,10 @@ def test_non_finite_inputs_are_refused_before_the_compiled_cycle() -> None:
 
 @pytest.mark.usefixtures("no_library")
 def test_without_the_library_the_python_path_runs_and_says_why() -> None:
-    s = MpcSolver(_drawn(1), load_config().control)
+    cfg = load_config().control.in_simulated_time()  # no wall-clock budget
+    s = MpcSolver(_drawn(1), cfg)
     assert s.backend == "python (libtruckd_mpc.so not built (make firmware))"
-    _, inp = _sequence(load_config().control, 1, 1)[0]
+    _, inp = _sequence(cfg, 1, 1)[0]
     assert s.solve("follow", inp).ok
 
 
