@@ -17,10 +17,12 @@ setup-dev: $(BIN)/python
 	$(BIN)/pip install -q -e '.[dev]'
 
 # the C firmware core as the shared library the simulated truck loads (docs/firmware.md),
-# and the identification's C free-run kernel (docs/diagnosis.md)
+# the identification's C free-run kernel (docs/diagnosis.md), and the MPC's compiled cycle
+# (OSQP's generated solver; generated with .venv's Python when there is one, docs/controller.md)
 firmware:
 	@$(MAKE) -s -C $(FW) host
 	@$(MAKE) -s -C truckd/ident/kernel
+	@$(MAKE) -s -C truckd/control/kernel PY=$(abspath $(BIN)/python)
 
 sim: setup firmware
 	mkdir -p out

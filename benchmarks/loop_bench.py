@@ -2,7 +2,7 @@
 recording on: wake lateness p50/p99/max, compute p50/p99/max, deadline misses.
 
     .venv/bin/python benchmarks/loop_bench.py [--duration 60] [--backend serial|sim] [--json FILE]
-        [--stages] [--cpu-latency-us US]
+        [--stages] [--cpu-latency-us US] [--rate HZ] [--busy] [--mpc compiled|python]
 
 ``serial`` (default) runs the daemon against the simulated firmware in its own process on
 a pty, as in the HIL tests (the loop's work is what it is on the car); ``sim`` steps the
@@ -12,6 +12,13 @@ receives every state message, so publishing really goes over TCP.
 ``--stages`` adds wall-clock timers around each stage of ``Daemon.cycle`` (p50/p99 per
 stage; about 1 us of overhead per timer): in the serial backend the whole cycle is the
 car's work, in the sim backend ``backend.tick`` is the simulated truck's.
+
+``--rate HZ`` runs the loop at that rate (``control.rate_hz``, default the shipped 100 Hz;
+the MPC's step is the period, its horizon stays 40 steps).  ``--busy`` starts a CPU-bound
+process beside the daemon for the whole run (a Python busy loop, as a recorder compressing
+or a second truck's process would keep one of the cores busy), ended by its pid after.
+The result names the MPC's path (``mpc_backend``: compiled or python and why);
+``--mpc python`` runs the Python path although the compiled one is built (A/B runs).
 """
 
 from __future__ import annotations
@@ -38,6 +45,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from truckd.config.truck import default_config_path, load_config  # noqa: E402
+from truckd.control import ccycle  # noqa: E402
 from truckd.logfile import read_log  # noqa: E402
 from truckd.runtime.daemon import Daemon  # noqa: E402
 from truckd.runtime.realtime import unfreeze_gc  # noqa: E402
@@ -53,9 +61,16 @@ def _free_port() -> int:
 
 
 def _config(
-    tmp: Path, backend: str, pty: str, port: int, cpu_latency_us: int | None = None
+    tmp: Path,
+    backend: str,
+    pty: str,
+    port: int,
+    cpu_latency_us: int | None = None,
+    rate_hz: float | None = None,
 ) -> Path:
     data = yaml.safe_load(default_config_path().read_text())
+    if rate_hz is not None:
+        data["control"]["rate_hz"] = rate_hz
     data["link"]["serial_device"] = pty
     rt = data["runtime"]
     rt["backend"] = backend
@@ -119,13 +134,21 @@ def _instrument(daemon: Daemon) -> dict[str, list[float]]:
 
 
 def run(
-    duration: float, backend: str, stages: bool = False, cpu_latency_us: int | None = None
+    duration: float,
+    backend: str,
+    stages: bool = False,
+    cpu_latency_us: int | None = None,
+    rate_hz: float | None = None,
+    busy: bool = False,
 ) -> dict[str, Any]:
     tmp = Path(tempfile.mkdtemp(prefix="loop_bench_"))
     pty = str(tmp / "ttyTRUCK")
     port = _free_port()
-    cfg_path = _config(tmp, backend, pty, port, cpu_latency_us)
+    cfg_path = _config(tmp, backend, pty, port, cpu_latency_us, rate_hz)
     fw = None
+    burner = None
+    if busy:  # a CPU-bound process beside the loop for the whole run
+        burner = subprocess.Popen([sys.executable, "-c", "while True: pass"])
     if backend == "serial":
         fw = subprocess.Popen(
             [sys.executable, "-m", "truckd.sim.firmware_main", "--pty", pty, "--config",
@@ -157,6 +180,9 @@ def run(
         daemon.run()
         unfreeze_gc()
     finally:
+        if burner is not None:
+            burner.kill()
+            burner.wait(10)
         if session is not None:
             session.close()
         if fw is not None:
@@ -180,6 +206,8 @@ def run(
     result: dict[str, Any] = {
         "backend": backend,
         "rate_hz": daemon.control_cfg.rate_hz,
+        "busy_process_beside": busy,
+        "mpc_backend": daemon.controller.mpc.backend,
         "duration_s": duration,
         "cycles": rk.cycles,
         "deadline_misses": rk.misses,
@@ -231,8 +259,17 @@ def main() -> int:
         help="runtime.cpu_latency_us for the daemon (default: the shipped configuration's; "
         "-1 leaves the CPU idle states alone)",
     )
+    ap.add_argument("--rate", type=float, metavar="HZ", help="loop rate (default: configured)")
+    ap.add_argument("--busy", action="store_true", help="a CPU-bound process beside the loop")
+    ap.add_argument("--mpc", choices=("compiled", "python"), default="compiled",
+                    help="the MPC's path (compiled: when built, the default)")  # fmt: skip
     args = ap.parse_args()
-    r = run(args.duration, args.backend, args.stages, args.cpu_latency_us)
+    if args.mpc == "python":  # the loader's answer, as if the library were not built
+        ccycle._state.update(lib=None, why="loop_bench --mpc python")
+    if args.rate is not None and not 1.0 <= args.rate <= 2000.0:
+        print("loop_bench: --rate must be in [1, 2000] Hz", file=sys.stderr)
+        return 2
+    r = run(args.duration, args.backend, args.stages, args.cpu_latency_us, args.rate, args.busy)
     rows = [
         ("cycles", f"{r['cycles']}"),
         ("deadline misses", f"{r['deadline_misses']} ({r['skipped_periods']} periods skipped)"),
@@ -244,6 +281,7 @@ def main() -> int:
         ("zenoh sent (state+health) / states received / dropped",
          f"{r['zenoh_messages_sent']} / {r['states_received']} / {r['zenoh_messages_dropped']}"),
         ("rows recorded", f"{r['rows_recorded']}"),
+        ("MPC path / busy process beside", f"{r['mpc_backend']} / {r['busy_process_beside']}"),
         ("SCHED_FIFO / mlockall", f"{r['realtime']['sched_fifo']} / {r['realtime']['mlock']}"),
         ("CPU wake-up latency held", f"{r['realtime'].get('cpu_latency_us')} us"),
     ]  # fmt: skip

@@ -31,6 +31,11 @@ first-move difference (V) between the warm-started controller and cvxpy.
 
     .venv/bin/python benchmarks/mpc_bench.py [--json FILE] [--cycles N] [--cvxpy-cycles M]
         [--sequence sim|ideal]
+    .venv/bin/python benchmarks/mpc_bench.py --paths [--json FILE --key NAME]
+
+``--paths`` times only the shipped blocked QP at N=40 with the compiled and the Python path
+(:mod:`truckd.control.ccycle`) replayed alternately on the same sequence (wall clock and CPU
+time per ``MpcSolver.solve``), and stores the run under ``--key`` in ``--json``'s file.
 """
 
 from __future__ import annotations
@@ -49,6 +54,7 @@ import cvxpy as cp
 import numpy as np
 import osqp
 import scipy.sparse as sp
+from results import write_json
 
 from truckd.config.truck import TruckConfig, load_config
 from truckd.control.config import ControlConfig
@@ -137,8 +143,13 @@ class WarmRun:
     fails: int
 
 
-def time_warm(model: ControlModel, cfg: ControlConfig, seq: list[tuple[str, QpInputs]]) -> WarmRun:
-    s = MpcSolver(model, cfg)
+def time_warm(
+    model: ControlModel,
+    cfg: ControlConfig,
+    seq: list[tuple[str, QpInputs]],
+    compiled: bool = True,
+) -> WarmRun:
+    s = MpcSolver(model, cfg, compiled=compiled)
     run = WarmRun([], [], [], [], 0)
     for mode, inp in seq:
         c0 = time.thread_time()
@@ -202,6 +213,45 @@ def time_cvxpy(
     return times, u0
 
 
+def compare_paths(tc: TruckConfig, cycles: int, repeats: int) -> dict[str, Any]:
+    """The compiled and the Python path on the same QPs, replays alternating (``--paths``)."""
+    cfg = dataclasses.replace(tc.control, horizon=40)
+    seq = record_sim_sequence(tc, cfg, cycles)
+    model = ControlModel(tc.vehicle)
+    runs: dict[str, list[WarmRun]] = {"compiled": [], "python": []}
+    for _ in range(repeats):
+        for path in runs:
+            runs[path].append(time_warm(model, cfg, seq, compiled=path == "compiled"))
+    us = lambda xs, q: float(np.percentile(np.array(xs) * 1e6, q))  # noqa: E731
+    out: dict[str, Any] = {"horizon": 40, "move_blocks": cfg.move_blocks, "qps": len(seq)}
+    for path, rs in runs.items():
+        wall = [x for r in rs for x in r.wall]
+        cpu = [x for r in rs for x in r.cpu]
+        out[path] = {
+            "warm_us_p50": us(wall, 50),
+            "warm_us_p99": us(wall, 99),
+            "warm_us_p99_best_replay": min(us(r.wall, 99) for r in rs),
+            "warm_cpu_us_p50": us(cpu, 50),
+            "warm_cpu_us_p99": us(cpu, 99),
+            "iters_p50": float(np.median(rs[0].iters)),
+            "iters_p99": float(np.percentile(rs[0].iters, 99)),
+            "failures": sum(r.fails for r in rs),
+        }
+    # The first moves compared without the time budget: a solve cut by it on a loaded
+    # machine (in one path, not the other) changes the warm start of the next ones.
+    free = dataclasses.replace(cfg, time_budget_s=float("inf"))
+    u_c = np.array(time_warm(model, free, seq, compiled=True).u0)
+    u_p = np.array(time_warm(model, free, seq, compiled=False).u0)
+    out["max_abs_diff_u0_compiled_python"] = float(np.max(np.abs(u_c - u_p)))
+    out["machine"] = {
+        "platform": platform.platform(),
+        "cpus": os.cpu_count(),
+        "osqp": osqp.__version__,
+        "loadavg_1_5_15": list(os.getloadavg()),
+    }
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--json", help="write the results as JSON to this file")
@@ -215,8 +265,23 @@ def main(argv: list[str] | None = None) -> int:
         help="QPs from truckd sim's stop-and-go (estimator, firmware; default) or from a "
         "loop on ideal estimates",
     )
+    ap.add_argument("--paths", action="store_true", help="compiled vs Python path only")
+    ap.add_argument("--key", metavar="NAME", help="with --paths: the key (what_YYYY-MM-DD)")
     args = ap.parse_args(argv)
     tc = load_config()
+    if args.paths:
+        r = compare_paths(tc, args.cycles, args.repeats)
+        for path in ("compiled", "python"):
+            x = r[path]
+            print(f"{path:9} warm p50 {x['warm_us_p50']:.0f} us, p99 {x['warm_us_p99']:.0f} us "
+                  f"(best replay {x['warm_us_p99_best_replay']:.0f}, CPU p99 "
+                  f"{x['warm_cpu_us_p99']:.0f}), iterations {x['iters_p50']:.0f} / "
+                  f"{x['iters_p99']:.0f}")  # fmt: skip
+        print(f"max |u0 compiled - python| {r['max_abs_diff_u0_compiled_python']:.1e} V, "
+              f"load {r['machine']['loadavg_1_5_15'][0]:.2f}")  # fmt: skip
+        if args.json:
+            write_json(args.json, r, args.key)
+        return 0
     model = ControlModel(tc.vehicle)
     rows = []
     for n in (20, 40, 80):

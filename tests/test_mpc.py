@@ -198,8 +198,7 @@ def test_solver_failure_holds_the_plan_then_brakes(params: VehicleParams) -> Non
     assert good.fallback_reason is None
     plan = list(ctrl._plan or [])
     # From now on the solver reports failure (as OSQP would at its iteration limit).
-    for s in ctrl.mpc._solvers.values():
-        s.update_settings(max_iter=1)
+    ctrl.mpc.set_max_iter(1)
     outs = [ctrl.control(est) for _ in range(6)]
     assert [o.fallback_reason is not None for o in outs] == [True] * 6
     assert all(o.fallback_reason.endswith(":plan") for o in outs[:3] if o.fallback_reason)

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
+from numpy.typing import NDArray
 
 from truckd.control.qp import I_V, INF, NX, QpBuilder, QpInputs, Vec, inputs_ok
 
@@ -294,12 +295,43 @@ class CondensedQp:
             fc[:, : NX + N_SCALARS] = g[:, : NX + N_SCALARS]
             fc[:, -1] = g[:, c_vl].sum(axis=1)
             self._products_const[key] = (fc, self._buf[self._span])
+        self._span_full = {key: np.ascontiguousarray(f[self._span]) for key, f in full.items()}
+        """The stretch's matrix over all the inputs, one per (mode, lead): the compiled cycle's
+        (:mod:`truckd.control.ccycle`) one product."""
         self.hi_view, self.q_view, self.lo_view = (
             self._buf[:m],
             self._buf[m : m + nw],
             self._buf[m + nw :],
         )
         """``u``, ``q``, ``l`` as :meth:`fill` leaves them (views of one buffer)."""
+
+    @property
+    def span(self) -> slice:
+        """The stretch of :attr:`buffer` the per-cycle product writes (the rest is constant)."""
+        return self._span
+
+    @property
+    def buffer(self) -> Vec:
+        """``[u; q; l]`` of the QP in OSQP's row order (:attr:`hi_view`, :attr:`q_view`,
+        :attr:`lo_view` are views of it)."""
+        return self._buf
+
+    def span_matrix(self, key: tuple[str, bool]) -> Vec:
+        """The stretch :attr:`span` of the buffer as a matrix times ``[x0; scalars;
+        v_lead]`` (``key``: mode, lead)."""
+        return self._span_full[key]
+
+    def const_matrix(self, key: tuple[str, bool]) -> Vec:
+        """:meth:`span_matrix` for a lead at one speed: times ``[x0; scalars; v_lead[0]]``."""
+        return self._products_const[key][0]
+
+    def plan_matrix(self) -> Vec:
+        """The predicted speeds ``v_0 .. v_N`` as a matrix times ``[w; x0]``."""
+        return self._plan_v
+
+    def step_blocks(self) -> NDArray[np.intp]:
+        """The block of each step: ``u_k = w[step_blocks()[k]]``."""
+        return self._u_block
 
     def p_triu(self, mode: str) -> sp.csc_matrix:
         """The upper triangle of the condensed cost matrix (OSQP's form)."""
@@ -311,6 +343,26 @@ class CondensedQp:
 
         Returns False, and leaves the vectors as they were, when the inputs (x0, v_lead,
         u_prev, v_ref, u_lo, u_hi, v_cap) fail :func:`~truckd.control.qp.inputs_ok`."""
+        values = self.gather(inp)
+        if values is None:
+            return False
+        self._s[:] = values
+        v_lead = values[NX + N_SCALARS :]
+        if v_lead.count(v_lead[0]) == len(v_lead):  # one speed: one short product
+            f_c, dst = self._products_const[(mode, inp.lead)]
+            np.dot(f_c, self._s_const, out=dst)
+            return True
+        for f, src, dst in self._products[(mode, inp.lead)]:
+            np.dot(f, src, out=dst)
+        return True
+
+    n_fixed_inputs = NX + N_SCALARS
+    """Inputs before ``v_lead`` in :meth:`gather`'s list."""
+
+    def gather(self, inp: QpInputs) -> list[float] | None:
+        """The inputs as Python floats, ``[x0; u_prev, v_ref, u_lo, u_hi, v_cap, 1, lo0,
+        hi0; v_lead]`` (kept as :attr:`filled`), or None when they fail
+        :func:`~truckd.control.qp.inputs_ok`."""
         # the first block: the sparse QP's first-move bounds (rate-limited)
         lo0, hi0 = self.qp.first_move_bounds(inp)
         # Gathered as Python floats (the controller passes lists: no numpy call until the
@@ -322,17 +374,9 @@ class CondensedQp:
         if len(values) != self._s.size:
             raise ValueError(f"x0 and v_lead: {len(values)} inputs, expected {self._s.size}")
         if not inputs_ok(values):
-            return False
+            return None
         self.filled = values  # kept: the solution can be expanded later
-        self._s[:] = values
-        v_lead = values[NX + N_SCALARS :]
-        if v_lead.count(v_lead[0]) == len(v_lead):  # one speed: one short product
-            f_c, dst = self._products_const[(mode, inp.lead)]
-            np.dot(f_c, self._s_const, out=dst)
-            return True
-        for f, src, dst in self._products[(mode, inp.lead)]:
-            np.dot(f, src, out=dst)
-        return True
+        return values
 
     def vectors_into(self, mode: str, inp: QpInputs, q: Vec, lo: Vec, hi: Vec) -> None:
         """:meth:`fill`, copied into the given arrays."""

@@ -5,7 +5,9 @@ each cycle only ``q``, ``l``, ``u`` are updated and the solver is warm started f
 previous solution (shifted one step in the sparse form).  With ``move_blocks`` > 0 the QP
 solved is the move-blocked, condensed one of :mod:`truckd.control.condensed` (10
 variables instead of 165 at N = 40); its solution is mapped back to the sparse layout, so
-:class:`MpcResult` and the plan look the same either way.
+:class:`MpcResult` and the plan look the same either way.  The move-blocked QP's cycle runs
+compiled when the library is built (:mod:`truckd.control.ccycle`; :attr:`MpcSolver.backend`
+says which path runs and why).
 
 The status is checked every cycle: anything but ``solved`` (or ``solved inaccurate``,
 counted) within the time budget (OSQP's ``time_limit``; the solver's own run time is
@@ -22,6 +24,7 @@ import numpy as np
 import osqp
 import scipy.sparse as sp
 
+from truckd.control import ccycle
 from truckd.control.condensed import CondensedQp, block_lengths
 from truckd.control.config import ControlConfig
 from truckd.control.qp import MODES, ControlModel, QpBuilder, QpInputs, Vec, inputs_ok
@@ -47,6 +50,9 @@ class MpcResult:
     u: Vec | None = None
     v: Vec | None = None
 
+
+_MODE_INDEX = {mode: k for k, mode in enumerate(MODES)}
+"""The compiled cycle's number of each mode."""
 
 _USABLE = (osqp.SolverStatus.OSQP_SOLVED, osqp.SolverStatus.OSQP_SOLVED_INACCURATE)
 """Statuses whose solution is used.  ``solved inaccurate`` met OSQP's relaxed (10x)
@@ -85,10 +91,20 @@ def osqp_settings(cfg: ControlConfig) -> dict[str, float | int | bool]:
     }
 
 
-class MpcSolver:
-    """The MPC QP with a persistent, warm-started OSQP solver per mode."""
+def codegen_settings(cfg: ControlConfig) -> dict[str, float | int | bool]:
+    """:func:`osqp_settings` for OSQP's code generation (the time limit, which depends on
+    the configuration, is set at start-up with the tolerance and the iteration limit)."""
+    return osqp_settings(cfg)
 
-    def __init__(self, model: ControlModel, cfg: ControlConfig) -> None:
+
+class MpcSolver:
+    """The MPC QP with a persistent, warm-started OSQP solver per mode.
+
+    ``compiled``: run the per-cycle numerics of the move-blocked QP compiled
+    (:mod:`truckd.control.ccycle`) when the library is built and fits this QP; the
+    Python path otherwise (:attr:`backend` says which and why)."""
+
+    def __init__(self, model: ControlModel, cfg: ControlConfig, compiled: bool = True) -> None:
         self.cfg = cfg
         self.qp = QpBuilder(model, cfg)
         self._solvers: dict[str, osqp.OSQP] = {}
@@ -121,6 +137,8 @@ class MpcSolver:
             u_lo=-cfg.u_max,
             u_hi=cfg.u_max,
         )
+        self.zero_inputs = zero_inp
+        """The inputs the solvers are set up with (all zero, no lead, the widest bounds)."""
         cq = self.condensed
         for mode in MODES:
             self._vectors_into(mode, zero_inp)
@@ -140,6 +158,38 @@ class MpcSolver:
         self._warm: tuple[Vec, Vec] | None = None
         self.inaccurate = 0
         """Solutions used although OSQP reported ``solved inaccurate``."""
+        self._cc: ccycle.CompiledCycle | None = None
+        why = "the sparse QP (move_blocks 0) has no compiled path"
+        if not compiled:
+            why = "compiled path not requested"
+        elif cq is not None:
+            self._cc, why = self._compiled_cycle(cq)
+        self.backend = "compiled" if self._cc is not None else f"python ({why})"
+        """Which path solves: ``compiled`` (OSQP's generated solver and the fill and plan
+        in C, one call per cycle) or ``python (why)``; logged at start-up."""
+
+    def _compiled_cycle(self, cq: CondensedQp) -> tuple[ccycle.CompiledCycle | None, str]:
+        """The compiled cycle set up with this truck's matrices and settings, or why not."""
+        cc, why = ccycle.claim(self, cq)
+        if cc is None:
+            return None, why
+        st = osqp_settings(self.cfg)
+        for k, mode in enumerate(MODES):
+            self._vectors_into(mode, self.zero_inputs)  # as the Python solvers were set up
+            flag = cc.setup(
+                k,
+                cq.p_triu(mode).data,
+                cq.A.data,
+                float(st["eps_abs"]),
+                int(st["max_iter"]),
+                int(st["check_termination"]),
+                float(st["time_limit"]),
+                self._rho0,
+            )
+            if flag != 0:
+                ccycle.release(cc.instance, cc.claim_number)
+                return None, f"the generated {mode} solver refused this truck's matrices ({flag})"
+        return cc, ""
 
     @property
     def horizon(self) -> int:
@@ -186,9 +236,22 @@ class MpcSolver:
         self.reset()
         for s in self._solvers.values():
             s._solver.update_rho(self._rho0)
+        if self._cc is not None:
+            for k in range(len(MODES)):
+                self._cc.update_rho(k, self._rho0)
+
+    def set_max_iter(self, max_iter: int) -> None:
+        """OSQP's iteration limit of every mode's solver, in either path (tests: a solver
+        that stops short fails as OSQP does at its limit)."""
+        for k, s in enumerate(self._solvers.values()):
+            s.update_settings(max_iter=max_iter)
+            if self._cc is not None:
+                self._cc.set_max_iter(k, max_iter)
 
     def solve(self, mode: str, inp: QpInputs, warm: bool = True) -> MpcResult:
         """Update the vectors, warm start, solve, check.  Never raises on solver trouble."""
+        if self._cc is not None:
+            return self._solve_compiled(mode, inp, warm)
         s = self._solvers[mode]
         qp, cq = self.qp, self.condensed
         # Every input finite and physical (qp.inputs_ok): the condensed QP's fill checks
@@ -257,3 +320,49 @@ class MpcSolver:
         if status_val != osqp.SolverStatus.OSQP_SOLVED:
             self.inaccurate += 1
         return MpcResult(True, float(u[0]), str(info.status), iters, run_time, u, v)
+
+    def _solve_compiled(self, mode: str, inp: QpInputs, warm: bool) -> MpcResult:
+        """:meth:`solve` through the compiled cycle: the same steps and outcomes."""
+        cc, cq = self._cc, self.condensed
+        assert cc is not None and cq is not None
+        values = cq.gather(inp)
+        if values is None:
+            return MpcResult(False, math.nan, "non-finite-input", 0, 0.0)
+        cc.values[:] = values
+        v_lead = values[cq.n_fixed_inputs :]
+        one_speed = v_lead.count(v_lead[0]) == len(v_lead)
+        status_val = cc.cycle(
+            _MODE_INDEX[mode], inp.lead, one_speed, warm and self._warm is not None
+        )
+        if status_val < 0:  # defensive: the call itself refused
+            self.reset()
+            return MpcResult(False, math.nan, f"error: compiled cycle {status_val}", 0, 0.0)
+        info = cc.info
+        iters, run_time, finite = int(info[1]), float(info[2]), info[3] == 1.0
+        z, y = cc.solution()
+        if status_val not in _USABLE or not finite:
+            status = ccycle.status_text(status_val)
+            if status_val == osqp.SolverStatus.OSQP_TIME_LIMIT_REACHED and finite:
+                self._keep_compiled(z, y)
+            else:
+                self.reset()
+            return MpcResult(False, math.nan, status if finite else "non-finite", iters, run_time)
+        if run_time > self.cfg.time_budget_s:
+            self._keep_compiled(z, y)
+            return MpcResult(False, math.nan, "overrun", iters, run_time)
+        self._last = (z, values)
+        self._keep_compiled(z, y)
+        u, v = cc.u.copy(), cc.v.copy()
+        self._last_v = v
+        if status_val != osqp.SolverStatus.OSQP_SOLVED:
+            self.inaccurate += 1
+        return MpcResult(True, float(u[0]), ccycle.status_text(status_val), iters, run_time, u, v)
+
+    def _keep_compiled(self, z: Vec, y: Vec) -> None:
+        """The compiled cycle's solution as the next warm start (its arrays then stay as
+        they are until the next one is kept: the last accepted solution is copied first)."""
+        assert self._cc is not None
+        if self._last is not None and self._last[0] is not z:
+            self._last = (self._last[0].copy(), self._last[1])
+        self._cc.keep()
+        self._warm = (z, y)

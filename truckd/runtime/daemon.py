@@ -189,8 +189,8 @@ class Daemon:
         )  # fmt: skip
         self.port = companion_port(self.backend.link, self.clock, self.cfg.link.timeout_periods)
         log.info(
-            "truckd %s: backend %s, %.0f Hz", self.cfg.vehicle_id, self.backend_name,
-            self.control_cfg.rate_hz,
+            "truckd %s: backend %s, %.0f Hz, MPC %s", self.cfg.vehicle_id, self.backend_name,
+            self.control_cfg.rate_hz, self.controller.mpc.backend,
         )  # fmt: skip
 
     def _recover_logs(self) -> None:
@@ -445,6 +445,7 @@ class Daemon:
                 "fallback_cycles": out.fallback_cycles if out is not None else None,
                 "braking_cycles": out.braking_cycles if out is not None else None,
                 "errors": self.controller_errors,
+                "mpc_backend": self.controller.mpc.backend,
             },
             "telemetry": {"dropped": tel.dropped, "sent": tel.sent, "errors": tel.errors}
             if tel is not None
