@@ -37,6 +37,8 @@ from numpy.typing import NDArray
 
 from truckd.control.qp import I_V, INF, NX, QpBuilder, QpInputs, Vec, inputs_ok
 
+Mat = NDArray[np.float64]
+
 N_SCALARS = 8
 """Scalar inputs between x0 and v_lead: u_prev, v_ref, u_lo, u_hi, v_cap, 1, and the first
 block's bounds."""
@@ -70,7 +72,7 @@ class CondensedQp:
     """The move-blocked, condensed form of a :class:`QpBuilder`'s QP (see module doc)."""
 
     def __init__(self, qp: QpBuilder, blocks: tuple[int, ...]) -> None:
-        lay, n, pred = qp.lay, qp.lay.N, qp.pred
+        n = qp.lay.N
         if sum(blocks) != n or min(blocks) < 1:
             raise ValueError(f"blocks {blocks} must be positive and sum to the horizon {n}")
         self.qp = qp
@@ -78,6 +80,16 @@ class CondensedQp:
         nb = len(blocks)
         self.nb = nb
         self.nw = nb + 2
+        self.ME, self.C0, self.Cl = self._prediction(qp, blocks)
+        perm, r = self._constraint_rows(qp)
+        self._cost_terms(qp)
+        full = self._fill_matrices(qp, perm, r)
+        self._constant_stretches(full)
+
+    def _prediction(self, qp: QpBuilder, blocks: tuple[int, ...]) -> tuple[Mat, Mat, Mat]:
+        """``(ME, C0, Cl)``: the predicted sparse vector z = ME w + C0 x0 + Cl v_lead of the
+        blocked inputs ``w`` (block inputs, then the two slacks)."""
+        lay, n, pred, nb = qp.lay, qp.lay.N, qp.pred, self.nb
         # z = M u_s + C0 x0 + Cl vl, column by column by simulating the prediction model.
         m = np.zeros((lay.nz, n + 2))
         c0 = np.zeros((lay.nz, NX))
@@ -102,7 +114,12 @@ class CondensedQp:
             k += length
         e[n, nb] = e[n + 1, nb + 1] = 1.0
         me = m @ e
-        self.ME, self.C0, self.Cl = me, c0, cl
+        return me, c0, cl
+
+    def _constraint_rows(self, qp: QpBuilder) -> tuple[Vec, int]:
+        """The condensed constraint matrix :attr:`A` in OSQP's row order; returns that
+        order (``perm``) and the first state row in the order built (``r``)."""
+        lay, n, nb, me, c0, cl = qp.lay, qp.lay.N, self.nb, self.ME, self.C0, self.Cl
         # Rows: block inputs (nb), block changes (nb - 1), the sparse QP's state and slack
         # rows (from its minimum-gap block to the end).
         self._r_state = lay.r_gap
@@ -146,6 +163,11 @@ class CondensedQp:
         self._a_c0 = a_state @ c0
         self._a_cl = a_state @ cl
         self.P: dict[str, sp.csc_matrix] = {}
+        return perm, r
+
+    def _cost_terms(self, qp: QpBuilder) -> None:
+        """The condensed Hessians :attr:`P` and the affine pieces of the linear term."""
+        lay, n, me, c0, cl = qp.lay, qp.lay.N, self.ME, self.C0, self.Cl
         # q_c = E'M'(q_s + P c) with the sparse q_s affine in the inputs (qp.vectors_into):
         # q_s = q0 + (follow) -2 q_rel v_lead[1:N] | (cruise) -2 q_cruise v_ref, at the
         # speeds of steps 1..N-1; - 2 r_du u_prev at u_0; v_end times the terminal slope
@@ -174,6 +196,10 @@ class CondensedQp:
             else:
                 self._g_ref[mode] = -2.0 * cfg.q_cruise * speeds.sum(axis=1) + term
             self._hl[mode] = hl
+
+    def _fill_matrices(self, qp: QpBuilder, perm: Vec, r: int) -> dict[tuple[str, bool], Mat]:
+        """One matrix per (mode, lead) that maps the cycle's inputs to ``[u; q; l]``."""
+        lay, n, nb, me, c0, cl, cfg = qp.lay, qp.lay.N, self.nb, self.ME, self.C0, self.Cl, qp.cfg
         # Bounds of the state and slack rows without the lead/limit-dependent parts.
         _, lo_t, hi_t = qp.vectors(
             "cruise",
@@ -209,9 +235,9 @@ class CondensedQp:
             raise AssertionError("the lead's speed must not reach the predicted speeds")
         self._plan_v = np.ascontiguousarray(np.hstack([me, c0])[v_rows])
         self._ws_a = self._ws[: nw + NX]
-        self._u_block = np.repeat(np.arange(nb), blocks)
+        self._u_block = np.repeat(np.arange(nb), self.blocks)
         """The block of each step: ``u_k = w[_u_block[k]]``."""
-        full: dict[tuple[str, bool], Vec] = {}
+        full: dict[tuple[str, bool], Mat] = {}
         for mode in qp.P:
             for lead in (False, True):
                 f = np.zeros((nw + 2 * m, NX + n + N_SCALARS))  # rows [q; l; u], A's order
@@ -243,6 +269,14 @@ class CondensedQp:
                 f[np.ix_(unbounded, np.arange(f.shape[1]) != c_1)] = 0.0
                 # The buffer is [u; q; l] with the rows reordered (see below).
                 full[(mode, lead)] = f[np.concatenate([nw + m + perm, np.arange(nw), nw + perm])]
+        return full
+
+    def _constant_stretches(self, full: dict[tuple[str, bool], Mat]) -> None:
+        """The per-cycle products over the stretch of the buffer that moves, the rest of
+        the buffer written once."""
+        nw, m, n = self.nw, self.m, self.qp.lay.N
+        c_1 = NX + 5
+        c_vl = slice(NX + N_SCALARS, NX + N_SCALARS + n)
         # Half of the bounds never change: the no-reverse and minimum-gap rows have no upper
         # bound, the speed-limit rows no lower one (+-INF absorbs any physical input, see
         # qp.INPUT_LIMIT), the block changes and the slacks constant ones.  With the rows
