@@ -239,6 +239,12 @@ def _parse(
     ends_cut: bool,
     spans: Sequence[tuple[int, int]] | None = None,
 ) -> list[Log]:
+    """The logs of one CSV text, one per stretch of rows in ``spans`` (the whole text when
+    None), columns mapped by name, every refused value named with its line
+    (:class:`InputError`); ``ends_cut``: the last row may be cut short (a log still written).
+
+    Long because the header checks, the column map and the row loop share the line
+    number and the notes: one pass over the text, each refusal naming its line."""
     reader = csv.reader(text_lines)
     notes: list[str] = []
     try:

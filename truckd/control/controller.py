@@ -14,9 +14,6 @@ from __future__ import annotations
 import math
 from collections import deque
 from collections.abc import Sequence
-from dataclasses import dataclass
-
-import numpy as np
 
 from truckd.control.config import ControlConfig
 from truckd.control.effect_use import (
@@ -32,45 +29,15 @@ from truckd.control.estimator import EncoderSample, Estimate, Estimator, RangeSa
 from truckd.control.fallback import braking_law, held_plan_move, limit_command
 from truckd.control.feedforward import breakaway_feedforward, moving_feedforward
 from truckd.control.mpc import MpcSolver
-from truckd.control.qp import ControlModel, QpInputs, Vec
+from truckd.control.output import ControlOutput
+from truckd.control.pipeline import predict_pipeline
+from truckd.control.qp import ControlModel, QpInputs
 
 SATURATED_V = 0.01
 """A command this close to the driver's limit (V, the QP's accuracy) is at the limit."""
 
 LEAD_ACCEL_TAU_S = 0.1
 """Time constant (s) of the lead acceleration's filter (used over an input delay only)."""
-
-
-@dataclass(frozen=True)
-class ControlOutput:
-    """One cycle's command and diagnostics.
-
-    ``u`` the voltage command (V, always finite and within limits); ``u_ff`` its
-    feedforward part, ``u_mpc`` the MPC's (or fallback's) part (V); ``mode`` one of
-    ``follow``, ``cruise``, ``stop``, ``fallback``, ``hold`` (standstill hold: 0 V, the MPC
-    not solved, ``solver_status`` ``not-run``); ``fallback_reason`` None when the MPC
-    solved; ``solver_status``, ``solve_iterations``, ``solve_time_s`` (OSQP's own time);
-    ``gap_ref`` (m, NaN without lead); the estimate; cumulative counters (``inaccurate``:
-    solutions used although OSQP said ``solved inaccurate``); ``disturbance_v`` the
-    offset-free action's voltage (V, 0 when off).
-    """
-
-    u: float
-    u_ff: float
-    u_mpc: float
-    mode: str
-    fallback_reason: str | None
-    solver_status: str
-    solve_iterations: int
-    solve_time_s: float
-    gap_ref: float
-    estimate: Estimate
-    solver_failures: int
-    fallback_cycles: int
-    overruns: int
-    braking_cycles: int
-    inaccurate: int = 0
-    disturbance_v: float = 0.0
 
 
 class Controller:
@@ -507,27 +474,25 @@ class Controller:
         if held:
             acting = ff  # no current beyond what the feedforward accounts for
         x0 = [acting - ff - p.K_v * p.omega(v), v, gap]
-        speeds = [v]
         if self._delay_steps == 0:
             self.pipeline_v = []
             return x0, ff  # a list: the QP gathers its inputs without numpy
-        pred = self.mpc.qp.pred
-        dt = self.cfg.period
-        x: Vec = np.array(x0)
-        ff_k = ff
-        moving = self.cfg.moving_speed
-        for k, u in enumerate(list(sent)[1:]):
-            v_k = float(x[1])
-            ff_k = self._feedforward(v_k, x_pos) if k > 0 else ff
-            u_k = u - ff_k
-            if abs(v_k) <= moving and self.cfg.feedforward:
-                # At rest stiction (and the load) take up to the breakaway voltage.
-                u_k = max(u - breakaway_feedforward(p, self.model.effects, 1.0, x_pos), 0.0)
-            x = pred.Ad @ x + pred.bu * u_k + pred.bl * float(v_lead[k])
-            if x[1] < 0.0 <= v_k:
-                x[1] = 0.0
-            x_pos += 0.5 * (v_k + float(x[1])) * dt
-            speeds.append(float(x[1]))
+
+        def at_rest(u: float, x: float) -> float:  # stiction and the load take up to breakaway
+            return max(u - breakaway_feedforward(p, self.model.effects, 1.0, x), 0.0)
+
+        x, speeds, ff_k, x_pos = predict_pipeline(
+            self.mpc.qp.pred,
+            x0,
+            list(sent)[1:],
+            v_lead,
+            ff,
+            x_pos,
+            self.cfg.period,
+            self._feedforward,
+            at_rest if self.cfg.feedforward else None,
+            self.cfg.moving_speed,
+        )
         self.pipeline_v = speeds[:-1]
         ff_end = self._feedforward(float(x[1]), x_pos)
         x[0] += ff_k - ff_end
@@ -554,37 +519,25 @@ class Controller:
             else held_plan_move(self._plan, self._plan_age, self.cfg.plan_hold_steps)
         )
         if held is not None:
-            return self._finish(
-                est, v, held, ff, mode, reason + ":plan", status, iters, run_time, gap_ref
-            )
-        if (
+            move, ff_used, mode_used, tag = held, ff, mode, ":plan"
+        elif (
             self._plan is None
             and reason != "speed_stale"
             and (self._plan_age <= self.cfg.plan_hold_steps)
         ):
             # No plan yet (the first, cold solve ran out of time): hold the last command.
-            return self._finish(
-                est,
-                v,
-                self._applied_prev() - ff,
-                ff,
-                mode,
-                reason + ":hold",
-                status,
-                iters,
-                run_time,
-                gap_ref,
-            )
-        self.braking_cycles += 1
-        if reason == "speed_stale":
-            # No speed to brake against: braking on the last one, open loop, drives a
-            # truck that has stopped backwards.  0 V (at the rate limit).
-            return self._finish(
-                est, v, 0.0, 0.0, "fallback", reason + ":zero", status, iters, run_time, gap_ref
-            )
-        u = braking_law(v, self.cfg.brake_gain, self.u_max)
+            move, ff_used, mode_used, tag = self._applied_prev() - ff, ff, mode, ":hold"
+        else:
+            self.braking_cycles += 1
+            ff_used, mode_used = 0.0, "fallback"
+            if reason == "speed_stale":
+                # No speed to brake against: braking on the last one, open loop, drives a
+                # truck that has stopped backwards.  0 V (at the rate limit).
+                move, tag = 0.0, ":zero"
+            else:
+                move, tag = braking_law(v, self.cfg.brake_gain, self.u_max), ":brake"
         return self._finish(
-            est, v, u, 0.0, "fallback", reason + ":brake", status, iters, run_time, gap_ref
+            est, v, move, ff_used, mode_used, reason + tag, status, iters, run_time, gap_ref
         )
 
     def _finish(

@@ -93,7 +93,10 @@ class BringUp:
         return self._fail("link", f"not ready after {waited}: {', '.join(sorted(causes))}")
 
     def dwell_checks(self, obs: Obs) -> Generator[float, Obs, Obs]:
-        """At rest for ``range_dwell_s``: link rate and errors, battery, range, free space."""
+        """At rest for ``range_dwell_s``: link rate and errors, battery, range, free space.
+
+        Long because one generator dwells at rest and then judges every check from the same
+        samples; split, the samples would travel between generators."""
         cfg = self.cfg
         self.stage("checks", obs.t, "sensors")
         stats0 = self.link_stats()

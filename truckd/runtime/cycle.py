@@ -35,8 +35,9 @@ from typing import Any, Protocol
 from firmware_protocol.messages import CompanionHeartbeat, CompanionState, MotorCommand
 from firmware_protocol.timing import timing
 from truckd.control.config import ControlConfig
-from truckd.control.controller import Controller, ControlOutput
+from truckd.control.controller import Controller
 from truckd.control.estimator import EncoderSample, Estimate, RangeSample
+from truckd.control.output import ControlOutput
 from truckd.control.qp import ControlModel
 from truckd.control.supervisor import (
     Decision,

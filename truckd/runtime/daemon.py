@@ -24,7 +24,7 @@ from typing import Any
 
 from firmware_protocol.messages import CompanionHeartbeat, CompanionState, MotorCommand
 from truckd.config.truck import TruckConfig
-from truckd.control.controller import ControlOutput
+from truckd.control.output import ControlOutput
 from truckd.control.platoon import PlatoonDecision, platoon_control
 from truckd.control.qp import ControlModel
 from truckd.control.supervisor import Decision, Mode

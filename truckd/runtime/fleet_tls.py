@@ -79,7 +79,10 @@ def make_fleet(
 ) -> Fleet:
     """Write a fleet's authority and certificates into ``directory`` (created; existing
     files are replaced).  Every certificate names ``hosts`` (IP addresses or DNS names)
-    so any member may listen; ECDSA P-256 keys, valid ``days``."""
+    so any member may listen; ECDSA P-256 keys, valid ``days``.
+
+    Long because each certificate is one chain of the ``cryptography`` builder's calls,
+    written out so a reader can check every field, and the Zenoh configurations follow."""
     try:
         from cryptography import x509
         from cryptography.hazmat.primitives import hashes, serialization
@@ -176,7 +179,10 @@ def _tls(fleet: Fleet, name: str) -> dict[str, Any]:
 
 
 def access_control(trucks: Sequence[str], operators: Sequence[str]) -> dict[str, Any]:
-    """The router's ``access_control`` section (see the module docstring)."""
+    """The router's ``access_control`` section (see the module docstring).
+
+    Long because it is data: Zenoh's rules, subjects and policies written out literally,
+    one dict each, to be read against Zenoh's access-control documentation."""
     rules: list[dict[str, Any]] = []
     subjects: list[dict[str, Any]] = []
     policies: list[dict[str, Any]] = []

@@ -103,7 +103,10 @@ def run_platoon(
     The controllers' configured headway is the CACC headway (their QP is built for it;
     the ACC headway is driven by the gap shift, see :meth:`Controller.control`).  The
     trucks' dead time is the scenario's ``input_delay`` unless the plant's is larger; the
-    controllers' model knows it."""
+    controllers' model knows it.
+
+    Long because the simulated-time loop steps every truck, plan channel, join and leave
+    in the one order the metrics assume; its pieces live in the ``platoon_*`` modules."""
     low = MIN_TRUCKS.get(sc.kind, 2)
     if not low <= n_trucks <= MAX_TRUCKS:
         raise ValueError(f"{sc.name}: a platoon has {low} to {MAX_TRUCKS} trucks, got {n_trucks}")

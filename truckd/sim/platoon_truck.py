@@ -11,8 +11,8 @@ from collections.abc import Callable, Sequence
 from dataclasses import replace
 from typing import Any
 
-from truckd.control.controller import ControlOutput
 from truckd.control.estimator import Estimate
+from truckd.control.output import ControlOutput
 from truckd.control.platoon import (
     CACC,
     Plan,
