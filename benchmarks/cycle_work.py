@@ -39,7 +39,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import re
 import shutil
 import subprocess
@@ -48,7 +47,7 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from results import write_json
+from results import machine, write_json
 
 ROOT = Path(__file__).resolve().parent.parent
 LOG = ROOT / "tests" / "data" / "replay" / "run.rx.jsonl"
@@ -194,12 +193,7 @@ def run(root: Path) -> dict[str, Any]:
         f"{gap * 1e3:g} ms": _p50_us(_child(root, 1, gap, False, spin=True)[0]["times"])
         for gap in BUSY_GAPS_S
     }
-    result["machine"] = {
-        "cpus": os.cpu_count(),
-        "kernel": platform.release(),
-        "python": platform.python_version(),
-        "loadavg_1_5_15": list(os.getloadavg()),
-    }
+    result["machine"] = machine()
     return result
 
 

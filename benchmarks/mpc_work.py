@@ -16,7 +16,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import re
 import shutil
 import subprocess
@@ -25,7 +24,7 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from results import write_json
+from results import machine, write_json
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -79,12 +78,7 @@ def run(cycles: int) -> dict[str, Any]:
             "iterations_per_solve": extra_iters / one["solves"],
             "instructions_per_iteration": round((i2 - i1) / extra_iters),
         }
-    result["machine"] = {
-        "cpus": os.cpu_count(),
-        "kernel": platform.release(),
-        "python": platform.python_version(),
-        "loadavg_1_5_15": list(os.getloadavg()),
-    }
+    result["machine"] = machine()
     return result
 
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import os
+import platform
 import re
 import tempfile
 from pathlib import Path
@@ -19,6 +20,17 @@ from typing import Any
 KEY = re.compile(r"[a-z0-9_]+_\d{4}-\d{2}-\d{2}(_[0-9a-f]{7,40}|_[a-z0-9_]+)?")
 """A measurement's name: what (lower case, underscores), then the date (ISO), then
 optionally the commit measured or a qualifier."""
+
+
+def machine() -> dict[str, Any]:
+    """The machine a run measured: cores, kernel, Python and the load average (1, 5,
+    15 min) at the time of the call."""
+    return {
+        "cpus": os.cpu_count(),
+        "kernel": platform.release(),
+        "python": platform.python_version(),
+        "loadavg_1_5_15": list(os.getloadavg()),
+    }
 
 
 def merged(old: dict[str, Any], result: dict[str, Any], key: str | None) -> dict[str, Any]:
