@@ -1,5 +1,5 @@
 """`truckd characterize` bring-up checks, in process on the ``sim`` backend (the daemon's own
-loop in real time, the simulated firmware wired the wrong way round through
+loop in simulated time, the simulated firmware wired the wrong way round through
 ``plant.wiring``/``plant.vehicle``, or a wall too close): each failure stops the routine
 with exit 3 and one line that says what to fix, and the simulated truck ends at rest
 without having driven into anything."""
@@ -17,6 +17,7 @@ from runtime_support import write_config
 
 from truckd.config.truck import load_config
 from truckd.runtime.backend import Backend
+from truckd.runtime.ratekeeper import SteppedClock
 from truckd.sim.firmware import SimulatedFirmware
 
 pytestmark = pytest.mark.slow
@@ -70,7 +71,8 @@ def run(
             assert backend.firmware is not None
             backend.firmware.apply_fault(fault)
 
-    code = run_characterize(cfg, "sim", tmp_path / "out", lines.append, prepare)
+    # in simulated time: the checks judge rates and ages, the same on a busy machine
+    code = run_characterize(cfg, "sim", tmp_path / "out", lines.append, prepare, SteppedClock())
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
     return code, summary, lines, track
 

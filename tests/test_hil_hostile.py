@@ -154,7 +154,9 @@ def test_a_plan_flood_costs_the_loop_no_deadline(rig: Rig) -> None:
         f"{pl['plans_refused']}); host stalls {base_stalled} / {flood_stalled}"
     )
     print(report)
-    assert rate > 50_000, report  # it was a flood (aimed at 100 000 per second)
+    # it was a flood: far more than the ingress cap lets in (aimed at 100 000 per second;
+    # how many a nice-19 process reaches depends on the machine and its load)
+    assert rate > 10 * cap, report
     assert received / WINDOW_S <= 1.2 * cap, report  # Zenoh let in at most the cap
     assert pl["plans_accepted"] == 0 and pl["plans_refused"] > 0, pl
     # the loop: no more misses than without the flood (a host stall the probe saw in the

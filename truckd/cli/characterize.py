@@ -32,8 +32,9 @@ from truckd.io.backends import BACKEND_NAMES
 from truckd.logfile import Log, read_log, write_log
 from truckd.runtime.backend import Backend
 from truckd.runtime.characterize import Routine
-from truckd.runtime.characterize_plan import EXIT_DONE, Experiment, Result
+from truckd.runtime.characterize_plan import EXIT_DONE, Experiment, Result, TruckFacts
 from truckd.runtime.daemon import Daemon
+from truckd.runtime.ratekeeper import SteppedClock
 
 LOG_COLUMNS = ("t", "u", "v", "vbat", "x", "range_raw")
 """The daemon log's columns copied into DIR/log.csv (plus ``experiment``, its index, and
@@ -92,9 +93,16 @@ class CharacterizeDaemon(Daemon):
     the routine (0 V, wait at rest, end); a second ends the loop at once."""
 
     def __init__(
-        self, cfg: TruckConfig, backend: str | None, prepare: Prepare | None = None
+        self,
+        cfg: TruckConfig,
+        backend: str | None,
+        prepare: Prepare | None = None,
+        clock: SteppedClock | None = None,
     ) -> None:
-        super().__init__(cfg, backend)
+        if clock is None:
+            super().__init__(cfg, backend)
+        else:
+            super().__init__(cfg, backend, clock=clock, sleep=clock.sleep)
         self.prepare = prepare
         self.routine: Routine | None = None
         self._signalled = False
@@ -145,11 +153,17 @@ def drive(
     out: Path,
     console: Callable[[str], None] = _console,
     prepare: Prepare | None = None,
+    clock: SteppedClock | None = None,
 ) -> tuple[Result, CharacterizeDaemon]:
-    """Run the daemon with the routine until it ends; (result, daemon)."""
+    """Run the daemon with the routine until it ends; (result, daemon).  With ``clock``
+    the loop runs in simulated time (the ``sim`` backend only: a real truck's messages
+    come in real time)."""
     from firmware_protocol.codec import specs
 
-    d = CharacterizeDaemon(_daemon_config(cfg, out / "raw"), backend, prepare)
+    name = backend or cfg.runtime.backend
+    if clock is not None and name != "sim":
+        raise ValueError(f"simulated time needs the sim backend, not {name!r}")
+    d = CharacterizeDaemon(_daemon_config(cfg, out / "raw"), backend, prepare, clock)
     printed: list[tuple[str, str]] = []
 
     def progress(msg: dict[str, Any]) -> None:
@@ -166,11 +180,13 @@ def drive(
 
     d.routine = Routine(
         cfg.characterize,
-        period=d.period,
-        range_max=cfg.control.estimator.range_max,
-        encoder_period=specs()["WHEEL_ENCODERS"].period,
-        ticks_per_rev=d.ticks_per_rev,
-        r_w=cfg.vehicle.r_w,
+        TruckFacts(
+            period=d.period,
+            range_max=cfg.control.estimator.range_max,
+            encoder_period=specs()["WHEEL_ENCODERS"].period,
+            ticks_per_rev=d.ticks_per_rev,
+            r_w=cfg.vehicle.r_w,
+        ),
         decision=lambda: d.decision,
         link_stats=lambda: d.port.stats() if d.port is not None else {},
         on_progress=progress,
@@ -216,10 +232,12 @@ def characterize(
     out: Path,
     console: Callable[[str], None] = _console,
     prepare: Prepare | None = None,
+    clock: SteppedClock | None = None,
 ) -> int:
-    """The whole command: drive, then analyse; the exit code."""
+    """The whole command: drive, then analyse; the exit code.  ``clock``: see
+    :func:`drive`."""
     out = out_dir(out)
-    result, d = drive(cfg, backend, out, console, prepare)
+    result, d = drive(cfg, backend, out, console, prepare, clock)
     files = list(d.recorder.files) if d.recorder is not None else []
     log = experiment_log(files, result.experiments, result.stop_t)
     if log is not None:

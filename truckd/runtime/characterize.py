@@ -44,6 +44,7 @@ from truckd.runtime.characterize_plan import (
     Progress,
     Result,
     Script,
+    TruckFacts,
     plan_experiments,
 )
 from truckd.runtime.sensors import SensorState
@@ -60,12 +61,8 @@ class Routine:
     def __init__(
         self,
         cfg: CharacterizeConfig,
+        truck: TruckFacts,
         *,
-        period: float,
-        range_max: float,
-        encoder_period: float,
-        ticks_per_rev: int,
-        r_w: float,
         decision: Callable[[], Decision],
         link_stats: Callable[[], dict[str, Any]],
         on_progress: Callable[[dict[str, Any]], None],
@@ -73,8 +70,8 @@ class Routine:
         progress_period_s: float = 0.5,
     ) -> None:
         self.cfg = cfg
-        self.period = period
-        self.range_max = range_max
+        self.period = truck.period
+        self.range_max = truck.range_max
         self.decision = decision
         self.on_progress = on_progress
         self.on_done = on_done
@@ -93,10 +90,8 @@ class Routine:
         self._last_x: float | None = None
         self._ready = False  # link and sensors came up (the supervisor left INIT)
         self.bringup = BringUp(
-            cfg, period=period, range_max=range_max, encoder_period=encoder_period,
-            ticks_per_rev=ticks_per_rev, r_w=r_w, link_stats=link_stats,
-            checks=self.result.checks, stage=self._stage,
-        )  # fmt: skip
+            cfg, truck, link_stats=link_stats, checks=self.result.checks, stage=self._stage
+        )
 
     # -- the command source ----------------------------------------------------------------
     def request_stop(self, reason: str) -> None:

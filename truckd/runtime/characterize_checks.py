@@ -18,7 +18,7 @@ from typing import Any
 
 from truckd.config.characterize import CharacterizeConfig
 from truckd.control.supervisor import Mode
-from truckd.runtime.characterize_plan import Check, CheckFailedError, Obs
+from truckd.runtime.characterize_plan import Check, CheckFailedError, Obs, TruckFacts
 
 
 class BringUp:
@@ -30,22 +30,18 @@ class BringUp:
     def __init__(
         self,
         cfg: CharacterizeConfig,
+        truck: TruckFacts,
         *,
-        period: float,
-        range_max: float,
-        encoder_period: float,
-        ticks_per_rev: int,
-        r_w: float,
         link_stats: Callable[[], dict[str, Any]],
         checks: list[Check],
         stage: Callable[[str, float, str], None],
     ) -> None:
         self.cfg = cfg
-        self.period = period
-        self.range_max = range_max
-        self.encoder_period = encoder_period
-        self.ticks_per_rev = ticks_per_rev
-        self.r_w = r_w
+        self.period = truck.period
+        self.range_max = truck.range_max
+        self.encoder_period = truck.encoder_period
+        self.ticks_per_rev = truck.ticks_per_rev
+        self.r_w = truck.r_w
         self.link_stats = link_stats
         self.checks = checks
         self.stage = stage

@@ -22,6 +22,22 @@ PAUSE_S = 0.3
 
 
 @dataclass(frozen=True)
+class TruckFacts:
+    """What the routine knows of the truck it drives, from the configuration and the DBC."""
+
+    period: float
+    """The control period (s)."""
+    range_max: float
+    """The range sensor's farthest valid reading (m)."""
+    encoder_period: float
+    """The wheel encoders' message period (s, the DBC's)."""
+    ticks_per_rev: int
+    """Encoder counts per wheel revolution."""
+    r_w: float
+    """The configured wheel radius (m)."""
+
+
+@dataclass(frozen=True)
 class Check:
     """One bring-up check: ``detail`` says what was measured, or what to fix."""
 

@@ -87,6 +87,7 @@ class Daemon:
         model: ControlModel | None = None,
         env: Mapping[str, str] | None = None,
         clock: Callable[[], float] = time.monotonic,
+        sleep: Callable[[float], None] = time.sleep,
     ) -> None:
         self.cfg = cfg
         self.rt = cfg.runtime
@@ -115,7 +116,7 @@ class Daemon:
             self.controller.mpc.solve = wrap_solver(  # type: ignore[method-assign]
                 self.controller.mpc.solve, self.faults
             )
-        self.rk = RateKeeper(self.control_cfg.rate_hz, clock=clock)
+        self.rk = RateKeeper(self.control_cfg.rate_hz, clock=clock, sleep=sleep)
         self.notifier = Notifier(env)
         self.u_max = self.companion.u_max
         self.period = 1.0 / self.control_cfg.rate_hz

@@ -66,6 +66,23 @@ def _pct(values: np.ndarray, q: float) -> float:
     return float(np.percentile(values, q)) * 1e6 if values.size else 0.0
 
 
+class SteppedClock:
+    """Simulated time for a loop that drives a simulated truck in process (the ``sim``
+    backend): it stands still while a cycle works and advances only when the rate keeper
+    sleeps, so the run is the same on a busy machine as on an idle one.  Call it for the
+    time (s, from ``t0``); pass :meth:`sleep` as the rate keeper's sleep."""
+
+    def __init__(self, t0: float = 0.0) -> None:
+        self.t = t0
+
+    def __call__(self) -> float:
+        return self.t
+
+    def sleep(self, seconds: float) -> None:
+        """Advance by ``seconds`` (s; a negative wait advances nothing)."""
+        self.t += max(0.0, seconds)
+
+
 class RateKeeper:
     """Keeps a loop at ``rate_hz`` on absolute deadlines.
 

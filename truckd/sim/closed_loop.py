@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from truckd.config.runtime import RuntimeConfig
 from truckd.control.config import ControlConfig
 from truckd.control.controller import Controller
 from truckd.control.platoon import Plan
@@ -86,8 +87,8 @@ class SimSetup:
     """``link.encoder_ticks_per_rev`` (the plant's own encoder, when it models one, wins)."""
     firmware: FirmwareSimConfig | None = None
     supervisor: SupervisorConfig = field(default_factory=SupervisorConfig)
-    stop_ramp_v_per_s: float = 60.0
-    """The SAFE_STOP ramp (``runtime.stop_ramp_v_per_s``)."""
+    stop_ramp_v_per_s: float = field(default_factory=lambda: RuntimeConfig().stop_ramp_v_per_s)
+    """The SAFE_STOP ramp (V/s, ``runtime.stop_ramp_v_per_s``; its default there)."""
 
     @classmethod
     def from_config(cls, cfg: TruckConfig, model: ControlModel | None = None) -> SimSetup:
