@@ -29,7 +29,7 @@ from functools import cache
 from pathlib import Path
 from typing import Any, Literal, Protocol, TypeVar
 
-from firmware_protocol.timing import timing
+from firmware_protocol.timing import limits, timing
 
 FIRMWARE_DIR = Path(__file__).with_name("firmware")
 """Sources and Makefile of the firmware core."""
@@ -347,9 +347,9 @@ class CoreConfig:
     cmd_timeout_ms: int = round(timing().cmd_timeout * 1000.0)
     timeout_periods: int = timing().freshness_periods
     max_wrong_counters: int = timing().counter_max_wrong
-    undervoltage_mv: int = 5500
-    range_min_mm: int = 20
-    range_max_mm: int = 4000
+    undervoltage_mv: int = round(limits().undervoltage * 1000.0)
+    range_min_mm: int = round(limits().range_min * 1000.0)
+    range_max_mm: int = round(limits().range_max * 1000.0)
 
 
 _R = TypeVar("_R")

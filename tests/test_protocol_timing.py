@@ -13,13 +13,13 @@ import cantools
 from firmware_protocol import checks, fwcore, generate
 from firmware_protocol.codec import DBC_PATH, encode
 from firmware_protocol.messages import MotorCommand
-from firmware_protocol.timing import c_header, timing, timing_of
+from firmware_protocol.timing import c_header, limits, limits_of, timing, timing_of
 from truckd.runtime.cycle import HEARTBEAT_PERIOD_S
 from truckd.sim.firmware import FirmwareSimConfig
 
 
 def _defines(text: str) -> dict[str, int]:
-    return {m[1]: int(m[2]) for m in re.finditer(r"#define (TRUCK_\w+) \((\d+)u\)", text)}
+    return {m[1]: int(m[2]) for m in re.finditer(r"#define (TRUCK_\w+) \((\d+)u?\)", text)}
 
 
 def test_the_timing_is_what_the_dbc_declares() -> None:
@@ -87,6 +87,19 @@ def test_the_c_firmware_takes_the_dbc_timing() -> None:
         t.freshness_periods,
         t.counter_max_wrong,
     )
+    # the default limits too: the same in C, in CoreConfig and in the simulated firmware
+    lim = limits()
+    mm = (round(lim.undervoltage * 1000), round(lim.range_min * 1000), round(lim.range_max * 1000))
+    assert (d["TRUCK_UNDERVOLTAGE_MV"], d["TRUCK_RANGE_MIN_MM"], d["TRUCK_RANGE_MAX_MM"]) == mm
+    assert (cfg.undervoltage_mv, cfg.range_min_mm, cfg.range_max_mm) == mm
+    core = fwcore.CoreConfig()
+    assert (core.undervoltage_mv, core.range_min_mm, core.range_max_mm) == mm
+    sim = FirmwareSimConfig()
+    assert (sim.undervoltage, sim.range_min, sim.range_max) == (
+        lim.undervoltage,
+        lim.range_min,
+        lim.range_max,
+    )
     # no counter arithmetic in the firmware core by a hand-written mask
     src = (fwcore.FIRMWARE_DIR / "truck_fw.c").read_text(encoding="utf-8")
     assert not re.search(r"counter\w*\s*[-+]?[^;]*&\s*0x[fF]u", src)
@@ -100,10 +113,13 @@ def test_a_changed_dbc_changes_the_generated_c(tmp_path: Path) -> None:
         'BA_ "TruckTimeoutTime" BO_ 256 100;', 'BA_ "TruckTimeoutTime" BO_ 256 150;'
     )
     text = text.replace('BA_ "TruckCounterMaxDelta" 3;', 'BA_ "TruckCounterMaxDelta" 2;')
+    text = text.replace('BA_ "TruckRangeMaxMm" 4000;', 'BA_ "TruckRangeMaxMm" 2500;')
     other = tmp_path / "other.dbc"
     other.write_text(text, encoding="utf-8")
-    t = timing_of(cantools.database.load_file(str(other), strict=True))
-    assert (t.cmd_timeout, t.counter_max_delta) == (0.15, 2)
-    d = _defines(c_header(t))
+    db = cantools.database.load_file(str(other), strict=True)
+    t, lim = timing_of(db), limits_of(db)
+    assert (t.cmd_timeout, t.counter_max_delta, lim.range_max) == (0.15, 2, 2.5)
+    d = _defines(c_header(t, lim))
     assert (d["TRUCK_MOTOR_CMD_TIMEOUT_MS"], d["TRUCK_COUNTER_MAX_DELTA"]) == (150, 2)
-    assert c_header(t) != (generate.C_DIR / "truck_timing.h").read_text(encoding="utf-8")
+    assert d["TRUCK_RANGE_MAX_MM"] == 2500
+    assert c_header(t, lim) != (generate.C_DIR / "truck_timing.h").read_text(encoding="utf-8")

@@ -45,9 +45,9 @@ void truck_fw_default_config(struct truck_fw_config *cfg)
     cfg->timeout_periods = TRUCK_FRESHNESS_PERIODS; /* truck.dbc, via truck_timing.h */
     cfg->max_wrong_counters = TRUCK_COUNTER_MAX_WRONG;
     cfg->cmd_timeout_ms = TRUCK_MOTOR_CMD_TIMEOUT_MS;
-    cfg->undervoltage_mv = 5500;
-    cfg->range_min_mm = 20;
-    cfg->range_max_mm = 4000;
+    cfg->undervoltage_mv = TRUCK_UNDERVOLTAGE_MV; /* truck.dbc, via truck_timing.h */
+    cfg->range_min_mm = TRUCK_RANGE_MIN_MM;
+    cfg->range_max_mm = TRUCK_RANGE_MAX_MM;
 }
 
 static void set_motor(struct truck_fw *fw, int32_t mv, uint8_t enable)

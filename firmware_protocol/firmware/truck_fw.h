@@ -83,9 +83,9 @@ struct truck_fw_config {
     uint8_t timeout_periods;    /**< freshness timeout of received messages, periods (5) */
     uint8_t max_wrong_counters; /**< counter score limit (5), see checks.py */
     uint16_t cmd_timeout_ms;    /**< motor off after this long without a valid command (100) */
-    int32_t undervoltage_mv;    /**< UNDERVOLTAGE below this battery voltage (5500) */
-    int32_t range_min_mm;       /**< readings below are reported as this (20) */
-    int32_t range_max_mm;       /**< readings beyond are NO_TARGET (4000) */
+    int32_t undervoltage_mv;    /**< UNDERVOLTAGE below this battery voltage (TRUCK_UNDERVOLTAGE_MV) */
+    int32_t range_min_mm;       /**< readings below are reported as this (TRUCK_RANGE_MIN_MM) */
+    int32_t range_max_mm;       /**< readings beyond are NO_TARGET (TRUCK_RANGE_MAX_MM) */
 };
 
 /** Receive statistics, same names and meaning as firmware_protocol.checks.RxStats. */

@@ -45,7 +45,7 @@ from firmware_protocol.fwcore import (
     FirmwareCore,
 )
 from firmware_protocol.messages import FirmwareFault, FirmwareState, MotorCommand
-from firmware_protocol.timing import timing
+from firmware_protocol.timing import limits, timing
 from truckd.io.config import ENCODER_TICKS_PER_REV
 from truckd.io.inproc import Wire, inproc_pair
 from truckd.io.link import FramedStreamLink, Link
@@ -81,10 +81,18 @@ class FirmwareSimConfig:
         default=ENCODER_TICKS_PER_REV,
     )
     range_min: float = spec(
-        "range sensor minimum distance", unit="m", lo=0.0, hi=10.0, default=0.02
+        "range sensor minimum distance (truck.dbc: TruckRangeMinMm)",
+        unit="m",
+        lo=0.0,
+        hi=10.0,
+        default=limits().range_min,
     )
     range_max: float = spec(
-        "range sensor maximum distance (beyond: NO_TARGET)", unit="m", lo=0.1, hi=65.0, default=4.0
+        "range sensor maximum distance (beyond: NO_TARGET; truck.dbc: TruckRangeMaxMm)",
+        unit="m",
+        lo=0.1,
+        hi=65.0,
+        default=limits().range_max,
     )
     range_noise: float = spec(
         "range noise (std; a real time-of-flight sensor has a few mm, and a value that "
@@ -95,7 +103,11 @@ class FirmwareSimConfig:
         default=0.002,
     )
     undervoltage: float = spec(
-        "battery voltage below which UNDERVOLTAGE is set", unit="V", lo=0.0, hi=100.0, default=5.5
+        "battery voltage below which UNDERVOLTAGE is set (truck.dbc: TruckUndervoltageMv)",
+        unit="V",
+        lo=0.0,
+        hi=100.0,
+        default=limits().undervoltage,
     )
     seed: int = spec("random seed (range noise, garbage)", lo=0, default=0)
 
