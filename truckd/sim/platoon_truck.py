@@ -38,8 +38,9 @@ MIXED_EFFECTS: tuple[tuple[str, float, float], ...] = (
 )
 """``--mixed``: the effects a truck draws one of, and its range (SI, truckd/model/effects.py)."""
 
-MIXED_BLOCK_TAU = 0.5
-"""``control.block_tau_fraction`` of every drawn truck."""
+MIXED_BLOCK_TAU = 0.3
+"""``control.block_tau_fraction`` of every drawn truck (0.5 left the quickest trucks
+behind: docs/platoon.md, "Mixed trucks")."""
 
 
 def draw_platoon_truck(setup: SimSetup, rng: random.Random) -> SimSetup:
@@ -84,8 +85,8 @@ def scaled_truck(
         eff = replace(eff, **{effect[0]: effect[1]})
     # Tuned in acceleration, not volts: the rate weight scaled by the square of the
     # acceleration a volt gives (K_T / (R_m J_S)), so every truck responds alike; input
-    # blocks at most half of its mechanical time constant (the shipped truck's 8 steps
-    # kept), so every truck's plan can hold a deceleration alike.
+    # blocks at most 0.3 of its mechanical time constant, so every truck's plan can hold a
+    # deceleration alike (docs/platoon.md, "Mixed trucks").
     gain = (q.K_T / (q.R_m * q.J_S)) / (p.K_T / (p.R_m * p.J_S))
     control = replace(
         setup.control, r_du=setup.control.r_du * gain**2, block_tau_fraction=MIXED_BLOCK_TAU
