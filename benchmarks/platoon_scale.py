@@ -3,12 +3,13 @@ clock offset.
 
 For each case runs ``platoon-brake`` (simulated time; the figures do not depend on the
 machine's load, only the run time does) and records the contract's spacing-error string
-ratios, the acceleration ratios, the minimum gap, the CACC share and the run time.  The
+ratios (plain, and floored at the range sensor's noise: ``string_ratios``), the
+acceleration ratios, the minimum gap, the CACC share and the run time.  The
 links' timeout is the shipped 0.1 s, and 0.1 s after the slowest delivery with drawn
 delays (``plan_timeout_s`` = 0.1 s + the largest delay).
 
     python benchmarks/platoon_scale.py --json benchmarks/platoon_scale.json [--trucks 10,100]
-        [--cases LABEL,...] [--key KEY]
+        [--cases LABEL,...] [--key KEY] [--seed 1]
 
 With ``--key`` the run is stored under that key of the JSON file (the file's other keys
 kept: earlier runs stay as they were measured); ``--cases`` runs only the cases whose
@@ -22,11 +23,11 @@ import argparse
 import datetime
 import json
 import os
-import platform
 import time
 from dataclasses import replace
-from pathlib import Path
 from typing import Any
+
+from results import machine, write_json
 
 from truckd.config.truck import load_config
 from truckd.sim.closed_loop import SimSetup
@@ -85,6 +86,9 @@ def _summary(m: dict[str, Any], seconds: float) -> dict[str, Any]:
         "string_ratios_above_1": sum(
             r is not None and r > 1.0 for r in m["string_ratio_l2"] + m["string_ratio_max"]
         ),
+        "string_ratio_floor_m": m["string_ratio_floor_m"],
+        "string_ratio_l2_floored_max": round(mx("string_ratio_l2_floored"), 3),
+        "string_ratio_max_floored_max": round(mx("string_ratio_max_floored"), 3),
         "accel_ratio_l2_max": round(mx("accel_ratio_l2"), 3),
         "accel_ratio_max_max": round(mx("accel_ratio_max"), 3),
         "spacing_error_max_first_last_m": [
@@ -104,7 +108,9 @@ def main() -> int:
     ap.add_argument("--duration", type=float, default=12.0)
     ap.add_argument("--cases", help="comma-separated label prefixes (default: every case)")
     ap.add_argument("--key", help="store the run under this key of the --json file")
+    ap.add_argument("--seed", type=int, default=1, help="links, clocks and drawn trucks")
     args = ap.parse_args()
+    load_at_start = round(os.getloadavg()[0], 2)
     prefixes = args.cases.split(",") if args.cases else [""]
     cfg = load_config()
     setup = SimSetup.from_config(cfg)
@@ -118,7 +124,7 @@ def main() -> int:
             pcfg = replace(cfg.platoon, plan_timeout_s=timeout)
             t0 = time.monotonic()
             m, _ = run_platoon(make_platoon_scenario("platoon-brake"), setup, pcfg, n,
-                               seed=1, duration=args.duration, **kw)  # fmt: skip
+                               seed=args.seed, duration=args.duration, **kw)  # fmt: skip
             row = {"trucks": n, "case": label, **_summary(m, time.monotonic() - t0)}
             rows.append(row)
             print(json.dumps(row), flush=True)
@@ -126,20 +132,14 @@ def main() -> int:
         doc = {
             "what": "platoon-brake, simulated time: string ratios and gaps against the link",
             "date": datetime.date.today().isoformat(),
-            "machine": f"{platform.machine()}, {os.cpu_count()} cores",
-            "load_average_1min_at_end": round(os.getloadavg()[0], 2),
+            "machine": machine(),
+            "load_average_1min_at_start": load_at_start,
+            "seed": args.seed,
             "plan_timeout_s": "0.1 s (shipped); 0.1 s + the largest delay with drawn delays",
             "plan_hold_s": cfg.platoon.plan_hold_s,
             "rows": rows,
         }
-        if args.key:
-            path = Path(args.json)
-            whole = json.loads(path.read_text()) if path.exists() else {}
-            whole[args.key] = doc
-            doc = whole
-        with open(args.json, "w") as f:
-            json.dump(doc, f, indent=2)
-            f.write("\n")
+        write_json(args.json, doc, args.key)
     return 0
 
 

@@ -10,7 +10,7 @@ import math
 import numpy as np
 import pytest
 
-from truckd.control.condensed import CondensedQp, block_lengths
+from truckd.control.condensed import CondensedQp, block_lengths, max_block_steps
 from truckd.control.config import ControlConfig
 from truckd.control.mpc import MpcSolver
 from truckd.control.qp import ControlModel, QpBuilder, QpInputs
@@ -44,6 +44,42 @@ def _inputs(rng: np.random.Generator, cfg: ControlConfig, lead: bool) -> QpInput
 def test_block_lengths(horizon: int, blocks: int, expected: tuple[int, ...]) -> None:
     got = block_lengths(horizon, blocks)
     assert got == expected and sum(got) == horizon
+
+
+@pytest.mark.parametrize(
+    ("max_len", "expected"),
+    [
+        (8, (1, 1, 2, 4, 8, 8, 8, 8)),
+        (5, (1, 1, 2, 4, 4, 4, 4, 4, 4, 4, 4, 4)),
+        (3, (1, 1, 2, 2, 2, 3, 3, 2, 3, 3, 2, 3, 3, 2, 3, 3, 2)),
+        (1, (1,) * 40),
+    ],
+)
+def test_block_lengths_capped(max_len: int, expected: tuple[int, ...]) -> None:
+    """No block longer than ``max_len``: the long ones split evenly, the sum kept."""
+    got = block_lengths(40, 8, max_len)
+    assert got == expected and sum(got) == 40 and max(got) <= max_len
+
+
+def test_blocks_shorter_for_a_truck_with_a_short_mechanical_time_constant(
+    params: VehicleParams,
+) -> None:
+    """``block_tau_fraction`` 0.5: the shipped truck keeps its 8 blocks (the compiled
+    cycle's shape); a truck whose back-EMF settles faster (motor constant 1.3x: time
+    constant / 1.69) holds each voltage for at most half of its time constant.  0 (the
+    default): no limit."""
+    cfg = dataclasses.replace(ControlConfig(), block_tau_fraction=0.5)
+    tau = params.J_S * params.R_m / (params.K_T * params.K_v)
+    assert max_block_steps(tau, cfg.period, 0.5) == 8
+    assert max_block_steps(tau, cfg.period, 0.0) is None
+    assert max_block_steps(0.001, cfg.period, 0.5) == 1
+    shipped = MpcSolver(ControlModel(params), cfg).condensed
+    assert shipped is not None and shipped.blocks == (1, 1, 2, 4, 8, 8, 8, 8)
+    strong = params.replace(K_T=1.3 * params.K_T, K_v=1.3 * params.K_v)
+    quick = MpcSolver(ControlModel(strong), cfg).condensed
+    assert quick is not None and max(quick.blocks) == 4 and sum(quick.blocks) == cfg.horizon
+    unlimited = MpcSolver(ControlModel(strong), ControlConfig()).condensed
+    assert unlimited is not None and unlimited.blocks == (1, 1, 2, 4, 8, 8, 8, 8)
 
 
 @pytest.mark.parametrize("mode", ["follow", "cruise"])

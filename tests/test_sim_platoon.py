@@ -105,6 +105,22 @@ def test_string_ratios_of_growing_errors_exceed_one() -> None:
     assert l2 == pytest.approx([1.5, 0.8]) and mx == pytest.approx([1.5, 0.8], rel=1e-3)
 
 
+def test_string_ratios_with_a_floor_count_errors_below_it_as_the_floor() -> None:
+    """Millimetre errors (below a 2 mm floor) compare as equal, whatever their plain
+    ratio; an error that grows above the floor still gives a ratio above 1, and one that
+    falls below it a ratio below 1."""
+    t = np.linspace(0.0, 10.0, 1001)
+    base = np.sin(t)
+    err = np.column_stack([0.5e-3 * base, 1.5e-3 * base, 0.01 * base, 0.5e-3 * base])
+    l2, mx = string_ratios(err)
+    assert l2[0] == pytest.approx(3.0) and mx[0] == pytest.approx(3.0, rel=1e-3)
+    l2_f, mx_f = string_ratios(err, 0.002)
+    assert l2_f[0] == 1.0 and mx_f[0] == 1.0  # both within the floor
+    rms = 0.01 * float(np.sqrt(np.mean(base**2)))
+    assert l2_f[1] == pytest.approx(rms / 0.002) and mx_f[1] == pytest.approx(5.0, rel=1e-3)
+    assert l2_f[2] == pytest.approx(0.002 / rms) and mx_f[2] == pytest.approx(0.2, rel=1e-3)
+
+
 def test_a_ratio_against_a_truck_not_yet_in_the_lane_is_none() -> None:
     # the second column is a truck that joins after the window: no error to compare with
     t = np.linspace(0.0, 10.0, 1001)

@@ -14,8 +14,10 @@ from truckd.cli.main import main
 from truckd.config.truck import load_config
 from truckd.control.platoon import ACC, CACC, PlatoonConfig
 from truckd.control.qp import ControlModel
+from truckd.sim import platoon
 from truckd.sim.closed_loop import SimSetup
 from truckd.sim.platoon import PlatoonTrace, make_platoon_scenario, run_platoon
+from truckd.sim.platoon_truck import scaled_truck
 
 LINK = {"loss": 0.3, "delay_s": (0.0, 0.05), "clock_offset_s": 2.0, "clock_drift_ppm": 100.0}
 
@@ -45,7 +47,10 @@ def test_ten_drawn_trucks_on_lossy_links_with_their_own_clocks(name: str) -> Non
     """Each truck drawn (mass, motor, one effect), 30 % of the plans lost, each delayed by
     a draw in 0-50 ms, each truck's clock off by up to 2 s and drifting by up to 100 ppm:
     no collision, the minimum gap kept, plans used (CACC) nearly throughout, and the
-    disturbance does not grow down the platoon (acceleration ratios)."""
+    disturbance does not grow down the platoon (acceleration ratios).  Spacing-error
+    ratios from the second follower on: at most 1 on the sine; on the brake at most 1.1
+    (a known gap, docs/platoon.md "Mixed trucks": 1.02 / 1.00 with this draw, 1.20 / 1.19
+    before the input blocks were fitted to each truck's mechanical time constant)."""
     pcfg = _pcfg()
     m, _ = run_platoon(make_platoon_scenario(name), _setup(), pcfg, 10, mixed=True, seed=5, **LINK)
     assert not m["collision"]
@@ -56,7 +61,35 @@ def test_ten_drawn_trucks_on_lossy_links_with_their_own_clocks(name: str) -> Non
     assert min(m["cacc_fraction"]) > 0.9, m["cacc_fraction"]
     assert len(m["accel_ratio_l2"]) == 8
     assert max(m["accel_ratio_l2"] + m["accel_ratio_max"]) <= 1.0, m
+    bound = 1.0 if name == "platoon-sine" else 1.1
+    assert max(m["string_ratio_l2"] + m["string_ratio_max"]) <= bound, m
     assert sum(m["solver_failures"]) == 0
+
+
+@pytest.mark.parametrize(("cap", "stable"), [(True, True), (False, False)])
+def test_a_quick_truck_behind_the_shipped_one_makes_no_larger_spacing_error(
+    monkeypatch: pytest.MonkeyPatch, cap: bool, stable: bool
+) -> None:
+    """Truck 2 light (0.6x the mass) with a strong motor (1.3x): its back-EMF turns a held
+    voltage into an acceleration that decays with a time constant of 0.078 s, the
+    configured truck's (trucks 0 and 1) 0.167 s.  With every truck's MPC input blocks at
+    most 0.3 of its own time constant (``control.block_tau_fraction``, as every drawn
+    truck's: 2 steps for truck 2, 4 for the others) its plan holds the brake's
+    deceleration as the trucks ahead do and its spacing error is no larger than truck
+    1's (l2 / max ratio 0.90 / 0.85).  With the shipped 8-step blocks for all (the
+    control experiment: fraction 0) its blocked plan cannot, and its error is larger than
+    truck 1's (1.24 / 1.17)."""
+    kinds = iter([(1.0, 1.0), (1.0, 1.0), (0.6, 1.3)])  # (mass, motor constant) factors
+
+    def truck(s: SimSetup, rng: object) -> SimSetup:
+        t = scaled_truck(s, *next(kinds))
+        return t if cap else replace(t, control=replace(t.control, block_tau_fraction=0.0))
+
+    monkeypatch.setattr(platoon, "draw_platoon_truck", truck)
+    sc = make_platoon_scenario("platoon-brake")
+    m, _ = run_platoon(sc, _setup(), _pcfg(), 3, mixed=True, duration=8.0)
+    assert not m["collision"] and m["min_gap_m"] >= load_config().control.d_min
+    assert (max(m["string_ratio_l2"] + m["string_ratio_max"]) <= 1.0) == stable, m
 
 
 def test_identical_trucks_ride_out_bursts_of_lost_plans_string_stable() -> None:

@@ -44,16 +44,49 @@ N_SCALARS = 8
 block's bounds."""
 
 
-def block_lengths(horizon: int, blocks: int) -> tuple[int, ...]:
+def block_lengths(horizon: int, blocks: int, max_len: int | None = None) -> tuple[int, ...]:
     """Steps per block: 1, 1, then doubling while the rest of the horizon still spreads
     evenly over the remaining blocks, the rest evenly (the last takes what is left).
 
     ``blocks >= horizon`` gives one step per block.  E.g. (40, 8): 1, 1, 2, 4, 8, 8, 8, 8.
+    ``max_len``: no block longer than this many steps; a longer one is split evenly (more
+    blocks than ``blocks``), e.g. (40, 8, 5): 1, 1, 2, 4, 4, 4, 4, 4, 4, 4, 4, 4
+    (see :func:`max_block_steps`).
     """
     if horizon < 1 or blocks < 1:
         raise ValueError(f"horizon {horizon} and blocks {blocks} must be positive")
+    if max_len is not None and max_len < 1:
+        raise ValueError(f"max_len {max_len} must be positive")
     if blocks >= horizon:
         return (1,) * horizon
+    out = _doubling_blocks(horizon, blocks)
+    if max_len is None or max(out) <= max_len:
+        return out
+    split: list[int] = []
+    for n in out:
+        parts = -(-n // max_len)  # ceil
+        split += [n // parts + (1 if i < n % parts else 0) for i in range(parts)]
+    return tuple(split)
+
+
+def max_block_steps(tau_m: float, period: float, fraction: float) -> int | None:
+    """The longest input block (steps of ``period``, s) for a truck whose mechanical time
+    constant is ``tau_m`` (s, ``J_S R_m / (K_T K_v)``): ``fraction`` of it, at least one
+    step; None (no limit) when ``fraction`` is 0 (``control.block_tau_fraction``).
+
+    A block holds the voltage; the back-EMF turns a held voltage into an acceleration that
+    decays with ``tau_m``.  With blocks long against ``tau_m`` the blocked plan cannot hold
+    a deceleration (a braking lead) that the truck can, so a truck with a short ``tau_m``
+    (light, or a strong motor) tracks looser than one with a long one under the same
+    weights: in a platoon of different trucks its spacing error is larger than its
+    predecessor's (docs/platoon.md, "Mixed trucks").  At 0.5 the shipped truck (0.167 s
+    at 100 Hz: 8 steps) keeps its 1, 1, 2, 4, 8, 8, 8, 8."""
+    if fraction <= 0.0:
+        return None
+    return max(1, int(fraction * tau_m / period + 1e-9))
+
+
+def _doubling_blocks(horizon: int, blocks: int) -> tuple[int, ...]:
     out: list[int] = []
     rest = horizon
     for i in range(blocks):

@@ -140,6 +140,17 @@ class ControlConfig:
         hi=500,
         default=8,
     )
+    block_tau_fraction: float = spec(
+        "no input block longer than this share of the model's mechanical time constant "
+        "J_S R_m / (K_T K_v): longer blocks are split (more blocks; another shape than the "
+        "compiled cycle's runs the Python path).  A held voltage decays to the speed it "
+        "drives at with that time constant: a truck whose constant is short against the "
+        "blocks cannot hold a deceleration in its plan and tracks a braking lead looser "
+        "than its predecessor (docs/platoon.md, mixed trucks).  0: no limit",
+        lo=0.0,
+        hi=10.0,
+        default=0.0,
+    )
     d_0: float = spec(
         "standstill gap of the spacing policy", unit="m", lo=0.0, hi=10.0, default=0.4
     )

@@ -25,7 +25,7 @@ import osqp
 import scipy.sparse as sp
 
 from truckd.control import ccycle
-from truckd.control.condensed import CondensedQp, block_lengths
+from truckd.control.condensed import CondensedQp, block_lengths, max_block_steps
 from truckd.control.config import ControlConfig
 from truckd.control.qp import MODES, ControlModel, QpBuilder, QpInputs, Vec, inputs_ok
 
@@ -112,7 +112,10 @@ class MpcSolver:
         self.condensed: CondensedQp | None = None
         """The move-blocked QP actually solved (None: the sparse one)."""
         if cfg.move_blocks > 0:
-            self.condensed = CondensedQp(self.qp, block_lengths(lay.N, cfg.move_blocks))
+            p = model.params
+            tau_m = p.J_S * p.R_m / (p.K_T * p.K_v)
+            longest = max_block_steps(tau_m, cfg.period, cfg.block_tau_fraction)
+            self.condensed = CondensedQp(self.qp, block_lengths(lay.N, cfg.move_blocks, longest))
             nv, nc = self.condensed.nw, self.condensed.m
         else:
             nv, nc = lay.nz, lay.m

@@ -99,18 +99,29 @@ def record_cycle(
         )
 
 
-def string_ratios(err: np.ndarray) -> tuple[list[float | None], list[float | None]]:
-    """``(l2, max)`` ratios for each follower i >= 2 from spacing errors ``err`` (rows:
+def string_ratios(
+    err: np.ndarray, floor: float = 0.0
+) -> tuple[list[float | None], list[float | None]]:
+    """``(l2, max)`` ratios for each follower i >= 2 from spacing errors ``err`` (m; rows:
     samples; columns: followers 1..N-1). A ratio is ``None`` where the truck ahead made no
     spacing error in the window (it was not yet in the lane: a truck that joins after the
-    run ends), so there is nothing to compare with."""
+    run ends), so there is nothing to compare with.
+
+    ``floor`` (m, 0: the plain ratios): an error below it counts as the floor, for both
+    trucks of a pair: ``max(||e_i||, f) / max(||e_(i-1)||, f)`` with ``f`` the floor's
+    norm over the window (``floor sqrt(samples)`` for L2, ``floor`` for the maximum).  Two
+    errors within the floor give 1 (neither truck can tell its error from its range
+    sensor's noise); an error that grows above the floor still gives a ratio above 1."""
     l2: list[float | None] = []
     mx: list[float | None] = []
+    f2 = floor * math.sqrt(err.shape[0])
     for j in range(1, err.shape[1]):
         a, b = err[:, j - 1], err[:, j]
         defined = bool(np.any(a))
-        l2.append(float(np.linalg.norm(b) / np.linalg.norm(a)) if defined else None)
-        mx.append(float(np.max(np.abs(b)) / np.max(np.abs(a))) if defined else None)
+        n_a, n_b = max(float(np.linalg.norm(a)), f2), max(float(np.linalg.norm(b)), f2)
+        m_a, m_b = max(float(np.max(np.abs(a))), floor), max(float(np.max(np.abs(b))), floor)
+        l2.append(n_b / n_a if defined else None)
+        mx.append(m_b / m_a if defined else None)
     return l2, mx
 
 
@@ -133,6 +144,8 @@ def platoon_metrics(
     err = np.nan_to_num(gaps - np.asarray(tr.gap_ref, dtype=float)[:, 1:])
     keep = t >= SETTLE_S if len(t) and t[-1] >= 2.0 * SETTLE_S else np.ones(len(t), dtype=bool)
     l2, mx = string_ratios(err[keep])
+    floor = max((f.fw.cfg.range_noise for f in followers), default=0.0)
+    l2_f, mx_f = string_ratios(err[keep], floor)
     modes = np.asarray(tr.mode)[:, 1:]
     v = np.asarray(tr.v, dtype=float)
     dt = float(t[1] - t[0]) if len(t) > 1 else 1.0
@@ -174,6 +187,9 @@ def platoon_metrics(
         "first_acc_s": first_acc,
         "mode_switches": [f.mode.switches for f in followers],
         "min_accel_m_s2": [float(np.nanmin(accel[keep[1:], j])) for j in range(1, accel.shape[1])],
+        "string_ratio_floor_m": floor,
+        "string_ratio_l2_floored": l2_f,
+        "string_ratio_max_floored": mx_f,
         "accel_ratio_l2": a_l2,
         "accel_ratio_max": a_mx,
         "cacc_headway_s": pcfg.cacc_headway,

@@ -38,16 +38,38 @@ MIXED_EFFECTS: tuple[tuple[str, float, float], ...] = (
 )
 """``--mixed``: the effects a truck draws one of, and its range (SI, truckd/model/effects.py)."""
 
+MIXED_BLOCK_TAU = 0.3
+"""``control.block_tau_fraction`` of every drawn truck (0.5 left the quickest trucks
+behind: docs/platoon.md, "Mixed trucks")."""
+
 
 def draw_platoon_truck(setup: SimSetup, rng: random.Random) -> SimSetup:
     """A truck of a mixed platoon: mass 0.6-2x the configured (the inertia reflected to the
     motor with it), motor constant 0.8-1.3x (friction torques with it), armature
-    resistance 0.8-1.5x, and one effect of :data:`MIXED_EFFECTS` at a drawn magnitude.
-    Its controller's model is the drawn truck itself (its true parameters and effects, as
-    a perfect ``diagnose`` would give them)."""
-    p = setup.plant_params
-    m = p.m * rng.uniform(0.6, 2.0)
+    resistance 0.8-1.5x, and one effect of :data:`MIXED_EFFECTS` at a drawn magnitude
+    (:func:`scaled_truck`)."""
+    mass = rng.uniform(0.6, 2.0)
     k = rng.uniform(0.8, 1.3)
+    r = rng.uniform(0.8, 1.5)
+    name, lo, hi = MIXED_EFFECTS[rng.randrange(len(MIXED_EFFECTS))]
+    return scaled_truck(setup, mass, k, r, (name, rng.uniform(lo, hi)))
+
+
+def scaled_truck(
+    setup: SimSetup,
+    mass: float = 1.0,
+    k: float = 1.0,
+    r: float = 1.0,
+    effect: tuple[str, float] | None = None,
+) -> SimSetup:
+    """The configured truck with its mass times ``mass`` (the inertia reflected to the
+    motor with it), its motor constant times ``k`` (friction torques with it), its
+    armature resistance times ``r``, and ``effect`` (name, magnitude in SI) set.  Its
+    controller's model is this truck itself (its true parameters and effects, as a
+    perfect ``diagnose`` would give them); its rate weight and input blocks are fitted to
+    it (below)."""
+    p = setup.plant_params
+    m = p.m * mass
     reflected = p.ratio**2  # (r_w / (n_g n_fd))^2: kg at the wheel -> kg m^2 at the motor
     q = p.replace(
         m=m,
@@ -56,16 +78,22 @@ def draw_platoon_truck(setup: SimSetup, rng: random.Random) -> SimSetup:
         K_T=p.K_T * k,
         K_coulomb=p.K_coulomb * k,
         K_stiction=p.K_stiction * k,
-        R_m=p.R_m * rng.uniform(0.8, 1.5),
+        R_m=p.R_m * r,
     )
-    name, lo, hi = MIXED_EFFECTS[rng.randrange(len(MIXED_EFFECTS))]
-    eff = replace(setup.plant_config.effects, **{name: rng.uniform(lo, hi)})
+    eff = setup.plant_config.effects
+    if effect is not None:
+        eff = replace(eff, **{effect[0]: effect[1]})
     # Tuned in acceleration, not volts: the rate weight scaled by the square of the
-    # acceleration a volt gives (K_T / (R_m J_S)), so every truck responds alike.
+    # acceleration a volt gives (K_T / (R_m J_S)), so every truck responds alike; input
+    # blocks at most 0.3 of its mechanical time constant, so every truck's plan can hold a
+    # deceleration alike (docs/platoon.md, "Mixed trucks").
     gain = (q.K_T / (q.R_m * q.J_S)) / (p.K_T / (p.R_m * p.J_S))
+    control = replace(
+        setup.control, r_du=setup.control.r_du * gain**2, block_tau_fraction=MIXED_BLOCK_TAU
+    )
     return replace(
         setup,
-        control=replace(setup.control, r_du=setup.control.r_du * gain**2),
+        control=control,
         plant_params=q,
         plant_config=replace(setup.plant_config, effects=eff),
         model=ControlModel(q, eff),
