@@ -99,3 +99,11 @@ def test_encoder_ticks_per_revolution_is_written_once() -> None:
     assert found == ["io/config.py"]
     shipped = yaml.safe_load(default_config_path().read_text(encoding="utf-8"))
     assert shipped["link"]["encoder_ticks_per_rev"] == ENCODER_TICKS_PER_REV
+
+
+def test_the_repository_config_is_the_packaged_file() -> None:
+    """``config/truck.yaml`` (what the README points a user to) is a link to the file the
+    package ships and loads by default, not a second copy that could drift."""
+    repo = default_config_path().parents[2] / "config" / "truck.yaml"
+    assert repo.is_symlink()
+    assert repo.resolve() == default_config_path().resolve()
