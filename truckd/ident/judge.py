@@ -57,8 +57,8 @@ STRONG_REL = 0.2
 points of fit where it acts: those points depend on how widely the speed spreads where the
 cause acts, not on how much of the model's error it removes.  A Stribeck friction of
 0.006 N m in the default truck's log lowers the validation cost by 28 % and gains 0.26
-points (the controller then recovers 0.7 of its gap error); the false causes that pass
-the criterion and the 5 % validation test lower the cost by a few per cent."""
+points (the controller then recovers 0.7 of its gap error); no other candidate lowered
+that log's validation cost by more than 2 %."""
 
 SETTLE = 3.0
 """A hill acts on the speed while the truck is on its stretch and for about this many
