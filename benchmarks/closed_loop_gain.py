@@ -91,26 +91,24 @@ def judge(clean: float, seed: float, ext: float, collision: bool) -> tuple[str, 
     """The goal's verdict on one row (gap error RMS clean / seed / extended, m): how it
     is judged and whether it meets the goal (never with a collision).
 
-    * ``recovery``: the effect costs more than :data:`COST_MIN_M` (seed - clean): the
-      extended model recovers half of it and is not worse than the seed by more than
-      :data:`WORSE_MAX`;
-    * ``helped``: the seed is *better* than the clean truck by more than
-      :data:`COST_MIN_M`: the effect itself helps the seed's controller here (a rolling
-      road whose downhill falls where the truck stops pushes it nearer the standstill
-      gap; with the slopes elsewhere the same seed is worse than clean, see the terrain
-      phase rows of ``closed_loop_gain.json``).  A model's knowledge cannot earn that
-      gain, only keep the controller's own: the extended model is not worse than the
-      clean truck by more than :data:`WORSE_MAX`;
-    * ``no cost``: otherwise: not worse than the seed by more than :data:`WORSE_MAX`.
+    The extended model is never more than :data:`WORSE_MAX` worse than its bar: the seed,
+    or the clean truck where the seed is better than that (the effect itself helps the
+    seed's controller there: a rolling road whose downhill falls where the truck stops
+    pushes it nearer the standstill gap; with the slopes elsewhere the same seed is worse
+    than clean, see the terrain phase rows of ``closed_loop_gain.json``; a model's
+    knowledge cannot earn that gain, only keep the controller's own).  The row is judged
+
+    * ``recovery`` where the effect costs more than :data:`COST_MIN_M` (seed - clean): the
+      extended model also recovers half of it;
+    * ``helped`` where the seed is better than the clean truck by more than
+      :data:`COST_MIN_M`;
+    * ``no cost`` otherwise.
     """
     cost = seed - clean
+    ok = ext <= (1.0 + WORSE_MAX) * max(seed, clean) and not collision
     if cost > COST_MIN_M:
-        how, ok = "recovery", (seed - ext) >= 0.5 * cost and ext <= (1.0 + WORSE_MAX) * seed
-    elif cost < -COST_MIN_M:
-        how, ok = "helped", ext <= (1.0 + WORSE_MAX) * clean
-    else:
-        how, ok = "no cost", ext <= (1.0 + WORSE_MAX) * seed
-    return how, ok and not collision
+        return "recovery", ok and (seed - ext) >= 0.5 * cost
+    return ("helped" if cost < -COST_MIN_M else "no cost"), ok
 
 
 def plant_effects(name: str, value: float, companions: dict[str, float]) -> Effects:
