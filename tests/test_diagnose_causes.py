@@ -44,8 +44,9 @@ TOLERANCE: dict[str, float] = {
 VISIBLE = 2.0
 """A hidden cause moves the log by at least this many noise units (speed and current,
 :func:`labkit.synth.visibility`): a cause the log can show (a Stribeck friction
-moving it by 1.9 lowered the validation cost by 45 % but gained 0.4 points of fit, below
-the 0.5 a cause must gain where it acts).  Trucks and magnitudes
+moving it by 1.9 lowered the validation cost by 45 % and gained 0.4 points of fit, below
+the 0.5 a cause must gain where it acts: since 2026-11-26 it earns its place by the cost,
+``truckd.ident.judge.STRONG_REL``).  Trucks and magnitudes
 are drawn from the seed until one is; the benchmark reports both rates."""
 
 

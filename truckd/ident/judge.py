@@ -3,7 +3,8 @@ stages of :mod:`truckd.ident.diagnose`.
 
 Besides the information criterion and the validation cost
 (:func:`passes_over`), a cause must raise the validation fit
-where it acts (:data:`truckd.ident.scoring.GAIN_MIN`) and be physically possible; a
+where it acts (:data:`truckd.ident.scoring.GAIN_MIN`), or lower the validation cost by
+:data:`STRONG_REL`, and be physically possible; a
 hill, which changes nothing off its stretch, is validated where it acts, or on
 held-out crossings of its stretch.  Pure numerics.
 """
@@ -50,6 +51,14 @@ from truckd.ident.voltage import (
 )
 from truckd.model.effects import Effects
 from truckd.model.params import VehicleParams
+
+STRONG_REL = 0.2
+"""A cause that lowers the validation cost by this share earns its place without the
+points of fit where it acts: those points depend on how widely the speed spreads where the
+cause acts, not on how much of the model's error it removes.  A Stribeck friction of
+0.006 N m in the default truck's log lowers the validation cost by 28 % and gains 0.26
+points (the controller then recovers 0.7 of its gap error); no other candidate lowered
+that log's validation cost by more than 2 %."""
 
 SETTLE = 3.0
 """A hill acts on the speed while the truck is on its stretch and for about this many
@@ -194,8 +203,9 @@ class Judge:
 
     def earns(self, name: str, new: Model, old: Model) -> bool:
         """``new`` (``old`` + ``name``) raises the validation fit where the cause acts
-        by :data:`GAIN_MIN` points (a hill: validated where it acts, :meth:`hill_check`)."""
-        if self.is_hill(name):
+        by :data:`GAIN_MIN` points, or lowers the validation cost by :data:`STRONG_REL`
+        (a hill: validated where it acts, :meth:`hill_check`)."""
+        if self.is_hill(name) or new.val_cost < (1.0 - STRONG_REL) * old.val_cost:
             return True
         return gain_where_acting(new.fit, old.fit, self.prep.val, self.noise_val) >= GAIN_MIN
 
