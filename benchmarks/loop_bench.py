@@ -14,9 +14,11 @@ stage; about 1 us of overhead per timer): in the serial backend the whole cycle 
 car's work, in the sim backend ``backend.tick`` is the simulated truck's.
 
 ``--rate HZ`` runs the loop at that rate (``control.rate_hz``, default the shipped 100 Hz;
-the MPC's step is the period, its horizon stays 40 steps).  ``--busy`` starts a CPU-bound
-process beside the daemon for the whole run (a Python busy loop, as a recorder compressing
-or a second truck's process would keep one of the cores busy), ended by its pid after.
+the MPC's step is the period, its horizon stays 40 steps; the solve's time budget
+``time_budget_s`` at most half the period, as the configuration requires it below).
+``--busy`` starts a CPU-bound process beside the daemon for the whole run (a Python busy
+loop, as a recorder compressing or a second truck's process would keep one of the cores
+busy), ended by its pid after.
 The result names the MPC's path (``mpc_backend``: compiled or python and why);
 ``--mpc python`` runs the Python path although the compiled one is built (A/B runs).
 """
@@ -71,6 +73,10 @@ def _config(
     data = yaml.safe_load(default_config_path().read_text())
     if rate_hz is not None:
         data["control"]["rate_hz"] = rate_hz
+        # The configuration refuses a solve budget that is not below the period: at a rate
+        # where the shipped one is not, half the period.
+        budget = float(data["control"]["time_budget_s"])
+        data["control"]["time_budget_s"] = min(budget, 0.5 / rate_hz)
     data["link"]["serial_device"] = pty
     rt = data["runtime"]
     rt["backend"] = backend

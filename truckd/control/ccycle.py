@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import ctypes
 import gc
+import struct
 import weakref
 from pathlib import Path
 
@@ -31,7 +32,7 @@ Vec = NDArray[np.float64]
 LIBRARY = Path(__file__).resolve().parent / "kernel" / "build" / "libtruckd_mpc.so"
 """Where ``make firmware`` puts the compiled cycle."""
 
-ABI = 5
+ABI = 6
 """The interface version this module speaks (``truckd_mpc_abi`` of the library)."""
 
 _state: dict[str, object] = {}
@@ -73,6 +74,10 @@ def library() -> tuple[ctypes.CDLL | None, str]:
         lib.truckd_mpc_bind.argtypes = [i, p, p, p, i, i, i, i, p, p, i, i]
         lib.truckd_mpc_cycle.restype = i
         lib.truckd_mpc_cycle.argtypes = [i, i, i, i, p, p, p, p, p, p, p, p]
+        lib.truckd_mpc_bind_io.restype = i
+        lib.truckd_mpc_bind_io.argtypes = [i, p, p, p, p, p, p, p, p]
+        lib.truckd_mpc_run.restype = i
+        lib.truckd_mpc_run.argtypes = [i, i]
     _state["lib"], _state["why"] = lib, why
     return lib, why
 
@@ -99,7 +104,9 @@ class CompiledCycle:
         self._plan_v = np.ascontiguousarray(cq.plan_matrix())
         self._u_block = np.ascontiguousarray(cq.step_blocks(), dtype=np.int64)
         self.values = np.zeros(NX + N_SCALARS + n)
-        """The cycle's inputs ``[x0; scalars; v_lead]`` (written by the caller)."""
+        """The cycle's inputs ``[x0; scalars; v_lead]`` (written by :meth:`put_values`)."""
+        self._pack = struct.Struct(f"={self.values.size}d").pack_into
+        self._values_mv = self.values.data
         span = cq.span
         lib.truckd_mpc_bind(
             instance,
@@ -122,10 +129,10 @@ class CompiledCycle:
         self.v = np.zeros(n + 1)
         self.info = np.zeros(4)
         """``[status value, iterations, run time (s), all finite (1/0)]`` of the last cycle."""
-        self._fn = lib.truckd_mpc_cycle
-        self._out_addr = (_addr(self.u), _addr(self.v), _addr(self.info))
-        self._values_addr = _addr(self.values)
-        self._pair_addr = [(_addr(x), _addr(y)) for x, y in self._xy]
+        (x0, y0), (x1, y1) = self._xy
+        arrays = (self.values, x0, y0, x1, y1, self.u, self.v, self.info)
+        lib.truckd_mpc_bind_io(instance, *(_addr(a) for a in arrays))
+        self._run = lib.truckd_mpc_run
         self._cur = 0
 
     def setup(
@@ -158,26 +165,17 @@ class CompiledCycle:
         """OSQP's step size back to ``rho`` (refactors the KKT matrix)."""
         self._lib.truckd_mpc_update_rho(self.instance, mode, rho)
 
+    def put_values(self, values: list[float]) -> None:
+        """The cycle's inputs (Python floats, as many as :attr:`values` holds) into
+        :attr:`values` (one ``struct`` call: the same doubles as a numpy assignment)."""
+        self._pack(self._values_mv, 0, *values)
+
     def cycle(self, mode: int, lead: bool, one_speed: bool, warm: bool) -> int:
         """One cycle on :attr:`values`; warm: from the kept solution (:meth:`keep`).
-        Returns OSQP's status value (negative: the call itself failed)."""
-        out = 1 - self._cur
-        wx, wy = self._pair_addr[self._cur] if warm else (None, None)
-        x, y = self._pair_addr[out]
-        return int(
-            self._fn(
-                self.instance,
-                mode,
-                int(lead),
-                int(one_speed),
-                self._values_addr,
-                wx,
-                wy,
-                x,
-                y,
-                *self._out_addr,
-            )
-        )
+        Returns OSQP's status value (negative: the call itself failed).  The arguments
+        go over as one integer (``truckd_mpc_run``: ctypes converts two, not twelve)."""
+        how = mode | lead << 1 | one_speed << 2 | warm << 3 | self._cur << 4
+        return int(self._run(self.instance, how))
 
     def solution(self) -> tuple[Vec, Vec]:
         """The last cycle's ``(x, y)`` (arrays the next cycle but one overwrites)."""

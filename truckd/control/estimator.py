@@ -26,8 +26,10 @@ import math
 from dataclasses import dataclass, field
 
 from truckd.control.config import EstimatorConfig
+from truckd.control.frozen import fast_init
 
 
+@fast_init
 @dataclass(frozen=True)
 class EncoderSample:
     """One encoder message: raw wrapping counters, the firmware's sample time (s, wraps),
@@ -40,6 +42,7 @@ class EncoderSample:
     right_ok: bool = True
 
 
+@fast_init
 @dataclass(frozen=True)
 class RangeSample:
     """One range message: distance (m) or None when the sensor reports no valid target;
@@ -49,6 +52,7 @@ class RangeSample:
     sample_time: float
 
 
+@fast_init
 @dataclass(frozen=True)
 class Estimate:
     """Estimated state at the latest sample.

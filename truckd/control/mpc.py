@@ -27,9 +27,11 @@ import scipy.sparse as sp
 from truckd.control import ccycle
 from truckd.control.condensed import CondensedQp, block_lengths, max_block_steps
 from truckd.control.config import ControlConfig
+from truckd.control.frozen import fast_init
 from truckd.control.qp import MODES, ControlModel, QpBuilder, QpInputs, Vec, inputs_ok
 
 
+@fast_init
 @dataclass(frozen=True)
 class MpcResult:
     """Outcome of one solve.
@@ -57,6 +59,12 @@ _MODE_INDEX = {mode: k for k, mode in enumerate(MODES)}
 _USABLE = (osqp.SolverStatus.OSQP_SOLVED, osqp.SolverStatus.OSQP_SOLVED_INACCURATE)
 """Statuses whose solution is used.  ``solved inaccurate`` met OSQP's relaxed (10x)
 tolerances at the iteration limit: good to about 1e-3 V, counted in ``inaccurate``."""
+
+_USABLE_VALUES = frozenset(int(s) for s in _USABLE)
+_SOLVED = int(osqp.SolverStatus.OSQP_SOLVED)
+_TIME_LIMIT = int(osqp.SolverStatus.OSQP_TIME_LIMIT_REACHED)
+"""The status values as plain integers (an ``IntEnum`` comparison costs several times an
+``int``'s, every cycle)."""
 
 
 RHO = 0.03
@@ -325,13 +333,16 @@ class MpcSolver:
         return MpcResult(True, float(u[0]), str(info.status), iters, run_time, u, v)
 
     def _solve_compiled(self, mode: str, inp: QpInputs, warm: bool) -> MpcResult:
-        """:meth:`solve` through the compiled cycle: the same steps and outcomes."""
+        """:meth:`solve` through the compiled cycle: the same steps and outcomes.  Every
+        cycle: the inputs go into the library's vector by one ``struct`` call (a numpy
+        slice assignment from a list inspects every element first), the outcome comes out
+        as Python numbers, the statuses are compared as plain integers."""
         cc, cq = self._cc, self.condensed
         assert cc is not None and cq is not None
         values = cq.gather(inp)
         if values is None:
             return MpcResult(False, math.nan, "non-finite-input", 0, 0.0)
-        cc.values[:] = values
+        cc.put_values(values)
         v_lead = values[cq.n_fixed_inputs :]
         one_speed = v_lead.count(v_lead[0]) == len(v_lead)
         status_val = cc.cycle(
@@ -340,12 +351,12 @@ class MpcSolver:
         if status_val < 0:  # defensive: the call itself refused
             self.reset()
             return MpcResult(False, math.nan, f"error: compiled cycle {status_val}", 0, 0.0)
-        info = cc.info
-        iters, run_time, finite = int(info[1]), float(info[2]), info[3] == 1.0
+        _, iters_f, run_time, finite_f = cc.info.tolist()
+        iters, finite = int(iters_f), finite_f == 1.0
         z, y = cc.solution()
-        if status_val not in _USABLE or not finite:
+        if status_val not in _USABLE_VALUES or not finite:
             status = ccycle.status_text(status_val)
-            if status_val == osqp.SolverStatus.OSQP_TIME_LIMIT_REACHED and finite:
+            if status_val == _TIME_LIMIT and finite:
                 self._keep_compiled(z, y)
             else:
                 self.reset()
@@ -357,7 +368,7 @@ class MpcSolver:
         self._keep_compiled(z, y)
         u, v = cc.u.copy(), cc.v.copy()
         self._last_v = v
-        if status_val != osqp.SolverStatus.OSQP_SOLVED:
+        if status_val != _SOLVED:
             self.inaccurate += 1
         return MpcResult(True, float(u[0]), ccycle.status_text(status_val), iters, run_time, u, v)
 

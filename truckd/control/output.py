@@ -5,8 +5,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from truckd.control.estimator import Estimate
+from truckd.control.frozen import fast_init
 
 
+@fast_init
 @dataclass(frozen=True)
 class ControlOutput:
     """One cycle's command and diagnostics.

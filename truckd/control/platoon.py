@@ -26,11 +26,13 @@ from __future__ import annotations
 import itertools
 import json
 import math
+import operator
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
 from truckd.control.config import ControlConfig
+from truckd.control.frozen import fast_init
 from truckd.schema import spec
 
 CACC = "CACC"
@@ -148,6 +150,7 @@ def platoon_control(control: ControlConfig, cfg: PlatoonConfig) -> ControlConfig
     return replace(control, time_headway=cfg.cacc_headway)
 
 
+@fast_init
 @dataclass(frozen=True)
 class Plan:
     """A truck's plan: ``v[k]`` (m/s) the predicted speed at ``t + k dt`` (s) and ``a[k]``
@@ -188,13 +191,22 @@ class Plan:
 def make_plan(t: float, seq: int, dt: float, speeds: Sequence[float], vehicle_id: str = "") -> Plan:
     """A plan from predicted speeds (m/s) at ``t + k dt``; accelerations by differences.
     Negative speeds (a reversing prediction) are clipped to 0."""
-    # max(x, 0.0) as a comparison: the same result (NaN kept), a third of the time
-    v = tuple([0.0 if x < 0.0 else x for x in map(float, speeds)])
-    if not v:
+    # The element loops run in C (map over operator's functions; no bytecode per
+    # element): the plan is made every cycle.  Clipped only when some speed is negative,
+    # as ``0.0 if x < 0.0 else x`` (NaN kept).
+    vs = list(map(float, speeds))
+    if not vs:
         raise ValueError("a plan needs at least one speed")
-    a = [(b - a) / dt for a, b in itertools.pairwise(v)]
+    if any(map(_ZERO_GT, vs)):
+        vs = [0.0 if x < 0.0 else x for x in vs]
+    v = tuple(vs)
+    a = list(map(operator.truediv, map(operator.sub, v[1:], v), itertools.repeat(dt)))
     a.append(a[-1] if a else 0.0)
     return Plan(t, seq, dt, v, tuple(a), vehicle_id)
+
+
+_ZERO_GT = (0.0).__gt__
+"""``x -> 0.0 > x`` (a negative speed) as a C function."""
 
 
 def kinematic_plan(

@@ -45,6 +45,7 @@ import scipy.sparse as sp
 from numpy.typing import NDArray
 
 from truckd.control.config import ControlConfig
+from truckd.control.frozen import fast_init
 from truckd.control.riccati import solve_dare
 from truckd.model.effects import Effects
 from truckd.model.linear import state_space, zoh
@@ -246,6 +247,7 @@ def cost_matrix(cfg: ControlConfig, lay: Layout, q: Vec, pf: Vec) -> sp.csc_matr
     return sp.csc_matrix(p)
 
 
+@fast_init
 @dataclass(frozen=True)
 class QpInputs:
     """What changes from cycle to cycle.

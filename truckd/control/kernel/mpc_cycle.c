@@ -17,7 +17,11 @@
 #include "algebra_impl.h"
 #include "instances.h"
 
-#define TRUCKD_MPC_ABI 5
+#define TRUCKD_MPC_ABI 6
+
+#if TRUCKD_MPC_MODES > 2
+#error "truckd_mpc_run passes the mode in one bit"
+#endif
 
 static OSQPSolver *const SOLVERS[TRUCKD_MPC_INSTANCES][TRUCKD_MPC_MODES] = TRUCKD_MPC_SOLVERS;
 
@@ -38,6 +42,11 @@ static struct {
     const int64_t *u_block;
     int64_t horizon, nx;
     int bound;
+    /* the cycle's inputs and outputs (truckd_mpc_bind_io): values, two (x, y) pairs, the
+     * plan (u, v) and info */
+    const double *values;
+    double *x[2], *y[2], *u, *v, *info;
+    int bound_io;
 } BOUND[TRUCKD_MPC_INSTANCES];
 
 /* OSQP's linear system, solved reduced and dense.  OSQP's KKT system
@@ -341,4 +350,35 @@ int64_t truckd_mpc_cycle(int64_t inst, int64_t mode, int64_t lead, int64_t one_l
     }
 #undef B
     return (int64_t)s->info->status_val;
+}
+
+/* The arrays truckd_mpc_run reads and writes (owned by Python, as in truckd_mpc_cycle):
+ * values, the two (x, y) pairs (one the warm start, the other the solution), u, v, info. */
+int64_t truckd_mpc_bind_io(int64_t inst, const double *values, double *x0, double *y0,
+                           double *x1, double *y1, double *u, double *v, double *info) {
+    if (solver_of(inst, 0) == NULL) return -1;
+    BOUND[inst].values = values;
+    BOUND[inst].x[0] = x0;
+    BOUND[inst].y[0] = y0;
+    BOUND[inst].x[1] = x1;
+    BOUND[inst].y[1] = y1;
+    BOUND[inst].u = u;
+    BOUND[inst].v = v;
+    BOUND[inst].info = info;
+    BOUND[inst].bound_io = 1;
+    return 0;
+}
+
+/* truckd_mpc_cycle on the bound arrays, its small arguments in one integer (a call from
+ * Python converts two arguments instead of twelve): bit 0 the mode, bit 1 lead, bit 2 one
+ * lead speed, bit 3 warm, bit 4 the pair holding the warm start (the solution goes into
+ * the other). */
+int64_t truckd_mpc_run(int64_t inst, int64_t how) {
+    if (solver_of(inst, 0) == NULL || !BOUND[inst].bound_io || how < 0 || how > 31) return -1;
+    int cur = (int)((how >> 4) & 1), out = 1 - cur;
+    int warm = (int)((how >> 3) & 1);
+    return truckd_mpc_cycle(inst, how & 1, (how >> 1) & 1, (how >> 2) & 1, BOUND[inst].values,
+                            warm ? BOUND[inst].x[cur] : NULL, warm ? BOUND[inst].y[cur] : NULL,
+                            BOUND[inst].x[out], BOUND[inst].y[out], BOUND[inst].u,
+                            BOUND[inst].v, BOUND[inst].info);
 }
