@@ -39,7 +39,12 @@ def library() -> ctypes.CDLL | None:
         i = ctypes.c_int64
         fn = lib.truckd_fastrun
         fn.restype = ctypes.c_int
-        fn.argtypes = [dp, dp, d, d, d, d, d, d, dp, d, dp, ip, ip, i, i, d, d, dp, dp, dp, dp]
+        fn.argtypes = [
+            dp, dp, d, d, d, d, d, d, dp, d, dp, ip, ip, i, i, d, d, dp, dp, dp, dp, dp, dp
+        ]  # fmt: skip
+        wr = lib.truckd_winding_rises
+        wr.restype = ctypes.c_int
+        wr.argtypes = [dp, dp, i, d, d, d, d, d, dp]
     _state["lib"] = lib
     return lib
 
@@ -72,12 +77,16 @@ def run(
     w0: float,
     sensor_lag: float,
     terrain: tuple[float, ...] | None = None,
+    stribeck: tuple[float, ...] | None = None,
+    limit: tuple[float, float] | None = None,
 ) -> tuple[Array, Array, Array] | None:
     """:func:`truckd.ident.freerun.run` in C (None: the kernel is not built).
 
     ``terrain``: ``(per_newton, ratio, x0, amplitude, wavelength, phase, hill_force,
     hill_start, hill_length)`` of a position-dependent load (see
-    :class:`truckd.ident.freerun.Terrain`), None for none."""
+    :class:`truckd.ident.freerun.Terrain`), None for none.  ``stribeck``: ``(per_nm,
+    amplitude, ratio, speed)`` (:class:`truckd.ident.freerun.Stribeck`), None for none.
+    ``limit``: ``(a_max, b_mech)`` of a current limit, None for none."""
     lib = library()
     if lib is None:
         return None
@@ -91,6 +100,8 @@ def run(
     raw = np.empty(n)
     pos = np.empty(n)
     ter = None if terrain is None else np.array(terrain, dtype=np.float64)
+    stb = None if stribeck is None else np.array(stribeck, dtype=np.float64)
+    lim = None if limit is None else np.array(limit, dtype=np.float64)
     lib.truckd_fastrun(
         _dp(a),
         _dp(b),
@@ -113,5 +124,27 @@ def run(
         _dp(raw),
         _dp(pos),
         _dp(ter),
+        _dp(stb),
+        _dp(lim),
     )
     return out, raw, pos
+
+
+def winding_rises(
+    h: Array, sq: Array, rise0: float, r_m: float, tempco: float, drift: float, tau: float
+) -> Array | None:
+    """:func:`truckd.ident.fastsim.winding_rises` in C (None: the kernel is not built):
+    the rise (K) at each sample from ``rise0``, ``sq`` the squared currents (A^2), ``h``
+    the time steps (s, one fewer); ``r_m`` (ohm), ``tempco`` (1/K), ``drift`` (K/W),
+    ``tau`` (s) as :func:`truckd.model.effects.winding_rise_step`."""
+    lib = library()
+    if lib is None:
+        return None
+    h = np.ascontiguousarray(h, dtype=np.float64)
+    sq = np.ascontiguousarray(sq, dtype=np.float64)
+    out = np.empty(len(sq))
+    lib.truckd_winding_rises(
+        _dp(h), _dp(sq), len(sq), float(rise0), float(r_m), float(tempco), float(drift),
+        float(tau), _dp(out),
+    )  # fmt: skip
+    return out

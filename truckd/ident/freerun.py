@@ -261,16 +261,22 @@ def _segment(
 
 
 KERNEL_FIELDS = frozenset(
-    ("a", "b", "a_idle", "b_idle", "c", "sigma", "d", "drag", "scale", "lag", "terrain")
-)
+    (
+        "a", "b", "a_idle", "b_idle", "c", "sigma", "d", "drag", "scale", "lag", "terrain",
+        "a_max", "b_mech", "stribeck",
+    )
+)  # fmt: skip
 """The :class:`Kinetics` fields the C kernel (:mod:`truckd.ident.ckernel`) models."""
 
 
 def kernel_handles(kin: Kinetics) -> bool:
     """Whether the C kernel models ``kin``: a position-dependent load only as a
-    :class:`Terrain`, and every field it does not know at its default (a newer model
-    feature runs the Python loop)."""
+    :class:`Terrain`, a Stribeck friction only as a :class:`Stribeck`, and every field
+    it does not know at its default (a newer model feature, and the backlash gap, run
+    the Python loop)."""
     if kin.terrain is not None and not isinstance(kin.terrain, Terrain):
+        return False
+    if kin.stribeck is not None and not isinstance(kin.stribeck, Stribeck):
         return False
     for f in dataclasses.fields(kin):
         if f.name in KERNEL_FIELDS:
@@ -317,9 +323,14 @@ def _run_in_c(
             e.load_force_wavelength, e.load_force_phase, e.hill_force, e.hill_start,
             e.hill_length,
         )  # fmt: skip
+    sb = kin.stribeck
+    stb = None
+    if isinstance(sb, Stribeck):
+        stb = (sb.per_nm, sb.amplitude, sb.ratio, sb.speed)
+    lim = (kin.a_max, kin.b_mech) if kin.a_max < math.inf else None
     return ckernel.run(
         kin.a, kin.b, kin.a_idle, kin.b_idle, kin.c, kin.sigma, kin.d, kin.drag,
-        kin.scale, kin.lag, tl.dt, tl.cmd, tl.sample_end, n, w0, sensor_lag, ter,
+        kin.scale, kin.lag, tl.dt, tl.cmd, tl.sample_end, n, w0, sensor_lag, ter, stb, lim,
     )  # fmt: skip
 
 
@@ -327,8 +338,8 @@ def _run_in_python(
     kin: Kinetics, tl: Timeline, n: int, w0: float, sensor_lag: float
 ) -> tuple[Array, Array, Array]:
     """:func:`run` as a Python loop over the sub-intervals: the reference the C kernel
-    (``kernel/fastrun.c``) follows step by step, and the only runner of the effects the
-    kernel does not model (current limit, Stribeck friction, backlash).
+    (``kernel/fastrun.c``) follows step by step, and the only runner of the effect the
+    kernel does not model (backlash).
 
     Long because it is one loop kept whole on purpose: it mirrors the C kernel's loop
     line for line (``tests/test_ident_kernel.py`` compares them), and its fast path is
@@ -536,3 +547,20 @@ class Terrain:
 
     def __call__(self, angle: float) -> float:
         return self.per_newton * terrain_force(self.eff, self.x0 + angle * self.ratio)
+
+
+@dataclass(frozen=True)
+class Stribeck:
+    """The Stribeck friction above Coulomb per unit inertia at motor speed ``w`` (rad/s):
+    ``per_nm * stribeck_torque`` (:func:`truckd.model.effects.stribeck_torque`, whose
+    arithmetic it repeats: ``amplitude`` N m, ``ratio`` m/rad, ``speed`` m/s); the C
+    kernel computes the same from these fields."""
+
+    per_nm: float
+    amplitude: float
+    ratio: float
+    speed: float
+
+    def __call__(self, w: float) -> float:
+        z = w * self.ratio / self.speed
+        return self.per_nm * (self.amplitude * math.exp(-z * z))

@@ -90,12 +90,97 @@ static double terrain(const double *ter, double angle)
     return ter[0] * force;
 }
 
-/* See freerun.run.  scale may be NULL (1 everywhere), ter NULL (no terrain).  Returns 0. */
+/* Sliding friction above Coulomb per unit inertia at speed w (freerun.Stribeck): stb =
+ * {per_nm, amplitude, ratio, speed}, as truckd.model.effects.stribeck_torque. */
+static double stribeck(const double *stb, double w)
+{
+    double z = w * stb[2] / stb[3];
+    return stb[0] * (stb[1] * exp(-z * z));
+}
+
+/* freerun._time_to: when the speed, sliding from w under dw/dt = a - b w - s c - d,
+ * reaches target of the same sign; returns 0 when it does not (*t unset). */
+static int time_to(double w, double target, double a, double b, double c, double d, double *t)
+{
+    double s, g, ratio, tt;
+    if (w == 0.0 || w * target <= 0.0) {
+        return 0;
+    }
+    s = w > 0.0 ? 1.0 : -1.0;
+    g = a - s * c - d;
+    if (b * fabs(target - w) < 1e-9 * fmax(fabs(g), 1e-300)) {
+        tt = g != 0.0 ? (target - w) / g : -1.0;
+        if (tt >= 0.0) {
+            *t = tt;
+            return 1;
+        }
+        return 0;
+    }
+    ratio = (target - g / b) / (w - g / b);
+    if (!(ratio > 0.0)) {
+        return 0;
+    }
+    tt = -log(ratio) / b;
+    if (tt >= 0.0) {
+        *t = tt;
+        return 1;
+    }
+    return 0;
+}
+
+/* freerun._limited: a sub-interval that starts with the current limit binding (a_max the
+ * largest drive); returns 0 when the limit does not bind at its start. */
+static int limited(double w, double a, double b, double b_mech, double a_max, double c,
+                   double sigma, double d, double h, double lag, double *w_out, double *dist)
+{
+    double b_emf = b - b_mech;
+    double drive = a - b_emf * w;
+    double s_l, a_l, w_end, dx, w_star, t_rel, lo, hi, d1, d2, w1;
+    if (fabs(drive) <= a_max) {
+        return 0;
+    }
+    s_l = drive > 0.0 ? 1.0 : -1.0;
+    a_l = s_l * a_max;
+    w_end = segment(w, a_l, b_mech, c, sigma, d, h, lag, &dx);
+    if (b_emf <= 0.0 || fabs(a - b_emf * w_end) >= a_max) {
+        *w_out = w_end;
+        *dist = dx;
+        return 1;
+    }
+    w_star = (a - a_l) / b_emf;
+    if (time_to(w, w_star, a_l, b_mech, c, d, &t_rel) && 0.0 <= t_rel && t_rel <= h) {
+        w1 = segment(w, a_l, b_mech, c, sigma, d, t_rel, lag, &d1);
+        *w_out = segment(w1, a, b, c, sigma, d, h - t_rel, lag, &d2);
+        *dist = d1 + d2;
+        return 1;
+    }
+    lo = 0.0;
+    hi = h;
+    for (int it = 0; it < 40; ++it) {
+        double mid = 0.5 * (lo + hi), dm;
+        double wm = segment(w, a_l, b_mech, c, sigma, d, mid, lag, &dm);
+        if ((wm - w_star) * s_l < 0.0) {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+        if (hi - lo <= 1e-9 * h) {
+            break;
+        }
+    }
+    w1 = segment(w, a_l, b_mech, c, sigma, d, hi, lag, &d1);
+    *w_out = segment(w1, a, b, c, sigma, d, h - hi, lag, &d2);
+    *dist = d1 + d2;
+    return 1;
+}
+
+/* See freerun.run.  scale may be NULL (1 everywhere), ter NULL (no terrain), stb NULL (no
+ * Stribeck friction), lim NULL (no current limit; else {a_max, b_mech}).  Returns 0. */
 int truckd_fastrun(const double *a, const double *b, double a_idle, double b_idle, double kc,
                    double ksigma, double kd, double kdrag, const double *scale, double lag,
                    const double *dt, const int64_t *cmd, const int64_t *sample_end, int64_t m,
                    int64_t n, double w0, double sensor_lag, double *out, double *raw, double *pos,
-                   const double *ter)
+                   const double *ter, const double *stb, const double *lim)
 {
     double w = w0, v_lag = w0, x = 0.0, x_step0 = 0.0, h_step = 0.0;
     double c = kc, sigma = ksigma, d = kd, drag = kdrag;
@@ -126,6 +211,17 @@ int truckd_fastrun(const double *a, const double *b, double a_idle, double b_idl
         if (ter != 0) {
             d = (kd + terrain(ter, x)) * f;
         }
+        if (stb != 0) {
+            /* Breakaway takes at least the sliding friction at zero speed; the sliding
+             * friction at the speed halfway through the sub-interval (midpoint). */
+            sigma = fmax(ksigma, kc + stribeck(stb, 0.0)) * f;
+            c = (kc + stribeck(stb, w)) * f;
+            if (h > 0.0) {
+                double dh;
+                double w_half = segment(w, aa, bb, c, sigma, d, 0.5 * h, lag, &dh);
+                c = (kc + stribeck(stb, w != 0.0 ? 0.5 * (w + w_half) : w_half)) * f;
+            }
+        }
         if (drag != 0.0) {
             double aw = fabs(w);
             b_eff = bb + 2.0 * drag * aw;
@@ -135,7 +231,33 @@ int truckd_fastrun(const double *a, const double *b, double a_idle, double b_idl
             d_eff = d;
         }
         bh = b_eff * h;
-        if (w != 0.0 && bh >= 1e-5) {
+        if (lim != 0) {
+            /* freerun._rigid with the current limit */
+            double wl, dl;
+            if (h > 0.0) {
+                double b_m = lim[1] * f + (b_eff - bb);
+                if (limited(w, aa, b_eff, b_m, lim[0], c, sigma, d_eff, h, lag, &wl, &dl)) {
+                    w = wl;
+                    x += dl;
+                } else if (w != 0.0 && bh >= 1e-5) {
+                    double s = w > 0.0 ? 1.0 : -1.0;
+                    double g = aa - s * c - d_eff;
+                    double em1 = -expm1(-bh);
+                    double p1 = em1 / b_eff;
+                    double w1 = w * (1.0 - em1) + g * p1;
+                    if (w1 * s > 0.0) {
+                        x += w * p1 + g * (h - p1) / b_eff;
+                        w = w1;
+                    } else {
+                        w = segment(w, aa, b_eff, c, sigma, d_eff, h, lag, &dl);
+                        x += dl;
+                    }
+                } else {
+                    w = segment(w, aa, b_eff, c, sigma, d_eff, h, lag, &dl);
+                    x += dl;
+                }
+            }
+        } else if (w != 0.0 && bh >= 1e-5) {
             double s = w > 0.0 ? 1.0 : -1.0;
             double g = aa - s * c - d_eff;
             double em1 = -expm1(-bh);
@@ -171,6 +293,28 @@ int truckd_fastrun(const double *a, const double *b, double a_idle, double b_idl
             x_step0 = x;
             h_step = 0.0;
         }
+    }
+    return 0;
+}
+
+/* fastsim.winding_rises: the winding's temperature rise at each of n samples from rise0,
+ * sq the squared currents, h the n - 1 time steps (s); r_m (ohm), tempco (1/K), drift
+ * (K/W), tau (s) as truckd.model.effects.winding_resistance and winding_rise_step.
+ * Returns 0. */
+int truckd_winding_rises(const double *h, const double *sq, int64_t n, double rise0, double r_m,
+                         double tempco, double drift, double tau, double *out)
+{
+    double rise = rise0;
+    if (n < 1) {
+        return 0;
+    }
+    out[0] = rise;
+    for (int64_t k = 0; k + 1 < n; ++k) {
+        double r = r_m * (1.0 + tempco * rise);
+        double power = 0.5 * (sq[k] + sq[k + 1]) * r;
+        double e = exp(-h[k] / tau);
+        rise = rise * e + drift * power * (1.0 - e);
+        out[k + 1] = rise;
     }
     return 0;
 }
