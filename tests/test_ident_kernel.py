@@ -23,6 +23,8 @@ EFFECTS = [
     Effects(current_limit=25.0, viscous_friction=5e-5, sensor_lag=0.03),
     Effects(current_limit=5.0, stribeck=0.008, stribeck_speed=0.2, battery_sag=0.2),
     Effects(resistance_drift=1.2, winding_time_constant=15.0, aero_drag=0.5),
+    Effects(backlash=0.4, rotor_inertia_fraction=0.3),
+    Effects(backlash=0.3, current_limit=5.0, stribeck=0.01, stribeck_speed=0.1, sensor_lag=0.02),
 ]
 
 

@@ -40,7 +40,8 @@ def library() -> ctypes.CDLL | None:
         fn = lib.truckd_fastrun
         fn.restype = ctypes.c_int
         fn.argtypes = [
-            dp, dp, d, d, d, d, d, d, dp, d, dp, ip, ip, i, i, d, d, dp, dp, dp, dp, dp, dp
+            dp, dp, d, d, d, d, d, d, dp, d, dp, ip, ip, i, i, d, d, dp, dp, dp, dp, dp, dp,
+            dp, dp, dp, dp, dp,
         ]  # fmt: skip
         wr = lib.truckd_winding_rises
         wr.restype = ctypes.c_int
@@ -79,6 +80,7 @@ def run(
     terrain: tuple[float, ...] | None = None,
     stribeck: tuple[float, ...] | None = None,
     limit: tuple[float, float] | None = None,
+    gap: tuple[tuple[float, ...], Array, Array, Array, Array] | None = None,
 ) -> tuple[Array, Array, Array] | None:
     """:func:`truckd.ident.freerun.run` in C (None: the kernel is not built).
 
@@ -86,7 +88,10 @@ def run(
     hill_start, hill_length)`` of a position-dependent load (see
     :class:`truckd.ident.freerun.Terrain`), None for none.  ``stribeck``: ``(per_nm,
     amplitude, ratio, speed)`` (:class:`truckd.ident.freerun.Stribeck`), None for none.
-    ``limit``: ``(a_max, b_mech)`` of a current limit, None for none."""
+    ``limit``: ``(a_max, b_mech)`` of a current limit, None for none.  ``gap``: the
+    backlash gap as ``(constants, volts, r, state, rotor_out)``
+    (:class:`truckd.ident.freerun.GapRun`; ``state`` and ``rotor_out`` are written),
+    None for none."""
     lib = library()
     if lib is None:
         return None
@@ -102,6 +107,13 @@ def run(
     ter = None if terrain is None else np.array(terrain, dtype=np.float64)
     stb = None if stribeck is None else np.array(stribeck, dtype=np.float64)
     lim = None if limit is None else np.array(limit, dtype=np.float64)
+    gp = gvolts = gr = gstate = rotor_out = None
+    if gap is not None:
+        gp = np.array(gap[0], dtype=np.float64)
+        gvolts, gr, gstate, rotor_out = gap[1], gap[2], gap[3], gap[4]
+        for arr in (gvolts, gr, gstate, rotor_out):
+            if arr.dtype != np.float64 or not arr.flags.c_contiguous:
+                raise ValueError("the gap's arrays must be contiguous float64")
     lib.truckd_fastrun(
         _dp(a),
         _dp(b),
@@ -126,6 +138,11 @@ def run(
         _dp(ter),
         _dp(stb),
         _dp(lim),
+        _dp(gp),
+        _dp(gvolts),
+        _dp(gr),
+        _dp(gstate),
+        _dp(rotor_out),
     )
     return out, raw, pos
 

@@ -29,10 +29,12 @@ from numpy.typing import NDArray
 
 from truckd.ident import ckernel
 from truckd.model.effects import (
+    BACKLASH_STEP,
     Effects,
     gap_at_start,
     gap_free_motion,
     gap_opens,
+    limited_torque,
     terrain_force,
 )
 from truckd.model.params import VehicleParams
@@ -263,7 +265,7 @@ def _segment(
 KERNEL_FIELDS = frozenset(
     (
         "a", "b", "a_idle", "b_idle", "c", "sigma", "d", "drag", "scale", "lag", "terrain",
-        "a_max", "b_mech", "stribeck",
+        "a_max", "b_mech", "stribeck", "gap",
     )
 )  # fmt: skip
 """The :class:`Kinetics` fields the C kernel (:mod:`truckd.ident.ckernel`) models."""
@@ -272,8 +274,7 @@ KERNEL_FIELDS = frozenset(
 def kernel_handles(kin: Kinetics) -> bool:
     """Whether the C kernel models ``kin``: a position-dependent load only as a
     :class:`Terrain`, a Stribeck friction only as a :class:`Stribeck`, and every field
-    it does not know at its default (a newer model feature, and the backlash gap, run
-    the Python loop)."""
+    it does not know at its default (a newer model feature runs the Python loop)."""
     if kin.terrain is not None and not isinstance(kin.terrain, Terrain):
         return False
     if kin.stribeck is not None and not isinstance(kin.stribeck, Stribeck):
@@ -328,9 +329,13 @@ def _run_in_c(
     if isinstance(sb, Stribeck):
         stb = (sb.per_nm, sb.amplitude, sb.ratio, sb.speed)
     lim = (kin.a_max, kin.b_mech) if kin.a_max < math.inf else None
+    g = kin.gap
+    gap = None
+    if g is not None:
+        gap = (g.constants, g.volts_arr, g.r_arr, g.state(), g.rotor_out)
     return ckernel.run(
         kin.a, kin.b, kin.a_idle, kin.b_idle, kin.c, kin.sigma, kin.d, kin.drag,
-        kin.scale, kin.lag, tl.dt, tl.cmd, tl.sample_end, n, w0, sensor_lag, ter, stb, lim,
+        kin.scale, kin.lag, tl.dt, tl.cmd, tl.sample_end, n, w0, sensor_lag, ter, stb, lim, gap,
     )  # fmt: skip
 
 
@@ -339,7 +344,7 @@ def _run_in_python(
 ) -> tuple[Array, Array, Array]:
     """:func:`run` as a Python loop over the sub-intervals: the reference the C kernel
     (``kernel/fastrun.c``) follows step by step, and the only runner of the effect the
-    kernel does not model (backlash).
+    kernel does not model (none today).
 
     Long because it is one loop kept whole on purpose: it mirrors the C kernel's loop
     line for line (``tests/test_ident_kernel.py`` compares them), and its fast path is
@@ -488,12 +493,24 @@ class GapRun:
     ) -> None:
         self.p, self.eff = p, eff
         self.volts, self.r = volts.tolist(), r.tolist()
+        self.volts_arr = np.ascontiguousarray(volts, dtype=np.float64)
+        self.r_arr = np.ascontiguousarray(np.broadcast_to(r, volts.shape), dtype=np.float64)
         self.v_idle = v_idle
         self.per = p.J_S / kappa
         """Torque (N m) per unit of the run's per-inertia coefficients."""
         self.gap = gap_at_start(eff, w0)
         self.rotor_out = np.full(n, w0)
         """Rotor speed (rad/s) at each sample (the load's while the gap is closed)."""
+        self.constants = (
+            p.K_T, p.K_v, p.J_S, p.K_stiction, p.R_m, eff.rotor_inertia_fraction,
+            eff.backlash, limited_torque(p, eff), self.per, v_idle, BACKLASH_STEP,
+        )  # fmt: skip
+        """What the C kernel's gap needs (``kernel/fastrun.c``, ``gap_opens``)."""
+
+    def state(self) -> Array:
+        """The gap's state as the C kernel keeps it: ``[side, angle, rotor]``."""
+        g = self.gap
+        return np.array([float(g.side), g.angle, g.rotor])
 
     def step(
         self, k: int, w: float, dt: float, c: float, d: float, visc: float
