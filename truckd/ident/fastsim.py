@@ -293,7 +293,7 @@ def _simulate(
     meas, raw, pos = run(kin, tl, n, w0, eff.sensor_lag)
     rotor = raw if kin.gap is None else kin.gap.rotor_out
     idx = _active(t, t_hist, t_cmd, eff.input_delay)
-    cur, v_at = _sample_currents(p, eff, t, t_cmd, idx, volts, r_tot, v_pre, raw, rotor)
+    cur, v_at = _sample_currents(p, eff, idx, volts, r_tot, v_pre, raw, rotor)
     return VoltagePrediction(
         v=meas * p.ratio, v_true=raw * p.ratio, i=cur, x=pos * p.ratio, volts=v_at
     )
@@ -331,23 +331,43 @@ def _timeline(t: Array, t_hist: Array | None, delay: float, hist: int, t_cmd: Ar
     return tl  # type: ignore[no-any-return]
 
 
-def _active(t: Array, t_hist: Array | None, t_cmd: Array, delay: float) -> NDArray[np.int64]:
-    """Index of the command (in ``t_cmd``) active at each sample instant (-1: none yet)
-    under the input delay ``delay`` (s), kept per series and delay."""
+@dataclass(frozen=True)
+class Active:
+    """Which command is active at each sample instant (the timing of
+    :func:`_sample_currents`, kept per series and delay)."""
+
+    on: NDArray[np.bool_]
+    """A command is active (not: before the first one acts)."""
+    at: NDArray[np.int64]
+    """Index of the active command in the commands (0 where none is)."""
+    prev_on: NDArray[np.bool_]
+    """A command was active before it."""
+    prev: NDArray[np.int64]
+    """Index of that command (0 where none was)."""
+    neg_since: Array
+    """Minus the time (s) since the active command acted (-inf where none is)."""
+
+
+def _active(t: Array, t_hist: Array | None, t_cmd: Array, delay: float) -> Active:
+    """The command (in ``t_cmd``) active at each sample instant under the input delay
+    ``delay`` (s), kept per series and delay."""
     key = ("active", id(t), id(t_hist), delay, len(t_cmd))
-    idx = _timed(key, t, t_hist)
-    if idx is None:
-        idx = np.searchsorted(t_cmd + delay, t, "left") - 1
-        _keep(key, t, t_hist, idx)
-    return idx  # type: ignore[no-any-return]
+    out = _timed(key, t, t_hist)
+    if out is None:
+        act = t_cmd + delay
+        idx = np.searchsorted(act, t, "left") - 1
+        on, at = idx >= 0, np.maximum(idx, 0)
+        prev = idx - 1
+        since = np.where(on, t - act[at], np.inf)
+        out = Active(on, at, prev >= 0, np.maximum(prev, 0), -since)
+        _keep(key, t, t_hist, out)
+    return out  # type: ignore[no-any-return]
 
 
 def _sample_currents(
     p: VehicleParams,
     eff: Effects,
-    t: Array,
-    t_cmd: Array,
-    idx: NDArray[np.int64],
+    idx: Active,
     volts: Array,
     r_tot: Array,
     v_pre: float,
@@ -359,17 +379,14 @@ def _sample_currents(
     ``v_pre`` before the first), still settling from the previous command when one
     acted just before, within the current limit; ``raw`` the load's speed, ``rotor``
     the rotor's (rad/s); ``idx`` the command active at each sample (:func:`_active`)."""
-    act = t_cmd + eff.input_delay
-    v_at = np.where(idx >= 0, volts[np.maximum(idx, 0)], v_pre)
-    r_at = np.where(idx >= 0, r_tot[np.maximum(idx, 0)], p.R_m)
+    v_at = np.where(idx.on, volts[idx.at], v_pre)
+    r_at = np.where(idx.on, r_tot[idx.at], p.R_m)
     cur = (v_at - p.K_v * rotor) / r_at
     # A command that acted just before the sample: the current is still settling.
-    prev = idx - 1
-    since = np.where(idx >= 0, t - act[np.maximum(idx, 0)], np.inf)
-    v_old = np.where(prev >= 0, volts[np.maximum(prev, 0)], v_pre)
-    r_old = np.where(prev >= 0, r_tot[np.maximum(prev, 0)], p.R_m)
+    v_old = np.where(idx.prev_on, volts[idx.prev], v_pre)
+    r_old = np.where(idx.prev_on, r_tot[idx.prev], p.R_m)
     cur_old = (v_old - p.K_v * rotor) / r_old
-    cur = cur + (cur_old - cur) * np.exp(-since * r_at / p.L_m)
+    cur = cur + (cur_old - cur) * np.exp(idx.neg_since * r_at / p.L_m)
     if eff.current_limit != 0.0:
         cur = np.clip(cur, -eff.current_limit, eff.current_limit)
         room = r_at * eff.current_limit
