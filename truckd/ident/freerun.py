@@ -343,8 +343,9 @@ def _run_in_python(
     kin: Kinetics, tl: Timeline, n: int, w0: float, sensor_lag: float
 ) -> tuple[Array, Array, Array]:
     """:func:`run` as a Python loop over the sub-intervals: the reference the C kernel
-    (``kernel/fastrun.c``) follows step by step, and the only runner of the effect the
-    kernel does not model (none today).
+    (``kernel/fastrun.c``) follows step by step (every effect: current limit, Stribeck
+    friction and backlash included), and the runner when the kernel is not built or a
+    newer :class:`Kinetics` field is set.
 
     Long because it is one loop kept whole on purpose: it mirrors the C kernel's loop
     line for line (``tests/test_ident_kernel.py`` compares them), and its fast path is
