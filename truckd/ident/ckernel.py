@@ -114,36 +114,13 @@ def run(
         for arr in (gvolts, gr, gstate, rotor_out):
             if arr.dtype != np.float64 or not arr.flags.c_contiguous:
                 raise ValueError("the gap's arrays must be contiguous float64")
+    f = float
     lib.truckd_fastrun(
-        _dp(a),
-        _dp(b),
-        float(a_idle),
-        float(b_idle),
-        float(c),
-        float(sigma),
-        float(d),
-        float(drag),
-        _dp(sc),
-        float(lag),
-        _dp(dt),
-        _dp(cmd),
-        _dp(se),
-        len(dt),
-        n,
-        float(w0),
-        float(sensor_lag),
-        _dp(out),
-        _dp(raw),
-        _dp(pos),
-        _dp(ter),
-        _dp(stb),
-        _dp(lim),
-        _dp(gp),
-        _dp(gvolts),
-        _dp(gr),
-        _dp(gstate),
+        _dp(a), _dp(b), f(a_idle), f(b_idle), f(c), f(sigma), f(d), f(drag), _dp(sc), f(lag),
+        _dp(dt), _dp(cmd), _dp(se), len(dt), n, f(w0), f(sensor_lag), _dp(out), _dp(raw),
+        _dp(pos), _dp(ter), _dp(stb), _dp(lim), _dp(gp), _dp(gvolts), _dp(gr), _dp(gstate),
         _dp(rotor_out),
-    )
+    )  # fmt: skip
     return out, raw, pos
 
 
