@@ -8,7 +8,7 @@ import pytest
 from labkit.synth import draw_truck, plant_log
 
 from truckd.config.truck import load_config
-from truckd.ident import ckernel, fastsim
+from truckd.ident import ckernel, fastsim, freerun
 from truckd.model.effects import Effects
 
 EFFECTS = [
@@ -19,6 +19,12 @@ EFFECTS = [
     Effects(dead_zone=1.2, voltage_saturation=5.0, load_force=2.0),
     Effects(load_force_amplitude=2.0, load_force_wavelength=1.7, load_force_phase=0.3),
     Effects(hill_force=3.0, hill_start=0.5, hill_length=2.0, viscous_friction=5e-5),
+    Effects(stribeck=0.012, stribeck_speed=0.1, input_delay=0.013),
+    Effects(current_limit=25.0, viscous_friction=5e-5, sensor_lag=0.03),
+    Effects(current_limit=5.0, stribeck=0.008, stribeck_speed=0.2, battery_sag=0.2),
+    Effects(resistance_drift=1.2, winding_time_constant=15.0, aero_drag=0.5),
+    Effects(backlash=0.4, rotor_inertia_fraction=0.3),
+    Effects(backlash=0.3, current_limit=5.0, stribeck=0.01, stribeck_speed=0.1, sensor_lag=0.02),
 ]
 
 
@@ -34,13 +40,17 @@ def test_kernel_matches_the_python_loop(k: int, monkeypatch: pytest.MonkeyPatch)
     eff = EFFECTS[k]
     log = plant_log(p, eff, seed=k, n=2000)
     t, u = log.columns["t"], log.columns["u"]
-    fast = fastsim.simulate_voltage(p, eff, t, u, 0.1, x0=0.2)
+    with monkeypatch.context() as m:
+        # the kernel runs it all: the Python loop would fail
+        m.setattr(freerun, "_run_in_python", None)
+        fast = fastsim.simulate_voltage(p, eff, t, u, 0.1, x0=0.2)
     orig = fastsim.run
 
     def python_only(*a: object, **kw: object) -> object:
         return orig(*a, use_kernel=False, **kw)  # type: ignore[arg-type]
 
     monkeypatch.setattr(fastsim, "run", python_only)
+    monkeypatch.setattr(ckernel, "winding_rises", lambda *a: None)
     ref = fastsim.simulate_voltage(p, eff, t, u, 0.1, x0=0.2)
     scale = float(np.max(np.abs(ref.v)))
     assert scale > 0.0

@@ -39,7 +39,13 @@ def library() -> ctypes.CDLL | None:
         i = ctypes.c_int64
         fn = lib.truckd_fastrun
         fn.restype = ctypes.c_int
-        fn.argtypes = [dp, dp, d, d, d, d, d, d, dp, d, dp, ip, ip, i, i, d, d, dp, dp, dp, dp]
+        fn.argtypes = [
+            dp, dp, d, d, d, d, d, d, dp, d, dp, ip, ip, i, i, d, d, dp, dp, dp, dp, dp, dp,
+            dp, dp, dp, dp, dp,
+        ]  # fmt: skip
+        wr = lib.truckd_winding_rises
+        wr.restype = ctypes.c_int
+        wr.argtypes = [dp, dp, i, d, d, d, d, d, dp]
     _state["lib"] = lib
     return lib
 
@@ -72,12 +78,20 @@ def run(
     w0: float,
     sensor_lag: float,
     terrain: tuple[float, ...] | None = None,
+    stribeck: tuple[float, ...] | None = None,
+    limit: tuple[float, float] | None = None,
+    gap: tuple[tuple[float, ...], Array, Array, Array, Array] | None = None,
 ) -> tuple[Array, Array, Array] | None:
     """:func:`truckd.ident.freerun.run` in C (None: the kernel is not built).
 
     ``terrain``: ``(per_newton, ratio, x0, amplitude, wavelength, phase, hill_force,
     hill_start, hill_length)`` of a position-dependent load (see
-    :class:`truckd.ident.freerun.Terrain`), None for none."""
+    :class:`truckd.ident.freerun.Terrain`), None for none.  ``stribeck``: ``(per_nm,
+    amplitude, ratio, speed)`` (:class:`truckd.ident.freerun.Stribeck`), None for none.
+    ``limit``: ``(a_max, b_mech)`` of a current limit, None for none.  ``gap``: the
+    backlash gap as ``(constants, volts, r, state, rotor_out)``
+    (:class:`truckd.ident.freerun.GapRun`; ``state`` and ``rotor_out`` are written),
+    None for none."""
     lib = library()
     if lib is None:
         return None
@@ -91,27 +105,40 @@ def run(
     raw = np.empty(n)
     pos = np.empty(n)
     ter = None if terrain is None else np.array(terrain, dtype=np.float64)
+    stb = None if stribeck is None else np.array(stribeck, dtype=np.float64)
+    lim = None if limit is None else np.array(limit, dtype=np.float64)
+    gp = gvolts = gr = gstate = rotor_out = None
+    if gap is not None:
+        gp = np.array(gap[0], dtype=np.float64)
+        gvolts, gr, gstate, rotor_out = gap[1], gap[2], gap[3], gap[4]
+        for arr in (gvolts, gr, gstate, rotor_out):
+            if arr.dtype != np.float64 or not arr.flags.c_contiguous:
+                raise ValueError("the gap's arrays must be contiguous float64")
+    f = float
     lib.truckd_fastrun(
-        _dp(a),
-        _dp(b),
-        float(a_idle),
-        float(b_idle),
-        float(c),
-        float(sigma),
-        float(d),
-        float(drag),
-        _dp(sc),
-        float(lag),
-        _dp(dt),
-        _dp(cmd),
-        _dp(se),
-        len(dt),
-        n,
-        float(w0),
-        float(sensor_lag),
-        _dp(out),
-        _dp(raw),
-        _dp(pos),
-        _dp(ter),
-    )
+        _dp(a), _dp(b), f(a_idle), f(b_idle), f(c), f(sigma), f(d), f(drag), _dp(sc), f(lag),
+        _dp(dt), _dp(cmd), _dp(se), len(dt), n, f(w0), f(sensor_lag), _dp(out), _dp(raw),
+        _dp(pos), _dp(ter), _dp(stb), _dp(lim), _dp(gp), _dp(gvolts), _dp(gr), _dp(gstate),
+        _dp(rotor_out),
+    )  # fmt: skip
     return out, raw, pos
+
+
+def winding_rises(
+    h: Array, sq: Array, rise0: float, r_m: float, tempco: float, drift: float, tau: float
+) -> Array | None:
+    """:func:`truckd.ident.fastsim.winding_rises` in C (None: the kernel is not built):
+    the rise (K) at each sample from ``rise0``, ``sq`` the squared currents (A^2), ``h``
+    the time steps (s, one fewer); ``r_m`` (ohm), ``tempco`` (1/K), ``drift`` (K/W),
+    ``tau`` (s) as :func:`truckd.model.effects.winding_rise_step`."""
+    lib = library()
+    if lib is None:
+        return None
+    h = np.ascontiguousarray(h, dtype=np.float64)
+    sq = np.ascontiguousarray(sq, dtype=np.float64)
+    out = np.empty(len(sq))
+    lib.truckd_winding_rises(
+        _dp(h), _dp(sq), len(sq), float(rise0), float(r_m), float(tempco), float(drift),
+        float(tau), _dp(out),
+    )  # fmt: skip
+    return out

@@ -18,8 +18,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from truckd.ident import ckernel
 from truckd.ident.data import Series
-from truckd.ident.freerun import GapRun, merge_equal
+from truckd.ident.freerun import GapRun, Stribeck, merge_equal
 from truckd.ident.freerun import Kinetics as Kinetics  # re-exported: the run's inputs
 from truckd.ident.freerun import Terrain as Terrain
 from truckd.ident.freerun import Timeline as Timeline
@@ -27,13 +28,13 @@ from truckd.ident.freerun import run as run
 from truckd.ident.freerun import timeline as timeline
 from truckd.model.effects import (
     ARRAYS,
+    COPPER_TEMPCO,
     EFFECT_FIELDS,
     TERRAIN_FIELDS,
     Effects,
     driver_output,
     limited_torque,
     position_dependent,
-    stribeck_torque,
     winding_resistance,
     winding_rise_step,
 )
@@ -183,11 +184,11 @@ def simulate_voltage(
     out = _simulate(p, eff, t, u, v0, t_hist, u_hist, v_pre, x0, None)
     if eff.resistance_drift == 0.0:
         return out
+    # Each command sees the winding as it was when the command was issued.
+    k = np.clip(np.searchsorted(t, t_cmd, "right") - 1, 0, len(t) - 1)
     for _ in range(DRIFT_PASSES):
         rise = winding_rises(p, eff, t, out.i, rise0)
-        # Each command sees the winding as it was when the command was issued.
-        k = np.clip(np.searchsorted(t, t_cmd, "right") - 1, 0, len(t) - 1)
-        r_at = np.array([winding_resistance(p, eff, x) for x in rise.tolist()])
+        r_at = p.R_m * (1.0 + COPPER_TEMPCO * rise)  # winding_resistance, elementwise
         r_cmd = np.where(t_cmd < t[0], winding_resistance(p, eff, rise0), r_at[k])
         out = _simulate(p, eff, t, u, v0, t_hist, u_hist, v_pre, x0, r_cmd - p.R_m)
     return out
@@ -200,11 +201,20 @@ DRIFT_PASSES = 2
 def winding_rises(p: VehicleParams, eff: Effects, t: Array, i: Array, rise0: float) -> Array:
     """The winding's temperature rise (K) at each sample under the current ``i`` (A),
     from ``rise0`` at ``t[0]`` (copper loss over a step: the mean of the squared currents
-    at its ends, as the plant counts it)."""
+    at its ends, as the plant counts it).  The C kernel runs the loop when built (the
+    same arithmetic as :func:`winding_resistance` and :func:`winding_rise_step`)."""
+    sq_arr = np.asarray(i, float) ** 2
+    if eff.resistance_drift != 0.0 and len(t) > 0:
+        done = ckernel.winding_rises(
+            np.diff(t), sq_arr, rise0, p.R_m, COPPER_TEMPCO, eff.resistance_drift,
+            eff.winding_time_constant,
+        )  # fmt: skip
+        if done is not None:
+            return done
     out = np.empty(len(t))
     rise = rise0
     out[0] = rise
-    sq = (np.asarray(i, float) ** 2).tolist()
+    sq = sq_arr.tolist()
     dts = np.diff(t).tolist()
     for k, h in enumerate(dts):
         r = winding_resistance(p, eff, rise)
@@ -250,19 +260,15 @@ def _simulate(
         a = k_arr * p.K_T / p.J_S * volts / r_tot
         b = k_arr * (p.K_T * p.K_v / r_tot + eff.viscous_friction) / p.J_S
         lag_cmd = lag_e if eff.backlash == 0.0 else 0.0
-        tl = merge_equal(timeline(t, eff.input_delay + lag_cmd, hist, t_cmd), a, b)
+        tl = merge_equal(_timeline(t, t_hist, eff.input_delay + lag_cmd, hist, t_cmd), a, b)
         if cached:
             if len(_PREP) >= PREP_CACHE:
                 del _PREP[next(iter(_PREP))]
             _PREP[key] = (t, u, t_hist, u_hist, (volts, r_tot, k_arr, kappa, lag_e, a, b, tl))
     load = p.force_to_torque(eff.load_force)
-    stribeck: Callable[[float], float] | None = None
+    stribeck = None
     if eff.stribeck != 0.0:
-        per_nm = kappa / p.J_S
-
-        def stribeck(w: float) -> float:
-            return float(per_nm * stribeck_torque(p, eff, w))
-
+        stribeck = Stribeck(kappa / p.J_S, eff.stribeck, p.ratio, eff.stribeck_speed)
     kin = Kinetics(
         a=a,
         b=b,
@@ -286,17 +292,82 @@ def _simulate(
     w0 = p.omega(v0)
     meas, raw, pos = run(kin, tl, n, w0, eff.sensor_lag)
     rotor = raw if kin.gap is None else kin.gap.rotor_out
-    cur, v_at = _sample_currents(p, eff, t, t_cmd, volts, r_tot, v_pre, raw, rotor)
+    idx = _active(t, t_hist, t_cmd, eff.input_delay)
+    cur, v_at = _sample_currents(p, eff, idx, volts, r_tot, v_pre, raw, rotor)
     return VoltagePrediction(
         v=meas * p.ratio, v_true=raw * p.ratio, i=cur, x=pos * p.ratio, volts=v_at
     )
 
 
+TIMING_CACHE = 64
+"""Series whose timing (the timeline of a delay, the command active at each sample) is
+kept: it depends only on the instants and the delay, not on any other parameter."""
+_TIMING: dict[tuple[object, ...], tuple[Array, Array | None, Any]] = {}
+
+
+def _timed(key: tuple[object, ...], t: Array, t_hist: Array | None) -> Any:
+    """The cached value of ``key`` for the arrays ``t``, ``t_hist`` (the cache holds
+    them, so an identity is not reused while cached), None when not cached."""
+    hit = _TIMING.get(key)
+    if hit is not None and hit[0] is t and hit[1] is t_hist:
+        return hit[2]
+    return None
+
+
+def _keep(key: tuple[object, ...], t: Array, t_hist: Array | None, value: Any) -> None:
+    if len(_TIMING) >= TIMING_CACHE:
+        del _TIMING[next(iter(_TIMING))]
+    _TIMING[key] = (t, t_hist, value)
+
+
+def _timeline(t: Array, t_hist: Array | None, delay: float, hist: int, t_cmd: Array) -> Timeline:
+    """:func:`timeline` of the commands at ``t_cmd`` (``t_hist`` then ``t``) acting
+    ``delay`` s later, kept per series and delay."""
+    key = ("timeline", id(t), id(t_hist), delay, hist)
+    tl = _timed(key, t, t_hist)
+    if tl is None:
+        tl = timeline(t, delay, hist, t_cmd)
+        _keep(key, t, t_hist, tl)
+    return tl  # type: ignore[no-any-return]
+
+
+@dataclass(frozen=True)
+class Active:
+    """Which command is active at each sample instant (the timing of
+    :func:`_sample_currents`, kept per series and delay)."""
+
+    on: NDArray[np.bool_]
+    """A command is active (not: before the first one acts)."""
+    at: NDArray[np.int64]
+    """Index of the active command in the commands (0 where none is)."""
+    prev_on: NDArray[np.bool_]
+    """A command was active before it."""
+    prev: NDArray[np.int64]
+    """Index of that command (0 where none was)."""
+    neg_since: Array
+    """Minus the time (s) since the active command acted (-inf where none is)."""
+
+
+def _active(t: Array, t_hist: Array | None, t_cmd: Array, delay: float) -> Active:
+    """The command (in ``t_cmd``) active at each sample instant under the input delay
+    ``delay`` (s), kept per series and delay."""
+    key = ("active", id(t), id(t_hist), delay, len(t_cmd))
+    out = _timed(key, t, t_hist)
+    if out is None:
+        act = t_cmd + delay
+        idx = np.searchsorted(act, t, "left") - 1
+        on, at = idx >= 0, np.maximum(idx, 0)
+        prev = idx - 1
+        since = np.where(on, t - act[at], np.inf)
+        out = Active(on, at, prev >= 0, np.maximum(prev, 0), -since)
+        _keep(key, t, t_hist, out)
+    return out  # type: ignore[no-any-return]
+
+
 def _sample_currents(
     p: VehicleParams,
     eff: Effects,
-    t: Array,
-    t_cmd: Array,
+    idx: Active,
     volts: Array,
     r_tot: Array,
     v_pre: float,
@@ -307,20 +378,15 @@ def _sample_currents(
     under the command active at the sample (``volts`` through ``r_tot`` per command,
     ``v_pre`` before the first), still settling from the previous command when one
     acted just before, within the current limit; ``raw`` the load's speed, ``rotor``
-    the rotor's (rad/s)."""
-    # Active command at each sample instant (for the quasi-static current).
-    act = t_cmd + eff.input_delay
-    idx = np.searchsorted(act, t, "left") - 1
-    v_at = np.where(idx >= 0, volts[np.maximum(idx, 0)], v_pre)
-    r_at = np.where(idx >= 0, r_tot[np.maximum(idx, 0)], p.R_m)
+    the rotor's (rad/s); ``idx`` the command active at each sample (:func:`_active`)."""
+    v_at = np.where(idx.on, volts[idx.at], v_pre)
+    r_at = np.where(idx.on, r_tot[idx.at], p.R_m)
     cur = (v_at - p.K_v * rotor) / r_at
     # A command that acted just before the sample: the current is still settling.
-    prev = idx - 1
-    since = np.where(idx >= 0, t - act[np.maximum(idx, 0)], np.inf)
-    v_old = np.where(prev >= 0, volts[np.maximum(prev, 0)], v_pre)
-    r_old = np.where(prev >= 0, r_tot[np.maximum(prev, 0)], p.R_m)
+    v_old = np.where(idx.prev_on, volts[idx.prev], v_pre)
+    r_old = np.where(idx.prev_on, r_tot[idx.prev], p.R_m)
     cur_old = (v_old - p.K_v * rotor) / r_old
-    cur = cur + (cur_old - cur) * np.exp(-since * r_at / p.L_m)
+    cur = cur + (cur_old - cur) * np.exp(idx.neg_since * r_at / p.L_m)
     if eff.current_limit != 0.0:
         cur = np.clip(cur, -eff.current_limit, eff.current_limit)
         room = r_at * eff.current_limit
@@ -339,13 +405,28 @@ def predict(p: VehicleParams, e: Effects, s: Series) -> VoltagePrediction:
     return simulate_voltage(p, e, s.t, s.inp, v0, s.hist_t, s.hist_inp, v_pre, x0, rise0)
 
 
+RISE_CACHE = 8
+"""Runs whose winding heating (under one model) is kept for the stretches cut from them."""
+_RISES: dict[tuple[object, ...], tuple[Series, Array]] = {}
+
+
 def _winding_rise_before(p: VehicleParams, e: Effects, s: Series) -> float:
     """The winding's temperature rise (K) at the start of ``s`` (``resistance_drift``):
-    the run it was cut from simulated up to there (0 when ``s`` starts the run)."""
+    the run it was cut from simulated (0 when ``s`` starts the run).  The run's heating
+    is kept per run and model: every stretch cut from it (the chunks of a fit) reads its
+    start there, one free run of the run instead of one of its head per stretch (the
+    free run is causal: the head's is the run's up to there)."""
     if e.resistance_drift == 0.0 or s.origin is None or s.offset < 1:
         return 0.0
-    head = s.origin.slice(0, s.offset + 1)
-    return float(winding_rises(p, e, head.t, predict(p, e, head).i, 0.0)[-1])
+    o = s.origin
+    key = (id(o), p, e)
+    hit = _RISES.get(key)
+    if hit is None or hit[0] is not o:
+        rises = winding_rises(p, e, o.t, predict(p, e, o).i, 0.0)
+        if len(_RISES) >= RISE_CACHE:
+            del _RISES[next(iter(_RISES))]
+        hit = _RISES[key] = (o, rises)
+    return float(hit[1][s.offset])
 
 
 @dataclass(frozen=True)

@@ -29,10 +29,12 @@ from numpy.typing import NDArray
 
 from truckd.ident import ckernel
 from truckd.model.effects import (
+    BACKLASH_STEP,
     Effects,
     gap_at_start,
     gap_free_motion,
     gap_opens,
+    limited_torque,
     terrain_force,
 )
 from truckd.model.params import VehicleParams
@@ -261,16 +263,21 @@ def _segment(
 
 
 KERNEL_FIELDS = frozenset(
-    ("a", "b", "a_idle", "b_idle", "c", "sigma", "d", "drag", "scale", "lag", "terrain")
-)
+    (
+        "a", "b", "a_idle", "b_idle", "c", "sigma", "d", "drag", "scale", "lag", "terrain",
+        "a_max", "b_mech", "stribeck", "gap",
+    )
+)  # fmt: skip
 """The :class:`Kinetics` fields the C kernel (:mod:`truckd.ident.ckernel`) models."""
 
 
 def kernel_handles(kin: Kinetics) -> bool:
     """Whether the C kernel models ``kin``: a position-dependent load only as a
-    :class:`Terrain`, and every field it does not know at its default (a newer model
-    feature runs the Python loop)."""
+    :class:`Terrain`, a Stribeck friction only as a :class:`Stribeck`, and every field
+    it does not know at its default (a newer model feature runs the Python loop)."""
     if kin.terrain is not None and not isinstance(kin.terrain, Terrain):
+        return False
+    if kin.stribeck is not None and not isinstance(kin.stribeck, Stribeck):
         return False
     for f in dataclasses.fields(kin):
         if f.name in KERNEL_FIELDS:
@@ -317,9 +324,18 @@ def _run_in_c(
             e.load_force_wavelength, e.load_force_phase, e.hill_force, e.hill_start,
             e.hill_length,
         )  # fmt: skip
+    sb = kin.stribeck
+    stb = None
+    if isinstance(sb, Stribeck):
+        stb = (sb.per_nm, sb.amplitude, sb.ratio, sb.speed)
+    lim = (kin.a_max, kin.b_mech) if kin.a_max < math.inf else None
+    g = kin.gap
+    gap = None
+    if g is not None:
+        gap = (g.constants, g.volts_arr, g.r_arr, g.state(), g.rotor_out)
     return ckernel.run(
         kin.a, kin.b, kin.a_idle, kin.b_idle, kin.c, kin.sigma, kin.d, kin.drag,
-        kin.scale, kin.lag, tl.dt, tl.cmd, tl.sample_end, n, w0, sensor_lag, ter,
+        kin.scale, kin.lag, tl.dt, tl.cmd, tl.sample_end, n, w0, sensor_lag, ter, stb, lim, gap,
     )  # fmt: skip
 
 
@@ -327,8 +343,9 @@ def _run_in_python(
     kin: Kinetics, tl: Timeline, n: int, w0: float, sensor_lag: float
 ) -> tuple[Array, Array, Array]:
     """:func:`run` as a Python loop over the sub-intervals: the reference the C kernel
-    (``kernel/fastrun.c``) follows step by step, and the only runner of the effects the
-    kernel does not model (current limit, Stribeck friction, backlash).
+    (``kernel/fastrun.c``) follows step by step (every effect: current limit, Stribeck
+    friction and backlash included), and the runner when the kernel is not built or a
+    newer :class:`Kinetics` field is set.
 
     Long because it is one loop kept whole on purpose: it mirrors the C kernel's loop
     line for line (``tests/test_ident_kernel.py`` compares them), and its fast path is
@@ -477,12 +494,24 @@ class GapRun:
     ) -> None:
         self.p, self.eff = p, eff
         self.volts, self.r = volts.tolist(), r.tolist()
+        self.volts_arr = np.ascontiguousarray(volts, dtype=np.float64)
+        self.r_arr = np.ascontiguousarray(np.broadcast_to(r, volts.shape), dtype=np.float64)
         self.v_idle = v_idle
         self.per = p.J_S / kappa
         """Torque (N m) per unit of the run's per-inertia coefficients."""
         self.gap = gap_at_start(eff, w0)
         self.rotor_out = np.full(n, w0)
         """Rotor speed (rad/s) at each sample (the load's while the gap is closed)."""
+        self.constants = (
+            p.K_T, p.K_v, p.J_S, p.K_stiction, p.R_m, eff.rotor_inertia_fraction,
+            eff.backlash, limited_torque(p, eff), self.per, v_idle, BACKLASH_STEP,
+        )  # fmt: skip
+        """What the C kernel's gap needs (``kernel/fastrun.c``, ``gap_opens``)."""
+
+    def state(self) -> Array:
+        """The gap's state as the C kernel keeps it: ``[side, angle, rotor]``."""
+        g = self.gap
+        return np.array([float(g.side), g.angle, g.rotor])
 
     def step(
         self, k: int, w: float, dt: float, c: float, d: float, visc: float
@@ -536,3 +565,20 @@ class Terrain:
 
     def __call__(self, angle: float) -> float:
         return self.per_newton * terrain_force(self.eff, self.x0 + angle * self.ratio)
+
+
+@dataclass(frozen=True)
+class Stribeck:
+    """The Stribeck friction above Coulomb per unit inertia at motor speed ``w`` (rad/s):
+    ``per_nm * stribeck_torque`` (:func:`truckd.model.effects.stribeck_torque`, whose
+    arithmetic it repeats: ``amplitude`` N m, ``ratio`` m/rad, ``speed`` m/s); the C
+    kernel computes the same from these fields."""
+
+    per_nm: float
+    amplitude: float
+    ratio: float
+    speed: float
+
+    def __call__(self, w: float) -> float:
+        z = w * self.ratio / self.speed
+        return self.per_nm * (self.amplitude * math.exp(-z * z))

@@ -67,7 +67,8 @@ mechanical time constants after it left: its validation is judged on those sampl
 
 def hill_support(p: VehicleParams, e: Effects, data: Sequence[Series], w: Weights) -> np.ndarray:
     """Which entries of :func:`residuals` over ``data`` the hill of ``e`` acts on: the
-    samples on its stretch and up to :data:`SETTLE` time constants after leaving it."""
+    samples on its stretch and up to :data:`SETTLE` time constants after leaving it
+    (of a held speed, the fresh readings, as the residuals count them)."""
     settle = SETTLE * (time_constant(p) or 0.0)
     lo, hi = e.hill_start, e.hill_start + e.hill_length
     parts = []
@@ -75,7 +76,7 @@ def hill_support(p: VehicleParams, e: Effects, data: Sequence[Series], w: Weight
         on = np.zeros(len(s), dtype=bool) if s.x is None else (s.x >= lo) & (s.x < hi)
         last = np.maximum.accumulate(np.where(on, s.t, -np.inf))
         near = s.t - last <= settle
-        parts.append(near)
+        parts.append(near if s.fresh.all() else near[s.fresh])  # as residuals() counts
         if w.i and s.i is not None:
             parts.append(near[1:])
     return np.concatenate(parts) if parts else np.zeros(0, dtype=bool)

@@ -90,12 +90,184 @@ static double terrain(const double *ter, double angle)
     return ter[0] * force;
 }
 
-/* See freerun.run.  scale may be NULL (1 everywhere), ter NULL (no terrain).  Returns 0. */
+/* Sliding friction above Coulomb per unit inertia at speed w (freerun.Stribeck): stb =
+ * {per_nm, amplitude, ratio, speed}, as truckd.model.effects.stribeck_torque. */
+static double stribeck(const double *stb, double w)
+{
+    double z = w * stb[2] / stb[3];
+    return stb[0] * (stb[1] * exp(-z * z));
+}
+
+/* freerun._time_to: when the speed, sliding from w under dw/dt = a - b w - s c - d,
+ * reaches target of the same sign; returns 0 when it does not (*t unset). */
+static int time_to(double w, double target, double a, double b, double c, double d, double *t)
+{
+    double s, g, ratio, tt;
+    if (w == 0.0 || w * target <= 0.0) {
+        return 0;
+    }
+    s = w > 0.0 ? 1.0 : -1.0;
+    g = a - s * c - d;
+    if (b * fabs(target - w) < 1e-9 * fmax(fabs(g), 1e-300)) {
+        tt = g != 0.0 ? (target - w) / g : -1.0;
+        if (tt >= 0.0) {
+            *t = tt;
+            return 1;
+        }
+        return 0;
+    }
+    ratio = (target - g / b) / (w - g / b);
+    if (!(ratio > 0.0)) {
+        return 0;
+    }
+    tt = -log(ratio) / b;
+    if (tt >= 0.0) {
+        *t = tt;
+        return 1;
+    }
+    return 0;
+}
+
+/* freerun._limited: a sub-interval that starts with the current limit binding (a_max the
+ * largest drive); returns 0 when the limit does not bind at its start. */
+static int limited(double w, double a, double b, double b_mech, double a_max, double c,
+                   double sigma, double d, double h, double lag, double *w_out, double *dist)
+{
+    double b_emf = b - b_mech;
+    double drive = a - b_emf * w;
+    double s_l, a_l, w_end, dx, w_star, t_rel, lo, hi, d1, d2, w1;
+    if (fabs(drive) <= a_max) {
+        return 0;
+    }
+    s_l = drive > 0.0 ? 1.0 : -1.0;
+    a_l = s_l * a_max;
+    w_end = segment(w, a_l, b_mech, c, sigma, d, h, lag, &dx);
+    if (b_emf <= 0.0 || fabs(a - b_emf * w_end) >= a_max) {
+        *w_out = w_end;
+        *dist = dx;
+        return 1;
+    }
+    w_star = (a - a_l) / b_emf;
+    if (time_to(w, w_star, a_l, b_mech, c, d, &t_rel) && 0.0 <= t_rel && t_rel <= h) {
+        w1 = segment(w, a_l, b_mech, c, sigma, d, t_rel, lag, &d1);
+        *w_out = segment(w1, a, b, c, sigma, d, h - t_rel, lag, &d2);
+        *dist = d1 + d2;
+        return 1;
+    }
+    lo = 0.0;
+    hi = h;
+    for (int it = 0; it < 40; ++it) {
+        double mid = 0.5 * (lo + hi), dm;
+        double wm = segment(w, a_l, b_mech, c, sigma, d, mid, lag, &dm);
+        if ((wm - w_star) * s_l < 0.0) {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+        if (hi - lo <= 1e-9 * h) {
+            break;
+        }
+    }
+    w1 = segment(w, a_l, b_mech, c, sigma, d, hi, lag, &d1);
+    *w_out = segment(w1, a, b, c, sigma, d, h - hi, lag, &d2);
+    *dist = d1 + d2;
+    return 1;
+}
+
+/* The backlash gap (freerun.GapRun with truckd.model.effects.gap_opens and
+ * gap_free_motion): gp = {K_T, K_v, J_S, K_stiction, R_m, rotor_inertia_fraction,
+ * backlash, cap (largest motor torque), per (N m per unit of the run's coefficients),
+ * v_idle, step (longest free-motion step, s)}; volts, r per command; state = {side,
+ * angle, rotor}. */
+static int gap_opens(const double *gp, const double *state, double omega, double volts,
+                     double r, double coulomb, double load, double viscous)
+{
+    double motor = gp[0] * (volts - gp[1] * omega) / r;
+    double resist, j_r, contact;
+    motor = fmin(fmax(motor, -gp[7]), gp[7]);
+    if (omega != 0.0) {
+        resist = copysign(coulomb, omega) + load + viscous * omega;
+    } else {
+        resist = load + fmin(fmax(motor - load, -gp[3]), gp[3]);
+    }
+    j_r = gp[5] * gp[2];
+    contact = ((gp[2] - j_r) * motor + j_r * resist) / gp[2];
+    return contact * state[0] < 0.0;
+}
+
+static double gap_free_motion(const double *gp, double *state, double w_load, double volts,
+                              double r, double coulomb, double load, double viscous, double h,
+                              double *travelled_out, double *used_out)
+{
+    double j_r = gp[5] * gp[2];
+    double j_l = gp[2] - j_r;
+    double half = 0.5 * gp[6];
+    double w_inf = volts / gp[1];
+    double rate = gp[0] * gp[1] / (r * j_r);
+    double used = 0.0, travelled = 0.0;
+    while (used < h) {
+        double dt = fmin(gp[10], h - used);
+        double e = exp(-rate * dt);
+        double wr1 = w_inf + (state[2] - w_inf) * e;
+        double ang_r = w_inf * dt + (state[2] - w_inf) * (1.0 - e) / rate;
+        double wl1, ang_l, angle, moving;
+        if (w_load != 0.0) {
+            double sg = w_load > 0.0 ? 1.0 : -1.0;
+            double dec = (sg * coulomb + load + viscous * w_load) / j_l;
+            wl1 = w_load - dec * dt;
+            if (wl1 * sg <= 0.0 && dec * sg > 0.0) {
+                double t_stop = w_load / dec;
+                ang_l = 0.5 * w_load * t_stop;
+                wl1 = 0.0;
+            } else {
+                ang_l = 0.5 * (w_load + wl1) * dt;
+            }
+        } else if (fabs(load) > gp[3]) {
+            double acc = -(load - copysign(coulomb, load)) / j_l;
+            wl1 = acc * dt;
+            ang_l = 0.5 * wl1 * dt;
+        } else {
+            wl1 = 0.0;
+            ang_l = 0.0;
+        }
+        angle = state[1] + ang_r - ang_l;
+        moving = angle - state[1];
+        if ((angle >= half && moving > 0.0) || (angle <= -half && moving < 0.0)) {
+            double side = moving > 0.0 ? 1.0 : -1.0;
+            double frac = (side * half - state[1]) / moving;
+            double w_r, w_l, w;
+            frac = fmin(fmax(frac, 0.0), 1.0);
+            w_r = state[2] + frac * (wr1 - state[2]);
+            w_l = w_load + frac * (wl1 - w_load);
+            w = (j_r * w_r + j_l * w_l) / gp[2];
+            state[0] = side;
+            state[1] = side * half;
+            state[2] = w;
+            *travelled_out = travelled + frac * ang_l;
+            *used_out = used + frac * dt;
+            return w;
+        }
+        state[1] = angle;
+        state[2] = wr1;
+        w_load = wl1;
+        travelled += ang_l;
+        used += dt;
+    }
+    *travelled_out = travelled;
+    *used_out = used;
+    return w_load;
+}
+
+/* See freerun.run.  scale may be NULL (1 everywhere), ter NULL (no terrain), stb NULL (no
+ * Stribeck friction), lim NULL (no current limit; else {a_max, b_mech}), gp NULL (no
+ * backlash; else as gap_opens, with gvolts, gr per command, gstate the gap's state, which
+ * the run changes, and rotor_out the rotor speed at each sample).  Returns 0. */
 int truckd_fastrun(const double *a, const double *b, double a_idle, double b_idle, double kc,
                    double ksigma, double kd, double kdrag, const double *scale, double lag,
                    const double *dt, const int64_t *cmd, const int64_t *sample_end, int64_t m,
                    int64_t n, double w0, double sensor_lag, double *out, double *raw, double *pos,
-                   const double *ter)
+                   const double *ter, const double *stb, const double *lim, const double *gp,
+                   const double *gvolts, const double *gr, double *gstate, double *rotor_out)
 {
     double w = w0, v_lag = w0, x = 0.0, x_step0 = 0.0, h_step = 0.0;
     double c = kc, sigma = ksigma, d = kd, drag = kdrag;
@@ -126,6 +298,17 @@ int truckd_fastrun(const double *a, const double *b, double a_idle, double b_idl
         if (ter != 0) {
             d = (kd + terrain(ter, x)) * f;
         }
+        if (stb != 0) {
+            /* Breakaway takes at least the sliding friction at zero speed; the sliding
+             * friction at the speed halfway through the sub-interval (midpoint). */
+            sigma = fmax(ksigma, kc + stribeck(stb, 0.0)) * f;
+            c = (kc + stribeck(stb, w)) * f;
+            if (h > 0.0) {
+                double dh;
+                double w_half = segment(w, aa, bb, c, sigma, d, 0.5 * h, lag, &dh);
+                c = (kc + stribeck(stb, w != 0.0 ? 0.5 * (w + w_half) : w_half)) * f;
+            }
+        }
         if (drag != 0.0) {
             double aw = fabs(w);
             b_eff = bb + 2.0 * drag * aw;
@@ -135,7 +318,59 @@ int truckd_fastrun(const double *a, const double *b, double a_idle, double b_idl
             d_eff = d;
         }
         bh = b_eff * h;
-        if (w != 0.0 && bh >= 1e-5) {
+        if (lim != 0 || gp != 0) {
+            /* the gap (freerun.GapRun.step), then freerun._rigid */
+            double wl, dl, rigid = h;
+            double b_mech = lim != 0 ? lim[1] : 0.0;
+            if (gp != 0) {
+                double b_m = b_mech * f + (b_eff - bb);
+                double volts = k >= 0 ? gvolts[k] : gp[9];
+                double r = k >= 0 ? gr[k] : gp[4];
+                double coulomb = c / f * gp[8], load = d_eff / f * gp[8];
+                double viscous = b_m / f * gp[8];
+                int moves = 1;
+                if (gstate[0] != 0.0) {
+                    if (!gap_opens(gp, gstate, w, volts, r, coulomb, load, viscous)) {
+                        moves = 0;
+                    } else {
+                        gstate[0] = 0.0;
+                        gstate[2] = w;
+                    }
+                }
+                if (moves) {
+                    double used;
+                    w = gap_free_motion(gp, gstate, w, volts, r, coulomb, load, viscous, h, &dl,
+                                        &used);
+                    x += dl;
+                    rigid = h - used;
+                }
+                bh = b_eff * rigid;
+            }
+            if (rigid > 0.0) {
+                double b_m = b_mech * f + (b_eff - bb);
+                if (lim != 0 &&
+                    limited(w, aa, b_eff, b_m, lim[0], c, sigma, d_eff, rigid, lag, &wl, &dl)) {
+                    w = wl;
+                    x += dl;
+                } else if (w != 0.0 && bh >= 1e-5) {
+                    double s = w > 0.0 ? 1.0 : -1.0;
+                    double g = aa - s * c - d_eff;
+                    double em1 = -expm1(-bh);
+                    double p1 = em1 / b_eff;
+                    double w1 = w * (1.0 - em1) + g * p1;
+                    if (w1 * s > 0.0) {
+                        x += w * p1 + g * (rigid - p1) / b_eff;
+                        w = w1;
+                    } else {
+                        w = segment(w, aa, b_eff, c, sigma, d_eff, rigid, lag, &dl);
+                        x += dl;
+                    }
+                } else {
+                    w = segment(w, aa, b_eff, c, sigma, d_eff, rigid, lag, &dl);
+                    x += dl;
+                }
+            }
+        } else if (w != 0.0 && bh >= 1e-5) {
             double s = w > 0.0 ? 1.0 : -1.0;
             double g = aa - s * c - d_eff;
             double em1 = -expm1(-bh);
@@ -155,6 +390,9 @@ int truckd_fastrun(const double *a, const double *b, double a_idle, double b_idl
             x += dx;
         }
         h_step += h;
+        if (gp != 0 && se >= 0 && se < n) {
+            rotor_out[se] = gstate[0] == 0.0 ? gstate[2] : w;
+        }
         if (se >= 0 && se < n) {
             raw[se] = w;
             pos[se] = x;
@@ -171,6 +409,28 @@ int truckd_fastrun(const double *a, const double *b, double a_idle, double b_idl
             x_step0 = x;
             h_step = 0.0;
         }
+    }
+    return 0;
+}
+
+/* fastsim.winding_rises: the winding's temperature rise at each of n samples from rise0,
+ * sq the squared currents, h the n - 1 time steps (s); r_m (ohm), tempco (1/K), drift
+ * (K/W), tau (s) as truckd.model.effects.winding_resistance and winding_rise_step.
+ * Returns 0. */
+int truckd_winding_rises(const double *h, const double *sq, int64_t n, double rise0, double r_m,
+                         double tempco, double drift, double tau, double *out)
+{
+    double rise = rise0;
+    if (n < 1) {
+        return 0;
+    }
+    out[0] = rise;
+    for (int64_t k = 0; k + 1 < n; ++k) {
+        double r = r_m * (1.0 + tempco * rise);
+        double power = 0.5 * (sq[k] + sq[k + 1]) * r;
+        double e = exp(-h[k] / tau);
+        rise = rise * e + drift * power * (1.0 - e);
+        out[k + 1] = rise;
     }
     return 0;
 }
