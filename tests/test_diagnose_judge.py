@@ -3,14 +3,16 @@ the validation cost it removes (:meth:`truckd.ident.judge.Judge.earns`)."""
 
 from __future__ import annotations
 
+import numpy as np
 from labkit.synth import plant_log
 
 from truckd.ident.candidates import voltage_candidates
 from truckd.ident.data import runs_from_logs
-from truckd.ident.judge import STRONG_REL, Judge
+from truckd.ident.judge import STRONG_REL, Judge, hill_support
 from truckd.ident.runs import prepare
 from truckd.ident.scoring import GAIN_MIN, Model, gain_where_acting, quiet, val_cost
-from truckd.ident.voltage import FitResult
+from truckd.ident.voltage import FitResult, Weights, residuals
+from truckd.logfile import Log
 from truckd.model.effects import Effects
 from truckd.model.params import VehicleParams
 
@@ -40,3 +42,19 @@ def test_a_low_speed_friction_earns_its_place_by_the_cost_it_removes(
     # The same model judged against one it improves by less than a fifth: points decide.
     close = Model(without.fit, (), with_it.val_cost / (1.0 - 0.5 * STRONG_REL))
     assert not judge.earns("stribeck", with_it, close)
+
+
+def test_a_hills_support_masks_the_residuals_of_a_held_speed(params: VehicleParams) -> None:
+    """A speed that updates every 4th sample (sample and hold, as some real logs have):
+    the hill's support has one entry per residual, with current and without; counting
+    every sample instead made the hill check index past the residuals."""
+    log = plant_log(params, Effects(), seed=7, n=800)
+    v = log["v"]
+    held = Log({**log.columns, "v": np.repeat(v[::4], 4)[: len(v)]}, "<held speed>")
+    runs = runs_from_logs([held], None)
+    hill = Effects(load_force=0.5, hill_start=0.1, hill_length=0.5)
+    for w in (Weights(v=100.0), Weights(v=100.0, i=10.0)):
+        res = residuals(params, Effects(), runs, w)
+        mask = hill_support(params, hill, runs, w)
+        assert mask.shape == res.shape
+        assert len(res) < sum(len(s) for s in runs) * (2 if w.i else 1)  # held: fewer
