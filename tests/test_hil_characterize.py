@@ -29,6 +29,7 @@ from characterize_support import CHARACTERIZE_FOR_DRAWN, draw_truck, feedforward
 from hil_support import PY, ROOT, Firmware, end_process, hil_config, new_port
 from runtime_support import endpoint, write_config
 
+from truckd.cli.main import main as truckd_main
 from truckd.config.truck import load_config
 from truckd.runtime.telemetry import zenoh_config
 
@@ -74,13 +75,14 @@ def determined_in(notes: list[str], lead: str) -> set[str]:
 
 
 def sim_gap_rms(config: Path, tmp: Path, model: Path | None) -> float:
+    """``truckd sim --scenario follow`` on the plant of ``config`` (in this process: the
+    command's own entry point, without another interpreter's start)."""
     out = tmp / ("sim-model.json" if model else "sim-config.json")
-    cmd = [PY, "-m", "truckd.cli.main", "sim", "--config", str(config), "--scenario", "follow",
-           "--duration", "20", "--json", str(out)]  # fmt: skip
+    argv = ["sim", "--config", str(config), "--scenario", "follow", "--duration", "20",
+            "--json", str(out)]  # fmt: skip
     if model is not None:
-        cmd += ["--model", str(model)]
-    r = subprocess.run(cmd, capture_output=True, text=True, timeout=120, cwd=ROOT)
-    assert r.returncode == 0, r.stderr
+        argv += ["--model", str(model)]
+    assert truckd_main(argv) == 0
     return float(json.loads(out.read_text())["gap_error_rms_m"])
 
 
