@@ -181,17 +181,20 @@ def simulate_voltage(
     hist = 0 if t_hist is None or u_hist is None else len(t_hist)
     t = np.asarray(t, float)
     t_cmd = t if not hist else np.concatenate([np.asarray(t_hist, float), t])
-    out = _simulate(p, eff, t, u, v0, t_hist, u_hist, v_pre, x0, None)
-    if eff.resistance_drift == 0.0:
+    # A fit's trial parameters can be absurd (a winding heated without bound): the run
+    # then overflows to inf or NaN, which the residuals score as a miss; no warning.
+    with np.errstate(over="ignore", invalid="ignore"):
+        out = _simulate(p, eff, t, u, v0, t_hist, u_hist, v_pre, x0, None)
+        if eff.resistance_drift == 0.0:
+            return out
+        # Each command sees the winding as it was when the command was issued.
+        k = np.clip(np.searchsorted(t, t_cmd, "right") - 1, 0, len(t) - 1)
+        for _ in range(DRIFT_PASSES):
+            rise = winding_rises(p, eff, t, out.i, rise0)
+            r_at = p.R_m * (1.0 + COPPER_TEMPCO * rise)  # winding_resistance, elementwise
+            r_cmd = np.where(t_cmd < t[0], winding_resistance(p, eff, rise0), r_at[k])
+            out = _simulate(p, eff, t, u, v0, t_hist, u_hist, v_pre, x0, r_cmd - p.R_m)
         return out
-    # Each command sees the winding as it was when the command was issued.
-    k = np.clip(np.searchsorted(t, t_cmd, "right") - 1, 0, len(t) - 1)
-    for _ in range(DRIFT_PASSES):
-        rise = winding_rises(p, eff, t, out.i, rise0)
-        r_at = p.R_m * (1.0 + COPPER_TEMPCO * rise)  # winding_resistance, elementwise
-        r_cmd = np.where(t_cmd < t[0], winding_resistance(p, eff, rise0), r_at[k])
-        out = _simulate(p, eff, t, u, v0, t_hist, u_hist, v_pre, x0, r_cmd - p.R_m)
-    return out
 
 
 DRIFT_PASSES = 2
