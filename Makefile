@@ -35,12 +35,10 @@ lint: setup-dev
 
 # Installs nothing outside .venv: a test whose tool is missing (arm-none-eabi-gcc,
 # systemd-analyze) is skipped with the reason in the summary; .ci/run installs them.
-# The tests with real-time processes (marker hil) run one at a time, the others on both
-# cores; the HIL tests whose rigs tolerate a neighbour (marker hil_pairs) two at a time.
+# The tests with real-time processes (marker hil) run alone, the others on both cores.
 test: lint firmware
 	$(BIN)/pytest -q -m 'not hil' -n 2 --dist loadfile
-	$(BIN)/pytest -q -m 'hil and not hil_pairs'
-	$(BIN)/pytest -q -m hil_pairs -n 2 --dist load
+	$(BIN)/pytest -q -m hil
 
 bench: setup-dev
 	$(BIN)/python benchmarks/run_all.py

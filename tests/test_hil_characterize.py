@@ -33,9 +33,7 @@ from truckd.cli.main import main as truckd_main
 from truckd.config.truck import load_config
 from truckd.runtime.telemetry import zenoh_config
 
-# hil_pairs: two cases run side by side in `make test` (the supervisor timeouts below are
-# 1 s; one case's analysis is CPU-bound while the other drives)
-pytestmark = [pytest.mark.hil, pytest.mark.hil_pairs, pytest.mark.slow]
+pytestmark = [pytest.mark.hil, pytest.mark.slow]
 
 WALL_M = 3.6
 """The simulated firmware's target ahead: a wall (a lead at 0 m/s) this far from the start."""
