@@ -258,6 +258,26 @@ static double gap_free_motion(const double *gp, double *state, double w_load, do
     return w_load;
 }
 
+/* Rigid motion over dur seconds (no gap, no current limit): the closed form while the
+ * speed keeps its sign (and b dur is not negligible), else segment(); the distance in *dx. */
+static double roll(double w, double a, double b, double c, double sigma, double d, double dur,
+                   double lag, double *dx)
+{
+    double bh = b * dur;
+    if (w != 0.0 && bh >= 1e-5) {
+        double s = w > 0.0 ? 1.0 : -1.0;
+        double g = a - s * c - d;
+        double em1 = -expm1(-bh);
+        double p1 = em1 / b;
+        double w1 = w * (1.0 - em1) + g * p1;
+        if (w1 * s > 0.0) {
+            *dx = w * p1 + g * (dur - p1) / b;
+            return w1;
+        }
+    }
+    return segment(w, a, b, c, sigma, d, dur, lag, dx);
+}
+
 /* See freerun.run.  scale may be NULL (1 everywhere), ter NULL (no terrain), stb NULL (no
  * Stribeck friction), lim NULL (no current limit; else {a_max, b_mech}), gp NULL (no
  * backlash; else as gap_opens, with gvolts, gr per command, gstate the gap's state, which
@@ -278,7 +298,7 @@ int truckd_fastrun(const double *a, const double *b, double a_idle, double b_idl
     out[0] = raw[0] = w0;
     pos[0] = 0.0;
     for (int64_t j = 0; j < m; ++j) {
-        double h = dt[j], aa, bb, b_eff, d_eff, bh;
+        double h = dt[j], aa, bb, b_eff, d_eff;
         int64_t k = cmd[j], se = sample_end[j];
         double f = 1.0;
         if (k >= 0) {
@@ -317,7 +337,6 @@ int truckd_fastrun(const double *a, const double *b, double a_idle, double b_idl
             b_eff = bb;
             d_eff = d;
         }
-        bh = b_eff * h;
         if (lim != 0 || gp != 0) {
             /* the gap (freerun.GapRun.step), then freerun._rigid */
             double wl, dl, rigid = h;
@@ -344,7 +363,6 @@ int truckd_fastrun(const double *a, const double *b, double a_idle, double b_idl
                     x += dl;
                     rigid = h - used;
                 }
-                bh = b_eff * rigid;
             }
             if (rigid > 0.0) {
                 double b_m = b_mech * f + (b_eff - bb);
@@ -352,41 +370,14 @@ int truckd_fastrun(const double *a, const double *b, double a_idle, double b_idl
                     limited(w, aa, b_eff, b_m, lim[0], c, sigma, d_eff, rigid, lag, &wl, &dl)) {
                     w = wl;
                     x += dl;
-                } else if (w != 0.0 && bh >= 1e-5) {
-                    double s = w > 0.0 ? 1.0 : -1.0;
-                    double g = aa - s * c - d_eff;
-                    double em1 = -expm1(-bh);
-                    double p1 = em1 / b_eff;
-                    double w1 = w * (1.0 - em1) + g * p1;
-                    if (w1 * s > 0.0) {
-                        x += w * p1 + g * (rigid - p1) / b_eff;
-                        w = w1;
-                    } else {
-                        w = segment(w, aa, b_eff, c, sigma, d_eff, rigid, lag, &dl);
-                        x += dl;
-                    }
                 } else {
-                    w = segment(w, aa, b_eff, c, sigma, d_eff, rigid, lag, &dl);
+                    w = roll(w, aa, b_eff, c, sigma, d_eff, rigid, lag, &dl);
                     x += dl;
                 }
             }
-        } else if (w != 0.0 && bh >= 1e-5) {
-            double s = w > 0.0 ? 1.0 : -1.0;
-            double g = aa - s * c - d_eff;
-            double em1 = -expm1(-bh);
-            double p1 = em1 / b_eff;
-            double w1 = w * (1.0 - em1) + g * p1;
-            if (w1 * s > 0.0) {
-                x += w * p1 + g * (h - p1) / b_eff;
-                w = w1;
-            } else {
-                double dx;
-                w = segment(w, aa, b_eff, c, sigma, d_eff, h, lag, &dx);
-                x += dx;
-            }
         } else {
             double dx;
-            w = segment(w, aa, b_eff, c, sigma, d_eff, h, lag, &dx);
+            w = roll(w, aa, b_eff, c, sigma, d_eff, h, lag, &dx);
             x += dx;
         }
         h_step += h;
