@@ -271,7 +271,7 @@ def _simulate(
     load = p.force_to_torque(eff.load_force)
     stribeck = None
     if eff.stribeck != 0.0:
-        stribeck = Stribeck(kappa / p.J_S, eff.stribeck, p.ratio, eff.stribeck_speed)
+        stribeck = Stribeck(p, eff, kappa / p.J_S)
     kin = Kinetics(
         a=a,
         b=b,

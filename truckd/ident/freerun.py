@@ -35,6 +35,7 @@ from truckd.model.effects import (
     gap_free_motion,
     gap_opens,
     limited_torque,
+    stribeck_torque,
     terrain_force,
 )
 from truckd.model.params import VehicleParams
@@ -325,9 +326,7 @@ def _run_in_c(
             e.hill_length,
         )  # fmt: skip
     sb = kin.stribeck
-    stb = None
-    if isinstance(sb, Stribeck):
-        stb = (sb.per_nm, sb.amplitude, sb.ratio, sb.speed)
+    stb = sb.kernel_args() if isinstance(sb, Stribeck) else None
     lim = (kin.a_max, kin.b_mech) if kin.a_max < math.inf else None
     g = kin.gap
     gap = None
@@ -570,15 +569,16 @@ class Terrain:
 @dataclass(frozen=True)
 class Stribeck:
     """The Stribeck friction above Coulomb per unit inertia at motor speed ``w`` (rad/s):
-    ``per_nm * stribeck_torque`` (:func:`truckd.model.effects.stribeck_torque`, whose
-    arithmetic it repeats: ``amplitude`` N m, ``ratio`` m/rad, ``speed`` m/s); the C
-    kernel computes the same from these fields."""
+    ``per_nm * stribeck_torque(p, eff, w)``; the C kernel computes the same from
+    :meth:`kernel_args`."""
 
+    p: VehicleParams
+    eff: Effects
     per_nm: float
-    amplitude: float
-    ratio: float
-    speed: float
 
     def __call__(self, w: float) -> float:
-        z = w * self.ratio / self.speed
-        return self.per_nm * (self.amplitude * math.exp(-z * z))
+        return self.per_nm * stribeck_torque(self.p, self.eff, w)
+
+    def kernel_args(self) -> tuple[float, float, float, float]:
+        """``(per_nm, amplitude N m, ratio m/rad, speed m/s)`` for ``kernel/fastrun.c``."""
+        return (self.per_nm, self.eff.stribeck, self.p.ratio, self.eff.stribeck_speed)
