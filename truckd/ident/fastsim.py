@@ -127,6 +127,17 @@ def _terrain(
     return Terrain(eff, kappa * p.force_to_torque(1.0) / p.J_S, p.ratio, x0)
 
 
+def _put(
+    cache: dict[tuple[object, ...], Any], key: tuple[object, ...], value: Any, most: int
+) -> Any:
+    """Store ``value`` under ``key`` in one of this module's caches, dropping the oldest
+    entry once ``most`` are kept; returns ``value``."""
+    if len(cache) >= most:
+        del cache[next(iter(cache))]
+    cache[key] = value
+    return value
+
+
 PREP_CACHE = 64
 """Series whose input-side preparation (driver voltage, coefficients, timeline) is kept:
 a stiction scan or a friction fit changes only what acts after it."""
@@ -265,9 +276,8 @@ def _simulate(
         lag_cmd = lag_e if eff.backlash == 0.0 else 0.0
         tl = merge_equal(_timeline(t, t_hist, eff.input_delay + lag_cmd, hist, t_cmd), a, b)
         if cached:
-            if len(_PREP) >= PREP_CACHE:
-                del _PREP[next(iter(_PREP))]
-            _PREP[key] = (t, u, t_hist, u_hist, (volts, r_tot, k_arr, kappa, lag_e, a, b, tl))
+            prepared = (volts, r_tot, k_arr, kappa, lag_e, a, b, tl)
+            _put(_PREP, key, (t, u, t_hist, u_hist, prepared), PREP_CACHE)
     load = p.force_to_torque(eff.load_force)
     stribeck = None
     if eff.stribeck != 0.0:
@@ -318,9 +328,7 @@ def _timed(key: tuple[object, ...], t: Array, t_hist: Array | None) -> Any:
 
 
 def _keep(key: tuple[object, ...], t: Array, t_hist: Array | None, value: Any) -> None:
-    if len(_TIMING) >= TIMING_CACHE:
-        del _TIMING[next(iter(_TIMING))]
-    _TIMING[key] = (t, t_hist, value)
+    _put(_TIMING, key, (t, t_hist, value), TIMING_CACHE)
 
 
 def _timeline(t: Array, t_hist: Array | None, delay: float, hist: int, t_cmd: Array) -> Timeline:
@@ -426,9 +434,7 @@ def _winding_rise_before(p: VehicleParams, e: Effects, s: Series) -> float:
     hit = _RISES.get(key)
     if hit is None or hit[0] is not o:
         rises = winding_rises(p, e, o.t, predict(p, e, o).i, 0.0)
-        if len(_RISES) >= RISE_CACHE:
-            del _RISES[next(iter(_RISES))]
-        hit = _RISES[key] = (o, rises)
+        hit = _put(_RISES, key, (o, rises), RISE_CACHE)
     return float(hit[1][s.offset])
 
 
