@@ -141,47 +141,29 @@ def _j(x: float) -> float | None:
 
 def state_message(out: CycleOutputs, lateness_s: float = 0.0) -> dict[str, Any]:
     """The published state of the cycle ``out`` (reference section 5); ``lateness_s``
-    the loop's.  Reads only ``out`` (frozen): safe on another thread, later.  Built every
-    cycle: the JSON-safe test (:func:`_j`) written out inline."""
+    the loop's.  Reads only ``out`` (frozen): safe on another thread, later."""
     c = out.control
-    ctrl: str | None
-    fallback: str | None
-    if c is None:
-        v = gap = v_lead = gap_ref = u_ff = solve_us = None
-        lead_valid, ctrl, fallback = False, None, "exception"
-    else:
-        est = c.estimate
-        v, gap, v_lead = est.v, est.gap, est.v_lead
-        v = v if -_INF < v < _INF else None
-        gap = gap if -_INF < gap < _INF else None
-        v_lead = v_lead if -_INF < v_lead < _INF else None
-        gap_ref, u_ff, solve_us = c.gap_ref, c.u_ff, c.solve_time_s * 1e6
-        gap_ref = gap_ref if -_INF < gap_ref < _INF else None
-        u_ff = u_ff if -_INF < u_ff < _INF else None
-        solve_us = solve_us if -_INF < solve_us < _INF else None
-        lead_valid, ctrl, fallback = bool(est.lead_valid), c.mode, c.fallback_reason
+    est = c.estimate if c is not None else None
+    nan = math.nan
     return {
         "seq": out.seq,
         "t": out.t,
         "mode": out.decision.mode.value,
-        "v": v,
-        "gap": gap,
-        "gap_ref": gap_ref,
-        "v_lead": v_lead,
+        "v": _j(est.v if est is not None else nan),
+        "gap": _j(est.gap if est is not None else nan),
+        "gap_ref": _j(c.gap_ref if c is not None else nan),
+        "v_lead": _j(est.v_lead if est is not None else nan),
         "u": out.command.voltage,
-        "u_ff": u_ff,
-        "solve_us": solve_us,
+        "u_ff": _j(c.u_ff if c is not None else nan),
+        "solve_us": _j(c.solve_time_s * 1e6 if c is not None else nan),
         "enable": out.command.enable,
-        "ctrl": ctrl,
-        "fallback": fallback,
-        "lead_valid": lead_valid,
+        "ctrl": c.mode if c is not None else None,
+        "fallback": c.fallback_reason if c is not None else "exception",
+        "lead_valid": bool(est.lead_valid) if est is not None else False,
         "lateness_us": lateness_s * 1e6,
         "faults": list(out.decision.causes),
-        "ages_ms": {k: a * 1e3 if -_INF < a < _INF else None for k, a in out.ages.items()},
+        "ages_ms": {k: _j(a * 1e3) for k, a in out.ages.items()},
     }
-
-
-_INF = math.inf
 
 
 class CompanionCycle:
