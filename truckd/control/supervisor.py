@@ -157,8 +157,8 @@ class _Counters:
     ever_ready: bool = False
 
 
-_INF = math.inf
-"""A message kind is stale unless ``-_INF < age <= timeout`` (NaN and infinities stale)."""
+def _stale(age: float, timeout: float) -> bool:
+    return not (math.isfinite(age) and age <= timeout)
 
 
 @dataclass
@@ -203,16 +203,16 @@ class Supervisor:
             out["loop_stall"] = Mode.SAFE_STOP
         if not x.link_up:
             out["link_down"] = Mode.FAULT
-        if not -_INF < x.link_age <= cfg.link_timeout_s:
+        if _stale(x.link_age, cfg.link_timeout_s):
             out["link_stale"] = Mode.SAFE_STOP
-        if not -_INF < x.encoder_age <= cfg.encoder_timeout_s:
+        if _stale(x.encoder_age, cfg.encoder_timeout_s):
             out["encoder_stale"] = Mode.SAFE_STOP
-        elif not -_INF < x.speed_age <= 2.0 * cfg.encoder_timeout_s:
+        elif _stale(x.speed_age, 2.0 * cfg.encoder_timeout_s):
             # Messages arrive, but no speed from them.  Twice the timeout: the estimator's
             # clock is the cycle's, a little before the messages' receipt stamps, so on
             # silence the root cause, encoder_stale, is named first.
             out["speed_stale"] = Mode.SAFE_STOP
-        if not -_INF < x.range_age <= cfg.range_timeout_s:
+        if _stale(x.range_age, cfg.range_timeout_s):
             out["range_stale"] = Mode.SAFE_STOP
         if self._frozen(x):
             out["range_frozen"] = Mode.SAFE_STOP
