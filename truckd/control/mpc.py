@@ -120,8 +120,7 @@ class MpcSolver:
         self.condensed: CondensedQp | None = None
         """The move-blocked QP actually solved (None: the sparse one)."""
         if cfg.move_blocks > 0:
-            p = model.params
-            tau_m = p.J_S * p.R_m / (p.K_T * p.K_v)
+            tau_m = model.params.mechanical_time_constant
             longest = max_block_steps(tau_m, cfg.period, cfg.block_tau_fraction)
             self.condensed = CondensedQp(self.qp, block_lengths(lay.N, cfg.move_blocks, longest))
             nv, nc = self.condensed.nw, self.condensed.m

@@ -67,7 +67,7 @@ def fit_candidate(
         # A lag in the speed sensor looks like inertia: the seed fit (and the linear
         # start) put the lag into J_S.  Second start: most of that time constant as lag.
         p = base.params
-        tau = p.J_S * p.R_m / (p.K_T * p.K_v)
+        tau = p.mechanical_time_constant
         j_lo = min(f.lo for f in seed_free if f.name == "J_S")
         alt = p.replace(J_S=max(0.05 * p.J_S, 1.01 * j_lo))
         e_alt = dataclasses.replace(base.effects, sensor_lag=0.95 * tau)

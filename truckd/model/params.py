@@ -63,7 +63,7 @@ class VehicleParams:
                 f"L_m / R_m = {tau_e:.3g} s: the electrical time constant of a motor lies "
                 "within [1e-7, 10] s"
             )
-        tau_m = self.J_S * self.R_m / (self.K_T * self.K_v)
+        tau_m = self.mechanical_time_constant
         if not 1e-5 <= tau_m <= 1e4:
             return (
                 f"J_S R_m / (K_T K_v) = {tau_m:.3g} s: the mechanical time constant of a "
@@ -76,6 +76,11 @@ class VehicleParams:
                 "wheels lies within [1e-4, 1000] m/s"
             )
         return None
+
+    @cached_property
+    def mechanical_time_constant(self) -> float:
+        """The motor and its load's mechanical time constant ``J_S R_m / (K_T K_v)``, s."""
+        return self.J_S * self.R_m / (self.K_T * self.K_v)
 
     @cached_property
     def ratio(self) -> float:
