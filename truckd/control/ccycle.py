@@ -72,8 +72,6 @@ def library() -> tuple[ctypes.CDLL | None, str]:
         lib.truckd_mpc_update_rho.argtypes = [i, i, d]
         lib.truckd_mpc_bind.restype = i
         lib.truckd_mpc_bind.argtypes = [i, p, p, p, i, i, i, i, p, p, i, i]
-        lib.truckd_mpc_cycle.restype = i
-        lib.truckd_mpc_cycle.argtypes = [i, i, i, i, p, p, p, p, p, p, p, p]
         lib.truckd_mpc_bind_io.restype = i
         lib.truckd_mpc_bind_io.argtypes = [i, p, p, p, p, p, p, p, p]
         lib.truckd_mpc_run.restype = i
