@@ -156,7 +156,9 @@ def test_pil_stalled_link_cuts_the_motor_within_the_command_timeout(rig: Rig) ->
     cut = next(i for i in range(n0, len(lines)) if not lines[i].enable)
     last_cmd = lines[cut - 1]
     assert last_cmd.enable and lines[cut].mv == 0
-    # the board's own clock: the command timeout after the last command applied (exact on
+    # the board's own clock (each driver line stamped with the core's time of the decision,
+    # so a SysTick between the core's reading and the driver call does not move the last
+    # command a millisecond later): the command timeout after the last command applied (exact on
     # the ctypes core, tests/test_firmware_c.py; here the emulated main loop can be held
     # up a few ms while QEMU waits on a host socket: at most one command period late)
     assert CMD_TIMEOUT_MS <= lines[cut].ms - last_cmd.ms <= CMD_TIMEOUT_MS + 10

@@ -13,7 +13,8 @@
  *     host -> board  "S <enc_l> <enc_r> <enc_status> <range_mm> <range_status>
  *                       <current_ma> <vbat_mv>\n"   sensor snapshot at that instant
  *     board -> host  "B <ms>\n"                      booted, core initialised
- *                    "M <ms> <mv> <enable>\n"        every set_motor (driver output)
+ *                    "M <ms> <mv> <enable>\n"        every set_motor (driver output), at the
+ *                                                    core's time of the decision
  *                    "C <ms> <frames_ok> <checksum_errors> <crc_errors> <cobs_errors>
  *                       <length_errors> <cmd_timeouts> <frames_sent> <tx_failed>
  *                       <commands_applied> <state>\n"   counters, every 100 ms
@@ -46,6 +47,10 @@
 
 /* -- clock --------------------------------------------------------------------------- */
 static volatile uint32_t ms_ticks;
+/* The core's clock as it last read it: the "M" lines carry this stamp, the time the core
+ * decided on (a SysTick between the core's reading and the driver call would otherwise
+ * stamp a command a millisecond after the time the core keeps for its timeout). */
+static uint32_t core_ms;
 
 void SysTick_Handler(void);
 void SysTick_Handler(void)
@@ -56,7 +61,8 @@ void SysTick_Handler(void)
 static uint32_t hal_millis(void *ctx)
 {
     (void)ctx;
-    return ms_ticks;
+    core_ms = ms_ticks;
+    return core_ms;
 }
 
 /* -- rings: RX filled by interrupts, TX drained by polling in the main loop ------------ */
@@ -246,7 +252,7 @@ static void hal_set_motor(void *ctx, int32_t voltage_mv, uint8_t enable)
 {
     (void)ctx;
     commanded_mv = enable ? voltage_mv : 0;
-    const int32_t v[3] = {(int32_t)ms_ticks, voltage_mv, enable};
+    const int32_t v[3] = {(int32_t)core_ms, voltage_mv, enable};
     plant_line('M', v, 3u);
 }
 
