@@ -33,7 +33,7 @@ PACKAGES = ("truckd", "firmware_protocol")
 
 LAYERS: tuple[tuple[str, ...], ...] = (
     ("truckd.errors",),
-    ("truckd.yamlsafe",),
+    ("truckd.yamlsafe", "truckd.jsonsafe"),
     ("truckd.schema", "truckd.inputs", "truckd.outputs"),
     ("truckd.logfile", "firmware_protocol"),
     ("truckd.model",),

@@ -13,6 +13,7 @@ from typing import Any
 
 from truckd.config.characterize import CharacterizeConfig
 from truckd.control.supervisor import Decision
+from truckd.jsonsafe import json_number
 
 EXIT_DONE, EXIT_CHECK, EXIT_STOPPED = 0, 3, 4
 """Exit codes of ``truckd characterize`` (completed, a bring-up check failed, stopped)."""
@@ -86,16 +87,12 @@ class Experiment:
         return {
             "name": self.name,
             "kind": self.kind,
-            "t_start": _j(self.t_start),
-            "t_end": _j(self.t_end),
+            "t_start": json_number(self.t_start),
+            "t_end": json_number(self.t_end),
             "ended": self.ended or "done",
             "skipped": self.skipped or None,
             "distance_m": self.distance_m,
         }
-
-
-def _j(x: float) -> float | None:
-    return x if math.isfinite(x) else None
 
 
 def plan_experiments(cfg: CharacterizeConfig) -> list[Experiment]:

@@ -47,6 +47,7 @@ from truckd.control.supervisor import (
     SupervisorInputs,
 )
 from truckd.io.port import Received
+from truckd.jsonsafe import json_number
 from truckd.runtime.command import motor_command
 from truckd.runtime.sensors import SensorState
 
@@ -134,11 +135,6 @@ class CycleOutputs:
         return self.decision.mode
 
 
-def _j(x: float) -> float | None:
-    """JSON-safe number (None for NaN/inf)."""
-    return x if math.isfinite(x) else None
-
-
 def state_message(out: CycleOutputs, lateness_s: float = 0.0) -> dict[str, Any]:
     """The published state of the cycle ``out`` (reference section 5); ``lateness_s``
     the loop's.  Reads only ``out`` (frozen): safe on another thread, later."""
@@ -149,20 +145,20 @@ def state_message(out: CycleOutputs, lateness_s: float = 0.0) -> dict[str, Any]:
         "seq": out.seq,
         "t": out.t,
         "mode": out.decision.mode.value,
-        "v": _j(est.v if est is not None else nan),
-        "gap": _j(est.gap if est is not None else nan),
-        "gap_ref": _j(c.gap_ref if c is not None else nan),
-        "v_lead": _j(est.v_lead if est is not None else nan),
+        "v": json_number(est.v if est is not None else nan),
+        "gap": json_number(est.gap if est is not None else nan),
+        "gap_ref": json_number(c.gap_ref if c is not None else nan),
+        "v_lead": json_number(est.v_lead if est is not None else nan),
         "u": out.command.voltage,
-        "u_ff": _j(c.u_ff if c is not None else nan),
-        "solve_us": _j(c.solve_time_s * 1e6 if c is not None else nan),
+        "u_ff": json_number(c.u_ff if c is not None else nan),
+        "solve_us": json_number(c.solve_time_s * 1e6 if c is not None else nan),
         "enable": out.command.enable,
         "ctrl": c.mode if c is not None else None,
         "fallback": c.fallback_reason if c is not None else "exception",
         "lead_valid": bool(est.lead_valid) if est is not None else False,
         "lateness_us": lateness_s * 1e6,
         "faults": list(out.decision.causes),
-        "ages_ms": {k: _j(a * 1e3) for k, a in out.ages.items()},
+        "ages_ms": {k: json_number(a * 1e3) for k, a in out.ages.items()},
     }
 
 

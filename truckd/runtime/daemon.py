@@ -30,6 +30,7 @@ from truckd.control.qp import ControlModel
 from truckd.control.supervisor import Decision, Mode
 from truckd.io.devlock import DeviceLock
 from truckd.io.port import Port, companion_port
+from truckd.jsonsafe import json_number
 from truckd.runtime.backend import Backend, claim_backend, open_backend
 from truckd.runtime.cycle import LOG_COLUMNS as STEP_COLUMNS
 from truckd.runtime.cycle import MODE_CODE as MODE_CODE
@@ -68,11 +69,6 @@ def _state_message(
     """The state message (reference section 5) of the cycle ``out``, with the platoon's
     fields of that cycle's decision (all frozen: built later, on another thread)."""
     return {**state_message(out, lateness_s), **platoon_state_fields(platoon)}
-
-
-def _j(x: float) -> float | None:
-    """JSON-safe number (None for NaN/inf)."""
-    return x if math.isfinite(x) else None
 
 
 class Daemon:
@@ -432,7 +428,7 @@ class Daemon:
             "mode": self.decision.mode.value,
             "faults": list(self.decision.causes),
             "transitions": list(self._transitions),
-            "ages_s": {k: _j(v) for k, v in ages.items()},
+            "ages_s": {k: json_number(v) for k, v in ages.items()},
             "link": port.stats() if port is not None else {},
             "firmware": {
                 "state": self.sensors.fw_state.name,

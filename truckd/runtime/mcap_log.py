@@ -43,6 +43,7 @@ from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
 from truckd.config.runtime import RecorderConfig
+from truckd.jsonsafe import json_clean
 from truckd.runtime.deferred import MessageSource, resolve
 from truckd.runtime.msg_schemas import KINDS, MESSAGE_ENCODING, SCHEMA_ENCODING, schema_bytes
 from truckd.runtime.msg_schemas import topic as topic_of
@@ -63,22 +64,12 @@ Extra = Callable[[], Mapping[str, Any]] | None
 """Computed on the writer thread and merged into a health message (costly statistics)."""
 
 
-def _clean(x: Any) -> Any:
-    if isinstance(x, float):
-        return x if math.isfinite(x) else None
-    if isinstance(x, dict):
-        return {k: _clean(v) for k, v in x.items()}
-    if isinstance(x, list | tuple):
-        return [_clean(v) for v in x]
-    return x
-
-
 def to_json(msg: Mapping[str, Any]) -> bytes:
     """Strict JSON bytes of a message: NaN and infinities become ``null`` (JSON has none)."""
     try:
         return json.dumps(msg, allow_nan=False, separators=(",", ":")).encode()
     except ValueError:  # a non-finite number somewhere: the rare path
-        return json.dumps(_clean(dict(msg)), allow_nan=False, separators=(",", ":")).encode()
+        return json.dumps(json_clean(dict(msg)), allow_nan=False, separators=(",", ":")).encode()
 
 
 class McapFile:

@@ -16,13 +16,13 @@ the simulated time and the configured vehicle id.
 from __future__ import annotations
 
 import dataclasses
-import math
 import tempfile
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
 from truckd.errors import InputError, TruckdError
+from truckd.jsonsafe import json_number
 from truckd.outputs import check_output_dir, check_output_file
 from truckd.runtime.cycle import LOG_COLUMNS
 from truckd.runtime.mcap_log import write_messages
@@ -31,10 +31,6 @@ from truckd.sim.closed_loop import Trace
 HEALTH_PERIOD_S = 0.5
 _ENABLE = LOG_COLUMNS.index("enable")
 _SOLVE_US = LOG_COLUMNS.index("solve_us")
-
-
-def _f(x: float) -> float | None:
-    return x if math.isfinite(x) else None
 
 
 def trace_messages(
@@ -57,16 +53,16 @@ def trace_messages(
                 "seq": k,
                 "t": t,
                 "mode": mode,
-                "v": _f(tr.v[k]),
-                "gap": _f(tr.gap[k]),
-                "gap_ref": _f(tr.gap_ref[k]),
-                "v_lead": _f(tr.v_lead[k]),
+                "v": json_number(tr.v[k]),
+                "gap": json_number(tr.gap[k]),
+                "gap_ref": json_number(tr.gap_ref[k]),
+                "v_lead": json_number(tr.v_lead[k]),
                 "u": tr.u[k],
-                "u_ff": _f(tr.u_ff[k]),
-                "solve_us": _f(row[_SOLVE_US]),
+                "u_ff": json_number(tr.u_ff[k]),
+                "solve_us": json_number(row[_SOLVE_US]),
                 "enable": bool(row[_ENABLE]),
                 "ctrl": tr.mode[k],
-                "gap_est": _f(tr.gap_est[k]),
+                "gap_est": json_number(tr.gap_est[k]),
             },
         )
         plan = tr.plans[k] if k < len(tr.plans) else None
