@@ -1,18 +1,20 @@
 """Simulated-plant speed: a 60 s log at 100 Hz, open loop, on one core.
 
-Prints a table and, with ``--json FILE``, writes the figures.  Aim: at least
-1000x faster than real time, i.e. under 60 ms of compute for the 60 s log.
+Prints a table and, with ``--json FILE``, writes ``{date, machine, results}`` (the
+machine with its load; ``--key NAME``: under that key, the file's other measurements kept,
+see ``results.py``).  Aim: at least 1000x faster than real time, i.e. under 60 ms of
+compute for the 60 s log.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
-import platform
+import datetime
 import statistics
 import time
 
 import numpy as np
+from results import machine, write_json
 
 from truckd.config.truck import load_config
 from truckd.model.effects import Effects
@@ -43,6 +45,7 @@ CASES = {
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--json", help="write results here")
+    ap.add_argument("--key", help="store the run under this name (what_YYYY-MM-DD)")
     ap.add_argument("--repeat", type=int, default=7)
     args = ap.parse_args()
     p = load_config().vehicle
@@ -74,16 +77,8 @@ def main() -> None:
             f"{r['x_realtime']:>13.0f}"
         )
     if args.json:
-        with open(args.json, "w") as fh:
-            json.dump(
-                {
-                    "machine": f"{platform.machine()} {platform.processor() or ''} "
-                    f"python {platform.python_version()}",
-                    "results": rows,
-                },
-                fh,
-                indent=2,
-            )
+        date = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d")
+        write_json(args.json, {"date": date, "machine": machine(), "results": rows}, args.key)
 
 
 if __name__ == "__main__":
