@@ -9,11 +9,15 @@ links' timeout is the shipped 0.1 s, and 0.1 s after the slowest delivery with d
 delays (``plan_timeout_s`` = 0.1 s + the largest delay).
 
     python benchmarks/platoon_scale.py --json benchmarks/platoon_scale.json [--trucks 10,100]
-        [--cases LABEL,...] [--key KEY] [--seed 1]
+        [--cases LABEL,...] [--key KEY] [--seed 1] [--seeds 1,2,...] [--scenario platoon-brake]
 
 With ``--key`` the run is stored under that key of the JSON file (the file's other keys
 kept: earlier runs stay as they were measured); ``--cases`` runs only the cases whose
-label starts with one of the given prefixes.  The links' plans are held for the shipped
+label starts with one of the given prefixes; ``--seeds`` runs each case once per seed,
+``--scenario`` another platoon scenario (``--duration`` its length).  Each row also has
+the pairwise ratios and every follower's spacing-error area (``integral of e dt`` from
+3 s on, m s: what the time-headway policy passes on with a gain of 1, docs/platoon.md
+"Mixed trucks").  The links' plans are held for the shipped
 ``plan_hold_s`` (a burst of lost plans ridden out on the last plan).
 """
 
@@ -27,11 +31,12 @@ import time
 from dataclasses import replace
 from typing import Any
 
+import numpy as np
 from results import machine, write_json
 
 from truckd.config.truck import load_config
 from truckd.sim.closed_loop import SimSetup
-from truckd.sim.platoon import make_platoon_scenario, run_platoon
+from truckd.sim.platoon import PlatoonTrace, make_platoon_scenario, run_platoon
 
 CASES: tuple[tuple[str, dict[str, Any]], ...] = (
     ("ideal link", {}),
@@ -73,6 +78,20 @@ CASES: tuple[tuple[str, dict[str, Any]], ...] = (
 )
 
 
+RATIO_FROM_S = 3.0
+"""The ratios' window starts here (the trucks' start transients: docs/platoon.md)."""
+
+
+def _areas(tr: PlatoonTrace) -> list[float]:
+    """Every follower's spacing-error area ``integral of (gap - gap_ref) dt`` from
+    :data:`RATIO_FROM_S` on (m s)."""
+    t = np.asarray(tr.t)
+    err = np.asarray(tr.gap, dtype=float)[:, 1:] - np.asarray(tr.gap_ref, dtype=float)[:, 1:]
+    w = t >= RATIO_FROM_S
+    dt = float(t[1] - t[0])
+    return [round(float(a), 5) for a in np.nansum(err[w], axis=0) * dt]
+
+
 def _summary(m: dict[str, Any], seconds: float) -> dict[str, Any]:
     def mx(key: str) -> float:
         known = [r for r in m[key] if r is not None]
@@ -97,6 +116,8 @@ def _summary(m: dict[str, Any], seconds: float) -> dict[str, Any]:
         ],
         "cacc_fraction_min": round(min(m["cacc_fraction"]), 3),
         "plans_lost_share": round(m["plans_lost"] / max(m["plans_sent"], 1), 3),
+        "string_ratio_l2": [None if r is None else round(r, 3) for r in m["string_ratio_l2"]],
+        "string_ratio_max": [None if r is None else round(r, 3) for r in m["string_ratio_max"]],
         "run_s": round(seconds, 1),
     }
 
@@ -109,7 +130,10 @@ def main() -> int:
     ap.add_argument("--cases", help="comma-separated label prefixes (default: every case)")
     ap.add_argument("--key", help="store the run under this key of the --json file")
     ap.add_argument("--seed", type=int, default=1, help="links, clocks and drawn trucks")
+    ap.add_argument("--seeds", help="comma-separated seeds (instead of --seed)")
+    ap.add_argument("--scenario", default="platoon-brake")
     args = ap.parse_args()
+    seeds = [int(x) for x in args.seeds.split(",")] if args.seeds else [args.seed]
     load_at_start = round(os.getloadavg()[0], 2)
     prefixes = args.cases.split(",") if args.cases else [""]
     cfg = load_config()
@@ -122,19 +146,23 @@ def main() -> int:
             hi = kw.get("delay_s", (0.02, 0.02))[1]
             timeout = 0.1 + hi if hi > 0.02 else cfg.platoon.plan_timeout_s
             pcfg = replace(cfg.platoon, plan_timeout_s=timeout)
-            t0 = time.monotonic()
-            m, _ = run_platoon(make_platoon_scenario("platoon-brake"), setup, pcfg, n,
-                               seed=args.seed, duration=args.duration, **kw)  # fmt: skip
-            row = {"trucks": n, "case": label, **_summary(m, time.monotonic() - t0)}
-            rows.append(row)
-            print(json.dumps(row), flush=True)
+            for seed in seeds:
+                t0 = time.monotonic()
+                m, tr = run_platoon(make_platoon_scenario(args.scenario), setup, pcfg, n,
+                                    seed=seed, duration=args.duration, **kw)  # fmt: skip
+                row = {"trucks": n, "case": label, "seed": seed,
+                       **_summary(m, time.monotonic() - t0),
+                       "spacing_error_area_m_s": _areas(tr)}  # fmt: skip
+                rows.append(row)
+                print(json.dumps(row), flush=True)
     if args.json:
         doc = {
-            "what": "platoon-brake, simulated time: string ratios and gaps against the link",
+            "what": f"{args.scenario}, simulated time: string ratios and gaps against the link",
             "date": datetime.date.today().isoformat(),
             "machine": machine(),
             "load_average_1min_at_start": load_at_start,
-            "seed": args.seed,
+            "seed": seeds[0] if len(seeds) == 1 else seeds,
+            "duration_s": args.duration,
             "plan_timeout_s": "0.1 s (shipped); 0.1 s + the largest delay with drawn delays",
             "plan_hold_s": cfg.platoon.plan_hold_s,
             "rows": rows,
