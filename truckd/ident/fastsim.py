@@ -26,6 +26,7 @@ from truckd.ident.freerun import Terrain as Terrain
 from truckd.ident.freerun import Timeline as Timeline
 from truckd.ident.freerun import run as run
 from truckd.ident.freerun import timeline as timeline
+from truckd.ident.timing import Layout, layout_of, merged, shifted
 from truckd.model.effects import (
     ARRAYS,
     COPPER_TEMPCO,
@@ -274,7 +275,7 @@ def _simulate(
         a = k_arr * p.K_T / p.J_S * volts / r_tot
         b = k_arr * (p.K_T * p.K_v / r_tot + eff.viscous_friction) / p.J_S
         lag_cmd = lag_e if eff.backlash == 0.0 else 0.0
-        tl = merge_equal(_timeline(t, t_hist, eff.input_delay + lag_cmd, hist, t_cmd), a, b)
+        tl = _merged_timeline(t, t_hist, eff.input_delay + lag_cmd, hist, t_cmd, a, b)
         if cached:
             prepared = (volts, r_tot, k_arr, kappa, lag_e, a, b, tl)
             _put(_PREP, key, (t, u, t_hist, u_hist, prepared), PREP_CACHE)
@@ -340,6 +341,32 @@ def _timeline(t: Array, t_hist: Array | None, delay: float, hist: int, t_cmd: Ar
         tl = timeline(t, delay, hist, t_cmd)
         _keep(key, t, t_hist, tl)
     return tl  # type: ignore[no-any-return]
+
+
+LAYOUT_CACHE = 64
+"""Series whose timeline layout (the order of its instants under a delay) is kept."""
+_LAYOUT: dict[tuple[object, ...], tuple[Array, Array | None, Layout]] = {}
+
+
+def _merged_timeline(
+    t: Array, t_hist: Array | None, delay: float, hist: int, t_cmd: Array, a: Array, b: Array
+) -> Timeline:
+    """``merge_equal(timeline(...), a, b)`` of the commands at ``t_cmd`` acting ``delay``
+    s later: for a delay in the order of the series' kept layout, from that layout
+    (:mod:`truckd.ident.timing`, the same arrays); else computed, and its layout kept."""
+    if delay > 0.0:
+        key = ("layout", id(t), id(t_hist), hist)
+        hit = _LAYOUT.get(key)
+        lay = hit[2] if hit is not None and hit[0] is t and hit[1] is t_hist else None
+        tl = None if lay is None else shifted(lay, t, delay, t_cmd)
+        if tl is None:
+            made = layout_of(t, delay, t_cmd)
+            if made is not None:
+                tl, lay = made
+                _put(_LAYOUT, key, (t, t_hist, lay), LAYOUT_CACHE)
+        if tl is not None and lay is not None:
+            return merged(tl, lay, a, b)
+    return merge_equal(_timeline(t, t_hist, delay, hist, t_cmd), a, b)
 
 
 @dataclass(frozen=True)
