@@ -147,16 +147,29 @@ _UNPREPARED = ("load_force", "aero_drag", "sensor_lag", *TERRAIN_FIELDS)
 """Effects fields that do not enter the preparation (loads, drag, lag, terrain)."""
 
 
+_PREP_VEHICLE = tuple(
+    f.name for f in dataclasses.fields(VehicleParams) if f.name not in ("K_coulomb", "K_stiction")
+)
+"""The vehicle's fields that enter the preparation (all but its friction)."""
+_PREP_EFFECTS = tuple(f.name for f in dataclasses.fields(Effects) if f.name not in _UNPREPARED)
+"""The effects' fields that enter it (all but loads, drag, lag and terrain)."""
+
+
 def _prep_key(
     p: VehicleParams, eff: Effects, t: Array, u: Array, t_hist: Array | None, u_hist: Array | None
 ) -> tuple[object, ...]:
     """Cache key of the preparation: the arrays' identities (the cache holds them, so an
-    identity cannot be reused while cached) and every parameter that enters it (the whole
-    vehicle but its friction, the whole effects but loads, drag, lag and terrain; a new
-    effect field is part of the key by construction)."""
-    q = p.replace(K_coulomb=0.0, K_stiction=0.0)
-    e = dataclasses.replace(eff, **dict.fromkeys(_UNPREPARED, 0.0))
-    return (id(t), id(u), id(t_hist), id(u_hist), q, e)
+    identity cannot be reused while cached) and the value of every parameter that enters
+    it (the whole vehicle but its friction, the whole effects but loads, drag, lag and
+    terrain; a new field is part of the key by construction)."""
+    return (
+        id(t),
+        id(u),
+        id(t_hist),
+        id(u_hist),
+        *[getattr(p, n) for n in _PREP_VEHICLE],
+        *[getattr(eff, n) for n in _PREP_EFFECTS],
+    )
 
 
 def simulate_voltage(
@@ -269,9 +282,13 @@ def _simulate(
         r_tot = p.R_m + r_sag
         if r_drift is not None:
             r_tot = r_tot + r_drift
-        k_arr, _ = electrical_correction(p, eff.viscous_friction, r_tot)
         k0, l0 = electrical_correction(p, eff.viscous_friction)
         kappa, lag_e = float(k0), float(l0)
+        if eff.battery_sag == 0.0 and r_drift is None:
+            # r_tot is R_m throughout: the same numbers as electrical_correction on it.
+            k_arr = np.full(len(r_tot), kappa)
+        else:
+            k_arr, _ = electrical_correction(p, eff.viscous_friction, r_tot)
         a = k_arr * p.K_T / p.J_S * volts / r_tot
         b = k_arr * (p.K_T * p.K_v / r_tot + eff.viscous_friction) / p.J_S
         lag_cmd = lag_e if eff.backlash == 0.0 else 0.0
