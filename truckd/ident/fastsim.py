@@ -324,7 +324,8 @@ def _simulate(
     meas, raw, pos = run(kin, tl, n, w0, eff.sensor_lag)
     rotor = raw if kin.gap is None else kin.gap.rotor_out
     idx = _active(t, t_hist, t_cmd, eff.input_delay)
-    cur, v_at = _sample_currents(p, eff, idx, volts, r_tot, v_pre, raw, rotor)
+    same_r = eff.battery_sag == 0.0 and r_drift is None
+    cur, v_at = _sample_currents(p, eff, idx, volts, None if same_r else r_tot, v_pre, raw, rotor)
     return VoltagePrediction(
         v=meas * p.ratio, v_true=raw * p.ratio, i=cur, x=pos * p.ratio, volts=v_at
     )
@@ -424,7 +425,7 @@ def _sample_currents(
     eff: Effects,
     idx: Active,
     volts: Array,
-    r_tot: Array,
+    r_tot: Array | None,
     v_pre: float,
     raw: Array,
     rotor: Array,
@@ -433,14 +434,19 @@ def _sample_currents(
     under the command active at the sample (``volts`` through ``r_tot`` per command,
     ``v_pre`` before the first), still settling from the previous command when one
     acted just before, within the current limit; ``raw`` the load's speed, ``rotor``
-    the rotor's (rad/s); ``idx`` the command active at each sample (:func:`_active`)."""
+    the rotor's (rad/s); ``idx`` the command active at each sample (:func:`_active`).
+    ``r_tot`` None: ``R_m`` for every command (the same numbers, fewer arrays)."""
     v_at = np.where(idx.on, volts[idx.at], v_pre)
-    r_at = np.where(idx.on, r_tot[idx.at], p.R_m)
-    cur = (v_at - p.K_v * rotor) / r_at
-    # A command that acted just before the sample: the current is still settling.
     v_old = np.where(idx.prev_on, volts[idx.prev], v_pre)
-    r_old = np.where(idx.prev_on, r_tot[idx.prev], p.R_m)
-    cur_old = (v_old - p.K_v * rotor) / r_old
+    back_emf = p.K_v * rotor
+    r_at: Array | float = p.R_m
+    r_old: Array | float = p.R_m
+    if r_tot is not None:
+        r_at = np.where(idx.on, r_tot[idx.at], p.R_m)
+        r_old = np.where(idx.prev_on, r_tot[idx.prev], p.R_m)
+    cur = (v_at - back_emf) / r_at
+    # A command that acted just before the sample: the current is still settling.
+    cur_old = (v_old - back_emf) / r_old
     cur = cur + (cur_old - cur) * np.exp(idx.neg_since * r_at / p.L_m)
     if eff.current_limit != 0.0:
         cur = np.clip(cur, -eff.current_limit, eff.current_limit)
