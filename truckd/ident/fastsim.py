@@ -107,15 +107,13 @@ HANDLED = EFFECT_FIELDS
 (:data:`truckd.model.effects.EFFECT_FIELDS`); any other active field is refused."""
 
 
+_OTHERS = tuple(f.name for f in dataclasses.fields(Effects) if f.name not in HANDLED)
+"""The effects' fields outside :data:`HANDLED` (each call checks only these)."""
+
+
 def unsupported_effects(eff: Effects) -> list[str]:
     """Active fields of ``eff`` the fast simulator does not model (empty: all handled)."""
-    out = []
-    for f in dataclasses.fields(eff):
-        if f.name in HANDLED:
-            continue
-        if float(getattr(eff, f.name)) != 0.0:
-            out.append(f.name)
-    return out
+    return [n for n in _OTHERS if float(getattr(eff, n)) != 0.0]
 
 
 def _terrain(
