@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+
+from threadpoolctl import threadpool_limits
 
 from truckd.errors import InputError, TruckdError
 from truckd.ident.data import runs_from_logs, series_from_log
@@ -17,6 +20,18 @@ from truckd.modelfile import ModelFile
 
 def _quiet(_: str) -> None:
     return None
+
+
+@contextmanager
+def one_blas_thread() -> Iterator[None]:
+    """Linear algebra on one thread while a diagnosis runs.
+
+    The fits' matrices are small (a Jacobian of at most some 16 000 rows by 8 columns, the
+    terrain's 8 000 by 120): split over threads they gain nothing, and on a machine whose
+    other cores are busy OpenBLAS's threads wait for each other, an SVD of the fitting
+    loop taking 16 ms instead of 1 ms (2 cores, one busy).  The limit is lifted on exit."""
+    with threadpool_limits(limits=1, user_api="blas"):
+        yield
 
 
 def _as_list(logs: Log | Sequence[Log]) -> list[Log]:
@@ -55,8 +70,20 @@ def diagnose_log(
     Several logs, and the pauses inside one (time steps above ``gap`` s, default 10
     median steps), are separate runs, each simulated from its own measured start.
     """
-    logs = _as_list(log)
-    vals = [] if validate is None else _as_list(validate)
+    with one_blas_thread():
+        return _diagnose(
+            _as_list(log), [] if validate is None else _as_list(validate), p0, progress, gap
+        )
+
+
+def _diagnose(
+    logs: list[Log],
+    vals: list[Log],
+    p0: VehicleParams,
+    progress: Callable[[str], None],
+    gap: float | None,
+) -> Diagnosis:
+    """:func:`diagnose_log` on lists of logs, the thread limit set."""
     kind = logs[0].input_kind if logs else "voltage"
     for v in vals:
         if v.input_kind != kind:
@@ -92,7 +119,8 @@ def identify_log(
                 f"{one.source}: line 1: identify fits the truck's voltage-driven model and "
                 "needs column 'u'; for a force-input log use 'truckd diagnose'"
             )
-    fit = identify_voltage(p0, runs_from_logs(logs, gap), progress)
+    with one_blas_thread():
+        fit = identify_voltage(p0, runs_from_logs(logs, gap), progress)
     names = " ".join(one.source for one in logs)
     return ModelFile(vehicle=fit.params, effects=Effects(), source=f"identify {names}")
 

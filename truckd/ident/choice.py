@@ -65,14 +65,28 @@ class _Selecting:
     accepted: list[str] = field(default_factory=list)
     ambiguous: list[tuple[str, str]] = field(default_factory=list)
     rows: dict[str, CandidateRow] = field(default_factory=dict)
+    fitted: dict[tuple[int, tuple[Param, ...], str], tuple[FitResult, FitResult]] = field(
+        default_factory=dict
+    )
+    """Fits done, by start model (identity), parameters freed and candidate: the greedy
+    joint refit of two causes and the pair of the same two from the same start are one
+    fit (the start is kept with the result, so its identity is not reused)."""
 
     def fit(self, base: FitResult, extra: list[Param], cand: Candidate) -> FitResult:
-        """``base`` + ``cand`` fitted (:func:`fit_candidate`) with ``extra`` freed."""
+        """``base`` + ``cand`` fitted (:func:`fit_candidate`) with ``extra`` freed; the
+        same fit again is not redone (the fit is deterministic)."""
+        key = (id(base), tuple(extra), cand.name)
+        hit = self.fitted.get(key)
+        if hit is not None and hit[0] is base:
+            self.progress(f"  {cand.name} with {[x.name for x in extra]} freed: fitted above")
+            return hit[1]
         p = self.prep
-        return fit_candidate(
+        out = fit_candidate(
             base, self.seed.free, extra, cand, p.fit_data, p.w, self.seed.grid, self.progress,
             p.val_data,
         )  # fmt: skip
+        self.fitted[key] = (base, out)
+        return out
 
     def smooth_params(self, names: Sequence[str]) -> list[Param]:
         """The parameters of ``names`` a joint refit frees (the smooth ones)."""

@@ -26,6 +26,7 @@ from truckd.ident.freerun import Terrain as Terrain
 from truckd.ident.freerun import Timeline as Timeline
 from truckd.ident.freerun import run as run
 from truckd.ident.freerun import timeline as timeline
+from truckd.ident.timing import Layout, layout_of, merged, shifted
 from truckd.model.effects import (
     ARRAYS,
     COPPER_TEMPCO,
@@ -106,15 +107,13 @@ HANDLED = EFFECT_FIELDS
 (:data:`truckd.model.effects.EFFECT_FIELDS`); any other active field is refused."""
 
 
+_OTHERS = tuple(f.name for f in dataclasses.fields(Effects) if f.name not in HANDLED)
+"""The effects' fields outside :data:`HANDLED` (each call checks only these)."""
+
+
 def unsupported_effects(eff: Effects) -> list[str]:
     """Active fields of ``eff`` the fast simulator does not model (empty: all handled)."""
-    out = []
-    for f in dataclasses.fields(eff):
-        if f.name in HANDLED:
-            continue
-        if float(getattr(eff, f.name)) != 0.0:
-            out.append(f.name)
-    return out
+    return [n for n in _OTHERS if float(getattr(eff, n)) != 0.0]
 
 
 def _terrain(
@@ -146,16 +145,29 @@ _UNPREPARED = ("load_force", "aero_drag", "sensor_lag", *TERRAIN_FIELDS)
 """Effects fields that do not enter the preparation (loads, drag, lag, terrain)."""
 
 
+_PREP_VEHICLE = tuple(
+    f.name for f in dataclasses.fields(VehicleParams) if f.name not in ("K_coulomb", "K_stiction")
+)
+"""The vehicle's fields that enter the preparation (all but its friction)."""
+_PREP_EFFECTS = tuple(f.name for f in dataclasses.fields(Effects) if f.name not in _UNPREPARED)
+"""The effects' fields that enter it (all but loads, drag, lag and terrain)."""
+
+
 def _prep_key(
     p: VehicleParams, eff: Effects, t: Array, u: Array, t_hist: Array | None, u_hist: Array | None
 ) -> tuple[object, ...]:
     """Cache key of the preparation: the arrays' identities (the cache holds them, so an
-    identity cannot be reused while cached) and every parameter that enters it (the whole
-    vehicle but its friction, the whole effects but loads, drag, lag and terrain; a new
-    effect field is part of the key by construction)."""
-    q = p.replace(K_coulomb=0.0, K_stiction=0.0)
-    e = dataclasses.replace(eff, **dict.fromkeys(_UNPREPARED, 0.0))
-    return (id(t), id(u), id(t_hist), id(u_hist), q, e)
+    identity cannot be reused while cached) and the value of every parameter that enters
+    it (the whole vehicle but its friction, the whole effects but loads, drag, lag and
+    terrain; a new field is part of the key by construction)."""
+    return (
+        id(t),
+        id(u),
+        id(t_hist),
+        id(u_hist),
+        *[getattr(p, n) for n in _PREP_VEHICLE],
+        *[getattr(eff, n) for n in _PREP_EFFECTS],
+    )
 
 
 def simulate_voltage(
@@ -268,13 +280,17 @@ def _simulate(
         r_tot = p.R_m + r_sag
         if r_drift is not None:
             r_tot = r_tot + r_drift
-        k_arr, _ = electrical_correction(p, eff.viscous_friction, r_tot)
         k0, l0 = electrical_correction(p, eff.viscous_friction)
         kappa, lag_e = float(k0), float(l0)
+        if eff.battery_sag == 0.0 and r_drift is None:
+            # r_tot is R_m throughout: the same numbers as electrical_correction on it.
+            k_arr = np.full(len(r_tot), kappa)
+        else:
+            k_arr, _ = electrical_correction(p, eff.viscous_friction, r_tot)
         a = k_arr * p.K_T / p.J_S * volts / r_tot
         b = k_arr * (p.K_T * p.K_v / r_tot + eff.viscous_friction) / p.J_S
         lag_cmd = lag_e if eff.backlash == 0.0 else 0.0
-        tl = merge_equal(_timeline(t, t_hist, eff.input_delay + lag_cmd, hist, t_cmd), a, b)
+        tl = _merged_timeline(t, t_hist, eff.input_delay + lag_cmd, hist, t_cmd, a, b)
         if cached:
             prepared = (volts, r_tot, k_arr, kappa, lag_e, a, b, tl)
             _put(_PREP, key, (t, u, t_hist, u_hist, prepared), PREP_CACHE)
@@ -306,7 +322,8 @@ def _simulate(
     meas, raw, pos = run(kin, tl, n, w0, eff.sensor_lag)
     rotor = raw if kin.gap is None else kin.gap.rotor_out
     idx = _active(t, t_hist, t_cmd, eff.input_delay)
-    cur, v_at = _sample_currents(p, eff, idx, volts, r_tot, v_pre, raw, rotor)
+    same_r = eff.battery_sag == 0.0 and r_drift is None
+    cur, v_at = _sample_currents(p, eff, idx, volts, None if same_r else r_tot, v_pre, raw, rotor)
     return VoltagePrediction(
         v=meas * p.ratio, v_true=raw * p.ratio, i=cur, x=pos * p.ratio, volts=v_at
     )
@@ -340,6 +357,32 @@ def _timeline(t: Array, t_hist: Array | None, delay: float, hist: int, t_cmd: Ar
         tl = timeline(t, delay, hist, t_cmd)
         _keep(key, t, t_hist, tl)
     return tl  # type: ignore[no-any-return]
+
+
+LAYOUT_CACHE = 64
+"""Series whose timeline layout (the order of its instants under a delay) is kept."""
+_LAYOUT: dict[tuple[object, ...], tuple[Array, Array | None, Layout]] = {}
+
+
+def _merged_timeline(
+    t: Array, t_hist: Array | None, delay: float, hist: int, t_cmd: Array, a: Array, b: Array
+) -> Timeline:
+    """``merge_equal(timeline(...), a, b)`` of the commands at ``t_cmd`` acting ``delay``
+    s later: for a delay in the order of the series' kept layout, from that layout
+    (:mod:`truckd.ident.timing`, the same arrays); else computed, and its layout kept."""
+    if delay > 0.0:
+        key = ("layout", id(t), id(t_hist), hist)
+        hit = _LAYOUT.get(key)
+        lay = hit[2] if hit is not None and hit[0] is t and hit[1] is t_hist else None
+        tl = None if lay is None else shifted(lay, t, delay, t_cmd)
+        if tl is None:
+            made = layout_of(t, delay, t_cmd)
+            if made is not None:
+                tl, lay = made
+                _put(_LAYOUT, key, (t, t_hist, lay), LAYOUT_CACHE)
+        if tl is not None and lay is not None:
+            return merged(tl, lay, a, b)
+    return merge_equal(_timeline(t, t_hist, delay, hist, t_cmd), a, b)
 
 
 @dataclass(frozen=True)
@@ -380,7 +423,7 @@ def _sample_currents(
     eff: Effects,
     idx: Active,
     volts: Array,
-    r_tot: Array,
+    r_tot: Array | None,
     v_pre: float,
     raw: Array,
     rotor: Array,
@@ -389,14 +432,19 @@ def _sample_currents(
     under the command active at the sample (``volts`` through ``r_tot`` per command,
     ``v_pre`` before the first), still settling from the previous command when one
     acted just before, within the current limit; ``raw`` the load's speed, ``rotor``
-    the rotor's (rad/s); ``idx`` the command active at each sample (:func:`_active`)."""
+    the rotor's (rad/s); ``idx`` the command active at each sample (:func:`_active`).
+    ``r_tot`` None: ``R_m`` for every command (the same numbers, fewer arrays)."""
     v_at = np.where(idx.on, volts[idx.at], v_pre)
-    r_at = np.where(idx.on, r_tot[idx.at], p.R_m)
-    cur = (v_at - p.K_v * rotor) / r_at
-    # A command that acted just before the sample: the current is still settling.
     v_old = np.where(idx.prev_on, volts[idx.prev], v_pre)
-    r_old = np.where(idx.prev_on, r_tot[idx.prev], p.R_m)
-    cur_old = (v_old - p.K_v * rotor) / r_old
+    back_emf = p.K_v * rotor
+    r_at: Array | float = p.R_m
+    r_old: Array | float = p.R_m
+    if r_tot is not None:
+        r_at = np.where(idx.on, r_tot[idx.at], p.R_m)
+        r_old = np.where(idx.prev_on, r_tot[idx.prev], p.R_m)
+    cur = (v_at - back_emf) / r_at
+    # A command that acted just before the sample: the current is still settling.
+    cur_old = (v_old - back_emf) / r_old
     cur = cur + (cur_old - cur) * np.exp(idx.neg_since * r_at / p.L_m)
     if eff.current_limit != 0.0:
         cur = np.clip(cur, -eff.current_limit, eff.current_limit)

@@ -272,6 +272,10 @@ KERNEL_FIELDS = frozenset(
 """The :class:`Kinetics` fields the C kernel (:mod:`truckd.ident.ckernel`) models."""
 
 
+_UNKNOWN_TO_KERNEL = tuple(f for f in dataclasses.fields(Kinetics) if f.name not in KERNEL_FIELDS)
+"""The :class:`Kinetics` fields outside :data:`KERNEL_FIELDS` (checked per run)."""
+
+
 def kernel_handles(kin: Kinetics) -> bool:
     """Whether the C kernel models ``kin``: a position-dependent load only as a
     :class:`Terrain`, a Stribeck friction only as a :class:`Stribeck`, and every field
@@ -280,9 +284,7 @@ def kernel_handles(kin: Kinetics) -> bool:
         return False
     if kin.stribeck is not None and not isinstance(kin.stribeck, Stribeck):
         return False
-    for f in dataclasses.fields(kin):
-        if f.name in KERNEL_FIELDS:
-            continue
+    for f in _UNKNOWN_TO_KERNEL:
         if f.default is dataclasses.MISSING or getattr(kin, f.name) != f.default:
             return False
     return True
