@@ -10,11 +10,14 @@ delays (``plan_timeout_s`` = 0.1 s + the largest delay).
 
     python benchmarks/platoon_scale.py --json benchmarks/platoon_scale.json [--trucks 10,100]
         [--cases LABEL,...] [--key KEY] [--seed 1] [--seeds 1,2,...] [--scenario platoon-brake]
+        [--steady-start]
 
 With ``--key`` the run is stored under that key of the JSON file (the file's other keys
 kept: earlier runs stay as they were measured); ``--cases`` runs only the cases whose
 label starts with one of the given prefixes; ``--seeds`` runs each case once per seed,
-``--scenario`` another platoon scenario (``--duration`` its length).  Each row also has
+``--scenario`` another platoon scenario (``--duration`` its length), ``--steady-start``
+the trucks started in the steady state of the starting speed (``run_platoon``'s
+``steady_start``: an unrecorded pre-roll).  Each row also has
 the pairwise ratios and every follower's spacing-error area (``integral of e dt`` from
 3 s on, m s: what the time-headway policy passes on with a gain of 1, docs/platoon.md
 "Mixed trucks").  The links' plans are held for the shipped
@@ -132,6 +135,11 @@ def main() -> int:
     ap.add_argument("--seed", type=int, default=1, help="links, clocks and drawn trucks")
     ap.add_argument("--seeds", help="comma-separated seeds (instead of --seed)")
     ap.add_argument("--scenario", default="platoon-brake")
+    ap.add_argument(
+        "--steady-start",
+        action="store_true",
+        help="start in the steady state of the starting speed (the unrecorded pre-roll)",
+    )
     args = ap.parse_args()
     seeds = [int(x) for x in args.seeds.split(",")] if args.seeds else [args.seed]
     load_at_start = round(os.getloadavg()[0], 2)
@@ -149,7 +157,8 @@ def main() -> int:
             for seed in seeds:
                 t0 = time.monotonic()
                 m, tr = run_platoon(make_platoon_scenario(args.scenario), setup, pcfg, n,
-                                    seed=seed, duration=args.duration, **kw)  # fmt: skip
+                                    seed=seed, duration=args.duration,
+                                    steady_start=args.steady_start, **kw)  # fmt: skip
                 row = {"trucks": n, "case": label, "seed": seed,
                        **_summary(m, time.monotonic() - t0),
                        "spacing_error_area_m_s": _areas(tr)}  # fmt: skip
@@ -165,6 +174,7 @@ def main() -> int:
             "duration_s": args.duration,
             "plan_timeout_s": "0.1 s (shipped); 0.1 s + the largest delay with drawn delays",
             "plan_hold_s": cfg.platoon.plan_hold_s,
+            "steady_start": args.steady_start,
             "rows": rows,
         }
         write_json(args.json, doc, args.key)

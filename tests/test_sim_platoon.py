@@ -303,3 +303,26 @@ def test_the_lead_publishes_its_mpc_plan(monkeypatch: pytest.MonkeyPatch) -> Non
         if round(p.t / dt) + k < len(t) and p.t >= SETTLE_S
     ]
     assert float(np.sqrt(np.mean(np.square(err)))) < 0.02
+
+
+def test_steady_start_begins_in_the_steady_state_of_the_starting_speed() -> None:
+    """With ``steady_start`` (the unrecorded pre-roll) every truck is at the lead's speed
+    at 0 s and stays there until the lead acts: supervisor ACTIVE, CACC, no dip, gaps at
+    their reference, nothing counted before 0 s.  Without it (the control experiment)
+    each truck starts with its controller off at speed: INIT, and a dip of its own
+    while the dead time holds 0 V."""
+    sc = make_platoon_scenario("platoon-brake")
+    pcfg = load_config().platoon
+    m, tr = run_platoon(sc, _setup(), pcfg, 3, duration=1.0, steady_start=True)
+    t, v = np.asarray(tr.t), np.asarray(tr.v, dtype=float)
+    assert t[0] == 0.0 and len(t) == 100
+    assert np.max(np.abs(v - sc.v0)) < 0.03, np.max(np.abs(v - sc.v0))
+    err = np.asarray(tr.gap, dtype=float)[:, 1:] - np.asarray(tr.gap_ref, dtype=float)[:, 1:]
+    assert np.max(np.abs(err)) < 0.005, np.max(np.abs(err))
+    assert m["supervisor_modes"] == [["ACTIVE"], ["ACTIVE"]]
+    assert all(mode == CACC for row in tr.mode for mode in row[1:])
+    # three links (truck 2 also listens to truck 0, its standby), counted from 0 s
+    assert m["plans_sent"] <= 3 * 100 and max(m["mode_switches"]) == 0
+    cold, tc = run_platoon(sc, _setup(), pcfg, 3, duration=1.0)
+    assert "INIT" in cold["supervisor_modes"][0]
+    assert np.min(np.asarray(tc.v, dtype=float)) < sc.v0 - 0.3

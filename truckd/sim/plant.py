@@ -110,6 +110,15 @@ class Plant:
         self._sensor = _SensorState(v_lag=v, v_quant=v)
         self.gap = gap_at_start(self.cfg.effects, omega)
 
+    def hold(self, v: float, x: float) -> None:
+        """Put the truck at speed v (m/s) and position x (m), its sensors reading that
+        speed from here on, keeping the motor current and the commands in the input delay
+        (a truck held at a speed while its controller comes up: the platoon's pre-roll,
+        :data:`truckd.sim.platoon_scenarios.PREROLL_S`)."""
+        self.reset(v, self.motor.i)
+        self.x = x
+        self._sensor.ticks_prev = self.ticks
+
     @property
     def v(self) -> float:
         """True vehicle speed (m/s)."""

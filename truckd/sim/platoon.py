@@ -13,7 +13,10 @@ the same plan message as every follower's.  Plans pass through a
 :class:`PlanChannel` as they would over Zenoh: a delay, random loss (seeded) and loss
 windows.
 
-Scenarios (all start as a platoon in steady CACC at the lead's speed):
+Scenarios (all start as a platoon in CACC at the lead's speed and the CACC gap; with
+``steady_start`` after an unrecorded pre-roll, :data:`PREROLL_S`, that brings every
+truck's controller, supervisor, estimator, dead time and motor current to the steady
+state of that speed):
 
 ===================== =====================================================================
 ``platoon-brake``      the lead brakes at 2 m/s^2 from 1.5 to 0.5 m/s and drives on
@@ -47,6 +50,8 @@ from truckd.sim.platoon_metrics import PlatoonTrace, platoon_metrics, record_cyc
 from truckd.sim.platoon_scenarios import (
     ACTUATION_DELAY_S,
     PLATOON_SCENARIOS,
+    PREROLL_HOLD_S,
+    PREROLL_S,
     SETTLE_S,
     PlatoonScenario,
     make_platoon_scenario,
@@ -58,6 +63,7 @@ __all__ = [
     "MAX_TRUCKS",
     "MIN_TRUCKS",
     "PLATOON_SCENARIOS",
+    "PREROLL_S",
     "SETTLE_S",
     "LinkConfig",
     "PlanChannel",
@@ -92,13 +98,17 @@ def run_platoon(
     clock_offset_s: float = 0.0,
     clock_drift_ppm: float = 0.0,
     mixed: bool = False,
+    steady_start: bool = False,
 ) -> tuple[dict[str, Any], PlatoonTrace]:
     """Run one platoon scenario; returns the contract metrics and a trace.
 
     ``delay_s`` a plan's delivery delay (s), or a range each message's delay is drawn in;
     ``loss`` the share of plans lost per link (``burst_loss``: in runs); every truck's clock
     has an offset drawn in +-``clock_offset_s`` and a drift in +-``clock_drift_ppm``;
-    ``mixed``: every truck drawn (:func:`draw_platoon_truck`), from ``seed``.
+    ``mixed``: every truck drawn (:func:`draw_platoon_truck`), from ``seed``;
+    ``steady_start``: a scenario that starts at speed starts in the steady state of that
+    speed, after the unrecorded pre-roll :data:`PREROLL_S` (not ``platoon-join``); without
+    it every truck starts with its controller off at speed.
 
     The controllers' configured headway is the CACC headway (their QP is built for it;
     the ACC headway is driven by the gap shift, see :meth:`Controller.control`).  The
@@ -120,7 +130,14 @@ def run_platoon(
     dt = cfg.period
     dur = sc.duration if duration is None else duration
     gap0 = cfg.d_0 + pcfg.cacc_headway * sc.v0
-    xv = [gap0]  # the lead's driver: a virtual vehicle on the scenario's profile
+    # a start at speed: the pre-roll (PREROLL_S) before 0 s, the first PREROLL_HOLD_S of
+    # it with every truck held at the starting speed; not for a join (its joining trucks'
+    # approach from the start is the scenario)
+    pre = round(PREROLL_S / dt) if steady_start and sc.v0 > 0.0 and sc.kind != "join" else 0
+    hold = min(round(PREROLL_HOLD_S / dt), pre)
+    t0 = -pre * dt
+    back = sc.v0 * t0  # where everyone is at t0, relative to the places at 0 s
+    xv = [gap0 + back]  # the lead's driver: a virtual vehicle on the scenario's profile
     trucks: list[PlatoonTruck] = []
     clocks = [
         (
@@ -139,14 +156,18 @@ def run_platoon(
         def range_fn(t: float, ego_x: float, i: int = i) -> float | None:
             return seen[i] if i < len(seen) else None
 
-        pre, x0, initial = (f"truck{i - 1}" if i else DRIVER), -i * gap0, CACC
+        ahead, x0, initial = (f"truck{i - 1}" if i else DRIVER), -i * gap0, CACC
         if sc.kind == "join" and i == n_trucks - 2:
-            pre, x0 = f"truck{room - 1}", -room * gap0
+            ahead, x0 = f"truck{room - 1}", -room * gap0
         elif sc.kind == "join" and i == n_trucks - 1:
-            pre, x0, initial = "", -(n_line - 1) * gap0 - TAIL_JOIN_BEHIND_M, ACC
+            ahead, x0, initial = "", -(n_line - 1) * gap0 - TAIL_JOIN_BEHIND_M, ACC
         trucks.append(
-            PlatoonTruck(f"truck{i}", setups[i], pcfg, x0, sc.v0, range_fn, clocks[i], pre, initial)
-        )
+            PlatoonTruck(
+                f"truck{i}", setups[i], pcfg, x0 + back, sc.v0, range_fn, clocks[i], ahead,
+                initial, t0,
+            )
+        )  # fmt: skip
+    starts = [f.plant.x for f in trucks]
     if sc.kind == "join":
         trucks[-2].lane, trucks[-2].announce = 1, False
     links: dict[tuple[str, str], PlanChannel] = {}
@@ -157,8 +178,13 @@ def run_platoon(
     tr = PlatoonTrace()
     events: list[tuple[float, str]] = []
     cycles = max(1, round(dur / dt))
-    for k in range(cycles):
+    for k in range(-pre, cycles):
         t = k * dt
+        if k == 0 and pre:  # the pre-roll is not measured
+            for channel in links.values():
+                channel.sent = channel.lost = 0
+            for f in trucks:
+                f.mode.switches = f.cyc.controller.solver_failures = 0
         if sc.kind == "leave" and t >= sc.event_s and trucks[n_trucks // 2].active:
             gone = trucks[n_trucks // 2]
             gone.active, gone.lane = False, 1
@@ -205,11 +231,14 @@ def run_platoon(
                             link, sc.loss_windows, rng, f"{f.vid}->{g.vid}"
                         )
                     ch.send(t, plan)
-        record_cycle(tr, t, sc.lead_v(t), cfg.d_0, trucks, true_gaps)
+        if k >= 0:
+            record_cycle(tr, t, sc.lead_v(t), cfg.d_0, trucks, true_gaps)
         xv[0] += 0.5 * (sc.lead_v(t) + sc.lead_v(t + dt)) * dt
-        for f in trucks:
+        for f, x in zip(trucks, starts, strict=True):
             if f.active:
                 f.fw.step(dt)
+                if k < hold - pre:
+                    f.plant.hold(sc.v0, x + sc.v0 * (f.plant.t - t0))
     m = platoon_metrics(sc.name, n_trucks, tr, trucks[1:], list(links.values()), pcfg)
     m["events"] = [{"t_s": round(te, 6), "what": w} for te, w in events]
     m["clock_offset_s"] = [c[0] for c in clocks]

@@ -20,9 +20,27 @@ their controllers (as ``diagnose`` identifies it): a delay is what makes ACC nee
 larger headway than CACC (see docs/platoon.md); without it the MPC's ACC is string
 stable at these headways already."""
 SETTLE_S = 3.0
-"""The spacing errors are taken from this time on: every truck starts at the lead's speed
-and gap, but its dead time holds the first commands at 0 V, a transient of its own (not
-passed down the platoon); every scenario's disturbance starts later."""
+"""The spacing errors are taken from this time on: without ``steady_start`` every truck
+starts at the lead's speed and gap, but its dead time holds the first commands at 0 V, a
+transient of its own (not passed down the platoon); every scenario's disturbance starts
+later."""
+PREROLL_S = 1.2
+"""With ``steady_start`` (``run_platoon``) a scenario that starts at speed starts in the
+steady state of that speed: before 0 s the platoon runs this long at the lead's starting
+speed, not recorded (no trace, no metrics; the link, mode-switch and solver-failure
+counters start at 0 s), so each truck's supervisor is
+ACTIVE, its estimator converged, its dead time's pipeline filled with its own commands
+and its motor current at their value when the scenario starts.  Without it each truck
+would start with its controller off at speed: the supervisor in INIT and the dead time
+holding 0 V, a dip from 1.5 to about 0.8 m/s in the first 0.25 s.  Not for
+``platoon-join``: its joining trucks start off the platoon's steady state (one in the next
+lane, one 3 m behind the tail without a predecessor), their approach from 0 s is the
+scenario, so it starts as the trucks are built (the dip included)."""
+PREROLL_HOLD_S = 0.3
+"""The first part of the pre-roll, each truck held at the starting speed and at its place
+(:meth:`~truckd.sim.plant.Plant.hold`, as on a roller stand) while its controller comes
+up and fills the dead time's pipeline (more than the 0.15 s dead time); then the trucks
+run free under their controllers for the rest of :data:`PREROLL_S`."""
 
 
 @dataclass(frozen=True)

@@ -129,11 +129,14 @@ class PlatoonTruck:
         clock: tuple[float, float],
         predecessor: str,
         initial: str = CACC,
+        t0: float = 0.0,
     ) -> None:
+        """``x0`` (m) and ``v0`` (m/s) the truck's position and speed at ``t0`` (s, the
+        plant's clock at the start: before 0 with a pre-roll)."""
         self.vid = vid
         cfg = setup.control
         spec = setup.truck
-        truck = build_truck(spec, range_fn, v0=v0, x0=x0)
+        truck = build_truck(spec, range_fn, v0=v0, x0=x0, t0=t0)
         assert truck.link is not None
         self.plant, self.fw, self.link = truck.plant, truck.firmware, truck.link
         self.port = companion_port(self.link, clock=lambda: self.plant.t)
@@ -156,7 +159,7 @@ class PlatoonTruck:
         """Publishes its plans (a truck about to join in the middle is silent until it
         announces)."""
         self.range_prev: float | None = None
-        self.pred_since = 0.0
+        self.pred_since = t0
         """When this truck took its predecessor (simulated time, s)."""
         self.out: CycleOutputs | None = None
         self.dec: PlatoonDecision | None = None

@@ -74,11 +74,13 @@ class TruckSpec:
         """A truck from its parts; ``firmware`` replaces the one the parts give."""
         return cls(vehicle, plant, firmware or firmware_config(plant, control, link_ticks))
 
-    def new_plant(self, v0: float = 0.0, x0: float = 0.0) -> Plant:
-        """A fresh plant at speed ``v0`` (m/s) and position ``x0`` (m)."""
+    def new_plant(self, v0: float = 0.0, x0: float = 0.0, t0: float = 0.0) -> Plant:
+        """A fresh plant at speed ``v0`` (m/s) and position ``x0`` (m), its clock at ``t0``
+        (s)."""
         plant = Plant(self.vehicle, self.plant)
         plant.reset(v=v0)
         plant.x = x0
+        plant.t = t0
         return plant
 
 
@@ -107,14 +109,16 @@ def build_truck(
     device: Callable[[Callable[[], float]], Device] | None = None,
     v0: float = 0.0,
     x0: float = 0.0,
+    t0: float = 0.0,
 ) -> SimTruck:
-    """Build the truck of ``spec`` at speed ``v0`` and position ``x0``.
+    """Build the truck of ``spec`` at speed ``v0`` and position ``x0``, the plant's clock
+    at ``t0`` (s; the firmware's clock starts at 0 there).
 
     Without ``device`` the firmware sits on an in-process pair (``mode``: CAN frames or the
     serial byte stream; the disconnect fault unplugs the wire).  With it, the firmware
     serves ``device(clock)``, opened on the plant's clock.  Drive it with
     ``firmware.step(dt)``."""
-    plant = spec.new_plant(v0, x0)
+    plant = spec.new_plant(v0, x0, t0)
     if device is not None:
         dev = device(lambda: plant.t)
         fw = SimulatedFirmware(plant, range_fn, dev, spec.firmware, dev.unplug, dev.replug)
