@@ -58,8 +58,12 @@ static struct {
  * change (where OSQP refactors its KKT matrix), and each solve is two dense products
  * with A and two triangular solves.  The same iterates as OSQP's own solver up to
  * rounding (tests/test_mpc_compiled.py compares the commands). */
+/* A's rows padded to a multiple of 8 for the product z~ = A x (below) */
+#define TRUCKD_MPC_MP ((TRUCKD_MPC_M + 7) / 8 * 8)
+
 typedef struct {
     double a[TRUCKD_MPC_M * TRUCKD_MPC_N]; /* OSQP's scaled A, row-major */
+    double at[TRUCKD_MPC_N * TRUCKD_MPC_MP]; /* the same, column-major, zero rows padded */
     double l[TRUCKD_MPC_N * TRUCKD_MPC_N]; /* Cholesky factor (lower) of the reduced matrix */
     double rho[TRUCKD_MPC_M];
     OSQPSolver *solver;
@@ -77,9 +81,12 @@ static Dense *dense_of(const LinSysSolver *ls) {
 static void dense_load_a(Dense *d) {
     const OSQPCscMatrix *a = d->solver->work->data->A->csc;
     memset(d->a, 0, sizeof d->a);
+    memset(d->at, 0, sizeof d->at);
     for (OSQPInt j = 0; j < a->n; ++j)
-        for (OSQPInt k = a->p[j]; k < a->p[j + 1]; ++k)
+        for (OSQPInt k = a->p[j]; k < a->p[j + 1]; ++k) {
             d->a[a->i[k] * TRUCKD_MPC_N + j] = a->x[k];
+            d->at[j * TRUCKD_MPC_MP + a->i[k]] = a->x[k];
+        }
 }
 
 /* The reduced matrix from OSQP's scaled P (upper triangle) and A, factored. */
@@ -121,7 +128,7 @@ static OSQPInt dense_factor(Dense *d) {
 }
 
 static OSQPInt dense_solve(LinSysSolver *ls, OSQPVectorf *b, OSQPInt admm_iter) {
-    enum { N = TRUCKD_MPC_N, M = TRUCKD_MPC_M };
+    enum { N = TRUCKD_MPC_N, M = TRUCKD_MPC_M, MP = TRUCKD_MPC_MP };
     Dense *d = dense_of(ls);
     double r[N], x[N];
     double *bv = b->values;
@@ -144,13 +151,72 @@ static OSQPInt dense_solve(LinSysSolver *ls, OSQPVectorf *b, OSQPInt admm_iter) 
         x[i] = t / d->l[i * N + i];
     }
     for (int j = 0; j < N; ++j) bv[j] = x[j];
-    for (int i = 0; i < M; ++i) {
-        const double *row = d->a + i * N;
-        double t = 0.0;
-        for (int j = 0; j < N; ++j) t += row[j] * x[j];
-        bv[N + i] = t;
+    /* z~ = A x, eight rows at a time over A's columns: each row's sum in the order of j as
+     * a dot product of the row would take (the same numbers), in registers across j */
+    for (int i0 = 0; i0 < MP; i0 += 8) {
+        double t[8] = {0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0};
+        for (int j = 0; j < N; ++j) {
+            const double *col = d->at + j * MP + i0;
+            double xj = x[j];
+            for (int q = 0; q < 8; ++q) t[q] += col[q] * xj;
+        }
+        int rows = M - i0 < 8 ? M - i0 : 8;
+        for (int q = 0; q < rows; ++q) bv[N + i0 + q] = t[q];
     }
     return 0;
+}
+
+/* The dense copy of the A whose products OSQP asks for (y = A x or A' x, alpha 1, beta 0:
+ * the residuals of every termination check), or NULL: OSQP's sparse product then. */
+static const Dense *dense_product_of(const OSQPMatrix *a, OSQPFloat alpha, OSQPFloat beta) {
+    if (alpha != 1.0 || beta != 0.0) return NULL;
+    for (int64_t i = 0; i < TRUCKD_MPC_INSTANCES; ++i)
+        for (int64_t k = 0; k < TRUCKD_MPC_MODES; ++k)
+            if (DENSE[i][k].solver != NULL && DENSE[i][k].solver->work->data->A == a)
+                return &DENSE[i][k];
+    return NULL;
+}
+
+/* Called by OSQP's generated OSQPMatrix_Axpy (tools/generate_mpc_solver.py): y = A x over
+ * the dense copy, each row's sum in the order of the columns as OSQP's column loop adds it
+ * (zeros added as +-0: the same numbers).  1: done, 0: OSQP's own product. */
+OSQPInt truckd_dense_Axpy(const OSQPMatrix *a, const OSQPFloat *x, OSQPFloat *y, OSQPFloat alpha,
+                          OSQPFloat beta);
+OSQPInt truckd_dense_Axpy(const OSQPMatrix *a, const OSQPFloat *x, OSQPFloat *y, OSQPFloat alpha,
+                          OSQPFloat beta) {
+    enum { N = TRUCKD_MPC_N, M = TRUCKD_MPC_M, MP = TRUCKD_MPC_MP };
+    const Dense *d = dense_product_of(a, alpha, beta);
+    if (d == NULL) return 0;
+    for (int i0 = 0; i0 < MP; i0 += 8) {
+        double t[8] = {0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0};
+        for (int j = 0; j < N; ++j) {
+            const double *col = d->at + j * MP + i0;
+            double xj = x[j];
+            for (int q = 0; q < 8; ++q) t[q] += col[q] * xj;
+        }
+        int rows = M - i0 < 8 ? M - i0 : 8;
+        for (int q = 0; q < rows; ++q) y[i0 + q] = t[q];
+    }
+    return 1;
+}
+
+/* The same for OSQPMatrix_Atxpy: y = A' x, each column's sum in the order of the rows. */
+OSQPInt truckd_dense_Atxpy(const OSQPMatrix *a, const OSQPFloat *x, OSQPFloat *y, OSQPFloat alpha,
+                           OSQPFloat beta);
+OSQPInt truckd_dense_Atxpy(const OSQPMatrix *a, const OSQPFloat *x, OSQPFloat *y, OSQPFloat alpha,
+                           OSQPFloat beta) {
+    enum { N = TRUCKD_MPC_N, M = TRUCKD_MPC_M };
+    const Dense *d = dense_product_of(a, alpha, beta);
+    if (d == NULL) return 0;
+    double r[N];
+    for (int j = 0; j < N; ++j) r[j] = 0.0;
+    for (int i = 0; i < M; ++i) {
+        double w = x[i];
+        const double *row = d->a + i * N;
+        for (int j = 0; j < N; ++j) r[j] += row[j] * w;
+    }
+    for (int j = 0; j < N; ++j) y[j] = r[j];
+    return 1;
 }
 
 static OSQPInt dense_update_rho(LinSysSolver *ls, const OSQPVectorf *rho_vec, OSQPFloat rho_sc) {
