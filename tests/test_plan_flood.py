@@ -167,8 +167,13 @@ def _flooded(limit_hz: float | None, seconds: float = 2.0) -> tuple[int, int]:
 def test_the_session_lets_in_at_most_the_ingress_limit() -> None:
     """Zenoh's ingress downsampling drops a flood before any Python runs; the control
     experiment without the limit delivers far more."""
+    most = 50.0 * 2.0 * 1.5 + 5  # what a 50 Hz limit lets in over 2 s, with room
     limited, sent = _flooded(50.0, 2.0)
     assert sent > 20 * 50.0 * 2.0  # a flood: twenty times what the limit lets in
-    assert 0 < limited <= 50.0 * 2.0 * 1.5 + 5
-    unlimited, _ = _flooded(None, 2.0)
-    assert unlimited > 20 * limited
+    assert 0 < limited <= most
+    # the control: the same flood without the limit brings in more than the limit could
+    # (how much more depends on how fast this loaded process runs its callbacks: 260 at a
+    # load of 7 against thousands on a quiet machine, so no ratio to the limited count)
+    unlimited, sent = _flooded(None, 2.0)
+    assert sent > 20 * 50.0 * 2.0
+    assert unlimited > most
