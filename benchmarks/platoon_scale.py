@@ -39,7 +39,7 @@ from results import machine, write_json
 
 from truckd.config.truck import load_config
 from truckd.sim.closed_loop import SimSetup
-from truckd.sim.platoon import PlatoonTrace, make_platoon_scenario, run_platoon
+from truckd.sim.platoon import SETTLE_S, PlatoonTrace, make_platoon_scenario, run_platoon
 
 CASES: tuple[tuple[str, dict[str, Any]], ...] = (
     ("ideal link", {}),
@@ -81,16 +81,14 @@ CASES: tuple[tuple[str, dict[str, Any]], ...] = (
 )
 
 
-RATIO_FROM_S = 3.0
-"""The ratios' window starts here (the trucks' start transients: docs/platoon.md)."""
-
-
 def _areas(tr: PlatoonTrace) -> list[float]:
     """Every follower's spacing-error area ``integral of (gap - gap_ref) dt`` from
-    :data:`RATIO_FROM_S` on (m s)."""
+    :data:`SETTLE_S` on, as the ratios are taken (m s); a truck out of the lane (joining
+    or gone) adds nothing."""
     t = np.asarray(tr.t)
     err = np.asarray(tr.gap, dtype=float)[:, 1:] - np.asarray(tr.gap_ref, dtype=float)[:, 1:]
-    w = t >= RATIO_FROM_S
+    err = np.where(np.asarray(tr.lane)[:, 1:] == 0, err, np.nan)
+    w = t >= SETTLE_S
     dt = float(t[1] - t[0])
     return [round(float(a), 5) for a in np.nansum(err[w], axis=0) * dt]
 

@@ -53,6 +53,7 @@ def test_a_timeline_from_a_layout_is_the_reference(jitter: bool, hist: int) -> N
     # Small lags (the order kept), delays across samples (order changes), exact multiples
     # of the sample (ties, which the layout refuses).
     delays = [*rng.uniform(1e-4, 2e-3, 30), *rng.uniform(0.0, 0.2, 30), 0.01, 0.03, 0.05]
+    t_hist = t_cmd[:hist] if hist else None  # one array, as a series holds it: the cache's key
     for d in delays:
         ref = timeline(t, float(d), hist, t_cmd)
         tl = shifted(lay, t, float(d), t_cmd)
@@ -65,8 +66,7 @@ def test_a_timeline_from_a_layout_is_the_reference(jitter: bool, hist: int) -> N
             assert _same(made[0], ref)
             assert _same(merged(made[0], made[1], a, b), merge_equal(ref, a, b))
         # What the simulator uses, with its cache: always the reference.
-        got = fastsim._merged_timeline(t, None if not hist else t_cmd[:hist], float(d), hist,
-                                       t_cmd, a, b)  # fmt: skip
+        got = fastsim._merged_timeline(t, t_hist, float(d), hist, t_cmd, a, b)
         assert _same(got, merge_equal(ref, a, b))
     assert reused >= 25  # the small lags keep the order (the case worth keeping)
 

@@ -29,6 +29,7 @@ import numpy as np
 from truckd.config.truck import TruckConfig, load_config
 from truckd.errors import InputError, TruckdError
 from truckd.io.backends import BACKEND_NAMES
+from truckd.jsonsafe import json_number
 from truckd.logfile import Log, read_log, write_log
 from truckd.runtime.backend import Backend
 from truckd.runtime.characterize import Routine
@@ -249,7 +250,7 @@ def characterize(
         "experiments": [e.as_dict() for e in result.experiments],
         "distance_m": round(result.distance_m, 4),
         "duration_s": round(result.duration_s, 3),
-        "end_speed_m_s": result.end_speed_m_s if math.isfinite(result.end_speed_m_s) else None,
+        "end_speed_m_s": json_number(result.end_speed_m_s),
         "stopped": {"reason": result.stop_reason, "t": result.stop_t}
         if result.stop_reason
         else None,

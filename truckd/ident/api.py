@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 
@@ -22,6 +23,11 @@ def _quiet(_: str) -> None:
     return None
 
 
+_BLAS_LOCK = threading.Lock()
+_blas_users = 0
+_blas_limiter: threadpool_limits | None = None
+
+
 @contextmanager
 def one_blas_thread() -> Iterator[None]:
     """Linear algebra on one thread while a diagnosis runs.
@@ -29,9 +35,21 @@ def one_blas_thread() -> Iterator[None]:
     The fits' matrices are small (a Jacobian of at most some 16 000 rows by 8 columns, the
     terrain's 8 000 by 120): split over threads they gain nothing, and on a machine whose
     other cores are busy OpenBLAS's threads wait for each other, an SVD of the fitting
-    loop taking 16 ms instead of 1 ms (2 cores, one busy).  The limit is lifted on exit."""
-    with threadpool_limits(limits=1, user_api="blas"):
+    loop taking 16 ms instead of 1 ms (2 cores, one busy).  The limit is process-wide: the
+    first of overlapping diagnoses (on several threads) sets it, the last lifts it."""
+    global _blas_users, _blas_limiter
+    with _BLAS_LOCK:
+        if _blas_users == 0:
+            _blas_limiter = threadpool_limits(limits=1, user_api="blas")
+        _blas_users += 1
+    try:
         yield
+    finally:
+        with _BLAS_LOCK:
+            _blas_users -= 1
+            if _blas_users == 0 and _blas_limiter is not None:
+                _blas_limiter.restore_original_limits()
+                _blas_limiter = None
 
 
 def _as_list(logs: Log | Sequence[Log]) -> list[Log]:

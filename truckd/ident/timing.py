@@ -75,8 +75,8 @@ class Layout:
 
 
 def layout_of(t: Array, delay: float, t_cmd: Array) -> tuple[Timeline, Layout] | None:
-    """The timeline of commands issued at ``t_cmd`` (increasing) acting ``delay`` s
-    (> 0) later over the sample instants ``t``, and its layout; None when two instants
+    """The timeline of commands issued at ``t_cmd`` (s, increasing) acting ``delay`` s
+    (> 0) later over the sample instants ``t`` (s), and its layout; None when two instants
     lie within the tolerance (or the commands are not increasing): then
     :func:`truckd.ident.freerun.timeline` resolves the ties."""
     n = len(t)
@@ -117,7 +117,8 @@ def layout_of(t: Array, delay: float, t_cmd: Array) -> tuple[Timeline, Layout] |
 
 def shifted(lay: Layout, t: Array, delay: float, t_cmd: Array) -> Timeline | None:
     """The timeline under another ``delay`` (s) in the order of ``lay`` (made for the
-    same ``t`` and ``t_cmd``); None when that order does not hold for it."""
+    same sample instants ``t`` and command instants ``t_cmd``, s); None when that order
+    does not hold for it."""
     act = t_cmd + delay
     t0, t1 = t[0], t[-1]
     if not (act[lay.first] > t0 and act[lay.stop - 1] < t1):
@@ -135,7 +136,9 @@ def shifted(lay: Layout, t: Array, delay: float, t_cmd: Array) -> Timeline | Non
 
 def merged(tl: Timeline, lay: Layout, a: Array, b: Array) -> Timeline:
     """:func:`truckd.ident.freerun.merge_equal` of ``tl`` (a timeline in the layout
-    ``lay``) for the per-command inputs ``a``, ``b``."""
+    ``lay``) for the per-command inputs ``a`` and ``b`` (the free run's two input terms, in
+    its units; only their equality counts): neighbouring sub-intervals whose commands have
+    equal inputs are joined."""
     same = lay.both & (a[lay.left] == a[lay.right]) & (b[lay.left] == b[lay.right])
     if not bool(same.any()):
         return tl

@@ -25,6 +25,7 @@ from truckd.control.platoon import (
     decode_plan,
     make_plan,
 )
+from truckd.jsonsafe import json_number
 from truckd.runtime.cycle import CompanionCycle, CycleOutputs
 from truckd.runtime.platoon_clock import PlanClock
 
@@ -292,7 +293,7 @@ class DaemonPlatoon:
             "predecessor": self.cfg.predecessor or None,
             "mode": d.mode if d is not None else None,
             "headway_s": d.headway if d is not None else None,
-            "plan_age_s": age if math.isfinite(age) else None,
+            "plan_age_s": json_number(age),
             "plans_accepted": r.accepted if r is not None else 0,
             "plans_refused": r.refused if r is not None else 0,
             "plans_dropped": r.dropped if r is not None else 0,

@@ -185,6 +185,7 @@ def run_platoon(
                 channel.sent = channel.lost = 0
             for f in trucks:
                 f.mode.switches = f.cyc.controller.solver_failures = 0
+            events.clear()
         if sc.kind == "leave" and t >= sc.event_s and trucks[n_trucks // 2].active:
             gone = trucks[n_trucks // 2]
             gone.active, gone.lane = False, 1

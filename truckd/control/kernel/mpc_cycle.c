@@ -127,6 +127,23 @@ static OSQPInt dense_factor(Dense *d) {
     return 0;
 }
 
+/* y = A x over the dense copy (y: M values), eight rows at a time over A's columns: each
+ * row's sum in the order of j, as a dot product of the row and OSQP's column loop take it
+ * (the same numbers), in registers across j. */
+static void dense_ax(const Dense *d, const double *x, double *y) {
+    enum { N = TRUCKD_MPC_N, M = TRUCKD_MPC_M, MP = TRUCKD_MPC_MP };
+    for (int i0 = 0; i0 < MP; i0 += 8) {
+        double t[8] = {0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0};
+        for (int j = 0; j < N; ++j) {
+            const double *col = d->at + j * MP + i0;
+            double xj = x[j];
+            for (int q = 0; q < 8; ++q) t[q] += col[q] * xj;
+        }
+        int rows = M - i0 < 8 ? M - i0 : 8;
+        for (int q = 0; q < rows; ++q) y[i0 + q] = t[q];
+    }
+}
+
 static OSQPInt dense_solve(LinSysSolver *ls, OSQPVectorf *b, OSQPInt admm_iter) {
     enum { N = TRUCKD_MPC_N, M = TRUCKD_MPC_M, MP = TRUCKD_MPC_MP };
     Dense *d = dense_of(ls);
@@ -151,18 +168,7 @@ static OSQPInt dense_solve(LinSysSolver *ls, OSQPVectorf *b, OSQPInt admm_iter) 
         x[i] = t / d->l[i * N + i];
     }
     for (int j = 0; j < N; ++j) bv[j] = x[j];
-    /* z~ = A x, eight rows at a time over A's columns: each row's sum in the order of j as
-     * a dot product of the row would take (the same numbers), in registers across j */
-    for (int i0 = 0; i0 < MP; i0 += 8) {
-        double t[8] = {0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0};
-        for (int j = 0; j < N; ++j) {
-            const double *col = d->at + j * MP + i0;
-            double xj = x[j];
-            for (int q = 0; q < 8; ++q) t[q] += col[q] * xj;
-        }
-        int rows = M - i0 < 8 ? M - i0 : 8;
-        for (int q = 0; q < rows; ++q) bv[N + i0 + q] = t[q];
-    }
+    dense_ax(d, x, bv + N); /* z~ = A x */
     return 0;
 }
 
@@ -184,19 +190,9 @@ OSQPInt truckd_dense_Axpy(const OSQPMatrix *a, const OSQPFloat *x, OSQPFloat *y,
                           OSQPFloat beta);
 OSQPInt truckd_dense_Axpy(const OSQPMatrix *a, const OSQPFloat *x, OSQPFloat *y, OSQPFloat alpha,
                           OSQPFloat beta) {
-    enum { N = TRUCKD_MPC_N, M = TRUCKD_MPC_M, MP = TRUCKD_MPC_MP };
     const Dense *d = dense_product_of(a, alpha, beta);
     if (d == NULL) return 0;
-    for (int i0 = 0; i0 < MP; i0 += 8) {
-        double t[8] = {0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0};
-        for (int j = 0; j < N; ++j) {
-            const double *col = d->at + j * MP + i0;
-            double xj = x[j];
-            for (int q = 0; q < 8; ++q) t[q] += col[q] * xj;
-        }
-        int rows = M - i0 < 8 ? M - i0 : 8;
-        for (int q = 0; q < rows; ++q) y[i0 + q] = t[q];
-    }
+    dense_ax(d, x, y);
     return 1;
 }
 
