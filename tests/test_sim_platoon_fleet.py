@@ -16,7 +16,7 @@ from truckd.control.platoon import ACC, CACC, PlatoonConfig
 from truckd.control.qp import ControlModel
 from truckd.sim import platoon
 from truckd.sim.closed_loop import SimSetup
-from truckd.sim.platoon import PlatoonTrace, make_platoon_scenario, run_platoon
+from truckd.sim.platoon import PREROLL_S, PlatoonTrace, make_platoon_scenario, run_platoon
 from truckd.sim.platoon_truck import scaled_truck
 
 LINK = {"loss": 0.3, "delay_s": (0.0, 0.05), "clock_offset_s": 2.0, "clock_drift_ppm": 100.0}
@@ -198,9 +198,10 @@ def test_cli_platoon_options(tmp_path: Path) -> None:
     args = ["sim", "--platoon", "4", "--scenario", "platoon-sine", "--duration", "2"]
     args += ["--plan-delay", "0.01-0.04", "--plan-loss", "0.3", "--burst-loss"]
     args += ["--clock-offset", "1.5", "--clock-drift", "50", "--mixed", "--seed", "7"]
-    assert main([*args, "--json", str(out)]) == 0
+    assert main([*args, "--steady-start", "--json", str(out)]) == 0
     doc = json.loads(out.read_text())
     assert doc["trucks"] == 4 and len(doc["trucks_drawn"]) == 4
+    assert doc["preroll_s"] == pytest.approx(PREROLL_S)  # the sine starts at speed
     assert all(abs(o) <= 1.5 for o in doc["clock_offset_s"])
     assert all(abs(d) <= 50.0 for d in doc["clock_drift_ppm"])
     for key in ("collision", "min_gap_m", "string_ratio_l2", "string_ratio_max",
@@ -219,6 +220,7 @@ def test_cli_platoon_options(tmp_path: Path) -> None:
         ("--platoon", "3", "--scenario", "platoon-join"),  # needs 4 trucks
         ("--scenario", "cruise", "--mixed"),
         ("--scenario", "cruise", "--clock-offset", "1"),
+        ("--scenario", "cruise", "--steady-start"),
     ],
 )
 def test_cli_bad_fleet_options_exit_2(

@@ -18,6 +18,7 @@ from truckd.sim.platoon import (
     MAX_TRUCKS,
     MIN_TRUCKS,
     PLATOON_SCENARIOS,
+    PREROLL_S,
     make_platoon_scenario,
     run_platoon,
 )
@@ -63,6 +64,14 @@ def add_platoon_arguments(p: argparse.ArgumentParser) -> None:
         help="each truck drawn: mass, motor, one effect (its controller on its own model)",
     )
     p.add_argument(
+        "--steady-start",
+        action="store_const",
+        const=True,
+        help="a scenario that starts at speed starts in the steady state of that speed, "
+        f"after an unrecorded {PREROLL_S:g} s pre-roll (not platoon-join: its trucks approach "
+        "from 0 s)",
+    )
+    p.add_argument(
         "--seed", type=int, help="random seed of the plan loss, clocks and trucks (default 0)"
     )
 
@@ -74,6 +83,7 @@ PLATOON_ONLY: dict[str, object] = {
     "clock_offset": 0.0,
     "clock_drift": 0.0,
     "mixed": False,
+    "steady_start": False,
     "seed": 0,
 }
 """Options of a platoon run and their defaults: given without ``--platoon``, refused."""
@@ -164,6 +174,7 @@ def run_platoon_cli(args: argparse.Namespace) -> int:
             clock_offset_s=args.clock_offset,
             clock_drift_ppm=args.clock_drift,
             mixed=args.mixed,
+            steady_start=args.steady_start,
         )
         results.append(json_safe(m))
         if trace_dir is not None:  # one log per truck, the lead (truck 0) included

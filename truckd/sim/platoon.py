@@ -244,6 +244,7 @@ def run_platoon(
     m["events"] = [{"t_s": round(te, 6), "what": w} for te, w in events]
     m["clock_offset_s"] = [c[0] for c in clocks]
     m["clock_drift_ppm"] = [c[1] * 1e6 for c in clocks]
+    m["preroll_s"] = pre * dt  # 0: the trucks started as the scenario has them at 0 s
     if mixed:
         m["trucks_drawn"] = [drawn_summary(s) for s in setups]
     return m, tr
