@@ -271,6 +271,8 @@ def _simulate(
     # current): no electrical lag before the command acts.  A winding's resistance
     # changes per pass: neither is cached.
     cached = r_drift is None and eff.backlash == 0.0
+    # No battery sag and no winding drift: every command sees R_m (fewer arrays).
+    same_r = eff.battery_sag == 0.0 and r_drift is None
     key = _prep_key(p, eff, t, u, t_hist, u_hist)
     hit = _PREP.get(key) if cached else None
     if hit is not None and hit[0] is t and hit[1] is u and hit[2] is t_hist and hit[3] is u_hist:
@@ -282,7 +284,7 @@ def _simulate(
             r_tot = r_tot + r_drift
         k0, l0 = electrical_correction(p, eff.viscous_friction)
         kappa, lag_e = float(k0), float(l0)
-        if eff.battery_sag == 0.0 and r_drift is None:
+        if same_r:
             # r_tot is R_m throughout: the same numbers as electrical_correction on it.
             k_arr = np.full(len(r_tot), kappa)
         else:
@@ -322,7 +324,6 @@ def _simulate(
     meas, raw, pos = run(kin, tl, n, w0, eff.sensor_lag)
     rotor = raw if kin.gap is None else kin.gap.rotor_out
     idx = _active(t, t_hist, t_cmd, eff.input_delay)
-    same_r = eff.battery_sag == 0.0 and r_drift is None
     cur, v_at = _sample_currents(p, eff, idx, volts, None if same_r else r_tot, v_pre, raw, rotor)
     return VoltagePrediction(
         v=meas * p.ratio, v_true=raw * p.ratio, i=cur, x=pos * p.ratio, volts=v_at
@@ -335,17 +336,27 @@ kept: it depends only on the instants and the delay, not on any other parameter.
 _TIMING: dict[tuple[object, ...], tuple[Array, Array | None, Any]] = {}
 
 
-def _timed(key: tuple[object, ...], t: Array, t_hist: Array | None) -> Any:
-    """The cached value of ``key`` for the arrays ``t``, ``t_hist`` (the cache holds
-    them, so an identity is not reused while cached), None when not cached."""
-    hit = _TIMING.get(key)
+def _timed(
+    key: tuple[object, ...], t: Array, t_hist: Array | None, cache: dict[Any, Any] = _TIMING
+) -> Any:
+    """The value ``cache`` (default :data:`_TIMING`) holds under ``key`` for the arrays
+    ``t``, ``t_hist`` (the cache holds them, so an identity is not reused while cached),
+    None when not cached."""
+    hit = cache.get(key)
     if hit is not None and hit[0] is t and hit[1] is t_hist:
         return hit[2]
     return None
 
 
-def _keep(key: tuple[object, ...], t: Array, t_hist: Array | None, value: Any) -> None:
-    _put(_TIMING, key, (t, t_hist, value), TIMING_CACHE)
+def _keep(
+    key: tuple[object, ...],
+    t: Array,
+    t_hist: Array | None,
+    value: Any,
+    cache: dict[Any, Any] = _TIMING,
+    most: int = TIMING_CACHE,
+) -> None:
+    _put(cache, key, (t, t_hist, value), most)
 
 
 def _timeline(t: Array, t_hist: Array | None, delay: float, hist: int, t_cmd: Array) -> Timeline:
@@ -372,14 +383,13 @@ def _merged_timeline(
     (:mod:`truckd.ident.timing`, the same arrays); else computed, and its layout kept."""
     if delay > 0.0:
         key = ("layout", id(t), id(t_hist), hist)
-        hit = _LAYOUT.get(key)
-        lay = hit[2] if hit is not None and hit[0] is t and hit[1] is t_hist else None
+        lay: Layout | None = _timed(key, t, t_hist, _LAYOUT)
         tl = None if lay is None else shifted(lay, t, delay, t_cmd)
         if tl is None:
             made = layout_of(t, delay, t_cmd)
             if made is not None:
                 tl, lay = made
-                _put(_LAYOUT, key, (t, t_hist, lay), LAYOUT_CACHE)
+                _keep(key, t, t_hist, lay, _LAYOUT, LAYOUT_CACHE)
         if tl is not None and lay is not None:
             return merged(tl, lay, a, b)
     return merge_equal(_timeline(t, t_hist, delay, hist, t_cmd), a, b)
