@@ -52,7 +52,7 @@ from truckd.config.truck import default_config_path, load_config
 from truckd.logfile import read_log
 from truckd.runtime.telemetry import zenoh_config
 from truckd.sim.closed_loop import SimSetup, run_scenario
-from truckd.sim.firmware import constant_speed_lead
+from truckd.sim.firmware import CuedLead
 from truckd.sim.mcap_export import write_trace_mcap
 from truckd.sim.pil import build_pil_elf
 from truckd.sim.scenarios import make_scenario
@@ -159,9 +159,8 @@ def run(seconds: float) -> dict[str, Any]:
     elf = build_pil_elf()
     cfg = load_config(None)
     tmp = Path(tempfile.mkdtemp(prefix="pil-bench-"))
-    board = emulated_board(
-        truck_spec(cfg), constant_speed_lead(LEAD_GAP, LEAD_SPEED), tmp / "ttyPIL", elf=elf
-    )
+    lead = CuedLead(LEAD_GAP, LEAD_SPEED)  # sets off once the daemon publishes
+    board = emulated_board(truck_spec(cfg), lead, tmp / "ttyPIL", elf=elf)
     plant = board.plant
     port = _free_port()
     board.start()
@@ -177,6 +176,9 @@ def run(seconds: float) -> dict[str, Any]:
         if not _wait(lambda: board.boot_s() is not None, 60):
             raise RuntimeError("the emulated board never reported its boot")
         res["boot_s"] = board.boot_s()
+        if not _wait(lambda: bool(watch.get("state")), 60):
+            raise RuntimeError("the daemon never published: " + (tmp / "daemon.err").read_text())
+        lead.go(plant.t)
         if not _wait(lambda: watch.get("state").get("mode") == "ACTIVE", 60):
             raise RuntimeError("the daemon never went ACTIVE: " + (tmp / "daemon.err").read_text())
         if readers:

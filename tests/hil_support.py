@@ -141,6 +141,18 @@ class Watch:
                 return None
             time.sleep(0.02)
 
+    def modes(self) -> list[tuple[float, str]]:
+        """Every change of the published mode: (receive time s after the first state,
+        mode), for a failing test's message."""
+        with self._lock:
+            states = list(self.states)
+        out: list[tuple[float, str]] = []
+        for s in states:
+            mode = str(s.msg.get("mode"))
+            if not out or out[-1][1] != mode:
+                out.append((round(s.rx - states[0].rx, 2), mode))
+        return out
+
     def last_health(self) -> dict[str, Any]:
         with self._lock:
             return self.health[-1].msg if self.health else {}

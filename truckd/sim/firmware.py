@@ -429,6 +429,26 @@ def constant_speed_lead(gap0: float, v_lead: float) -> RangeFn:
     return range_fn
 
 
+class CuedLead:
+    """A lead ``gap0`` m ahead of x = 0, standing until :meth:`go`, then at ``v_lead`` m/s
+    (a ``RangeFn``).  For a rig whose daemon starts seconds after its plant (a loaded
+    machine): a lead driving from t = 0 could leave the sensor's range before anyone
+    follows it."""
+
+    def __init__(self, gap0: float, v_lead: float) -> None:
+        self.gap0, self.v_lead = gap0, v_lead
+        self.t_go = math.inf
+        """Plant time (s) the lead set off (inf: standing)."""
+
+    def go(self, t: float) -> None:
+        """Set off at plant time ``t`` (s); later calls change nothing."""
+        if self.t_go == math.inf:
+            self.t_go = t
+
+    def __call__(self, t: float, ego_x: float) -> float | None:
+        return self.gap0 + self.v_lead * max(t - self.t_go, 0.0) - ego_x
+
+
 def simulated_truck(
     plant: Plant,
     range_fn: RangeFn,

@@ -9,10 +9,11 @@ board has two UARTs, both on Unix sockets this process serves:
   every 5 ms), its motor output (``M``), its boot (``B``) and its counters (``C``, every
   100 ms); the simulated :class:`~truckd.sim.plant.Plant` runs on the board's clock:
   each line first advances it to the line's instant, a motor line then commands it, and
-  a clock line is answered with a sensor snapshot (encoder counts, range from
-  ``range_fn``, current, battery) at that instant, unless the previous snapshot is still
-  unread (the emulated UART takes about 16 kB/s: a queue of snapshots would feed the
-  firmware stale readings);
+  a clock line is answered with a sensor snapshot (encoder counts with their fraction
+  of a tick and their rate, range from ``range_fn``, current, battery) at that instant,
+  unless the previous snapshot is still unread (the emulated UART takes about 16 kB/s: a
+  queue of snapshots would feed the firmware stale readings); between snapshots the
+  board's encoder counters run on at the snapshot's rate, as hardware counters would;
 - USART2, the serial link: relayed byte for byte to a pty whose slave is published at
   ``link_path`` (the device the daemon's serial backend opens).  The relay can hold
   the daemon's bytes back (:meth:`stall`) or flip one bit of the next frame to the board
@@ -31,6 +32,7 @@ import contextlib
 import fcntl
 import math
 import os
+import random
 import selectors
 import signal
 import socket
@@ -140,13 +142,20 @@ class EmulatedBoard:
         *,
         ticks_per_rev: int = ENCODER_TICKS_PER_REV,
         range_max: float = 4.0,
+        range_noise: float = 0.002,
+        seed: int = 0,
         elf: Path | None = None,
         qemu: str = "qemu-system-arm",
     ) -> None:
+        """``range_max`` (m): farther is NO_TARGET; ``range_noise`` (m, std): added to
+        the range reading (a noiseless reading of a steady gap repeats to the mm, which the
+        supervisor takes for a frozen sensor); ``seed``: of that noise."""
         self.plant = plant
         self.range_fn = range_fn
         self.link_path = str(link_path)
         self.range_max = range_max
+        self.range_noise = range_noise
+        self._rng = random.Random(seed)
         self.elf = elf or PIL_ELF
         self.qemu = qemu
         self._ticks_per_m = ticks_per_rev / (2.0 * math.pi * plant.p.r_w)
@@ -308,17 +317,25 @@ class EmulatedBoard:
     # -- the plant (USART1) ------------------------------------------------------------
     def _sensor_line(self) -> bytes:
         p = self.plant
-        ticks = math.floor(p.x * self._ticks_per_m) & 0xFFFF
+        pos = p.x * self._ticks_per_m  # ticks
+        ticks = math.floor(pos)
+        milli = min(int((pos - ticks) * 1000.0), 999)
+        rate = round(p.v * self._ticks_per_m)  # ticks/s: the counters run on at it
+        ms = round((p.t - self.plant_t0) * 1000.0)
+        ticks &= 0xFFFF
         m = p.measure()
         gap = self.range_fn(p.t, p.x)
         if gap is None or not math.isfinite(gap) or gap > self.range_max:
             status, mm = RANGE_NO_TARGET, 0
         else:
-            status, mm = RANGE_VALID, round(max(gap, -1e6) * 1000.0)
             self.min_gap = min(self.min_gap, gap)
             self.gaps.append((p.t, gap, p.v))
+            if self.range_noise:
+                gap += self._rng.gauss(0.0, self.range_noise)
+            status, mm = RANGE_VALID, round(max(gap, -1e6) * 1000.0)
         return (
-            f"S {ticks} {ticks} 0 {mm} {status} {round(m.i * 1000.0)} {round(m.vbat * 1000.0)}\n"
+            f"S {ticks} {ticks} 0 {mm} {status} {round(m.i * 1000.0)} {round(m.vbat * 1000.0)} "
+            f"{ms} {milli} {rate}\n"
         ).encode()
 
     def _advance_to(self, ms: int) -> None:

@@ -145,6 +145,8 @@ def emulated_board(
         link_path,
         ticks_per_rev=spec.firmware.ticks_per_rev,
         range_max=spec.firmware.range_max,
+        range_noise=spec.firmware.range_noise,
+        seed=spec.firmware.seed,
         elf=elf,
         qemu=qemu,
     )

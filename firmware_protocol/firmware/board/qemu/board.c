@@ -11,7 +11,11 @@
  *     board -> host  "T <ms>\n"                      every PLANT_PERIOD_MS: the plant
  *                                                    runs on this clock, and answers
  *     host -> board  "S <enc_l> <enc_r> <enc_status> <range_mm> <range_status>
- *                       <current_ma> <vbat_mv>\n"   sensor snapshot at that instant
+ *                       <current_ma> <vbat_mv> <ms> <enc_milli> <enc_rate>\n"
+ *                                                    sensor snapshot at the board's
+ *                                                    instant <ms>; <enc_milli> the counters'
+ *                                                    fraction of a tick (1/1000), <enc_rate>
+ *                                                    their rate (ticks/s)
  *     board -> host  "B <ms>\n"                      booted, core initialised
  *                    "M <ms> <mv> <enable>\n"        every set_motor (driver output), at the
  *                                                    core's time of the decision
@@ -154,19 +158,22 @@ static volatile struct {
     int32_t range_mm;
     uint8_t range_status;
     int32_t current_ma, vbat_mv;
-} sensors = {0u, 0u, 0u, 0, TRUCK_RANGE_NO_TARGET, 0, 0};
+    uint32_t ms;        /* the board's instant of the snapshot */
+    int32_t enc_milli;  /* the counters' fraction of a tick at that instant, 1/1000 */
+    int32_t enc_rate;   /* ticks/s */
+} sensors = {0u, 0u, 0u, 0, TRUCK_RANGE_NO_TARGET, 0, 0, 0u, 0, 0};
 static uint32_t bad_lines;
 
-/* "S" and seven integers: the sensor snapshot; 0 when it parsed */
+/* "S" and ten integers: the sensor snapshot; 0 when it parsed */
 static int parse_sensors(const char *s, uint32_t len)
 {
-    int32_t v[7];
+    int32_t v[10];
     unsigned n = 0;
     uint32_t i = 1;
     if (len < 2u || s[0] != 'S') {
         return -1;
     }
-    while (i < len && n < 7u) {
+    while (i < len && n < 10u) {
         if (s[i] != ' ') {
             return -1;
         }
@@ -186,7 +193,7 @@ static int parse_sensors(const char *s, uint32_t len)
         }
         v[n++] = (int32_t)(neg ? -x : x);
     }
-    if (n != 7u || i != len) {
+    if (n != 10u || i != len || v[8] < 0 || v[8] > 999) {
         return -1;
     }
     sensors.enc_l = (uint16_t)v[0];
@@ -196,10 +203,13 @@ static int parse_sensors(const char *s, uint32_t len)
     sensors.range_status = (uint8_t)v[4];
     sensors.current_ma = v[5];
     sensors.vbat_mv = v[6];
+    sensors.ms = (uint32_t)v[7];
+    sensors.enc_milli = v[8];
+    sensors.enc_rate = v[9];
     return 0;
 }
 
-static char plant_line_buf[96];
+static char plant_line_buf[128];
 static uint32_t plant_line_len;
 static uint8_t plant_line_long; /* the line overflowed the buffer: bad, skipped */
 
@@ -222,12 +232,30 @@ static void plant_rx_poll(void)
     }
 }
 
+/* The encoder counters between snapshots run on at the snapshot's rate, as a hardware
+ * counter would: a snapshot arrives some time after its instant (or is skipped while the
+ * previous one is still unread), and a count held still for that time would read as a
+ * truck that stopped and then jumped.  At most ENC_RUN_ON_MS past the snapshot (a host
+ * that stopped answering: the counters then stop too). */
+#define ENC_RUN_ON_MS 50
+
+/* floor(x / 1000) */
+static int32_t floor_div_1000(int64_t x)
+{
+    int64_t q = x / 1000;
+    return (int32_t)((x % 1000 < 0) ? q - 1 : q);
+}
+
 /* -- HAL ----------------------------------------------------------------------------- */
 static void hal_read_encoders(void *ctx, uint16_t *left, uint16_t *right, uint8_t *status)
 {
     (void)ctx;
-    *left = sensors.enc_l;
-    *right = sensors.enc_r;
+    int32_t dt = (int32_t)(core_ms - sensors.ms); /* the core read its clock just before */
+    dt = (dt < 0) ? 0 : (dt > ENC_RUN_ON_MS) ? ENC_RUN_ON_MS : dt;
+    /* ticks/s * ms = 1/1000 ticks */
+    int32_t run_on = floor_div_1000((int64_t)sensors.enc_milli + (int64_t)sensors.enc_rate * dt);
+    *left = (uint16_t)((int32_t)sensors.enc_l + run_on);
+    *right = (uint16_t)((int32_t)sensors.enc_r + run_on);
     *status = sensors.enc_status;
 }
 
