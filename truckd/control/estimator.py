@@ -6,11 +6,17 @@ filter (white-acceleration model, measurement noise = one tick's quantisation,
 ``tick^2 / 12``) turns the quantised distance into a speed.  Time steps come from the
 firmware's sample clock (which wraps), staleness from the caller's clock.  A
 discontinuity restarts the filter from the next difference (the speed is stale until
-then): a step faster than ``speed_max`` or farther from the filter's speed than
-``accel_max`` allows (the counters reset or jumped), the firmware's clock running ahead of
+then): two steps in a row faster than ``speed_max`` or farther from the filter's speed
+than ``accel_max`` allows (the counters reset or jumped), the firmware's clock running ahead of
 the caller's by more than :data:`CLOCK_SLACK_S`, or two samples in a row behind the last
 one and in order among themselves (the firmware's clock restarted, e.g. a microcontroller
-reset).  A single sample behind the last one is dropped (out of order).
+reset).  A single sample behind the last one is dropped (out of order).  A single step
+out of bounds whose next sample lies within them again, measured from the sample before
+it, is a glitch (a count read before it was updated, then caught up): dropped and counted
+(``speed_glitches``), the speed stays valid.  Before the filter has a speed, an
+out-of-bounds step restarts it at once.  After a restart the speed is valid from the
+second difference on, once the next step has confirmed the first (a first difference
+taken from a stale count would be a spike).
 
 Lead: a Kalman filter on ``[gap, v_lead]`` with ``gap' = v_lead - v_own`` and the lead's
 acceleration as white noise.  Readings outside the sensor's range or flagged invalid are
@@ -75,6 +81,7 @@ class Estimate:
     encoder_samples: int
     range_samples: int
     speed_restarts: int = 0
+    speed_glitches: int = 0
     speed_age: float = math.inf
     """Caller time since the own-speed filter last took a measurement (s; inf: never)."""
     v_lead_std: float = math.nan
@@ -150,6 +157,14 @@ class _SpeedState:
     run: int = 0
     """Samples since the filter (re)started: a speed from the second on."""
     restarts: int = 0
+    suspect: bool = False
+    """The last sample's step was out of bounds and dropped (a glitch if the next one
+    agrees with ``last``, a discontinuity if it does not either)."""
+    glitches: int = 0
+    valid_from: int = 2
+    """``run`` from which the speed is valid: 2 (the first difference) at the start, 3
+    after a restart (the first difference confirmed by the next: one taken from a stale
+    count would otherwise be a valid spike)."""
 
 
 @dataclass
@@ -215,15 +230,22 @@ class Estimator:
             deltas.append(wrap_delta(s.ticks_left, last.ticks_left, m))
         if s.right_ok and last.right_ok:
             deltas.append(wrap_delta(s.ticks_right, last.ticks_right, m))
-        st.last, st.t_ref = s, t
         if not deltas:
+            st.last, st.t_ref, st.suspect = s, t, False
             return  # no healthy wheel: the speed goes stale
         step = self.tick_len * sum(deltas) / len(deltas)
         if abs(step) > self.cfg.speed_max * dt + 2.0 * self.tick_len or (
             st.run >= 2 and abs(step - st.kf.x1 * dt) > self._speed_room(dt)
         ):
+            if st.run >= 2 and not st.suspect:
+                st.suspect = True  # dropped: the next sample tells a glitch from a jump
+                return
             self._restart(s, t)  # no motion: the counters reset or jumped
             return
+        if st.suspect:
+            st.suspect = False
+            st.glitches += 1
+        st.last, st.t_ref = s, t
         st.distance += step
         st.run += 1
         if st.run == 2:
@@ -246,13 +268,14 @@ class Estimator:
     def _restart(self, s: EncoderSample, t: float) -> None:
         """The own-speed filter starts again from ``s`` (a speed from the next sample)."""
         st = self._s
-        st.last, st.t_ref, st.run, st.behind = s, t, 1, None
+        st.last, st.t_ref, st.run, st.behind, st.suspect = s, t, 1, None, False
+        st.valid_from = 3
         st.restarts += 1
 
     def speed(self, t: float) -> tuple[float, bool]:
         """Own speed (m/s) and whether it is fresh at caller time t (s)."""
         st = self._s
-        fresh = st.run >= 2 and (t - st.t_last) <= self.cfg.encoder_timeout_s
+        fresh = st.run >= st.valid_from and (t - st.t_last) <= self.cfg.encoder_timeout_s
         return st.kf.x1, fresh
 
     # -- lead -------------------------------------------------------------------------
@@ -354,6 +377,7 @@ class Estimator:
             encoder_samples=self._s.samples,
             range_samples=ld.samples,
             speed_restarts=self._s.restarts,
+            speed_glitches=self._s.glitches,
             speed_age=t - self._s.t_last,
             v_lead_std=v_lead_std,
             x=self._s.distance,
