@@ -155,7 +155,7 @@ class _SpeedState:
     distance: float = 0.0
     samples: int = 0
     run: int = 0
-    """Samples since the filter (re)started: a speed from the second on."""
+    """Samples since the filter (re)started: a speed from ``valid_from`` on."""
     restarts: int = 0
     suspect: bool = False
     """The last sample's step was out of bounds and dropped (a glitch if the next one
@@ -266,7 +266,8 @@ class Estimator:
         return (self.cfg.accel_max * dt + 4.0 * sd) * dt + 2.0 * self.tick_len
 
     def _restart(self, s: EncoderSample, t: float) -> None:
-        """The own-speed filter starts again from ``s`` (a speed from the next sample)."""
+        """The own-speed filter starts again from ``s`` (a speed once the next two
+        differences agree)."""
         st = self._s
         st.last, st.t_ref, st.run, st.behind, st.suspect = s, t, 1, None, False
         st.valid_from = 3
