@@ -2,7 +2,9 @@
 loop in simulated time, the simulated firmware wired the wrong way round through
 ``plant.wiring``/``plant.vehicle``, or a wall too close): each failure stops the routine
 with exit 3 and one line that says what to fix, and the simulated truck ends at rest
-without having driven into anything."""
+without having driven into anything.  The runs that pass their checks and analyse skip
+the closed-loop comparison (`closed_loop_scenarios: []`: half their time;
+tests/test_hil_characterize.py checks it)."""
 
 from __future__ import annotations
 
@@ -141,7 +143,8 @@ def test_the_right_wiring_passes_every_check(tmp_path: Path) -> None:
     code, summary, _lines, track = run(
         tmp_path,
         characterize={"quasistatic_duration_s": 0.5, "step_voltages": [1.0],
-                      "step_duration_s": 0.3, "validation_duration_s": 0.5},
+                      "step_duration_s": 0.3, "validation_duration_s": 0.5,
+                      "closed_loop_scenarios": []},
     )  # fmt: skip
     assert [c["name"] for c in failed(summary)] == []
     names = {c["name"] for c in summary["checks"]}
@@ -192,7 +195,7 @@ def test_a_wall_within_the_track_shortens_the_experiments(tmp_path: Path) -> Non
         wall=1.6,
         characterize={"quasistatic_ramp_v_per_s": 1.5, "quasistatic_duration_s": 3.0,
                       "step_voltages": [3.0], "step_duration_s": 2.0,
-                      "validation_duration_s": 0.5},
+                      "validation_duration_s": 0.5, "closed_loop_scenarios": []},
     )  # fmt: skip
     exps = {e["name"]: e for e in summary["experiments"]}
     assert exps["quasistatic-forward"]["ended"] == "distance budget"
