@@ -1,5 +1,6 @@
-"""``truckd characterize --config FILE [--backend sim|serial|can] [--out DIR]``: the truck
-identifies itself, safely, in one command.
+"""``truckd characterize --config FILE [--backend sim|serial|can] [--out DIR]
+[--drive-only]``: the truck identifies itself, safely, in one command;
+``truckd characterize --config FILE --analyse DIR``: the analysis of a drive already made.
 
 The daemon runs as ``truckd run`` does (its loop, link, supervisor, recorder, telemetry);
 the routine (:mod:`truckd.runtime.characterize`) is its command source.  Then the
@@ -7,6 +8,13 @@ experiment log goes through the diagnosis (:mod:`truckd.ident.api`) and DIR hold
 ``log.csv``, ``model.yaml``, ``diagnosis.json``, ``report.html``, ``summary.json`` (and
 the daemon's own recording under ``raw/``).  Exit 0 completed, 3 a bring-up check failed,
 4 stopped (stop request, SIGTERM, supervisor); 2 bad input, 1 other failures.
+
+``--drive-only`` stops after ``log.csv`` and ``summary.json`` (``"analysed": false``): a
+companion computer too slow or too busy for the analysis leaves it to another machine,
+which runs ``--analyse DIR`` on the directory (the same configuration file: its vehicle is
+the diagnosis's starting point).  ``--analyse`` also analyses a drive again, e.g. with a
+newer truckd: it replaces ``model.yaml``, ``diagnosis.json``, ``report.html`` and the
+summary's analysis keys.
 """
 
 from __future__ import annotations
@@ -33,7 +41,7 @@ from truckd.jsonsafe import json_number
 from truckd.logfile import Log, read_log, write_log
 from truckd.runtime.backend import Backend
 from truckd.runtime.characterize import Routine
-from truckd.runtime.characterize_plan import EXIT_DONE, Experiment, Result, TruckFacts
+from truckd.runtime.characterize_plan import EXIT_DONE, Check, Experiment, Result, TruckFacts
 from truckd.runtime.daemon import Daemon
 from truckd.runtime.ratekeeper import SteppedClock
 
@@ -62,6 +70,16 @@ def add_subparser(sub: Any) -> None:
         metavar="DIR",
         help="output directory (default: characterize-<UTC time>); created, must be empty",
     )
+    p.add_argument(
+        "--drive-only",
+        action="store_true",
+        help="drive and write log.csv and summary.json, leave the analysis to --analyse",
+    )
+    p.add_argument(
+        "--analyse",
+        metavar="DIR",
+        help="analyse the drive in DIR (a finished run's log.csv and summary.json); no driving",
+    )
     p.set_defaults(run=run)
 
 
@@ -71,8 +89,13 @@ def _console(msg: str) -> None:
 
 def run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
+    if args.analyse is not None:
+        if args.out or args.backend or args.drive_only:
+            _console("characterize: --analyse drives nothing: no --out, --backend or --drive-only")
+            return 2
+        return analyse_dir(cfg, Path(args.analyse), _console)
     out = Path(args.out or time.strftime("characterize-%Y%m%dT%H%M%SZ", time.gmtime()))
-    return characterize(cfg, args.backend, out, _console)
+    return characterize(cfg, args.backend, out, _console, drive_only=args.drive_only)
 
 
 def out_dir(path: Path) -> Path:
@@ -234,9 +257,10 @@ def characterize(
     console: Callable[[str], None] = _console,
     prepare: Prepare | None = None,
     clock: SteppedClock | None = None,
+    drive_only: bool = False,
 ) -> int:
-    """The whole command: drive, then analyse; the exit code.  ``clock``: see
-    :func:`drive`."""
+    """The whole command: drive, then analyse (not ``drive_only``); the exit code.
+    ``clock``: see :func:`drive`."""
     out = out_dir(out)
     result, d = drive(cfg, backend, out, console, prepare, clock)
     files = list(d.recorder.files) if d.recorder is not None else []
@@ -265,6 +289,11 @@ def characterize(
             console(f"characterize: stopped ({result.stop_reason}); partial log in {out}")
         _write_json(out / "summary.json", summary)
         return result.code if result.code != EXIT_DONE else 1
+    summary["analysed"] = False
+    if drive_only:
+        _write_json(out / "summary.json", summary)
+        console(f"characterize: driven; analyse with truckd characterize --analyse {out}")
+        return EXIT_DONE
     try:
         summary.update(analyse(cfg, log, result, out, console))
     except (TruckdError, InputError) as exc:  # the log cannot be analysed; it is kept
@@ -272,9 +301,71 @@ def characterize(
         _write_json(out / "summary.json", summary)
         console(f"characterize: analysis failed: {exc}; the log is in {out / 'log.csv'}")
         return 1
+    summary["analysed"] = True
     _write_json(out / "summary.json", summary)
     _print_summary(summary, console)
     return EXIT_DONE
+
+
+SUMMARY_MAX_BYTES = 1 << 20
+"""The largest summary.json ``--analyse`` reads (one holds some 20 experiments: a few kB)."""
+
+
+def analyse_dir(cfg: TruckConfig, d: Path, console: Callable[[str], None] = _console) -> int:
+    """``--analyse DIR``: the analysis of the completed drive in ``d`` (its ``log.csv`` and
+    ``summary.json``), written into ``d``; the exit code (0, 1 the analysis failed, 2 no
+    completed drive there)."""
+    from truckd.inputs import read_text
+
+    try:
+        summary = json.loads(
+            read_text(d / "summary.json", "characterize summary", SUMMARY_MAX_BYTES)
+        )
+        if not isinstance(summary, dict) or not summary.get("completed"):
+            code = summary.get("exit_code") if isinstance(summary, dict) else None
+            raise InputError(f"{d}: the drive did not complete (exit {code}): nothing to analyse")
+        result = Result(
+            checks=[
+                Check(str(c["name"]), bool(c["ok"]), str(c["detail"])) for c in summary["checks"]
+            ],
+            experiments=[_experiment(e) for e in summary["experiments"]],
+        )
+        log = read_log(d / "log.csv", require=("t", "u", "v"))
+        if "experiment" not in log.columns:
+            raise InputError(f"{d / 'log.csv'}: no 'experiment' column: not a characterize log")
+    except (ValueError, KeyError, TypeError) as exc:  # JSONDecodeError is a ValueError
+        console(f"characterize: {d / 'summary.json'}: not a characterize summary ({exc})")
+        return 2
+    except InputError as exc:
+        console(f"characterize: {exc}")
+        return 2
+    try:
+        summary.update(analyse(cfg, log, result, d, console))
+    except (TruckdError, InputError) as exc:
+        console(f"characterize: analysis failed: {exc}; the log is in {d / 'log.csv'}")
+        return 1
+    summary.pop("analysis_error", None)
+    summary["analysed"] = True
+    _write_json(d / "summary.json", summary)
+    _print_summary(summary, console)
+    return EXIT_DONE
+
+
+def _experiment(e: dict[str, Any]) -> Experiment:
+    """An experiment as summary.json keeps it (what the analysis and the report read)."""
+    t0, t1 = (math.nan if e[k] is None else float(e[k]) for k in ("t_start", "t_end"))
+    ended = str(e.get("ended") or "")
+    return Experiment(
+        name=str(e["name"]),
+        kind=str(e["kind"]),
+        direction=0,
+        duration_s=t1 - t0,
+        t_start=t0,
+        t_end=t1,
+        ended="" if ended == "done" else ended,
+        skipped=str(e.get("skipped") or ""),
+        distance_m=float(e.get("distance_m") or 0.0),
+    )
 
 
 def analyse(
