@@ -221,7 +221,7 @@ def test_characterize_finds_the_truck_it_was_not_told_about(
     summary = json.loads((out / "summary.json").read_text())
     for name in ("log.csv", "model.yaml", "diagnosis.json", "report.html"):
         assert (out / name).stat().st_size > 0
-    assert all(c["ok"] for c in summary["checks"])
+    assert all(c["ok"] for c in summary["checks"]) and summary["analysed"] is True
     assert [r["scenario"] for r in summary["closed_loop"]] == CLOSED_LOOP["closed_loop_scenarios"]
     named = {e["name"]: e["params"] for e in summary["effects"]}
     assert effect in named, (truck, summary["effects"])
