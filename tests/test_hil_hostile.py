@@ -130,8 +130,9 @@ def test_a_plan_flood_costs_the_loop_no_deadline(rig: Rig) -> None:
     )  # fmt: skip
     try:
         assert flood.stdout is not None and flood.stdout.readline().strip() == "flooding"
-        # the flood reached the daemon: its health says so
-        t_end = time.monotonic() + 10.0
+        # the flood reached the daemon: its health says so (waited for: the low-priority
+        # flooder gets going slowly on a loaded machine)
+        t_end = time.monotonic() + 30.0
         h = rig.health_after(time.monotonic())
         while not h["platoon"]["plan_flood"] and time.monotonic() < t_end:
             h = rig.health_after(time.monotonic())
@@ -155,7 +156,7 @@ def test_a_plan_flood_costs_the_loop_no_deadline(rig: Rig) -> None:
     )
     print(report)
     # it was a flood: far more than the ingress cap lets in (aimed at 100 000 per second;
-    # how many a nice-19 process reaches depends on the machine and its load)
+    # how many a nice-10 process reaches depends on the machine and its load)
     assert rate > 10 * cap, report
     assert received / WINDOW_S <= 1.2 * cap, report  # Zenoh let in at most the cap
     assert pl["plans_accepted"] == 0 and pl["plans_refused"] > 0, pl
