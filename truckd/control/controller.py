@@ -75,6 +75,11 @@ class Controller:
         self.braking_cycles = 0
         self._b_v = float(self.mpc.qp.pred.bu[1])
         """Speed per volt over one step (m/s/V), for the offset-free action."""
+        self._sag = eff.battery_sag > 0.0
+        self._current_limit = eff.current_limit > 0.0
+        self._dead_zone = self.dead_zone.active
+        """Which of the driver's maps the model has (fixed: the maps without them pass the
+        voltage through, and are not called every cycle)."""
         self._forget()
 
     def _forget(self) -> None:
@@ -288,15 +293,15 @@ class Controller:
         # (With an input delay: at rest when the first planned command acts.)
         self._v_act = x0[1]
         at_rest = abs(self._v_act) <= cfg.moving_speed
-        inp = QpInputs(
-            x0=x0,
-            u_prev=0.0 if at_rest else self._applied_prev() - ff,
-            v_lead=v_lead_h,
-            lead=lead,
-            v_ref=v_ref,
-            v_cap=cfg.v_max,
-            u_lo=-self.u_max - ff,
-            u_hi=self._u_hi() - ff,
+        inp = QpInputs(  # positional, in the fields' order (see _finish)
+            x0,
+            0.0 if at_rest else self._applied_prev() - ff,  # u_prev
+            v_lead_h,  # v_lead
+            lead,
+            v_ref,
+            cfg.v_max,  # v_cap
+            -self.u_max - ff,  # u_lo
+            self._u_hi() - ff,  # u_hi
         )
         res = self.mpc.solve("follow" if mode == "follow" else "cruise", inp)
         if not res.ok:
@@ -345,10 +350,14 @@ class Controller:
     def _current_limited(self, wanted: float, v: float) -> float:
         """The voltage (V) the driver applies for ``wanted`` under its current limit at
         speed v (m/s), within ``u_max``; sets :attr:`_limited`."""
+        u_max = self.u_max
+        if not self._current_limit:  # current_window: the whole line, -inf to inf
+            self._limited = math.isnan(wanted)
+            return min(max(wanted, -u_max), u_max)
         p = self.model.params
         lo, hi = current_window(p, self.model.effects, p.omega(v), self.winding.resistance)
         self._limited = not lo <= wanted <= hi
-        return min(max(wanted, lo, -self.u_max), hi, self.u_max)
+        return min(max(wanted, lo, -u_max), hi, u_max)
 
     def _applied_prev(self) -> float:
         """The voltage the previous command applies at the motor (V): what it was meant to
@@ -358,17 +367,23 @@ class Controller:
     def _u_hi(self) -> float:
         """The highest motor voltage (V) the driver can apply now (the battery sag lowers
         it under load): the plan's real upper bound, so it never asks for more."""
+        if not self._sag:
+            return self.u_max
         eff, p = self.model.effects, self.model.params
         return sag_limit(self.u_max, eff.battery_sag, p.V_batt, self.current)
 
     def _command(self, u: float) -> float:
         """The command map: the wanted motor voltage ``u`` (V) -> the command (V) the
         driver turns into it (battery sag, then the dead zone), within ``u_max``."""
-        eff, p = self.model.effects, self.model.params
-        c = sag_command(u, eff.battery_sag, p.V_batt, self.current, self.vbat)
-        c = min(max(c, -self.u_max), self.u_max)
-        c = self.dead_zone.command(c)
-        return min(max(c, -self.u_max), self.u_max)
+        u_max = self.u_max
+        c = u
+        if self._sag:
+            eff, p = self.model.effects, self.model.params
+            c = sag_command(u, eff.battery_sag, p.V_batt, self.current, self.vbat)
+        c = min(max(c, -u_max), u_max)
+        if self._dead_zone:
+            c = self.dead_zone.command(c)
+        return min(max(c, -u_max), u_max)
 
     def _update_hold(self, est: Estimate, v: float, lead: bool) -> bool:
         """Standstill hold, as an ACC holds the car behind a stopped lead.
@@ -579,21 +594,23 @@ class Controller:
         self.u_prev = self._out = u
         self._wanted = acting
         self._sent.append(acting)
+        # Positional, in the fields' order (a keyword call to a class builds a dict of
+        # them, every cycle).
         return ControlOutput(
-            u=u,
-            u_ff=ff,
-            u_mpc=u - ff,
-            mode=mode,
-            fallback_reason=reason,
-            solver_status=status,
-            solve_iterations=iters,
-            solve_time_s=run_time,
-            gap_ref=gap_ref,
-            estimate=est,
-            solver_failures=self.solver_failures,
-            fallback_cycles=self.fallback_cycles,
-            overruns=self.overruns,
-            braking_cycles=self.braking_cycles,
-            inaccurate=self.mpc.inaccurate,
-            disturbance_v=self.disturbance_v,
+            u,
+            ff,  # u_ff
+            u - ff,  # u_mpc
+            mode,
+            reason,  # fallback_reason
+            status,  # solver_status
+            iters,  # solve_iterations
+            run_time,  # solve_time_s
+            gap_ref,
+            est,  # estimate
+            self.solver_failures,
+            self.fallback_cycles,
+            self.overruns,
+            self.braking_cycles,
+            self.mpc.inaccurate,
+            self.disturbance_v,
         )

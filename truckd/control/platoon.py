@@ -193,11 +193,14 @@ def make_plan(t: float, seq: int, dt: float, speeds: Sequence[float], vehicle_id
     Negative speeds (a reversing prediction) are clipped to 0."""
     # The element loops run in C (map over operator's functions; no bytecode per
     # element): the plan is made every cycle.  Clipped only when some speed is negative,
-    # as ``0.0 if x < 0.0 else x`` (NaN kept).
+    # as ``0.0 if x < 0.0 else x`` (NaN kept).  ``min`` finds a negative speed in one C
+    # loop unless a NaN hides it (min's comparisons with a NaN are false): then each is
+    # tested.
     vs = list(map(float, speeds))
     if not vs:
         raise ValueError("a plan needs at least one speed")
-    if any(map(_ZERO_GT, vs)):
+    lowest = min(vs)
+    if lowest < 0.0 or (lowest != lowest and any(map(_ZERO_GT, vs))):
         vs = [0.0 if x < 0.0 else x for x in vs]
     v = tuple(vs)
     a = list(map(operator.truediv, map(operator.sub, v[1:], v), itertools.repeat(dt)))
