@@ -210,15 +210,17 @@ class Estimator:
         m = self.cfg.ticks_modulo
         last = st.last
         assert last is not None
-        deltas = []
+        # The healthy wheels' count differences: their sum and how many.
+        total = wheels = 0
         if s.left_ok and last.left_ok:
-            deltas.append(wrap_delta(s.ticks_left, last.ticks_left, m))
+            total, wheels = wrap_delta(s.ticks_left, last.ticks_left, m), 1
         if s.right_ok and last.right_ok:
-            deltas.append(wrap_delta(s.ticks_right, last.ticks_right, m))
+            total += wrap_delta(s.ticks_right, last.ticks_right, m)
+            wheels += 1
         st.last, st.t_ref = s, t
-        if not deltas:
+        if not wheels:
             return  # no healthy wheel: the speed goes stale
-        step = self.tick_len * sum(deltas) / len(deltas)
+        step = self.tick_len * total / wheels
         if abs(step) > self.cfg.speed_max * dt + 2.0 * self.tick_len or (
             st.run >= 2 and abs(step - st.kf.x1 * dt) > self._speed_room(dt)
         ):
@@ -232,7 +234,7 @@ class Estimator:
             st.kf = _Kf2(st.distance, step / dt, self._r_tick, 0.0, var_v)
         else:
             st.kf.predict(dt, self.cfg.speed_accel_std)
-            st.kf.update(st.distance, self._r_tick / len(deltas))
+            st.kf.update(st.distance, self._r_tick / wheels)
         st.t_last = t
 
     def _speed_room(self, dt: float) -> float:
@@ -341,20 +343,23 @@ class Estimator:
                     gap += dt * (v_lead - v)
             std = math.sqrt(max(ld.kf.p00, 0.0))
             v_lead_std = math.sqrt(max(ld.kf.p11, 0.0))
+        sp = self._s
+        # Positional, in the fields' order (a keyword call to a class builds a dict of
+        # them, every cycle).
         return Estimate(
-            v=v,
-            speed_valid=speed_ok,
-            gap=gap,
-            v_lead=v_lead,
-            lead_valid=valid,
-            lead_status=status if status != "tracking" or valid else "timeout",
-            gap_std=std,
-            outliers=ld.outliers,
-            reinits=ld.reinits,
-            encoder_samples=self._s.samples,
-            range_samples=ld.samples,
-            speed_restarts=self._s.restarts,
-            speed_age=t - self._s.t_last,
-            v_lead_std=v_lead_std,
-            x=self._s.distance,
+            v,
+            speed_ok,  # speed_valid
+            gap,
+            v_lead,
+            valid,  # lead_valid
+            status if status != "tracking" or valid else "timeout",  # lead_status
+            std,  # gap_std
+            ld.outliers,
+            ld.reinits,
+            sp.samples,  # encoder_samples
+            ld.samples,  # range_samples
+            sp.restarts,  # speed_restarts
+            t - sp.t_last,  # speed_age
+            v_lead_std,
+            sp.distance,  # x
         )

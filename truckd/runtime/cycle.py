@@ -37,6 +37,7 @@ from firmware_protocol.timing import timing
 from truckd.control.config import ControlConfig
 from truckd.control.controller import Controller
 from truckd.control.estimator import EncoderSample, Estimate, RangeSample
+from truckd.control.frozen import fast_init
 from truckd.control.output import ControlOutput
 from truckd.control.qp import ControlModel
 from truckd.control.supervisor import (
@@ -111,7 +112,8 @@ class Plan:
     a: tuple[float, ...]
 
 
-@dataclass(frozen=True, slots=True)
+@fast_init
+@dataclass(frozen=True)
 class CycleOutputs:
     """What one cycle produces.
 
