@@ -74,6 +74,7 @@ class Controller:
         self.overruns = 0
         self.braking_cycles = 0
         self._b_v = float(self.mpc.qp.pred.bu[1])
+        self._horizon = self.mpc.horizon
         """Speed per volt over one step (m/s/V), for the offset-free action."""
         self._sag = eff.battery_sag > 0.0
         self._current_limit = eff.current_limit > 0.0
@@ -238,7 +239,7 @@ class Controller:
         """The lead's speed (m/s) over the ``n_pipe`` commands in the pipeline, then the
         QP's horizon (0 without a lead)."""
         cfg = self.cfg
-        n_all = n_pipe + self.mpc.horizon
+        n_all = n_pipe + self._horizon
         if not lead:
             self._v_lead_prev = math.nan
             return [0.0] * n_all
@@ -276,6 +277,7 @@ class Controller:
         cfg = self.cfg
         mode, v_ref, lead = how
         ff_now = self._feedforward(v, est.x)
+        applied = self._applied_prev()
         v_lead_h = v_lead_all[n_pipe:]
         # With an input delay the plan's first command acts at the end of the pipeline:
         # the state, and the feedforward (speed, terrain), are those predicted there.
@@ -284,7 +286,7 @@ class Controller:
             gap,
             ff_now,
             v_lead_all[:n_pipe] if n_pipe else v_lead_h[:1],
-            held=abs(v) <= cfg.moving_speed or self._applied_prev() == ff_now,
+            held=abs(v) <= cfg.moving_speed or applied == ff_now,
             x_pos=est.x,
         )
         # At rest the previous voltage moved nothing (stiction), so to the friction-free
@@ -295,7 +297,7 @@ class Controller:
         at_rest = abs(self._v_act) <= cfg.moving_speed
         inp = QpInputs(  # positional, in the fields' order (see _finish)
             x0,
-            0.0 if at_rest else self._applied_prev() - ff,  # u_prev
+            0.0 if at_rest else applied - ff,  # u_prev
             v_lead_h,  # v_lead
             lead,
             v_ref,
@@ -488,7 +490,7 @@ class Controller:
             acting = self._applied_prev()
         if held:
             acting = ff  # no current beyond what the feedforward accounts for
-        x0 = [acting - ff - p.K_v * p.omega(v), v, gap]
+        x0 = [acting - ff - p.K_v * (v / p.ratio), v, gap]  # K_v omega
         if self._delay_steps == 0:
             self.pipeline_v = []
             return x0, ff  # a list: the QP gathers its inputs without numpy

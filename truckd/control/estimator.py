@@ -124,7 +124,7 @@ class _Kf2:
 
     def update(self, z: float, r: float) -> None:
         """Measurement of x0 with variance r."""
-        y, s = self.innovation(z, r)
+        y, s = z - self.x0, self.p00 + r  # innovation(z, r)
         k0, k1 = self.p00 / s, self.p01 / s
         self.x0 += k0 * y
         self.x1 += k1 * y

@@ -209,20 +209,24 @@ class Supervisor:
         c.solver_fails = 0 if x.solver_ok else c.solver_fails + 1
         c.overruns = c.overruns + 1 if x.loop_missed else 0
         out: dict[str, Mode] = {}
+        isfinite = math.isfinite  # stale: not (isfinite(age) and age <= timeout), inline
         if x.t <= self._restart_until:
             out["loop_stall"] = _SAFE_STOP
         if not x.link_up:
             out["link_down"] = _FAULT
-        if _stale(x.link_age, cfg.link_timeout_s):
+        age = x.link_age
+        if not (isfinite(age) and age <= cfg.link_timeout_s):
             out["link_stale"] = _SAFE_STOP
-        if _stale(x.encoder_age, cfg.encoder_timeout_s):
+        age = x.encoder_age
+        if not (isfinite(age) and age <= cfg.encoder_timeout_s):
             out["encoder_stale"] = _SAFE_STOP
         elif _stale(x.speed_age, 2.0 * cfg.encoder_timeout_s):
             # Messages arrive, but no speed from them.  Twice the timeout: the estimator's
             # clock is the cycle's, a little before the messages' receipt stamps, so on
             # silence the root cause, encoder_stale, is named first.
             out["speed_stale"] = _SAFE_STOP
-        if _stale(x.range_age, cfg.range_timeout_s):
+        age = x.range_age
+        if not (isfinite(age) and age <= cfg.range_timeout_s):
             out["range_stale"] = _SAFE_STOP
         if self._frozen(x):
             out["range_frozen"] = _SAFE_STOP
