@@ -176,7 +176,9 @@ class Controller:
             f += [f[-1]] * (n - len(f))
             if math.isfinite(sum(f)):  # any NaN or infinity makes the sum non-finite
                 return [min(max(x, 0.0), cap) for x in f]
-        return [min(max(est.v_lead, 0.0), cap)] * n
+        x = est.v_lead  # min(max(x, 0.0), cap), written out (see _command)
+        x = 0.0 if 0.0 > x else x
+        return [cap if cap < x else x] * n
 
     def control(
         self,
@@ -355,7 +357,8 @@ class Controller:
         u_max = self.u_max
         if not self._current_limit:  # current_window: the whole line, -inf to inf
             self._limited = math.isnan(wanted)
-            return min(max(wanted, -u_max), u_max)
+            c = -u_max if -u_max > wanted else wanted  # min(max(wanted, -u_max), u_max)
+            return u_max if u_max < c else c
         p = self.model.params
         lo, hi = current_window(p, self.model.effects, p.omega(v), self.winding.resistance)
         self._limited = not lo <= wanted <= hi
@@ -382,10 +385,14 @@ class Controller:
         if self._sag:
             eff, p = self.model.effects, self.model.params
             c = sag_command(u, eff.battery_sag, p.V_batt, self.current, self.vbat)
-        c = min(max(c, -u_max), u_max)
+        # min(max(c, -u_max), u_max) written out (the builtins parse their arguments as a
+        # keyword call: several times the comparisons' cost, every cycle)
+        c = -u_max if -u_max > c else c
+        c = u_max if u_max < c else c
         if self._dead_zone:
             c = self.dead_zone.command(c)
-        return min(max(c, -u_max), u_max)
+        c = -u_max if -u_max > c else c
+        return u_max if u_max < c else c
 
     def _update_hold(self, est: Estimate, v: float, lead: bool) -> bool:
         """Standstill hold, as an ACC holds the car behind a stopped lead.

@@ -242,7 +242,8 @@ class Estimator:
         ``accel_max`` allows, two ticks of quantisation and four standard deviations of the
         speed estimate.  A counter reset that looked like an ordinary step under the speed
         bound (0.1 s, 2000 ticks back: -19 m/s) lies far outside it."""
-        sd = math.sqrt(max(self._s.kf.p11, 0.0))
+        p11 = self._s.kf.p11
+        sd = math.sqrt(0.0 if 0.0 > p11 else p11)  # max(p11, 0.0)
         return (self.cfg.accel_max * dt + 4.0 * sd) * dt + 2.0 * self.tick_len
 
     def _restart(self, s: EncoderSample, t: float) -> None:
@@ -341,8 +342,9 @@ class Estimator:
                 dt = wrap_dt(last.sample_time, ld.t_mcu, self.cfg.sample_time_modulo)
                 if dt < 0.5:
                     gap += dt * (v_lead - v)
-            std = math.sqrt(max(ld.kf.p00, 0.0))
-            v_lead_std = math.sqrt(max(ld.kf.p11, 0.0))
+            p00, p11 = ld.kf.p00, ld.kf.p11  # sqrt(max(p, 0.0)), the max written out
+            std = math.sqrt(0.0 if 0.0 > p00 else p00)
+            v_lead_std = math.sqrt(0.0 if 0.0 > p11 else p11)
         sp = self._s
         # Positional, in the fields' order (a keyword call to a class builds a dict of
         # them, every cycle).

@@ -34,4 +34,5 @@ def motor_command(
         u, enable = math.copysign(max(abs(prev) - step, 0.0), prev), True
     else:
         u, enable = 0.0, False
-    return min(max(u, -u_max), u_max), enable
+    u = -u_max if -u_max > u else u  # min(max(u, -u_max), u_max) written out
+    return (u_max if u_max < u else u), enable
