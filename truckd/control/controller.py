@@ -76,11 +76,10 @@ class Controller:
         self._b_v = float(self.mpc.qp.pred.bu[1])
         self._horizon = self.mpc.horizon
         """Speed per volt over one step (m/s/V), for the offset-free action."""
-        self._sag = eff.battery_sag > 0.0
-        self._current_limit = eff.current_limit > 0.0
-        self._dead_zone = self.dead_zone.active
-        """Which of the driver's maps the model has (fixed: the maps without them pass the
-        voltage through, and are not called every cycle)."""
+        # The driver's maps and the winding model the model has (fixed: those it lacks
+        # pass the voltage through and are not called every cycle).
+        self._sag, self._current_limit = eff.battery_sag > 0.0, eff.current_limit > 0.0
+        self._dead_zone, self._drift = self.dead_zone.active, self.winding.active
         self._forget()
 
     def _forget(self) -> None:
@@ -201,7 +200,8 @@ class Controller:
         """
         cfg = self.cfg
         v = est.v if math.isfinite(est.v) else 0.0
-        self._update_winding(v)
+        if self._drift:
+            self._update_winding(v)
         if not (est.speed_valid and math.isfinite(est.v)):
             # A non-finite speed said to be valid is no speed either: planning with 0 m/s
             # in its place would take a moving truck for one at rest.
@@ -213,7 +213,7 @@ class Controller:
             return self._hold(est, v, gap_ref)
         mode, v_ref = self._mode(est, lead, gap_ref)
         self._update_disturbance(v)
-        n_pipe = self._pipeline_steps()
+        n_pipe = self._pipeline_steps() if self._delay_steps > 0 else 0
         v_lead_all = self._lead_speeds(est, forecast, mode, lead, n_pipe)
         gap = est.gap - (h - cfg.time_headway) * v if lead else 0.0
         return self._solve(est, v, gap, v_lead_all, n_pipe, (mode, v_ref, lead), gap_ref)
@@ -284,44 +284,29 @@ class Controller:
         # With an input delay the plan's first command acts at the end of the pipeline:
         # the state, and the feedforward (speed, terrain), are those predicted there.
         x0, ff = self._initial_state(
-            v,
-            gap,
-            ff_now,
-            v_lead_all[:n_pipe] if n_pipe else v_lead_h[:1],
-            held=abs(v) <= cfg.moving_speed or applied == ff_now,
-            x_pos=est.x,
-        )
+            v, gap, ff_now, v_lead_all[:n_pipe] if n_pipe else v_lead_h[:1],
+            held=abs(v) <= cfg.moving_speed or applied == ff_now, x_pos=est.x,
+        )  # fmt: skip
         # At rest the previous voltage moved nothing (stiction), so to the friction-free
         # model it is 0 V: else the rate penalty keeps asking for it and the breakaway
         # feedforward kicks the truck forward again and again while it should stand.
         # (With an input delay: at rest when the first planned command acts.)
         self._v_act = x0[1]
         at_rest = abs(self._v_act) <= cfg.moving_speed
-        inp = QpInputs(  # positional, in the fields' order (see _finish)
-            x0,
-            0.0 if at_rest else applied - ff,  # u_prev
-            v_lead_h,  # v_lead
-            lead,
-            v_ref,
-            cfg.v_max,  # v_cap
-            -self.u_max - ff,  # u_lo
-            self._u_hi() - ff,  # u_hi
+        # Positional, in the fields' order (see _finish): x0, u_prev, v_lead, lead, v_ref,
+        # v_cap, u_lo, u_hi.
+        u_prev = 0.0 if at_rest else applied - ff
+        inp = QpInputs(
+            x0, u_prev, v_lead_h, lead, v_ref, cfg.v_max, -self.u_max - ff, self._u_hi() - ff
         )
         res = self.mpc.solve("follow" if mode == "follow" else "cruise", inp)
         if not res.ok:
             self.solver_failures += 1
             self.overruns += res.status == "overrun"
             return self._fallback(
-                est,
-                v,
-                f"solver_{res.status}",
-                mode,
-                gap_ref,
-                res.status,
-                res.iterations,
-                res.run_time_s,
-                ff,
-            )
+                est, v, f"solver_{res.status}", mode, gap_ref, res.status, res.iterations,
+                res.run_time_s, ff,
+            )  # fmt: skip
         assert res.u is not None and res.v is not None
         self._plan = res.u.tolist()  # Python floats
         self._plan_age = 0
@@ -604,22 +589,10 @@ class Controller:
         self._wanted = acting
         self._sent.append(acting)
         # Positional, in the fields' order (a keyword call to a class builds a dict of
-        # them, every cycle).
+        # them, every cycle): u, u_ff, u_mpc, mode, fallback_reason, solver_status,
+        # solve_iterations, solve_time_s, gap_ref, estimate, the counters.
         return ControlOutput(
-            u,
-            ff,  # u_ff
-            u - ff,  # u_mpc
-            mode,
-            reason,  # fallback_reason
-            status,  # solver_status
-            iters,  # solve_iterations
-            run_time,  # solve_time_s
-            gap_ref,
-            est,  # estimate
-            self.solver_failures,
-            self.fallback_cycles,
-            self.overruns,
-            self.braking_cycles,
-            self.mpc.inaccurate,
-            self.disturbance_v,
-        )
+            u, ff, u - ff, mode, reason, status, iters, run_time, gap_ref, est,
+            self.solver_failures, self.fallback_cycles, self.overruns, self.braking_cycles,
+            self.mpc.inaccurate, self.disturbance_v,
+        )  # fmt: skip

@@ -208,14 +208,16 @@ class Estimator:
             return
         st.behind = None
         m = self.cfg.ticks_modulo
+        half = m // 2
         last = st.last
         assert last is not None
-        # The healthy wheels' count differences: their sum and how many.
+        # The healthy wheels' count differences (wrap_delta, written out): their sum and
+        # how many.
         total = wheels = 0
         if s.left_ok and last.left_ok:
-            total, wheels = wrap_delta(s.ticks_left, last.ticks_left, m), 1
+            total, wheels = (s.ticks_left - last.ticks_left + half) % m - half, 1
         if s.right_ok and last.right_ok:
-            total += wrap_delta(s.ticks_right, last.ticks_right, m)
+            total += (s.ticks_right - last.ticks_right + half) % m - half
             wheels += 1
         st.last, st.t_ref = s, t
         if not wheels:

@@ -292,22 +292,11 @@ class CompanionCycle:
             solver_ok = reason is None or not reason.startswith("solver_")
         # Positional, in the fields' order (a keyword call to a class builds a dict of
         # them, every cycle).
-        dec = self.supervisor.update(
-            SupervisorInputs(
-                t,
-                inp.link_up,
-                link_age,
-                encoder_age,
-                range_age,
-                s.range_raw,  # range_value
-                s.range_fault,
-                speed,
-                speed_age,
-                lead_valid,
-                solver_ok,
-                inp.loop_missed,
-            )
-        )
+        sup_in = SupervisorInputs(
+            t, inp.link_up, link_age, encoder_age, range_age, s.range_raw, s.range_fault,
+            speed, speed_age, lead_valid, solver_ok, inp.loop_missed,
+        )  # fmt: skip
+        dec = self.supervisor.update(sup_in)
         mode = dec.mode
         self.u, self.enable = motor_command(mode, u_ctrl, self.u, self.ramp_step, self.u_max)
         self.controller.u_prev = self.u  # the rate limit starts from what is sent
