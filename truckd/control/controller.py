@@ -77,8 +77,8 @@ class Controller:
         self._horizon = self.mpc.horizon
         """Speed per volt over one step (m/s/V), for the offset-free action."""
         # The driver's maps and the winding model the model has (fixed: those it lacks
-        # pass the voltage through and are not called every cycle).
-        self._sag, self._current_limit = eff.battery_sag > 0.0, eff.current_limit > 0.0
+        # pass the voltage through and are not called every cycle; the maps' own tests).
+        self._sag, self._current_limit = not eff.battery_sag <= 0.0, not eff.current_limit <= 0.0
         self._dead_zone, self._drift = self.dead_zone.active, self.winding.active
         self._forget()
 
