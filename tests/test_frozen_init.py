@@ -17,9 +17,10 @@ from truckd.control.output import ControlOutput
 from truckd.control.platoon import Plan
 from truckd.control.qp import QpInputs
 from truckd.control.supervisor import Decision, SupervisorInputs
+from truckd.runtime.cycle import CycleOutputs
 
 FAST = (EncoderSample, RangeSample, Estimate, MpcResult, ControlOutput, Plan, QpInputs,
-        SupervisorInputs, Decision)  # fmt: skip
+        SupervisorInputs, Decision, CycleOutputs)  # fmt: skip
 
 
 @dataclasses.dataclass(frozen=True)

@@ -35,7 +35,7 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
-from truckd.control.qp import I_V, INF, NX, QpBuilder, QpInputs, Vec, inputs_ok
+from truckd.control.qp import I_V, INF, INPUT_LIMIT, NX, QpBuilder, QpInputs, Vec, inputs_ok
 
 Mat = NDArray[np.float64]
 
@@ -437,11 +437,23 @@ class CondensedQp:
         # could turn a NaN or a huge value into numpy warnings.  Each numpy call is a code
         # path that is cold after the period's sleep (10-20 us of the cycle, measured).
         scalars = (inp.u_prev, inp.v_ref, inp.u_lo, inp.u_hi, inp.v_cap, 1.0, lo0, hi0)
-        values = [*map(float, inp.x0), *map(float, scalars), *map(float, inp.v_lead)]
-        if len(values) != self._s.size:
-            raise ValueError(f"x0 and v_lead: {len(values)} inputs, expected {self._s.size}")
-        if not inputs_ok(values):
-            return None
+        head = [*map(float, inp.x0), *map(float, scalars)]
+        vl = inp.v_lead
+        n = len(vl)
+        if n + len(head) != self._s.size:
+            raise ValueError(f"x0 and v_lead: {n + len(head)} inputs, expected {self._s.size}")
+        if type(vl) is list and type(vl[0]) is float and vl.count(vl[0]) == n:
+            # A lead at one speed (the controller's list of one float, repeated): the same
+            # list and the same check as below without a call per element (inputs_ok's
+            # sum over the same magnitudes in the same order).
+            x = vl[0]
+            if not sum([*map(abs, head), *[abs(x)] * n]) < INPUT_LIMIT:
+                return None
+            values = [*head, *[x] * n]
+        else:
+            values = [*head, *map(float, vl)]
+            if not inputs_ok(values):
+                return None
         self.filled = values  # kept: the solution can be expanded later
         return values
 

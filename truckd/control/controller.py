@@ -74,7 +74,12 @@ class Controller:
         self.overruns = 0
         self.braking_cycles = 0
         self._b_v = float(self.mpc.qp.pred.bu[1])
+        self._horizon = self.mpc.horizon
         """Speed per volt over one step (m/s/V), for the offset-free action."""
+        # The driver's maps and the winding model the model has (fixed: those it lacks
+        # pass the voltage through and are not called every cycle; the maps' own tests).
+        self._sag, self._current_limit = not eff.battery_sag <= 0.0, not eff.current_limit <= 0.0
+        self._dead_zone, self._drift = self.dead_zone.active, self.winding.active
         self._forget()
 
     def _forget(self) -> None:
@@ -170,7 +175,9 @@ class Controller:
             f += [f[-1]] * (n - len(f))
             if math.isfinite(sum(f)):  # any NaN or infinity makes the sum non-finite
                 return [min(max(x, 0.0), cap) for x in f]
-        return [min(max(est.v_lead, 0.0), cap)] * n
+        x = est.v_lead  # min(max(x, 0.0), cap), written out (see _command)
+        x = 0.0 if 0.0 > x else x
+        return [cap if cap < x else x] * n
 
     def control(
         self,
@@ -193,7 +200,8 @@ class Controller:
         """
         cfg = self.cfg
         v = est.v if math.isfinite(est.v) else 0.0
-        self._update_winding(v)
+        if self._drift:
+            self._update_winding(v)
         if not (est.speed_valid and math.isfinite(est.v)):
             # A non-finite speed said to be valid is no speed either: planning with 0 m/s
             # in its place would take a moving truck for one at rest.
@@ -205,7 +213,7 @@ class Controller:
             return self._hold(est, v, gap_ref)
         mode, v_ref = self._mode(est, lead, gap_ref)
         self._update_disturbance(v)
-        n_pipe = self._pipeline_steps()
+        n_pipe = self._pipeline_steps() if self._delay_steps > 0 else 0
         v_lead_all = self._lead_speeds(est, forecast, mode, lead, n_pipe)
         gap = est.gap - (h - cfg.time_headway) * v if lead else 0.0
         return self._solve(est, v, gap, v_lead_all, n_pipe, (mode, v_ref, lead), gap_ref)
@@ -233,7 +241,7 @@ class Controller:
         """The lead's speed (m/s) over the ``n_pipe`` commands in the pipeline, then the
         QP's horizon (0 without a lead)."""
         cfg = self.cfg
-        n_all = n_pipe + self.mpc.horizon
+        n_all = n_pipe + self._horizon
         if not lead:
             self._v_lead_prev = math.nan
             return [0.0] * n_all
@@ -271,48 +279,34 @@ class Controller:
         cfg = self.cfg
         mode, v_ref, lead = how
         ff_now = self._feedforward(v, est.x)
+        applied = self._applied_prev()
         v_lead_h = v_lead_all[n_pipe:]
         # With an input delay the plan's first command acts at the end of the pipeline:
         # the state, and the feedforward (speed, terrain), are those predicted there.
         x0, ff = self._initial_state(
-            v,
-            gap,
-            ff_now,
-            v_lead_all[:n_pipe] if n_pipe else v_lead_h[:1],
-            held=abs(v) <= cfg.moving_speed or self._applied_prev() == ff_now,
-            x_pos=est.x,
-        )
+            v, gap, ff_now, v_lead_all[:n_pipe] if n_pipe else v_lead_h[:1],
+            held=abs(v) <= cfg.moving_speed or applied == ff_now, x_pos=est.x,
+        )  # fmt: skip
         # At rest the previous voltage moved nothing (stiction), so to the friction-free
         # model it is 0 V: else the rate penalty keeps asking for it and the breakaway
         # feedforward kicks the truck forward again and again while it should stand.
         # (With an input delay: at rest when the first planned command acts.)
         self._v_act = x0[1]
         at_rest = abs(self._v_act) <= cfg.moving_speed
+        # Positional, in the fields' order (see _finish): x0, u_prev, v_lead, lead, v_ref,
+        # v_cap, u_lo, u_hi.
+        u_prev = 0.0 if at_rest else applied - ff
         inp = QpInputs(
-            x0=x0,
-            u_prev=0.0 if at_rest else self._applied_prev() - ff,
-            v_lead=v_lead_h,
-            lead=lead,
-            v_ref=v_ref,
-            v_cap=cfg.v_max,
-            u_lo=-self.u_max - ff,
-            u_hi=self._u_hi() - ff,
+            x0, u_prev, v_lead_h, lead, v_ref, cfg.v_max, -self.u_max - ff, self._u_hi() - ff
         )
         res = self.mpc.solve("follow" if mode == "follow" else "cruise", inp)
         if not res.ok:
             self.solver_failures += 1
             self.overruns += res.status == "overrun"
             return self._fallback(
-                est,
-                v,
-                f"solver_{res.status}",
-                mode,
-                gap_ref,
-                res.status,
-                res.iterations,
-                res.run_time_s,
-                ff,
-            )
+                est, v, f"solver_{res.status}", mode, gap_ref, res.status, res.iterations,
+                res.run_time_s, ff,
+            )  # fmt: skip
         assert res.u is not None and res.v is not None
         self._plan = res.u.tolist()  # Python floats
         self._plan_age = 0
@@ -345,10 +339,15 @@ class Controller:
     def _current_limited(self, wanted: float, v: float) -> float:
         """The voltage (V) the driver applies for ``wanted`` under its current limit at
         speed v (m/s), within ``u_max``; sets :attr:`_limited`."""
+        u_max = self.u_max
+        if not self._current_limit:  # current_window: the whole line, -inf to inf
+            self._limited = math.isnan(wanted)
+            c = -u_max if -u_max > wanted else wanted  # min(max(wanted, -u_max), u_max)
+            return u_max if u_max < c else c
         p = self.model.params
         lo, hi = current_window(p, self.model.effects, p.omega(v), self.winding.resistance)
         self._limited = not lo <= wanted <= hi
-        return min(max(wanted, lo, -self.u_max), hi, self.u_max)
+        return min(max(wanted, lo, -u_max), hi, u_max)
 
     def _applied_prev(self) -> float:
         """The voltage the previous command applies at the motor (V): what it was meant to
@@ -358,17 +357,27 @@ class Controller:
     def _u_hi(self) -> float:
         """The highest motor voltage (V) the driver can apply now (the battery sag lowers
         it under load): the plan's real upper bound, so it never asks for more."""
+        if not self._sag:
+            return self.u_max
         eff, p = self.model.effects, self.model.params
         return sag_limit(self.u_max, eff.battery_sag, p.V_batt, self.current)
 
     def _command(self, u: float) -> float:
         """The command map: the wanted motor voltage ``u`` (V) -> the command (V) the
         driver turns into it (battery sag, then the dead zone), within ``u_max``."""
-        eff, p = self.model.effects, self.model.params
-        c = sag_command(u, eff.battery_sag, p.V_batt, self.current, self.vbat)
-        c = min(max(c, -self.u_max), self.u_max)
-        c = self.dead_zone.command(c)
-        return min(max(c, -self.u_max), self.u_max)
+        u_max = self.u_max
+        c = u
+        if self._sag:
+            eff, p = self.model.effects, self.model.params
+            c = sag_command(u, eff.battery_sag, p.V_batt, self.current, self.vbat)
+        # min(max(c, -u_max), u_max) written out (the builtins parse their arguments as a
+        # keyword call: several times the comparisons' cost, every cycle)
+        c = -u_max if -u_max > c else c
+        c = u_max if u_max < c else c
+        if self._dead_zone:
+            c = self.dead_zone.command(c)
+        c = -u_max if -u_max > c else c
+        return u_max if u_max < c else c
 
     def _update_hold(self, est: Estimate, v: float, lead: bool) -> bool:
         """Standstill hold, as an ACC holds the car behind a stopped lead.
@@ -473,7 +482,7 @@ class Controller:
             acting = self._applied_prev()
         if held:
             acting = ff  # no current beyond what the feedforward accounts for
-        x0 = [acting - ff - p.K_v * p.omega(v), v, gap]
+        x0 = [acting - ff - p.K_v * (v / p.ratio), v, gap]  # K_v omega
         if self._delay_steps == 0:
             self.pipeline_v = []
             return x0, ff  # a list: the QP gathers its inputs without numpy
@@ -579,21 +588,11 @@ class Controller:
         self.u_prev = self._out = u
         self._wanted = acting
         self._sent.append(acting)
+        # Positional, in the fields' order (a keyword call to a class builds a dict of
+        # them, every cycle): u, u_ff, u_mpc, mode, fallback_reason, solver_status,
+        # solve_iterations, solve_time_s, gap_ref, estimate, the counters.
         return ControlOutput(
-            u=u,
-            u_ff=ff,
-            u_mpc=u - ff,
-            mode=mode,
-            fallback_reason=reason,
-            solver_status=status,
-            solve_iterations=iters,
-            solve_time_s=run_time,
-            gap_ref=gap_ref,
-            estimate=est,
-            solver_failures=self.solver_failures,
-            fallback_cycles=self.fallback_cycles,
-            overruns=self.overruns,
-            braking_cycles=self.braking_cycles,
-            inaccurate=self.mpc.inaccurate,
-            disturbance_v=self.disturbance_v,
-        )
+            u, ff, u - ff, mode, reason, status, iters, run_time, gap_ref, est,
+            self.solver_failures, self.fallback_cycles, self.overruns, self.braking_cycles,
+            self.mpc.inaccurate, self.disturbance_v,
+        )  # fmt: skip

@@ -131,7 +131,7 @@ class _Kf2:
 
     def update(self, z: float, r: float) -> None:
         """Measurement of x0 with variance r."""
-        y, s = self.innovation(z, r)
+        y, s = z - self.x0, self.p00 + r  # innovation(z, r)
         k0, k1 = self.p00 / s, self.p01 / s
         self.x0 += k0 * y
         self.x1 += k1 * y
@@ -223,17 +223,21 @@ class Estimator:
             return
         st.behind = None
         m = self.cfg.ticks_modulo
+        half = m // 2
         last = st.last
         assert last is not None
-        deltas = []
+        # The healthy wheels' count differences (wrap_delta, written out): their sum and
+        # how many.
+        total = wheels = 0
         if s.left_ok and last.left_ok:
-            deltas.append(wrap_delta(s.ticks_left, last.ticks_left, m))
+            total, wheels = (s.ticks_left - last.ticks_left + half) % m - half, 1
         if s.right_ok and last.right_ok:
-            deltas.append(wrap_delta(s.ticks_right, last.ticks_right, m))
-        if not deltas:
+            total += (s.ticks_right - last.ticks_right + half) % m - half
+            wheels += 1
+        if not wheels:
             st.last, st.t_ref, st.suspect = s, t, False
             return  # no healthy wheel: the speed goes stale
-        step = self.tick_len * sum(deltas) / len(deltas)
+        step = self.tick_len * total / wheels
         if abs(step) > self.cfg.speed_max * dt + 2.0 * self.tick_len or (
             st.run >= 2 and abs(step - st.kf.x1 * dt) > self._speed_room(dt)
         ):
@@ -254,7 +258,7 @@ class Estimator:
             st.kf = _Kf2(st.distance, step / dt, self._r_tick, 0.0, var_v)
         else:
             st.kf.predict(dt, self.cfg.speed_accel_std)
-            st.kf.update(st.distance, self._r_tick / len(deltas))
+            st.kf.update(st.distance, self._r_tick / wheels)
         st.t_last = t
 
     def _speed_room(self, dt: float) -> float:
@@ -262,7 +266,8 @@ class Estimator:
         ``accel_max`` allows, two ticks of quantisation and four standard deviations of the
         speed estimate.  A counter reset that looked like an ordinary step under the speed
         bound (0.1 s, 2000 ticks back: -19 m/s) lies far outside it."""
-        sd = math.sqrt(max(self._s.kf.p11, 0.0))
+        p11 = self._s.kf.p11
+        sd = math.sqrt(0.0 if 0.0 > p11 else p11)  # max(p11, 0.0)
         return (self.cfg.accel_max * dt + 4.0 * sd) * dt + 2.0 * self.tick_len
 
     def _restart(self, s: EncoderSample, t: float) -> None:
@@ -363,23 +368,27 @@ class Estimator:
                 dt = wrap_dt(last.sample_time, ld.t_mcu, self.cfg.sample_time_modulo)
                 if dt < 0.5:
                     gap += dt * (v_lead - v)
-            std = math.sqrt(max(ld.kf.p00, 0.0))
-            v_lead_std = math.sqrt(max(ld.kf.p11, 0.0))
+            p00, p11 = ld.kf.p00, ld.kf.p11  # sqrt(max(p, 0.0)), the max written out
+            std = math.sqrt(0.0 if 0.0 > p00 else p00)
+            v_lead_std = math.sqrt(0.0 if 0.0 > p11 else p11)
+        sp = self._s
+        # Positional, in the fields' order (a keyword call to a class builds a dict of
+        # them, every cycle).
         return Estimate(
-            v=v,
-            speed_valid=speed_ok,
-            gap=gap,
-            v_lead=v_lead,
-            lead_valid=valid,
-            lead_status=status if status != "tracking" or valid else "timeout",
-            gap_std=std,
-            outliers=ld.outliers,
-            reinits=ld.reinits,
-            encoder_samples=self._s.samples,
-            range_samples=ld.samples,
-            speed_restarts=self._s.restarts,
-            speed_glitches=self._s.glitches,
-            speed_age=t - self._s.t_last,
-            v_lead_std=v_lead_std,
-            x=self._s.distance,
+            v,
+            speed_ok,  # speed_valid
+            gap,
+            v_lead,
+            valid,  # lead_valid
+            status if status != "tracking" or valid else "timeout",  # lead_status
+            std,  # gap_std
+            ld.outliers,
+            ld.reinits,
+            sp.samples,  # encoder_samples
+            ld.samples,  # range_samples
+            sp.restarts,  # speed_restarts
+            sp.glitches,  # speed_glitches
+            t - sp.t_last,  # speed_age
+            v_lead_std,
+            sp.distance,  # x
         )

@@ -31,5 +31,10 @@ def limit_command(u: float, u_prev: float, u_max: float, du: float) -> float:
         u = 0.0
     if not math.isfinite(u_prev):
         u_prev = 0.0
-    u = min(max(u, u_prev - du), u_prev + du)
-    return min(max(u, -u_max), u_max)
+    # min(max(u, lo), hi) written out, twice (the builtins parse their arguments as a
+    # keyword call: several times the comparisons' cost, every cycle)
+    lo, hi = u_prev - du, u_prev + du
+    u = lo if lo > u else u
+    u = hi if hi < u else u
+    u = -u_max if -u_max > u else u
+    return u_max if u_max < u else u

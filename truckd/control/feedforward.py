@@ -53,8 +53,9 @@ def moving_feedforward(
     if abs(v) <= moving_speed:
         return 0.0
     s = math.copysign(1.0, v)
-    torque = s * p.K_coulomb + feedforward_torque(p, eff, v, x, terms)
-    return torque_to_voltage(p, torque)
+    # (no terms: their sum is 0.0, added without calling for it)
+    known = feedforward_torque(p, eff, v, x, terms) if terms is None or terms else 0.0
+    return p.R_m / p.K_T * (s * p.K_coulomb + known)  # torque_to_voltage
 
 
 def breakaway_feedforward(p: VehicleParams, eff: Effects, margin: float, x: float = 0.0) -> float:

@@ -379,7 +379,8 @@ class MpcSolver:
         self._last_v = v
         if status_val != _SOLVED:
             self.inaccurate += 1
-        return MpcResult(True, float(u[0]), ccycle.status_text(status_val), iters, run_time, u, v)
+        status = ccycle.STATUS_TEXT[status_val]  # a usable status: status_text's own
+        return MpcResult(True, float(u[0]), status, iters, run_time, u, v)
 
     def _keep_compiled(self, z: Vec, y: Vec) -> None:
         """The compiled cycle's solution as the next warm start (its arrays then stay as

@@ -192,12 +192,20 @@ def make_plan(t: float, seq: int, dt: float, speeds: Sequence[float], vehicle_id
     """A plan from predicted speeds (m/s) at ``t + k dt``; accelerations by differences.
     Negative speeds (a reversing prediction) are clipped to 0."""
     # The element loops run in C (map over operator's functions; no bytecode per
-    # element): the plan is made every cycle.  Clipped only when some speed is negative,
-    # as ``0.0 if x < 0.0 else x`` (NaN kept).
-    vs = list(map(float, speeds))
+    # element): the plan is made every cycle.
+    return plan_of_floats(t, seq, dt, list(map(float, speeds)), vehicle_id)
+
+
+def plan_of_floats(t: float, seq: int, dt: float, vs: list[float], vehicle_id: str = "") -> Plan:
+    """:func:`make_plan` of speeds that are Python floats already (a list the plan may keep
+    or change, e.g. an array's ``tolist()``: no conversion of each)."""
     if not vs:
         raise ValueError("a plan needs at least one speed")
-    if any(map(_ZERO_GT, vs)):
+    # Clipped only when some speed is negative, as ``0.0 if x < 0.0 else x`` (NaN kept).
+    # ``min`` finds a negative speed in one C loop unless a NaN hides it (min's
+    # comparisons with a NaN are false): then each is tested.
+    lowest = min(vs)
+    if lowest < 0.0 or (lowest != lowest and any(map(_ZERO_GT, vs))):
         vs = [0.0 if x < 0.0 else x for x in vs]
     v = tuple(vs)
     a = list(map(operator.truediv, map(operator.sub, v[1:], v), itertools.repeat(dt)))

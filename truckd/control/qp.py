@@ -379,8 +379,10 @@ class QpBuilder:
         """Bounds of ``u_0`` (V): the voltage bounds and the rate limit from ``u_prev``;
         when ``u_prev`` lies outside the new bounds, the nearest bound."""
         du = self.cfg.du_max * self.cfg.period
-        lo0 = max(inp.u_prev - du, inp.u_lo)
-        hi0 = min(inp.u_prev + du, inp.u_hi)
+        u_prev, u_lo, u_hi = inp.u_prev, inp.u_lo, inp.u_hi
+        lo0, hi0 = u_prev - du, u_prev + du  # max(lo0, u_lo), min(hi0, u_hi) written out
+        lo0 = u_lo if u_lo > lo0 else lo0
+        hi0 = u_hi if u_hi < hi0 else hi0
         if lo0 > hi0:
             lo0 = hi0 = min(max(inp.u_prev, inp.u_lo), inp.u_hi)
         return lo0, hi0

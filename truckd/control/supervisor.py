@@ -48,6 +48,16 @@ class Mode(StrEnum):
 
 _SEVERITY = {Mode.ACTIVE: 0, Mode.DEGRADED: 1, Mode.SAFE_STOP: 2, Mode.FAULT: 3, Mode.INIT: 4}
 
+_INIT, _ACTIVE, _DEGRADED, _SAFE_STOP, _FAULT = (
+    Mode.INIT, Mode.ACTIVE, Mode.DEGRADED, Mode.SAFE_STOP, Mode.FAULT
+)  # fmt: skip
+"""The modes as module constants (an attribute of the enum class goes through its
+metaclass's ``__getattr__`` hook: several times a global's cost, every cycle)."""
+
+_BLOCKING = (_SAFE_STOP, _FAULT)
+_NOT_BLOCKING_INIT = frozenset({"solver_failed", "loop_overrun", "lead_lost"})
+_RANGE_CAUSES = frozenset({"range_stale", "range_frozen", "range_fault"})
+
 
 @dataclass(frozen=True)
 class SupervisorConfig:
@@ -199,57 +209,61 @@ class Supervisor:
         c.solver_fails = 0 if x.solver_ok else c.solver_fails + 1
         c.overruns = c.overruns + 1 if x.loop_missed else 0
         out: dict[str, Mode] = {}
+        isfinite = math.isfinite  # stale: not (isfinite(age) and age <= timeout), inline
         if x.t <= self._restart_until:
-            out["loop_stall"] = Mode.SAFE_STOP
+            out["loop_stall"] = _SAFE_STOP
         if not x.link_up:
-            out["link_down"] = Mode.FAULT
-        if _stale(x.link_age, cfg.link_timeout_s):
-            out["link_stale"] = Mode.SAFE_STOP
-        if _stale(x.encoder_age, cfg.encoder_timeout_s):
-            out["encoder_stale"] = Mode.SAFE_STOP
+            out["link_down"] = _FAULT
+        age = x.link_age
+        if not (isfinite(age) and age <= cfg.link_timeout_s):
+            out["link_stale"] = _SAFE_STOP
+        age = x.encoder_age
+        if not (isfinite(age) and age <= cfg.encoder_timeout_s):
+            out["encoder_stale"] = _SAFE_STOP
         elif _stale(x.speed_age, 2.0 * cfg.encoder_timeout_s):
             # Messages arrive, but no speed from them.  Twice the timeout: the estimator's
             # clock is the cycle's, a little before the messages' receipt stamps, so on
             # silence the root cause, encoder_stale, is named first.
-            out["speed_stale"] = Mode.SAFE_STOP
-        if _stale(x.range_age, cfg.range_timeout_s):
-            out["range_stale"] = Mode.SAFE_STOP
+            out["speed_stale"] = _SAFE_STOP
+        age = x.range_age
+        if not (isfinite(age) and age <= cfg.range_timeout_s):
+            out["range_stale"] = _SAFE_STOP
         if self._frozen(x):
-            out["range_frozen"] = Mode.SAFE_STOP
+            out["range_frozen"] = _SAFE_STOP
         if x.range_fault:
-            out["range_fault"] = Mode.SAFE_STOP
-        if not x.lead_valid and not {"range_stale", "range_frozen", "range_fault"} & out.keys():
-            out["lead_lost"] = Mode.SAFE_STOP if self.lead_lost_action == "stop" else Mode.DEGRADED
+            out["range_fault"] = _SAFE_STOP
+        if not x.lead_valid and not (out and _RANGE_CAUSES & out.keys()):
+            out["lead_lost"] = _SAFE_STOP if self.lead_lost_action == "stop" else _DEGRADED
         if c.solver_fails >= cfg.solver_fail_limit:
-            out["solver_failed"] = Mode.SAFE_STOP
+            out["solver_failed"] = _SAFE_STOP
         elif c.solver_fails >= cfg.solver_degrade_after:
-            out["solver_failing"] = Mode.DEGRADED
+            out["solver_failing"] = _DEGRADED
         if c.overruns >= cfg.overrun_limit:
-            out["loop_overrun"] = Mode.SAFE_STOP
+            out["loop_overrun"] = _SAFE_STOP
         elif c.overruns >= cfg.overrun_degrade_after:
-            out["loop_late"] = Mode.DEGRADED
+            out["loop_late"] = _DEGRADED
         return out
 
     def update(self, x: SupervisorInputs) -> Decision:
         """Decide this cycle's mode."""
         causes = self.causes(x)
         c = self._c
-        worst = max(causes.values(), key=lambda m: _SEVERITY[m], default=Mode.ACTIVE)
+        worst = max(causes.values(), key=_SEVERITY.__getitem__) if causes else _ACTIVE
         if not c.ever_ready:
             # INIT until the first time everything is fresh and the link is up
-            blocking = {k for k, m in causes.items() if m in (Mode.SAFE_STOP, Mode.FAULT)}
-            blocking -= {"solver_failed", "loop_overrun", "lead_lost"}
+            blocking = {k for k, m in causes.items() if m in _BLOCKING}
+            blocking -= _NOT_BLOCKING_INIT
             if blocking:
-                return self._set(x.t, Mode.INIT, causes)
+                return self._set(x.t, _INIT, causes)
             c.ever_ready = True
-        if worst == Mode.ACTIVE:
-            if self.mode == Mode.ACTIVE or (c.ever_ready and self.mode == Mode.INIT):
+        if worst is _ACTIVE:
+            if self.mode is _ACTIVE or (c.ever_ready and self.mode is _INIT):
                 c.clear_since = x.t
-                return self._set(x.t, Mode.ACTIVE, causes)
+                return self._set(x.t, _ACTIVE, causes)
             if c.clear_since is None:
                 c.clear_since = x.t
             if x.t - c.clear_since >= self.config.recovery_s:
-                return self._set(x.t, Mode.ACTIVE, causes)
+                return self._set(x.t, _ACTIVE, causes)
             # hold a driving mode while recovering; a stop/fault holds its stop (as DEGRADED
             # would drive again before the recovery time)
             return self._set(x.t, self.mode, causes)
@@ -257,9 +271,9 @@ class Supervisor:
         return self._set(x.t, worst, causes)
 
     def _set(self, t: float, mode: Mode, causes: dict[str, Mode]) -> Decision:
-        names = tuple(sorted(causes))
+        names = tuple(sorted(causes)) if causes else ()
         tr = None
-        if mode != self.mode:
+        if mode is not self.mode:
             tr = Transition(t, self.mode, mode, names)
             self.transitions.append(tr)
             self.mode = mode

@@ -14,6 +14,11 @@ import math
 
 from truckd.control.supervisor import Mode
 
+_DRIVING = (Mode.ACTIVE, Mode.DEGRADED)
+_RAMPING = (Mode.ACTIVE, Mode.DEGRADED, Mode.SAFE_STOP)
+"""The modes that drive with the controller's voltage, and those that ramp to 0 V without
+one (module constants: the enum's attributes cost a hook each, every cycle)."""
+
 
 def motor_command(
     mode: Mode, u_ctrl: float | None, u_prev: float, ramp_step: float, u_max: float
@@ -22,11 +27,12 @@ def motor_command(
     if not (math.isfinite(u_max) and u_max >= 0.0):
         return 0.0, False
     prev = u_prev if math.isfinite(u_prev) else 0.0
-    if mode in (Mode.ACTIVE, Mode.DEGRADED) and u_ctrl is not None and math.isfinite(u_ctrl):
+    if mode in _DRIVING and u_ctrl is not None and math.isfinite(u_ctrl):
         u, enable = u_ctrl, True
-    elif mode in (Mode.ACTIVE, Mode.DEGRADED, Mode.SAFE_STOP):
+    elif mode in _RAMPING:
         step = ramp_step if math.isfinite(ramp_step) and ramp_step > 0 else u_max
         u, enable = math.copysign(max(abs(prev) - step, 0.0), prev), True
     else:
         u, enable = 0.0, False
-    return min(max(u, -u_max), u_max), enable
+    u = -u_max if -u_max > u else u  # min(max(u, -u_max), u_max) written out
+    return (u_max if u_max < u else u), enable

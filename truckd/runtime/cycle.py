@@ -37,6 +37,7 @@ from firmware_protocol.timing import timing
 from truckd.control.config import ControlConfig
 from truckd.control.controller import Controller
 from truckd.control.estimator import EncoderSample, Estimate, RangeSample
+from truckd.control.frozen import fast_init
 from truckd.control.output import ControlOutput
 from truckd.control.qp import ControlModel
 from truckd.control.supervisor import (
@@ -47,12 +48,15 @@ from truckd.control.supervisor import (
     SupervisorInputs,
 )
 from truckd.io.port import Received
-from truckd.jsonsafe import json_number
 from truckd.runtime.command import motor_command
 from truckd.runtime.sensors import SensorState
 
 MODE_CODE = {Mode.INIT: 0, Mode.ACTIVE: 1, Mode.DEGRADED: 2, Mode.SAFE_STOP: 3, Mode.FAULT: 4}
 """Numeric mode in the CSV log (the log format is all numbers)."""
+
+_MODE_CODE_F = {m._value_: float(code) for m, code in MODE_CODE.items()}
+""":data:`MODE_CODE` as floats, keyed by the mode's text (a ``str``'s hash; the enum's own
+``__hash__`` is a Python call)."""
 
 LOG_COLUMNS = (
     "t", "u", "v", "i", "vbat", "x", "gap", "v_lead",  # the contract's (reference section 3)
@@ -108,7 +112,8 @@ class Plan:
     a: tuple[float, ...]
 
 
-@dataclass(frozen=True, slots=True)
+@fast_init
+@dataclass(frozen=True)
 class CycleOutputs:
     """What one cycle produces.
 
@@ -139,26 +144,54 @@ def state_message(out: CycleOutputs, lateness_s: float = 0.0) -> dict[str, Any]:
     """The published state of the cycle ``out`` (reference section 5); ``lateness_s``
     the loop's.  Reads only ``out`` (frozen): safe on another thread, later."""
     c = out.control
-    est = c.estimate if c is not None else None
-    nan = math.nan
+    isfinite = math.isfinite
+    cmd, dec = out.command, out.decision
+    # A non-finite number is null (truckd.jsonsafe.json_number, written out here: a call
+    # per value costs more than the test itself).
+    v: float | None
+    gap: float | None
+    gap_ref: float | None
+    v_lead: float | None
+    u_ff: float | None
+    solve_us: float | None
+    mode: str | None
+    fallback: str | None
+    if c is None:
+        v = gap = gap_ref = v_lead = u_ff = solve_us = mode = None
+        lead_valid, fallback = False, "exception"
+    else:
+        est = c.estimate
+        v, gap, gap_ref, v_lead = est.v, est.gap, c.gap_ref, est.v_lead
+        v = v if isfinite(v) else None
+        gap = gap if isfinite(gap) else None
+        gap_ref = gap_ref if isfinite(gap_ref) else None
+        v_lead = v_lead if isfinite(v_lead) else None
+        u_ff, solve_us = c.u_ff, c.solve_time_s * 1e6
+        u_ff = u_ff if isfinite(u_ff) else None
+        solve_us = solve_us if isfinite(solve_us) else None
+        lead_valid, mode, fallback = bool(est.lead_valid), c.mode, c.fallback_reason
+    ages: dict[str, float | None] = {}
+    for k, a in out.ages.items():
+        ms = a * 1e3
+        ages[k] = ms if isfinite(ms) else None
     return {
         "seq": out.seq,
         "t": out.t,
-        "mode": out.decision.mode.value,
-        "v": json_number(est.v if est is not None else nan),
-        "gap": json_number(est.gap if est is not None else nan),
-        "gap_ref": json_number(c.gap_ref if c is not None else nan),
-        "v_lead": json_number(est.v_lead if est is not None else nan),
-        "u": out.command.voltage,
-        "u_ff": json_number(c.u_ff if c is not None else nan),
-        "solve_us": json_number(c.solve_time_s * 1e6 if c is not None else nan),
-        "enable": out.command.enable,
-        "ctrl": c.mode if c is not None else None,
-        "fallback": c.fallback_reason if c is not None else "exception",
-        "lead_valid": bool(est.lead_valid) if est is not None else False,
+        "mode": dec.mode._value_,
+        "v": v,
+        "gap": gap,
+        "gap_ref": gap_ref,
+        "v_lead": v_lead,
+        "u": cmd.voltage,
+        "u_ff": u_ff,
+        "solve_us": solve_us,
+        "enable": cmd.enable,
+        "ctrl": mode,
+        "fallback": fallback,
+        "lead_valid": lead_valid,
         "lateness_us": lateness_s * 1e6,
-        "faults": list(out.decision.causes),
-        "ages_ms": {k: json_number(a * 1e3) for k, a in out.ages.items()},
+        "faults": list(dec.causes),
+        "ages_ms": ages,
     }
 
 
@@ -246,31 +279,29 @@ class CompanionCycle:
         except Exception as exc:  # counted as a solver failure by the supervisor
             self.controller_errors += 1
             out, error = None, f"{type(exc).__name__}: {exc}"
-        ages = s.ages(now)
-        reason = out.fallback_reason if out is not None else "exception"
-        est = out.estimate if out is not None else None
-        dec = self.supervisor.update(
-            SupervisorInputs(
-                t=t,
-                link_up=inp.link_up,
-                link_age=ages["link"],
-                encoder_age=ages["encoder"],
-                range_age=ages["range"],
-                range_value=s.range_raw,
-                range_fault=s.range_fault,
-                speed=est.v if est is not None and est.speed_valid else 0.0,
-                # (an exception in the controller counts as a solver failure instead)
-                speed_age=est.speed_age if est is not None else 0.0,
-                lead_valid=est.lead_valid if est is not None else False,
-                solver_ok=out is not None and not (reason or "").startswith("solver_"),
-                loop_missed=inp.loop_missed,
-            )
-        )
-        u_ctrl = out.u if out is not None else None
-        self.u, self.enable = motor_command(dec.mode, u_ctrl, self.u, self.ramp_step, self.u_max)
+        link_age, encoder_age, range_age = now - s.t_any, now - s.t_encoder, now - s.t_range
+        ages = {"link": link_age, "encoder": encoder_age, "range": range_age}  # as s.ages(now)
+        if out is None:
+            # (an exception in the controller counts as a solver failure instead)
+            speed, speed_age, lead_valid, solver_ok, u_ctrl = 0.0, 0.0, False, False, None
+        else:
+            est = out.estimate
+            speed = est.v if est.speed_valid else 0.0
+            speed_age, lead_valid, u_ctrl = est.speed_age, est.lead_valid, out.u
+            reason = out.fallback_reason
+            solver_ok = reason is None or not reason.startswith("solver_")
+        # Positional, in the fields' order (a keyword call to a class builds a dict of
+        # them, every cycle).
+        sup_in = SupervisorInputs(
+            t, inp.link_up, link_age, encoder_age, range_age, s.range_raw, s.range_fault,
+            speed, speed_age, lead_valid, solver_ok, inp.loop_missed,
+        )  # fmt: skip
+        dec = self.supervisor.update(sup_in)
+        mode = dec.mode
+        self.u, self.enable = motor_command(mode, u_ctrl, self.u, self.ramp_step, self.u_max)
         self.controller.u_prev = self.u  # the rate limit starts from what is sent
         hb = (
-            CompanionHeartbeat(CompanionState[dec.mode.value], 0)
+            CompanionHeartbeat(CompanionState[mode._value_], 0)
             if self.seq % self.hb_every == 0
             else None
         )
@@ -337,20 +368,18 @@ class CompanionCycle:
         """The recorded row, in :data:`LOG_COLUMNS` order (sensor values as of this cycle)."""
         s = self.sensors
         c = out.control
-        nan = math.nan
-        est = c.estimate if c is not None else None
-        v = est.v if est is not None and math.isfinite(est.v) else 0.0
+        cmd = out.command
+        range_raw = s.range_raw
+        if c is None:
+            nan = math.nan
+            v, gap, v_lead, gap_ref, u_ff, solve_us, lead = 0.0, nan, nan, nan, nan, nan, 0.0
+        else:
+            est = c.estimate
+            v = est.v if math.isfinite(est.v) else 0.0
+            gap, v_lead, lead = est.gap, est.v_lead, float(est.lead_valid)
+            gap_ref, u_ff, solve_us = c.gap_ref, c.u_ff, c.solve_time_s * 1e6
         return (
-            out.t, out.command.voltage, v, s.current, s.vbat, s.x,
-            est.gap if est is not None else nan,
-            est.v_lead if est is not None else nan,
-            c.gap_ref if c is not None else nan,
-            c.u_ff if c is not None else nan,
-            s.u_fw,
-            c.solve_time_s * 1e6 if c is not None else nan,
-            float(MODE_CODE[out.decision.mode]),
-            float(out.command.enable),
-            float(est.lead_valid) if est is not None else 0.0,
-            s.range_raw if s.range_raw is not None else nan,
-            float(out.seq),
+            out.t, cmd.voltage, v, s.current, s.vbat, s.x, gap, v_lead, gap_ref, u_ff, s.u_fw,
+            solve_us, _MODE_CODE_F[out.decision.mode._value_], float(cmd.enable), lead,
+            range_raw if range_raw is not None else math.nan, float(out.seq),
         )  # fmt: skip

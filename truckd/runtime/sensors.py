@@ -29,9 +29,8 @@ from truckd.io.port import Received
 
 NEVER = -math.inf
 
-
-def _finite(x: float, default: float) -> float:
-    return x if math.isfinite(x) else default
+_VALID, _SENSOR_FAULT = RangeStatus.VALID, RangeStatus.SENSOR_FAULT
+"""Module constants (an enum class's attribute goes through its metaclass's hook)."""
 
 
 @dataclass
@@ -64,36 +63,42 @@ class SensorState:
         """Take this cycle's checked messages."""
         self.encoders = []
         self.ranges = []
+        isfinite = math.isfinite
         for r in received:
             m = r.msg
             if isinstance(m, WheelEncoders):
                 self._encoders(r.t, m)
             elif isinstance(m, RangeReading):
-                if not math.isfinite(m.distance) or not math.isfinite(m.sample_time):
+                distance, sample_time = m.distance, m.sample_time
+                if not isfinite(distance) or not isfinite(sample_time):
                     self.invalid += 1
                     continue
-                if m.sample_time == self._range_sample_time:
+                if sample_time == self._range_sample_time:
                     self.repeated += 1  # a frozen sensor: same sample again, not fresh
                     continue
-                self._range_sample_time = m.sample_time
+                self._range_sample_time = sample_time
+                valid = m.status == _VALID  # m.valid
                 # A valid reading of a negative distance is no measurement: a fault.
-                self.range_fault = m.status == RangeStatus.SENSOR_FAULT or (
-                    m.valid and m.distance < 0.0
-                )
+                self.range_fault = m.status == _SENSOR_FAULT or (valid and distance < 0.0)
                 if self.range_fault:
                     self.range_faults += 1
                 else:
-                    self.ranges.append(RangeSample(m.gap, m.sample_time))
-                self.range_raw = m.distance if m.valid else None
-                self.range_valid = m.valid
+                    self.ranges.append(RangeSample(distance if valid else None, sample_time))
+                self.range_raw = distance if valid else None
+                self.range_valid = valid
                 self.t_range = r.t
             elif isinstance(m, MotorFeedback):
-                self.current = _finite(m.current, self.current)
-                self.vbat = _finite(m.vbat, self.vbat)
-                self.u_fw = _finite(m.u_applied, self.u_fw)
+                current, vbat, u_fw = m.current, m.vbat, m.u_applied
+                if isfinite(current):
+                    self.current = current
+                if isfinite(vbat):
+                    self.vbat = vbat
+                if isfinite(u_fw):
+                    self.u_fw = u_fw
             elif isinstance(m, FirmwareHeartbeat):
                 self.fw_state, self.fw_faults = m.state, m.faults
-            self.t_any = max(self.t_any, r.t)
+            if r.t > self.t_any:  # max(t_any, r.t), a NaN never taken
+                self.t_any = r.t
 
     def _encoders(self, t: float, m: WheelEncoders) -> None:
         if not math.isfinite(m.sample_time):
@@ -107,19 +112,16 @@ class SensorState:
         self.encoders.append(
             EncoderSample(m.ticks_left, m.ticks_right, m.sample_time, left_ok, right_ok)
         )
-        if self._last_ticks is not None:
-            d = [
-                ticks_delta(new, old)
-                for new, old, ok in zip(
-                    (m.ticks_left, m.ticks_right),
-                    self._last_ticks,
-                    (left_ok, right_ok),
-                    strict=True,
-                )
-                if ok
-            ]
-            if d:
-                self.x += self.tick_len * sum(d) / len(d)
+        last = self._last_ticks
+        if last is not None and (left_ok or right_ok):
+            # The mean count difference of the healthy wheels (both: their sum over 2).
+            if left_ok and right_ok:
+                d = ticks_delta(m.ticks_left, last[0]) + ticks_delta(m.ticks_right, last[1])
+                self.x += self.tick_len * d / 2
+            elif left_ok:
+                self.x += self.tick_len * ticks_delta(m.ticks_left, last[0])
+            else:
+                self.x += self.tick_len * ticks_delta(m.ticks_right, last[1])
         self._last_ticks = (m.ticks_left, m.ticks_right)
         if left_ok or right_ok:
             self.t_encoder = t
