@@ -172,24 +172,40 @@ def _drive(seed: int, effect: str, link: str, tmp: Path) -> Run:
     daemon_cfg, fw_args = _daemon_config(tmp, link, watch_port)
     fw = Firmware(str(tmp / "ttyTRUCK"), plant_cfg, "--lead-gap", str(WALL_M),
                   "--lead-speed", "0", *fw_args)  # fmt: skip
-    progress = Progress(watch_port)
+    proc: subprocess.Popen[str] | None = None
     try:
-        proc = subprocess.Popen(
-            [PY, "-m", "truckd.cli.main", "characterize", "--config", str(daemon_cfg),
-             "--backend", link, "--out", str(tmp / "out")],
-            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, cwd=ROOT,
-        )  # fmt: skip
-        run = Run(truck, tmp, plant_cfg, daemon_cfg, proc, progress=progress.msgs)
-        run.reader = threading.Thread(target=run.read_stderr, daemon=True)
-        run.reader.start()
-        wait_for(run.analysing, 240)
-        run.end_v = float(fw.status()["v"])
+        progress = Progress(watch_port)
+        try:
+            proc = subprocess.Popen(
+                [PY, "-m", "truckd.cli.main", "characterize", "--config", str(daemon_cfg),
+                 "--backend", link, "--out", str(tmp / "out")],
+                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, cwd=ROOT,
+            )  # fmt: skip
+            run = Run(truck, tmp, plant_cfg, daemon_cfg, proc, progress=progress.msgs)
+            run.reader = threading.Thread(target=run.read_stderr, daemon=True)
+            run.reader.start()
+            assert wait_for(run.analysing, 240), "".join(run.stderr)[-3000:]
+            # the routine's last progress message, published as the drive ended
+            wait_for(lambda: bool(run.progress) and run.progress[-1]["stage"] == "done", 5)
+            run.end_v = float(fw.status()["v"])
+        finally:
+            progress.close()
+    except BaseException:
+        if proc is not None:
+            end_process(proc)
+        raise
     finally:
-        progress.close()
         fw.stop()
-    with contextlib.suppress(ProcessLookupError):  # its analysis yields to the next drive
-        os.setpriority(os.PRIO_PROCESS, proc.pid, 19)
+    _renice(run.proc.pid, 19)  # its analysis yields to the next drive
     return run
+
+
+def _renice(pid: int, nice: int) -> None:
+    """Every thread of process ``pid`` to ``nice`` (Linux sets it per thread)."""
+    with contextlib.suppress(FileNotFoundError, ProcessLookupError):
+        for tid in os.listdir(f"/proc/{pid}/task"):
+            with contextlib.suppress(ProcessLookupError):
+                os.setpriority(os.PRIO_PROCESS, int(tid), nice)
 
 
 @pytest.fixture(scope="module")

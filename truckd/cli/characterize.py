@@ -342,6 +342,9 @@ def analyse_dir(cfg: TruckConfig, d: Path, console: Callable[[str], None] = _con
     try:
         summary.update(analyse(cfg, log, result, d, console))
     except (TruckdError, InputError) as exc:
+        # the summary says so: the files the analysis wrote before it failed are not a set
+        summary.update(analysed=False, analysis_error=str(exc))
+        _write_json(d / "summary.json", summary)
         console(f"characterize: analysis failed: {exc}; the log is in {d / 'log.csv'}")
         return 1
     summary.pop("analysis_error", None)

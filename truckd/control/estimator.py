@@ -13,7 +13,8 @@ one and in order among themselves (the firmware's clock restarted, e.g. a microc
 reset).  A single sample behind the last one is dropped (out of order).  A single step
 out of bounds whose next sample lies within them again, measured from the sample before
 it, is a glitch (a count read before it was updated, then caught up): dropped and counted
-(``speed_glitches``), the speed stays valid.  Before the filter has a speed, an
+(``speed_glitches``), the speed stays valid (and so, for one sample, does the old speed
+of a truck that really stopped dead).  Before the filter has its first difference, an
 out-of-bounds step restarts it at once.  After a restart the speed is valid from the
 second difference on, once the next step has confirmed the first (a first difference
 taken from a stale count would be a spike).
