@@ -5,9 +5,10 @@ python tests/plan_flood.py --connect ENDPOINT --key truckd/<vehicle>/plan --dura
 
 Publishes, in turn, garbage bytes, a NaN plan, a plan naming another sender and JSON
 nested deeper than a parser's stack, N per second (default 100 000; as many as the
-process can send when it cannot reach N), at the lowest CPU priority.  Prints "flooding" once
-a subscriber matches the key, and at the end (after S seconds, or on SIGINT) one JSON
-line {"sent": N, "seconds": S}.
+process can send when it cannot reach N), at a low CPU priority.  Prints "flooding" once
+a subscriber matches the key, then about every second, and at the end (after S seconds, or
+on SIGINT), one JSON line {"sent": N, "seconds": S} of what it sent so far (a caller that
+cannot wait for its end reads the last line and ends it).
 """
 
 from __future__ import annotations
@@ -55,6 +56,7 @@ def main() -> int:
         n = 0
         t0 = time.monotonic()
         t_end = t0 + args.duration
+        t_report = t0 + 1.0
         try:
             while True:
                 for p in data:  # 100 puts between clock reads
@@ -64,6 +66,9 @@ def main() -> int:
                 now = time.monotonic()
                 if now >= t_end:
                     break
+                if now >= t_report:
+                    print(json.dumps({"sent": n, "seconds": now - t0}), flush=True)
+                    t_report = now + 1.0
                 ahead = t0 + n / args.rate - now  # paced at --rate, never above it
                 if ahead > 0:
                     time.sleep(ahead)
