@@ -47,6 +47,7 @@ from truckd.runtime.realtime import (
     promote_helpers,
     release_cpu_latency,
     setup_realtime,
+    unfreeze_gc,
 )
 from truckd.runtime.recorder import Recorder
 from truckd.runtime.rxlog import RxLog
@@ -226,6 +227,9 @@ class Daemon:
                 if self.claim is not None:
                     self.claim.release()
                 release_cpu_latency()
+                # the collector as before start-up: a daemon run in-process (characterize's
+                # analysis after its drive, tests) leaves no start-up object uncollectable
+                unfreeze_gc()
                 self.notifier.close()
         s = self.rk.stats()
         log.info(
