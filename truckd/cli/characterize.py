@@ -294,13 +294,28 @@ def characterize(
         _write_json(out / "summary.json", summary)
         console(f"characterize: driven; analyse with truckd characterize --analyse {out}")
         return EXIT_DONE
+    return _analyse_into(cfg, log, result, out, summary, console)
+
+
+def _analyse_into(
+    cfg: TruckConfig,
+    log: Log,
+    result: Result,
+    out: Path,
+    summary: dict[str, Any],
+    console: Callable[[str], None],
+) -> int:
+    """Analyse ``log`` into ``out`` and write ``summary`` with the analysis keys and
+    ``analysed``; exit 0, or 1 when the log cannot be analysed (it is kept, and the summary
+    says why: the files the analysis wrote before it failed are not a set)."""
     try:
         summary.update(analyse(cfg, log, result, out, console))
-    except (TruckdError, InputError) as exc:  # the log cannot be analysed; it is kept
-        summary["analysis_error"] = str(exc)
+    except (TruckdError, InputError) as exc:
+        summary.update(analysed=False, analysis_error=str(exc))
         _write_json(out / "summary.json", summary)
         console(f"characterize: analysis failed: {exc}; the log is in {out / 'log.csv'}")
         return 1
+    summary.pop("analysis_error", None)
     summary["analysed"] = True
     _write_json(out / "summary.json", summary)
     _print_summary(summary, console)
@@ -339,19 +354,7 @@ def analyse_dir(cfg: TruckConfig, d: Path, console: Callable[[str], None] = _con
     except InputError as exc:
         console(f"characterize: {exc}")
         return 2
-    try:
-        summary.update(analyse(cfg, log, result, d, console))
-    except (TruckdError, InputError) as exc:
-        # the summary says so: the files the analysis wrote before it failed are not a set
-        summary.update(analysed=False, analysis_error=str(exc))
-        _write_json(d / "summary.json", summary)
-        console(f"characterize: analysis failed: {exc}; the log is in {d / 'log.csv'}")
-        return 1
-    summary.pop("analysis_error", None)
-    summary["analysed"] = True
-    _write_json(d / "summary.json", summary)
-    _print_summary(summary, console)
-    return EXIT_DONE
+    return _analyse_into(cfg, log, result, d, summary, console)
 
 
 def _experiment(e: dict[str, Any]) -> Experiment:
