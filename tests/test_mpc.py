@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import math
+from collections.abc import Iterator
 
 import cvxpy as cp
 import numpy as np
@@ -152,10 +153,12 @@ def test_riccati_terminal_cost_makes_the_horizon_irrelevant_when_unconstrained(
     u_prev=st.floats(-7.2, 7.2),
     v_lead=st.floats(0.0, 3.0),
 )
-def test_qp_is_never_infeasible(gap: float, v: float, u_prev: float, v_lead: float) -> None:
+def test_qp_is_never_infeasible(
+    tight_solver: MpcSolver, gap: float, v: float, u_prev: float, v_lead: float
+) -> None:
     """Gap below the minimum, speed over the limit, command at a bound: still solvable
     (state constraints are soft; input bounds and rate are met by holding u_prev)."""
-    s = _SOLVER
+    s = tight_solver
     cfg = s.cfg
     inp = _inputs(cfg, (0.0, v, gap), u_prev, v_lead)
     res = s.solve("follow", inp)
@@ -170,7 +173,12 @@ def _default_params() -> VehicleParams:
     return load_config().vehicle
 
 
-_SOLVER = MpcSolver(ControlModel(_default_params()), tight())
+@pytest.fixture(scope="module")
+def tight_solver() -> Iterator[MpcSolver]:
+    """One solver for the module's property test (warm-started from example to example,
+    as in the loop), released with the module: the compiled cycle has a few instances per
+    process, and a solver held by a module global would keep one for the whole run."""
+    yield MpcSolver(ControlModel(_default_params()), tight())
 
 
 def _estimate(v: float, gap: float, v_lead: float, lead: bool = True) -> Estimate:
@@ -219,9 +227,9 @@ def test_solver_failure_holds_the_plan_then_brakes(params: VehicleParams) -> Non
     valid=st.booleans(),
 )
 def test_command_is_always_finite_and_within_limits(
-    v: float, gap: float, v_lead: float, lead: bool, valid: bool
+    default_controller: Controller, v: float, gap: float, v_lead: float, lead: bool, valid: bool
 ) -> None:
-    ctrl = _CTRL
+    ctrl = default_controller
     before = ctrl.u_prev
     est = dataclasses.replace(_estimate(v, gap, v_lead, lead), speed_valid=valid)
     out = ctrl.control(est)
@@ -230,7 +238,11 @@ def test_command_is_always_finite_and_within_limits(
     assert abs(out.u - before) <= ctrl.cfg.du_max * ctrl.cfg.period + 1e-9
 
 
-_CTRL = Controller(ControlModel(_default_params()), dataclasses.replace(ControlConfig()), TICKS)
+@pytest.fixture(scope="module")
+def default_controller() -> Iterator[Controller]:
+    """One controller carried through the property test's examples (its state too, as in
+    the loop), released with the module (see :func:`tight_solver`)."""
+    yield Controller(ControlModel(_default_params()), ControlConfig(), TICKS)
 
 
 def test_lead_lost_stop_policy_brakes_and_cruise_policy_holds(params: VehicleParams) -> None:
