@@ -46,6 +46,35 @@ def test_python_m_truckd_is_the_command_line() -> None:
     assert bad.returncode == 2 and "no-such-command" in bad.stderr
 
 
+def test_version_and_a_command_s_help_import_no_other_command() -> None:
+    """``truckd --version`` imports no command module; ``truckd diagnose --help`` not the
+    daemon's nor scipy.signal (a second to import: the diagnosis imports it when it filters)."""
+    probe = (
+        "import sys, contextlib, io\n"
+        "from truckd.cli.main import main\n"
+        "with contextlib.redirect_stdout(io.StringIO()):\n"
+        "    code = main(sys.argv[1:])\n"
+        "mods = [m for m in sys.modules if m.startswith(('truckd.cli.', 'scipy.signal'))]\n"
+        "print(code, *mods)\n"
+    )
+
+    def loaded(*argv: str) -> tuple[str, set[str]]:
+        out = subprocess.run(
+            [sys.executable, "-c", probe, *argv],
+            capture_output=True,
+            text=True,
+            timeout=120,
+            check=True,
+        ).stdout.split()
+        return out[0], set(out[1:])
+
+    code, mods = loaded("--version")
+    assert code == "0" and not {m for m in mods if m != "truckd.cli.main"}, mods
+    code, mods = loaded("diagnose", "--help")
+    assert code == "0" and "truckd.cli.diagnose" in mods, mods
+    assert "truckd.cli.run" not in mods and "scipy.signal" not in mods, mods
+
+
 def test_the_declared_licence_is_the_shipped_one() -> None:
     assert PYPROJECT["project"]["license"] == "Apache-2.0"
     text = (ROOT / "LICENSE").read_text()

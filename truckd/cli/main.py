@@ -91,6 +91,9 @@ def _term_unwinds(command: str) -> Iterator[None]:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args_list = list(sys.argv[1:] if argv is None else argv)
+    if args_list == ["--version"]:  # without importing every command's module to list them
+        print(f"truckd {truckd.version()}")
+        return 0
     parser = build_parser(args_list[0] if args_list else None)
     try:
         args = parser.parse_args(args_list)

@@ -34,7 +34,6 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.signal import lfilter
 
 from truckd.ident.data import Series
 from truckd.ident.linear import feedforward_of
@@ -217,6 +216,8 @@ def _filtered(
     moving = np.abs(vs) > MOVING * max(float(np.max(np.abs(vs))), 1e-9)
     sign = np.sign(vs)
     inputs = np.column_stack([u, sign, np.ones_like(u), where(x_mid, sign)])
+    from scipy.signal import lfilter  # here: scipy.signal takes a second to import
+
     a = float(np.exp(-hg / tau))
     filt = np.asarray(lfilter([0.0, 1.0 - a], [1.0, -a], inputs, axis=0))
     target = v.copy()
