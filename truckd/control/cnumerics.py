@@ -10,11 +10,11 @@ fallback (tests/test_cycle_numerics.py: the same commands on the recorded replay
 
 Every constant comes from the model and the configuration here, at bind time
 (:data:`CONSTANTS`): the C file has none of its own.  The compiled numerics serve the
-models whose feedforward has no torque terms (no load, drag, terrain or Stribeck), without
-an input delay and without the driver's maps (battery sag, dead zone, current limit); for
-the others :func:`bind` says why not and the controller runs them in Python (the MPC's
-solve still compiled).  Loading is :mod:`truckd.control.ccycle`'s; this module computes
-nothing itself.
+models whose feedforward torque terms are at most aero drag and a constant load (no
+terrain, no Stribeck curve), without an input delay and without the driver's maps
+(battery sag, dead zone, current limit); for the others :func:`bind` says why not and
+the controller runs them in Python (the MPC's solve still compiled).  Loading is
+:mod:`truckd.control.ccycle`'s; this module computes nothing itself.
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ import numpy as np
 
 from truckd.control import ccycle
 from truckd.control.config import ControlConfig
-from truckd.control.effect_use import torque_terms
+from truckd.control.effect_use import EFFECT_USES, torque_terms
 from truckd.control.feedforward import breakaway_feedforward
 from truckd.control.mpc import MpcResult, MpcSolver
 from truckd.control.qp import INPUT_LIMIT, ControlModel
@@ -45,8 +45,15 @@ CONSTANTS = (
     "v_max",
     "input_limit",
     "time_budget_s",
+    "has_aero_drag",
+    "aero_drag",
+    "has_load_force",
+    "load_force",
 )
 """The constants ``truckd_numerics_bind`` takes, in its order (see :func:`constants`)."""
+
+_DRAG, _LOAD = EFFECT_USES["aero_drag"].torque, EFFECT_USES["load_force"].torque
+"""The feedforward torque terms the compiled numerics compute (aero drag, constant load)."""
 
 N_IN_FIXED = 7
 """Per-cycle inputs before the lead's speeds: v (m/s), gap as the QP sees it (m), the
@@ -69,7 +76,7 @@ def constants(
         "ratio": p.ratio,
         "moving_speed": cfg.moving_speed,
         "feedforward": 1.0 if cfg.feedforward else 0.0,
-        # without torque terms the breakaway voltage is the same at every position
+        # without the terrain's term the breakaway voltage is the same at every position
         "breakaway_v": breakaway_feedforward(p, eff, cfg.stiction_margin, 0.0),
         "start_voltage": cfg.start_voltage,
         "u_max": u_max,
@@ -77,6 +84,11 @@ def constants(
         "v_max": cfg.v_max,
         "input_limit": INPUT_LIMIT,
         "time_budget_s": time_budget_s,
+        # the feedforward's torque terms the C serves, each on when the model has it
+        "has_aero_drag": 1.0 if _DRAG in torque_terms(eff) else 0.0,
+        "aero_drag": eff.aero_drag,
+        "has_load_force": 1.0 if _LOAD in torque_terms(eff) else 0.0,
+        "load_force": eff.load_force,
     }
     return [float(named[k]) for k in CONSTANTS]
 
@@ -84,8 +96,8 @@ def constants(
 def unsupported(model: ControlModel, delay_steps: int) -> str:
     """Why the compiled numerics cannot compute this model's commands ("" : they can)."""
     eff = model.effects
-    if torque_terms(eff):
-        return "the model's feedforward has torque terms"
+    if any(t not in (_DRAG, _LOAD) for t in torque_terms(eff)):
+        return "the model's feedforward has terrain or Stribeck torque terms"
     if delay_steps > 0:
         return "the model has an input delay"
     for name in ("battery_sag", "dead_zone", "dead_zone_offset", "current_limit"):

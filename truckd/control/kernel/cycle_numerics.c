@@ -9,7 +9,8 @@
  *
  * Every constant (the motor's, the limits, the tolerances) comes from Python when it binds
  * (truckd/control/cnumerics.py): none is written here.  Used only for models whose
- * feedforward has no torque terms, without an input delay and without the driver's maps
+ * feedforward has no torque terms but aero drag and a constant load (no terrain, no
+ * Stribeck curve), without an input delay and without the driver's maps
  * (the controller checks; the others run in Python). */
 #include <math.h>
 #include <stdint.h>
@@ -33,6 +34,10 @@ enum {
     C_V_MAX,       /* v_max (m/s) */
     C_INPUT_LIMIT, /* the QP's inputs' magnitude limit */
     C_BUDGET,      /* the solve's time budget (s) */
+    C_HAS_DRAG,    /* the feedforward has the aero drag term (1) or not (0) */
+    C_AERO,        /* its coefficient (N/(m/s)^2) */
+    C_HAS_LOAD,    /* the feedforward has the constant load term (1) or not (0) */
+    C_LOAD,        /* its force (N) */
     C_COUNT
 };
 
@@ -75,12 +80,18 @@ int64_t truckd_numerics_bind(int64_t inst, const double *consts, int64_t n_const
     return 0;
 }
 
-/* feedforward.moving_feedforward without torque terms, scaled and offset as
- * Controller._feedforward: (R_m / K_T (sign(v) K_coulomb + 0)) r_scale + disturbance. */
+/* feedforward.moving_feedforward, scaled and offset as Controller._feedforward:
+ * (R_m / K_T (sign(v) K_coulomb + known)) r_scale + disturbance, the known load torque the
+ * sum of effect_use's terms in their order (aero drag c v|v|, the constant load; each a
+ * force times the ratio), 0 without terms. */
 static double feedforward(const double *c, double v, double r_scale, double dist) {
     double ff = 0.0;
-    if (c[C_FF_ON] != 0.0 && !(fabs(v) <= c[C_MOVING]))
-        ff = c[C_R_M] / c[C_K_T] * (copysign(1.0, v) * c[C_COULOMB] + 0.0);
+    if (c[C_FF_ON] != 0.0 && !(fabs(v) <= c[C_MOVING])) {
+        double known = 0.0;
+        if (c[C_HAS_DRAG] != 0.0) known += c[C_AERO] * v * fabs(v) * c[C_RATIO];
+        if (c[C_HAS_LOAD] != 0.0) known += c[C_LOAD] * c[C_RATIO];
+        ff = c[C_R_M] / c[C_K_T] * (copysign(1.0, v) * c[C_COULOMB] + known);
+    }
     return ff * r_scale + dist;
 }
 
