@@ -18,6 +18,7 @@ from truckd.config.truck import load_config
 from truckd.control.config import ControlConfig
 from truckd.control.controller import Controller
 from truckd.control.estimator import Estimate
+from truckd.control.lead import lead_horizon
 from truckd.control.mpc import MpcSolver
 from truckd.control.qp import ControlModel, QpInputs, prediction_model
 from truckd.model.params import VehicleParams
@@ -286,7 +287,7 @@ def test_a_lead_forecast_is_padded_capped_and_refused_when_not_finite(
     n = cfg.horizon
     est = _estimate(1.2, 1.12, 1.0)
     cap = cfg.v_set
-    horizon = Controller._lead_horizon
+    horizon = lead_horizon
     assert horizon(est, [0.5, 0.4], n, cap) == [0.5] + [0.4] * (n - 1)
     assert horizon(est, [9.0, -1.0, 0.7], n, cap) == [cap, 0.0] + [0.7] * (n - 2)
     for bad in (math.nan, math.inf, -math.inf):

@@ -1,5 +1,7 @@
 """The MPC's compiled cycle (truckd/control/kernel/mpc_cycle.c and OSQP's generated embedded
-solver) through ctypes, when built.
+solver) through ctypes, when built; the controller's numerics around it
+(truckd/control/kernel/cycle_numerics.c, in the same library) are bound by
+:mod:`truckd.control.cnumerics`.
 
 ``make firmware`` builds it (truckd/control/kernel/Makefile: OSQP's code generation for the
 shipped QP, then one shared library); without it, or for a QP of another shape or
@@ -32,8 +34,11 @@ Vec = NDArray[np.float64]
 LIBRARY = Path(__file__).resolve().parent / "kernel" / "build" / "libtruckd_mpc.so"
 """Where ``make firmware`` puts the compiled cycle."""
 
-ABI = 6
+ABI = 7
 """The interface version this module speaks (``truckd_mpc_abi`` of the library)."""
+
+BAD_INPUT = -100
+"""``truckd_numerics_run``'s status for inputs refused before the solve (qp.inputs_ok)."""
 
 _state: dict[str, object] = {}
 
@@ -76,6 +81,12 @@ def library() -> tuple[ctypes.CDLL | None, str]:
         lib.truckd_mpc_bind_io.argtypes = [i, p, p, p, p, p, p, p, p]
         lib.truckd_mpc_run.restype = i
         lib.truckd_mpc_run.argtypes = [i, i]
+        lib.truckd_numerics_consts.restype = i
+        lib.truckd_numerics_consts.argtypes = []
+        lib.truckd_numerics_bind.restype = i
+        lib.truckd_numerics_bind.argtypes = [i, p, i, p, p, p, p, p, i]
+        lib.truckd_numerics_run.restype = i
+        lib.truckd_numerics_run.argtypes = [i, i]
     _state["lib"], _state["why"] = lib, why
     return lib, why
 
@@ -132,6 +143,16 @@ class CompiledCycle:
         lib.truckd_mpc_bind_io(instance, *(_addr(a) for a in arrays))
         self._run = lib.truckd_mpc_run
         self._cur = 0
+
+    @property
+    def lib(self) -> ctypes.CDLL:
+        """The loaded library."""
+        return self._lib
+
+    def how(self, mode: int, lead: bool, warm: bool) -> int:
+        """:meth:`cycle`'s arguments as the one integer ``truckd_mpc_run`` and
+        ``truckd_numerics_run`` take (one lead speed left for the latter to find)."""
+        return mode | lead << 1 | warm << 3 | self._cur << 4
 
     def setup(
         self,

@@ -15,6 +15,7 @@ import math
 from collections import deque
 from collections.abc import Sequence
 
+from truckd.control import cnumerics
 from truckd.control.config import ControlConfig
 from truckd.control.effect_use import (
     DeadZoneLaw,
@@ -28,6 +29,7 @@ from truckd.control.effect_use import (
 from truckd.control.estimator import EncoderSample, Estimate, Estimator, RangeSample
 from truckd.control.fallback import braking_law, held_plan_move, limit_command
 from truckd.control.feedforward import breakaway_feedforward, moving_feedforward
+from truckd.control.lead import LeadSpeeds
 from truckd.control.mpc import MpcSolver
 from truckd.control.output import ControlOutput
 from truckd.control.pipeline import predict_pipeline
@@ -35,9 +37,6 @@ from truckd.control.qp import ControlModel, QpInputs
 
 SATURATED_V = 0.01
 """A command this close to the driver's limit (V, the QP's accuracy) is at the limit."""
-
-LEAD_ACCEL_TAU_S = 0.1
-"""Time constant (s) of the lead acceleration's filter (used over an input delay only)."""
 
 
 class Controller:
@@ -74,8 +73,18 @@ class Controller:
         self.overruns = 0
         self.braking_cycles = 0
         self._b_v = float(self.mpc.qp.pred.bu[1])
-        self._horizon = self.mpc.horizon
         """Speed per volt over one step (m/s/V), for the offset-free action."""
+        self.lead_speeds = LeadSpeeds(cfg, self.mpc.horizon)
+        """The lead's speeds the MPC is given (:mod:`truckd.control.lead`)."""
+        self._numerics, why = cnumerics.bind(
+            self.mpc, model, cfg, self.u_max, self._du, self._delay_steps
+        )
+        self.backend = (
+            "compiled (MPC, feedforward and command checks in one call)"
+            if self._numerics is not None
+            else f"MPC {self.mpc.backend}; feedforward and command checks in Python ({why})"
+        )
+        """Which path computes the cycle's numerics and why; logged at start-up."""
         # The driver's maps and the winding model the model has (fixed: those it lacks
         # pass the voltage through and are not called every cycle; the maps' own tests).
         self._sag, self._current_limit = not eff.battery_sag <= 0.0, not eff.current_limit <= 0.0
@@ -89,8 +98,7 @@ class Controller:
         """The motor current (A) last measured (NaN: none), for the battery sag map."""
         self.vbat = math.nan
         """The battery voltage (V) last measured (NaN: none), for the battery sag map."""
-        self._v_lead_prev = math.nan
-        self._a_lead = 0.0
+        self.lead_speeds.reset()
         self._v_act = math.nan
         """The speed (m/s) predicted for when the planned command acts (NaN: none)."""
         self._wanted = 0.0
@@ -162,23 +170,6 @@ class Controller:
             self.estimator.update_range(t, r, v_now)
         return self.control(self.estimator.estimate(t), v_lead_forecast, headway)
 
-    @staticmethod
-    def _lead_horizon(
-        est: Estimate, forecast: Sequence[float] | None, n: int, cap: float
-    ) -> list[float]:
-        """Lead speed (m/s) from now over the pipeline and the QP's horizon (``n`` =
-        :meth:`_pipeline_steps` + horizon values), in [0, ``cap``]: the forecast when given
-        and finite (its last value held past its end), else the estimate held constant.
-        Python floats, no numpy: the QP gathers them with its other inputs."""
-        if forecast is not None and len(forecast) > 0:
-            f = [float(x) for x in forecast[:n]]
-            f += [f[-1]] * (n - len(f))
-            if math.isfinite(sum(f)):  # any NaN or infinity makes the sum non-finite
-                return [min(max(x, 0.0), cap) for x in f]
-        x = est.v_lead  # min(max(x, 0.0), cap), written out (see _command)
-        x = 0.0 if 0.0 > x else x
-        return [cap if cap < x else x] * n
-
     def control(
         self,
         est: Estimate,
@@ -195,8 +186,9 @@ class Controller:
         The steps: the winding's thermal model (:meth:`_update_winding`); without a valid
         speed the fallback; the standstill hold (:meth:`_update_hold`); the mode
         (:meth:`_mode`); the offset-free action (:meth:`_update_disturbance`); the lead's
-        speeds (:meth:`_lead_speeds`); the plan and its first move (:meth:`_solve`), made a
-        command by :meth:`_finish` (breakaway, limits, the driver's maps).
+        speeds (:class:`~truckd.control.lead.LeadSpeeds`); the plan and its first move
+        (:meth:`_solve`), made a command by :meth:`_finish` (breakaway, limits, the
+        driver's maps); or both at once compiled (:meth:`_solve_compiled`).
         """
         cfg = self.cfg
         v = est.v if math.isfinite(est.v) else 0.0
@@ -214,7 +206,7 @@ class Controller:
         mode, v_ref = self._mode(est, lead, gap_ref)
         self._update_disturbance(v)
         n_pipe = self._pipeline_steps() if self._delay_steps > 0 else 0
-        v_lead_all = self._lead_speeds(est, forecast, mode, lead, n_pipe)
+        v_lead_all = self.lead_speeds.speeds(est, forecast, mode, lead, n_pipe)
         gap = est.gap - (h - cfg.time_headway) * v if lead else 0.0
         return self._solve(est, v, gap, v_lead_all, n_pipe, (mode, v_ref, lead), gap_ref)
 
@@ -230,39 +222,6 @@ class Controller:
             return "cruise", cfg.v_set
         return "stop", 0.0
 
-    def _lead_speeds(
-        self,
-        est: Estimate,
-        forecast: Sequence[float] | None,
-        mode: str,
-        lead: bool,
-        n_pipe: int,
-    ) -> list[float]:
-        """The lead's speed (m/s) over the ``n_pipe`` commands in the pipeline, then the
-        QP's horizon (0 without a lead)."""
-        cfg = self.cfg
-        n_all = n_pipe + self._horizon
-        if not lead:
-            self._v_lead_prev = math.nan
-            return [0.0] * n_all
-        # Never follow faster than the set speed: a faster lead is taken as driving at
-        # v_set (conservative, the predicted gap is smaller than the real one).
-        # Cruising, a lead faster than v_max is taken as driving at v_max (a forecast
-        # of a wrong plan can say anything: it never reaches the QP beyond that).
-        cap = cfg.v_set if mode == "follow" else cfg.v_max
-        v_lead_all = self._lead_horizon(est, forecast, n_all, cap)
-        if n_pipe and not forecast:
-            # Over the input delay a braking lead keeps braking (what happens before
-            # the first planned command acts; held constant after).  An accelerating
-            # lead is not assumed to go on (conservative: measured, it made
-            # stop-and-go's starts 2-3 % worse than the seed model's).
-            a_lead = min(self._lead_accel(est.v_lead), 0.0)
-            v_end = min(max(est.v_lead + a_lead * n_pipe * cfg.period, 0.0), cap)
-            for k in range(n_all):
-                vk = est.v_lead + a_lead * min(k, n_pipe) * cfg.period
-                v_lead_all[k] = min(max(vk, 0.0), cap) if k < n_pipe else v_end
-        return v_lead_all
-
     def _solve(
         self,
         est: Estimate,
@@ -276,6 +235,9 @@ class Controller:
         """The MPC's plan from the state when its first move acts, and the command from it
         (or the fallback's).  ``gap`` (m) as the QP sees it (the headway's share moved
         out), ``how``: the mode, the speed reference (m/s) and whether a lead is tracked."""
+        if self._numerics is not None and "solve" not in self.mpc.__dict__:
+            # (a solve wrapped on the instance, fault injection or a test's: Python path)
+            return self._solve_compiled(est, v, gap, v_lead_all, how, gap_ref)
         cfg = self.cfg
         mode, v_ref, lead = how
         ff_now = self._feedforward(v, est.x)
@@ -315,17 +277,45 @@ class Controller:
             est, v, res.u0, ff, mode, None, res.status, res.iterations, res.run_time_s, gap_ref
         )
 
-    def _lead_accel(self, v_lead: float) -> float:
-        """The lead's acceleration (m/s^2): its speed estimate's difference from the last
-        cycle, low-pass filtered (time constant :data:`LEAD_ACCEL_TAU_S`)."""
-        prev, self._v_lead_prev = self._v_lead_prev, v_lead
-        if math.isfinite(prev):
-            dt = self.cfg.period
-            alpha = dt / (LEAD_ACCEL_TAU_S + dt)
-            self._a_lead += alpha * ((v_lead - prev) / dt - self._a_lead)
-        else:
-            self._a_lead = 0.0
-        return self._a_lead
+    def _solve_compiled(
+        self,
+        est: Estimate,
+        v: float,
+        gap: float,
+        v_lead: list[float],
+        how: tuple[str, float, bool],
+        gap_ref: float,
+    ) -> ControlOutput:
+        """:meth:`_solve` and, from a usable solution, :meth:`_finish` in one compiled call
+        (:mod:`truckd.control.cnumerics`; no input delay: ``v_lead`` is the horizon's):
+        the same command.  A failed solve goes to :meth:`_fallback` with the feedforward
+        the call computed."""
+        assert self._numerics is not None
+        mode, v_ref, lead = how
+        applied = self._applied_prev()
+        state = (v, gap, applied, self.disturbance_v, self._r_scale, self._u_hi(), v_ref)
+        res, (u, ff, acting, _) = self._numerics.run(mode != "follow", lead, state, v_lead)
+        if not res.ok:
+            self._v_act = v  # the speed when the command acts (no delay: now)
+            self.solver_failures += 1
+            self.overruns += res.status == "overrun"
+            return self._fallback(
+                est, v, f"solver_{res.status}", mode, gap_ref, res.status, res.iterations,
+                res.run_time_s, ff,
+            )  # fmt: skip
+        assert res.u is not None and res.v is not None
+        self._plan = res.u.tolist()  # Python floats
+        self._plan_age = 0
+        self._v_expected = float(res.v[1])
+        self._limited = False  # no current limit (cnumerics.unsupported)
+        self.u_prev = self._out = u
+        self._wanted = acting
+        self._sent.append(acting)
+        return ControlOutput(
+            u, ff, u - ff, mode, None, res.status, res.iterations, res.run_time_s, gap_ref,
+            est, self.solver_failures, self.fallback_cycles, self.overruns,
+            self.braking_cycles, self.mpc.inaccurate, self.disturbance_v,
+        )  # fmt: skip
 
     def _update_winding(self, v: float) -> None:
         """One period of the winding's thermal model (``resistance_drift``) at the current

@@ -357,9 +357,30 @@ class MpcSolver:
         status_val = cc.cycle(
             _MODE_INDEX[mode], inp.lead, one_speed, warm and self._warm is not None
         )
+        return self.compiled_outcome(status_val, values)
+
+    @property
+    def compiled_cycle(self) -> ccycle.CompiledCycle | None:
+        """The compiled cycle this solver runs (None: the Python path)."""
+        return self._cc
+
+    def compiled_outcome(self, status_val: int, values: list[float] | None = None) -> MpcResult:
+        """The outcome of the compiled cycle just run (by :meth:`solve`, or by the
+        controller's compiled numerics, :mod:`truckd.control.cnumerics`, which returns
+        :data:`~truckd.control.ccycle.BAD_INPUT` for inputs refused before the solve):
+        the same warm start, plan and counters as :meth:`solve`.  ``values``: the cycle's
+        inputs (None: read back from the library's vector)."""
+        cc = self._cc
+        assert cc is not None
+        if status_val == ccycle.BAD_INPUT:
+            return MpcResult(False, math.nan, "non-finite-input", 0, 0.0)
         if status_val < 0:  # defensive: the call itself refused
             self.reset()
             return MpcResult(False, math.nan, f"error: compiled cycle {status_val}", 0, 0.0)
+        if values is None:  # the compiled numerics gathered them
+            values = cc.values.tolist()
+            assert self.condensed is not None
+            self.condensed.filled = values
         _, iters_f, run_time, finite_f = cc.info.tolist()
         iters, finite = int(iters_f), finite_f == 1.0
         z, y = cc.solution()

@@ -187,8 +187,8 @@ class Daemon:
         )  # fmt: skip
         self.port = companion_port(self.backend.link, self.clock, self.cfg.link.timeout_periods)
         log.info(
-            "truckd %s: backend %s, %.0f Hz, MPC %s", self.cfg.vehicle_id, self.backend_name,
-            self.control_cfg.rate_hz, self.controller.mpc.backend,
+            "truckd %s: backend %s, %.0f Hz, numerics %s", self.cfg.vehicle_id,
+            self.backend_name, self.control_cfg.rate_hz, self.controller.backend,
         )  # fmt: skip
 
     def _recover_logs(self) -> None:
@@ -447,6 +447,7 @@ class Daemon:
                 "braking_cycles": out.braking_cycles if out is not None else None,
                 "errors": self.controller_errors,
                 "mpc_backend": self.controller.mpc.backend,
+                "numerics_backend": self.controller.backend,
             },
             "telemetry": {"dropped": tel.dropped, "sent": tel.sent, "errors": tel.errors}
             if tel is not None

@@ -16,8 +16,7 @@
 #include "types.h"
 #include "algebra_impl.h"
 #include "instances.h"
-
-#define TRUCKD_MPC_ABI 6
+#include "mpc_cycle.h"
 
 #if TRUCKD_MPC_MODES > 2
 #error "truckd_mpc_run passes the mode in one bit"
