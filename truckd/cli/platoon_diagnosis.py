@@ -168,7 +168,9 @@ def diagnosed_summary(model: ModelFile, truth: SimSetup) -> dict[str, Any]:
     ``m``, ``K_v``, ``K_T``, ``R_m``, ``J_S`` and ``effects`` (named, SI) as diagnosed;
     ``feedforward`` and ``feedforward_true`` (kS V, kV V s/m, kA V s^2/m),
     ``feedforward_relerr`` (diagnosed / true - 1); ``tau_m_s`` and ``tau_m_true_s``;
-    ``input_delay_s`` and ``input_delay_true_s``."""
+    ``input_delay_s`` and ``input_delay_true_s``.  The truth's constants are the drawn
+    truck's seed parameters: with viscous friction b its voltage log shows a kV larger by
+    ``R_m b / (K_T r)``, which the diagnosis (no current logged) folds into ``K_v``."""
     q, p = model.vehicle, truth.plant_params
     eff, true_eff = model.effects, truth.plant_config.effects
     ff, ff_true = feedforward(q), feedforward(p)
