@@ -210,11 +210,11 @@ class DiagnosedControllers:
 
     def model(self, truth: SimSetup) -> tuple[ModelFile, str]:
         """The diagnosed model of ``truth`` and where it came from ("diagnosed",
-        "this run", "cache")."""
+        "reused": diagnosed before in this process, "cache")."""
         tcfg = identification_config(self.cfg, truth)
         key = identification_key(tcfg)
         if key in _MEMO:
-            return _MEMO[key], "this run"
+            return _MEMO[key], "reused"
         path = None
         if self.cache_dir is not None:
             digest = hashlib.sha256((code_digest() + "\n" + key).encode()).hexdigest()
