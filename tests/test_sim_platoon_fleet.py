@@ -197,7 +197,8 @@ def test_cli_platoon_options(tmp_path: Path) -> None:
     out = tmp_path / "p.json"
     args = ["sim", "--platoon", "4", "--scenario", "platoon-sine", "--duration", "2"]
     args += ["--plan-delay", "0.01-0.04", "--plan-loss", "0.3", "--burst-loss"]
-    args += ["--clock-offset", "1.5", "--clock-drift", "50", "--mixed", "--seed", "7"]
+    args += ["--clock-offset", "1.5", "--clock-drift", "50", "--mixed", "--true-models"]
+    args += ["--seed", "7"]
     assert main([*args, "--steady-start", "--json", str(out)]) == 0
     doc = json.loads(out.read_text())
     assert doc["trucks"] == 4 and len(doc["trucks_drawn"]) == 4

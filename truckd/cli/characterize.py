@@ -374,6 +374,16 @@ def _experiment(e: dict[str, Any]) -> Experiment:
     )
 
 
+def split_validation(log: Log, result: Result) -> tuple[Log, Log | None]:
+    """The experiment log as the diagnosis takes it: the ramps and steps to fit, the
+    validation chirp (None when it was not driven) to validate."""
+    val_k = [k for k, e in enumerate(result.experiments) if e.kind == "validation"]
+    is_val = np.isin(log["experiment"], val_k)
+    fit = _select(log, ~is_val, "log.csv (ramps and steps)")
+    val = _select(log, is_val, "log.csv (validation)") if is_val.any() else None
+    return fit, val
+
+
 def analyse(
     cfg: TruckConfig, log: Log, result: Result, out: Path, console: Callable[[str], None]
 ) -> dict[str, Any]:
@@ -382,11 +392,7 @@ def analyse(
     from truckd.ident.api import diagnose_log, model_of, require_physical
     from truckd.modelfile import write_model
 
-    exp = log["experiment"]
-    val_k = [k for k, e in enumerate(result.experiments) if e.kind == "validation"]
-    is_val = np.isin(exp, val_k)
-    fit = _select(log, ~is_val, "log.csv (ramps and steps)")
-    val = _select(log, is_val, "log.csv (validation)") if is_val.any() else None
+    fit, val = split_validation(log, result)
     console("characterize: analysis")
     diag = diagnose_log(fit, cfg.vehicle, val, lambda m: console(f"  {m}"))
     model = require_physical(model_of(diag, "truckd characterize"), "log.csv", "diagnosed model")

@@ -8,6 +8,7 @@ import math
 from pathlib import Path
 from typing import Any
 
+from truckd.cli.platoon_diagnosis import DiagnosedControllers, stderr_progress
 from truckd.config.truck import load_config
 from truckd.control.qp import ControlModel
 from truckd.errors import InputError, TruckdError
@@ -61,7 +62,21 @@ def add_platoon_arguments(p: argparse.ArgumentParser) -> None:
         "--mixed",
         action="store_const",
         const=True,
-        help="each truck drawn: mass, motor, one effect (its controller on its own model)",
+        help="each truck drawn: mass, motor, one effect; its controller on the model its "
+        "own identification drive diagnoses",
+    )
+    p.add_argument(
+        "--true-models",
+        action="store_const",
+        const=True,
+        help="with --mixed: the controllers on the drawn trucks' true parameters (no "
+        "identification drive and diagnosis per truck)",
+    )
+    p.add_argument(
+        "--diagnosis-cache",
+        metavar="DIR",
+        help="with --mixed: keep the trucks' diagnosed models in DIR (keyed by the drawn "
+        "truck, the configuration and truckd's code) and reuse them",
     )
     p.add_argument(
         "--steady-start",
@@ -83,6 +98,8 @@ PLATOON_ONLY: dict[str, object] = {
     "clock_offset": 0.0,
     "clock_drift": 0.0,
     "mixed": False,
+    "true_models": False,
+    "diagnosis_cache": None,
     "steady_start": False,
     "seed": 0,
 }
@@ -110,6 +127,9 @@ def _check(args: argparse.Namespace) -> None:
             f"--scenario {args.scenario}: with --platoon expected one of "
             f"{', '.join(PLATOON_SCENARIOS)}"
         )
+    for opt in ("true_models", "diagnosis_cache"):
+        if getattr(args, opt) and not args.mixed:
+            raise InputError(f"--{opt.replace('_', '-')}: applies to drawn trucks only (--mixed)")
     args.plan_delay = parse_delay(str(args.plan_delay))
     if not (math.isfinite(args.clock_offset) and 0.0 <= args.clock_offset <= 3600.0):
         raise InputError(f"--clock-offset: expected 0 to 3600 s, got {args.clock_offset}")
@@ -160,6 +180,12 @@ def run_platoon_cli(args: argparse.Namespace) -> int:
     trace_dir = ensure_dir(args.trace, "trace directory") if getattr(args, "trace", None) else None
     results: list[dict[str, Any]] = []
     files: list[tuple[str | Path, str | bytes]] = []
+    controllers = None
+    if args.mixed and not args.true_models:
+        cache = None
+        if args.diagnosis_cache:
+            cache = ensure_dir(args.diagnosis_cache, "diagnosis cache directory")
+        controllers = DiagnosedControllers(cfg, stderr_progress, cache)
     for name in names:
         m, tr = run_platoon(
             make_platoon_scenario(name),
@@ -175,6 +201,7 @@ def run_platoon_cli(args: argparse.Namespace) -> int:
             clock_drift_ppm=args.clock_drift,
             mixed=args.mixed,
             steady_start=args.steady_start,
+            controllers=controllers,
         )
         results.append(json_safe(m))
         if trace_dir is not None:  # one log per truck, the lead (truck 0) included

@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import functools
 import random
+from collections.abc import Callable, Sequence
 from dataclasses import replace
 from typing import Any
 
@@ -83,6 +84,12 @@ range sensor's 4 m), at the platoon's speed, without a predecessor (ACC): it fin
 tail from its range sensor and the plans heard, and closes up."""
 MIN_TRUCKS = {"join": 4, "leave": 3}
 
+Controllers = Callable[[SimSetup, Sequence[SimSetup]], list[tuple[SimSetup, dict[str, Any]]]]
+"""``run_platoon``'s ``controllers``: given the configured truck and the trucks as drawn
+(their dead time set), each truck with its controller replaced (the plant kept) and what
+that controller's model is, for the JSON (``truckd sim --platoon --mixed``: the model each
+truck's own identification drive diagnoses, :mod:`truckd.cli.platoon_diagnosis`)."""
+
 
 def run_platoon(
     sc: PlatoonScenario,
@@ -99,6 +106,7 @@ def run_platoon(
     clock_drift_ppm: float = 0.0,
     mixed: bool = False,
     steady_start: bool = False,
+    controllers: Controllers | None = None,
 ) -> tuple[dict[str, Any], PlatoonTrace]:
     """Run one platoon scenario; returns the contract metrics and a trace.
 
@@ -108,7 +116,9 @@ def run_platoon(
     ``mixed``: every truck drawn (:func:`draw_platoon_truck`), from ``seed``;
     ``steady_start``: a scenario that starts at speed starts in the steady state of that
     speed, after the unrecorded pre-roll :data:`PREROLL_S` (not ``platoon-join``); without
-    it every truck starts with its controller off at speed.
+    it every truck starts with its controller off at speed; ``controllers``: every truck's
+    controller replaced before the run (:data:`Controllers`; the JSON's
+    ``trucks_diagnosed``), else a drawn truck's controller has its true parameters.
 
     The controllers' configured headway is the CACC headway (their QP is built for it;
     the ACC headway is driven by the gap shift, see :meth:`Controller.control`).  The
@@ -125,6 +135,10 @@ def run_platoon(
     rng = random.Random(seed)
     setups = [draw_platoon_truck(setup, rng) if mixed else setup for _ in range(n_trucks)]
     setups = [with_delay(s, sc.input_delay) for s in setups]
+    diagnosed: list[dict[str, Any]] | None = None
+    if controllers is not None:
+        pairs = controllers(setup, setups)
+        setups, diagnosed = [s for s, _ in pairs], [d for _, d in pairs]
     lo, hi = (delay_s, delay_s) if isinstance(delay_s, float | int) else delay_s
     link = LinkConfig((float(lo), float(hi)), loss, burst_loss)
     dt = cfg.period
@@ -247,4 +261,6 @@ def run_platoon(
     m["preroll_s"] = pre * dt  # 0: the trucks started as the scenario has them at 0 s
     if mixed:
         m["trucks_drawn"] = [drawn_summary(s) for s in setups]
+    if diagnosed is not None:
+        m["trucks_diagnosed"] = diagnosed
     return m, tr

@@ -11,6 +11,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import replace
 from typing import Any
 
+from truckd.control.config import ControlConfig
 from truckd.control.estimator import Estimate
 from truckd.control.output import ControlOutput
 from truckd.control.platoon import (
@@ -23,6 +24,7 @@ from truckd.control.platoon import (
 )
 from truckd.control.qp import ControlModel
 from truckd.io.port import companion_port
+from truckd.model.params import VehicleParams
 from truckd.runtime.cycle import CompanionCycle, CycleInputs, CycleOutputs
 from truckd.runtime.platoon_clock import PlanClock
 from truckd.runtime.platoon_link import follower_inputs
@@ -83,20 +85,35 @@ def scaled_truck(
     eff = setup.plant_config.effects
     if effect is not None:
         eff = replace(eff, **{effect[0]: effect[1]})
-    # Tuned in acceleration, not volts: the rate weight scaled by the square of the
-    # acceleration a volt gives (K_T / (R_m J_S)), so every truck responds alike; input
-    # blocks at most 0.3 of its mechanical time constant, so every truck's plan can hold a
-    # deceleration alike (docs/platoon.md, "Mixed trucks").
-    gain = (q.K_T / (q.R_m * q.J_S)) / (p.K_T / (p.R_m * p.J_S))
-    control = replace(
-        setup.control, r_du=setup.control.r_du * gain**2, block_tau_fraction=MIXED_BLOCK_TAU
-    )
     return replace(
         setup,
-        control=control,
+        control=tuned_control(setup.control, p, q),
         plant_params=q,
         plant_config=replace(setup.plant_config, effects=eff),
         model=ControlModel(q, eff),
+    )
+
+
+def tuned_control(
+    control: ControlConfig, configured: VehicleParams, model: VehicleParams
+) -> ControlConfig:
+    """``control`` (the configured truck's) for a truck whose controller's model has the
+    parameters ``model``: tuned in acceleration, not volts.  The rate weight ``r_du`` is
+    scaled by the square of the acceleration a volt gives (``K_T / (R_m J_S)``, against
+    ``configured``), so every truck responds alike; the input blocks are at most
+    :data:`MIXED_BLOCK_TAU` of the model's mechanical time constant, so every truck's plan
+    can hold a deceleration alike (docs/platoon.md, "Mixed trucks").  Only the model is
+    used: a controller on a diagnosed model is tuned to what was diagnosed."""
+    q, p = model, configured
+    gain = (q.K_T / (q.R_m * q.J_S)) / (p.K_T / (p.R_m * p.J_S))
+    return replace(control, r_du=control.r_du * gain**2, block_tau_fraction=MIXED_BLOCK_TAU)
+
+
+def on_model(base: SimSetup, truck: SimSetup, model: ControlModel) -> SimSetup:
+    """``truck`` (its plant stays) with its controller on ``model``, tuned to that model
+    (:func:`tuned_control` from ``base``'s configuration and truck)."""
+    return replace(
+        truck, control=tuned_control(base.control, base.plant_params, model.params), model=model
     )
 
 
