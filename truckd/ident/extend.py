@@ -54,6 +54,25 @@ def fit_candidate(
     if cand.smooth:
         own = [cand.param, *cand.extra]
         out = fit_with_stiction(base.params, e0, [*free, *own], fit_data, w, grid, progress)
+        if cand.every_start and not base.effects.active():
+            # The seed's constants absorbed the limit: the value best on them may start
+            # in the wrong basin (a current limit of 22 A fitted 64 A, with K_v 4x off).
+            # A few steps from each tighter start (after a scan of the breakaway: at a
+            # tight limit the seed's stiction can hold the truck still) probe its basin;
+            # the best probe is refitted in full.
+            probes = [
+                fit_with_stiction(
+                    base.params, dataclasses.replace(e_base, **{name: g}), [*free, *own],
+                    fit_data, w, grid, max_nfev=PROBE_NFEV,
+                )
+                for g in tighter_starts(cand.grid, value)
+            ]  # fmt: skip
+            if probes:
+                pb = min(probes, key=lambda m: m.sse)
+                full = fit_with_stiction(
+                    pb.params, pb.effects, [*free, *own], fit_data, w, grid, progress
+                )
+                out = full if full.sse < out.sse else out
         if cand.param.name == "hill_force":
             out = refine_stretch(out, [*free, cand.param], fit_data, w, grid, progress)
     else:
@@ -75,6 +94,23 @@ def fit_candidate(
         out = second if second.sse < out.sse else out
     # Never worse than without the candidate (a local minimum): then it is simply off.
     return out if out.sse <= base.sse else base
+
+
+TIGHTER_STARTS = 3
+"""Starts of a limit's joint fit below the value best on the seed's constants."""
+PROBE_NFEV = 8
+"""Evaluations of the probe fit from each such start."""
+
+
+def tighter_starts(grid: Sequence[float], best: float) -> list[float]:
+    """Up to :data:`TIGHTER_STARTS` grid values below ``best``, spread over them: a seed
+    that absorbed a limit fits best with the limit loose (its constants are the ones
+    of a slow, weak truck), so the right basin lies at a tighter limit."""
+    below = sorted(g for g in grid if g < best)
+    if len(below) <= TIGHTER_STARTS:
+        return below
+    picks = np.linspace(0, len(below) - 1, TIGHTER_STARTS).round().astype(int)
+    return [below[int(k)] for k in picks]
 
 
 def params_of(cand: Candidate, e: Effects) -> dict[str, float]:
