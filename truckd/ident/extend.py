@@ -23,6 +23,7 @@ from truckd.ident.voltage import (
     FitResult,
     Param,
     Weights,
+    fit,
     fit_with_stiction,
     residuals,
     scan,
@@ -57,18 +58,20 @@ def fit_candidate(
         if cand.every_start and not base.effects.active():
             # The seed's constants absorbed the limit: the value best on them may start
             # in the wrong basin (a current limit of 22 A fitted 64 A, with K_v 4x off).
-            # A few steps from each tighter start (after a scan of the breakaway: at a
-            # tight limit the seed's stiction can hold the truck still) probe its basin;
-            # the best probe is refitted in full.
+            # A few steps from each tighter start probe its basin (breakaway at Coulomb:
+            # at a tight limit the seed's stiction can hold the truck still, and the fit
+            # sees no slope); the best probe, when it already fits better, is refitted in
+            # full, stiction scanned.
+            p_probe = base.params.replace(K_stiction=base.params.K_coulomb)
             probes = [
-                fit_with_stiction(
-                    base.params, dataclasses.replace(e_base, **{name: g}), [*free, *own],
-                    fit_data, w, grid, max_nfev=PROBE_NFEV,
+                fit(
+                    p_probe, dataclasses.replace(e_base, **{name: g}), [*free, *own],
+                    fit_data, w, max_nfev=PROBE_NFEV,
                 )
                 for g in tighter_starts(cand.grid, value)
             ]  # fmt: skip
-            if probes:
-                pb = min(probes, key=lambda m: m.sse)
+            pb = min(probes, key=lambda m: m.sse, default=None)
+            if pb is not None and pb.sse < out.sse:
                 full = fit_with_stiction(
                     pb.params, pb.effects, [*free, *own], fit_data, w, grid, progress
                 )
@@ -98,7 +101,7 @@ def fit_candidate(
 
 TIGHTER_STARTS = 3
 """Starts of a limit's joint fit below the value best on the seed's constants."""
-PROBE_NFEV = 8
+PROBE_NFEV = 6
 """Evaluations of the probe fit from each such start."""
 
 
