@@ -39,6 +39,13 @@ class Candidate:
     """Effect name (reference section 4) it reports as; default its own name."""
     extra: tuple[Param, ...] = ()
     """Further parameters freed with it when it is fitted alone (held afterwards)."""
+    every_start: bool = False
+    """A limit on the drive (a voltage clip, a current limit) that the seed's constants
+    absorb: fitted without it, ``K_v`` and ``J_S`` move far (4x and 10x on a weak,
+    heavy truck) and the grid value best on the seed's constants starts the joint fit
+    in the wrong basin.  The joint fit then also starts from tighter limits of the grid
+    (:func:`truckd.ident.extend.tighter_starts`; the best fit kept), when it is fitted
+    alone on the seed."""
 
 
 def hill_candidate(p0: VehicleParams, stretch: Stretch) -> Candidate:
@@ -115,6 +122,7 @@ def voltage_candidates(p0: VehicleParams, data: Series) -> list[Candidate]:
             "voltage_saturation",
             Param("voltage_saturation", 1.0, 0.2 * sat_hi, sat_hi),
             tuple(float(x) for x in np.linspace(0.3, 0.95, 8) * sat_hi),
+            every_start=True,
         ),
         Candidate(
             "battery_sag",
@@ -201,6 +209,7 @@ def cause_candidates(p0: VehicleParams, data: Series) -> list[Candidate]:
                 for x in (0.15, 0.25, 0.35, 0.5, 0.65, 0.8)
                 if float(x) * i_stall > 1.05 * i_hold
             ),
+            every_start=True,
         ),
         Candidate(
             "backlash",

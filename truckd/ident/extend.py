@@ -23,6 +23,7 @@ from truckd.ident.voltage import (
     FitResult,
     Param,
     Weights,
+    fit,
     fit_with_stiction,
     residuals,
     scan,
@@ -54,6 +55,27 @@ def fit_candidate(
     if cand.smooth:
         own = [cand.param, *cand.extra]
         out = fit_with_stiction(base.params, e0, [*free, *own], fit_data, w, grid, progress)
+        if cand.every_start and not base.effects.active():
+            # The seed's constants absorbed the limit: the value best on them may start
+            # in the wrong basin (a current limit of 22 A fitted 64 A, with K_v 4x off).
+            # A few steps from each tighter start probe its basin (breakaway at Coulomb:
+            # at a tight limit the seed's stiction can hold the truck still, and the fit
+            # sees no slope); the best probe, when it already fits better, is refitted in
+            # full, stiction scanned.
+            p_probe = base.params.replace(K_stiction=base.params.K_coulomb)
+            probes = [
+                fit(
+                    p_probe, dataclasses.replace(e_base, **{name: g}), [*free, *own],
+                    fit_data, w, max_nfev=PROBE_NFEV,
+                )
+                for g in tighter_starts(cand.grid, value)
+            ]  # fmt: skip
+            pb = min(probes, key=lambda m: m.sse, default=None)
+            if pb is not None and pb.sse < out.sse:
+                full = fit_with_stiction(
+                    pb.params, pb.effects, [*free, *own], fit_data, w, grid, progress
+                )
+                out = full if full.sse < out.sse else out
         if cand.param.name == "hill_force":
             out = refine_stretch(out, [*free, cand.param], fit_data, w, grid, progress)
     else:
@@ -75,6 +97,23 @@ def fit_candidate(
         out = second if second.sse < out.sse else out
     # Never worse than without the candidate (a local minimum): then it is simply off.
     return out if out.sse <= base.sse else base
+
+
+TIGHTER_STARTS = 3
+"""Starts of a limit's joint fit below the value best on the seed's constants."""
+PROBE_NFEV = 6
+"""Evaluations of the probe fit from each such start."""
+
+
+def tighter_starts(grid: Sequence[float], best: float) -> list[float]:
+    """Up to :data:`TIGHTER_STARTS` grid values below ``best``, spread over them: a seed
+    that absorbed a limit fits best with the limit loose (its constants are the ones
+    of a slow, weak truck), so the right basin lies at a tighter limit."""
+    below = sorted(g for g in grid if g < best)
+    if len(below) <= TIGHTER_STARTS:
+        return below
+    picks = np.linspace(0, len(below) - 1, TIGHTER_STARTS).round().astype(int)
+    return [below[int(k)] for k in picks]
 
 
 def params_of(cand: Candidate, e: Effects) -> dict[str, float]:

@@ -31,6 +31,7 @@ from truckd.ident import ckernel
 from truckd.model.effects import (
     BACKLASH_STEP,
     Effects,
+    current_limited,
     gap_at_start,
     gap_free_motion,
     gap_opens,
@@ -506,6 +507,7 @@ class GapRun:
         self.constants = (
             p.K_T, p.K_v, p.J_S, p.K_stiction, p.R_m, eff.rotor_inertia_fraction,
             eff.backlash, limited_torque(p, eff), self.per, v_idle, BACKLASH_STEP,
+            eff.current_limit,
         )  # fmt: skip
         """What the C kernel's gap needs (``kernel/fastrun.c``, ``gap_opens``)."""
 
@@ -523,6 +525,9 @@ class GapRun:
         volts = self.volts[k] if k >= 0 else self.v_idle
         r = self.r[k] if k >= 0 else p.R_m
         coulomb, load, viscous = c * self.per, d * self.per, visc * self.per
+        # The driver limits the current as the plant's does: at the load's speed, before
+        # the gap opens and while the rotor crosses it.
+        volts = current_limited(p, eff, volts, w, r)
         if g.side != 0:
             if not gap_opens(p, eff, g, w, volts, r, coulomb, load, viscous):
                 return w, 0.0, 0.0

@@ -177,8 +177,8 @@ static int limited(double w, double a, double b, double b_mech, double a_max, do
 /* The backlash gap (freerun.GapRun with truckd.model.effects.gap_opens and
  * gap_free_motion): gp = {K_T, K_v, J_S, K_stiction, R_m, rotor_inertia_fraction,
  * backlash, cap (largest motor torque), per (N m per unit of the run's coefficients),
- * v_idle, step (longest free-motion step, s)}; volts, r per command; state = {side,
- * angle, rotor}. */
+ * v_idle, step (longest free-motion step, s), current limit (A, 0 = none)}; volts, r per
+ * command; state = {side, angle, rotor}. */
 static int gap_opens(const double *gp, const double *state, double omega, double volts,
                      double r, double coulomb, double load, double viscous)
 {
@@ -348,6 +348,11 @@ int truckd_fastrun(const double *a, const double *b, double a_idle, double b_idl
                 double coulomb = c / f * gp[8], load = d_eff / f * gp[8];
                 double viscous = b_m / f * gp[8];
                 int moves = 1;
+                if (gp[11] != 0.0) {
+                    /* effects.current_limited at the load's speed, as the plant */
+                    double emf = gp[1] * w, room = r * gp[11];
+                    volts = fmin(fmax(volts, emf - room), emf + room);
+                }
                 if (gstate[0] != 0.0) {
                     if (!gap_opens(gp, gstate, w, volts, r, coulomb, load, viscous)) {
                         moves = 0;
