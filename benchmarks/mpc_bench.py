@@ -94,7 +94,12 @@ def record_sim_sequence(
     setup = SimSetup(
         tc.vehicle, tc.plant, cfg, ControlModel(tc.vehicle), tc.link.encoder_ticks_per_rev
     )
-    with mock.patch.object(MpcSolver, "solve", recording):
+    # The controller's numerics in Python (cnumerics unbound): its MPC then solves through
+    # MpcSolver.solve (compiled or not), where the inputs are recorded.
+    with (
+        mock.patch.object(MpcSolver, "solve", recording),
+        mock.patch("truckd.control.controller.cnumerics.bind", return_value=(None, "recording")),
+    ):
         run_scenario(make_scenario("stop-and-go", tc.vehicle, cfg), setup, cycles * cfg.period)
     return seq
 
