@@ -1,10 +1,10 @@
 """Stage 5 of the diagnosis (:mod:`truckd.ident.diagnose`): the selection.
 
 The candidates that passed alone are taken greedily, strongest first, each refitted
-jointly with those already accepted; while the validation residual keeps structure the
-rest are tried on top; when one cause is not enough, the best pair
-(:mod:`truckd.ident.pairs`); last, a backward check drops a cause the others make
-redundant.  Pure numerics.
+jointly with those already accepted; while the residual keeps structure (on the
+validation or the estimation runs) the rest are tried on top; when one cause is not
+enough, the best pair (:mod:`truckd.ident.pairs`); last, a backward check drops a cause
+the others make redundant.  Pure numerics.
 """
 
 from __future__ import annotations
@@ -173,10 +173,11 @@ def _greedy(s: _Selecting) -> None:
 
 def _extra_rounds(s: _Selecting) -> None:
     """A weaker effect can be masked by a stronger one when tried alone: while the
-    validation residual still has structure, try the rest on top of the current model."""
+    residual still has structure (:func:`_structure_remains`), try the rest on top of the
+    current model."""
     judge = s.trials.judge
     for _ in range(MAX_EXTRA_ROUNDS):
-        if not s.accepted or not still_structured(s.current.fit, s.prep.val):
+        if not s.accepted or not _structure_remains(s):
             break
         taken = set(s.accepted) | {b for _, b in s.ambiguous}
         rest = [c for c in s.trials.cands if c.name not in taken]
@@ -198,6 +199,17 @@ def _extra_rounds(s: _Selecting) -> None:
         s.accepted.append(name)
         s.current = best
         s.note(name, "accepted on top of the others", True)
+
+
+def _structure_remains(s: _Selecting) -> bool:
+    """The current model's free-run residual has structure on the validation runs or on
+    the estimation runs.  A validation chirp alone can hide what the ramps and steps show:
+    a constant load force on a truck with a long dead time (the delay the only cause
+    passing alone, the force masked by it) leaves the chirp's residual white while the
+    forward runs stay shorter than the reverse ones."""
+    return still_structured(s.current.fit, s.prep.val) or still_structured(
+        s.current.fit, s.prep.est
+    )
 
 
 def _pair(s: _Selecting) -> None:
