@@ -92,8 +92,10 @@ _DIGEST: list[str] = []
 
 
 def code_digest() -> str:
-    """SHA-256 over truckd's and firmware_protocol's Python sources and the versions of
-    numpy and scipy: a disk-cached model is reused only by the code that made it."""
+    """SHA-256 over truckd's and firmware_protocol's Python and C sources (the fitting
+    kernel, the firmware core), whether each compiled library is built, and the versions
+    of Python, numpy and scipy: a disk-cached model is reused only by the code that made
+    it."""
     if not _DIGEST:
         import numpy
         import scipy
@@ -101,11 +103,15 @@ def code_digest() -> str:
         import firmware_protocol
         import truckd
 
-        h = hashlib.sha256(f"numpy {numpy.__version__} scipy {scipy.__version__}\n".encode())
+        versions = f"python {sys.version} numpy {numpy.__version__} scipy {scipy.__version__}"
+        h = hashlib.sha256(versions.encode())
         for pkg in (truckd, firmware_protocol):
             root = Path(str(pkg.__file__)).parent
-            for f in sorted(root.rglob("*.py")):
-                h.update(str(f.relative_to(root)).encode() + b"\0" + f.read_bytes())
+            for f in sorted(root.rglob("*")):
+                if f.suffix in (".py", ".c", ".h") and "build" not in f.parts:
+                    h.update(str(f.relative_to(root)).encode() + b"\0" + f.read_bytes())
+                elif f.suffix == ".so":  # built or not: the C path or the Python loop
+                    h.update(str(f.relative_to(root)).encode())
         _DIGEST.append(h.hexdigest())
     return _DIGEST[0]
 

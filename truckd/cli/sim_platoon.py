@@ -8,7 +8,6 @@ import math
 from pathlib import Path
 from typing import Any
 
-from truckd.cli.platoon_diagnosis import DiagnosedControllers, stderr_progress
 from truckd.config.truck import load_config
 from truckd.control.qp import ControlModel
 from truckd.errors import InputError, TruckdError
@@ -182,6 +181,9 @@ def run_platoon_cli(args: argparse.Namespace) -> int:
     files: list[tuple[str | Path, str | bytes]] = []
     controllers = None
     if args.mixed and not args.true_models:
+        # here: the diagnosis stack (scipy) only for the runs that diagnose
+        from truckd.cli.platoon_diagnosis import DiagnosedControllers, stderr_progress
+
         cache = None
         if args.diagnosis_cache:
             cache = ensure_dir(args.diagnosis_cache, "diagnosis cache directory")

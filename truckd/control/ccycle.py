@@ -57,38 +57,46 @@ def library() -> tuple[ctypes.CDLL | None, str]:
         except OSError as exc:
             why = f"{LIBRARY.name} does not load: {exc}"
     if lib is not None:
-        i, p, d = ctypes.c_int64, ctypes.c_void_p, ctypes.c_double
-        lib.truckd_mpc_abi.restype = i
+        lib.truckd_mpc_abi.restype = ctypes.c_int64
         lib.truckd_mpc_abi.argtypes = []
         if lib.truckd_mpc_abi() != ABI:
             why, lib = f"{LIBRARY.name} speaks another interface (rebuild: make firmware)", None
     if lib is not None:
-        lib.truckd_mpc_instances.restype = i
-        lib.truckd_mpc_instances.argtypes = []
-        lib.truckd_mpc_shape.restype = None
-        lib.truckd_mpc_shape.argtypes = [p]
-        lib.truckd_mpc_pattern.restype = None
-        lib.truckd_mpc_pattern.argtypes = [i, p, p, p, p]
-        lib.truckd_mpc_setup.restype = i
-        lib.truckd_mpc_setup.argtypes = [i, i, p, p, p, p, p, d, d, i, i, d, d]
-        lib.truckd_mpc_set_max_iter.restype = i
-        lib.truckd_mpc_set_max_iter.argtypes = [i, i, i]
-        lib.truckd_mpc_update_rho.restype = i
-        lib.truckd_mpc_update_rho.argtypes = [i, i, d]
-        lib.truckd_mpc_bind.restype = i
-        lib.truckd_mpc_bind.argtypes = [i, p, p, p, i, i, i, i, p, p, i, i]
-        lib.truckd_mpc_bind_io.restype = i
-        lib.truckd_mpc_bind_io.argtypes = [i, p, p, p, p, p, p, p, p]
-        lib.truckd_mpc_run.restype = i
-        lib.truckd_mpc_run.argtypes = [i, i]
-        lib.truckd_numerics_consts.restype = i
-        lib.truckd_numerics_consts.argtypes = []
-        lib.truckd_numerics_bind.restype = i
-        lib.truckd_numerics_bind.argtypes = [i, p, i, p, p, p, p, p, i]
-        lib.truckd_numerics_run.restype = i
-        lib.truckd_numerics_run.argtypes = [i, i]
+        try:
+            _declare(lib)
+        except AttributeError as exc:  # a library of this ABI without every symbol
+            why, lib = f"{LIBRARY.name} lacks a symbol ({exc}; rebuild: make firmware)", None
     _state["lib"], _state["why"] = lib, why
     return lib, why
+
+
+def _declare(lib: ctypes.CDLL) -> None:
+    """Every function's argument and result types (AttributeError: a symbol is missing)."""
+    i, p, d = ctypes.c_int64, ctypes.c_void_p, ctypes.c_double
+    lib.truckd_mpc_instances.restype = i
+    lib.truckd_mpc_instances.argtypes = []
+    lib.truckd_mpc_shape.restype = None
+    lib.truckd_mpc_shape.argtypes = [p]
+    lib.truckd_mpc_pattern.restype = None
+    lib.truckd_mpc_pattern.argtypes = [i, p, p, p, p]
+    lib.truckd_mpc_setup.restype = i
+    lib.truckd_mpc_setup.argtypes = [i, i, p, p, p, p, p, d, d, i, i, d, d]
+    lib.truckd_mpc_set_max_iter.restype = i
+    lib.truckd_mpc_set_max_iter.argtypes = [i, i, i]
+    lib.truckd_mpc_update_rho.restype = i
+    lib.truckd_mpc_update_rho.argtypes = [i, i, d]
+    lib.truckd_mpc_bind.restype = i
+    lib.truckd_mpc_bind.argtypes = [i, p, p, p, i, i, i, i, p, p, i, i]
+    lib.truckd_mpc_bind_io.restype = i
+    lib.truckd_mpc_bind_io.argtypes = [i, p, p, p, p, p, p, p, p]
+    lib.truckd_mpc_run.restype = i
+    lib.truckd_mpc_run.argtypes = [i, i]
+    lib.truckd_numerics_consts.restype = i
+    lib.truckd_numerics_consts.argtypes = []
+    lib.truckd_numerics_bind.restype = i
+    lib.truckd_numerics_bind.argtypes = [i, p, i, p, p, p, p, p, i]
+    lib.truckd_numerics_run.restype = i
+    lib.truckd_numerics_run.argtypes = [i, i]
 
 
 def _addr(a: NDArray[np.float64] | NDArray[np.int64]) -> int:

@@ -101,7 +101,7 @@ def unsupported(model: ControlModel, delay_steps: int) -> str:
     if delay_steps > 0:
         return "the model has an input delay"
     for name in ("battery_sag", "dead_zone", "dead_zone_offset", "current_limit"):
-        if getattr(eff, name) > 0.0:
+        if not getattr(eff, name) <= 0.0:  # as the controller's maps decide (NaN: on)
             return f"the model has the driver map {name}"
     return ""
 

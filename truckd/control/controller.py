@@ -11,6 +11,7 @@ caller passes its time ``t`` (s); the MPC step is the configured period.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections import deque
 from collections.abc import Sequence
@@ -79,17 +80,22 @@ class Controller:
         self._numerics, why = cnumerics.bind(
             self.mpc, model, cfg, self.u_max, self._du, self._delay_steps
         )
-        self.backend = (
-            "compiled (MPC, feedforward and command checks in one call)"
-            if self._numerics is not None
-            else f"MPC {self.mpc.backend}; feedforward and command checks in Python ({why})"
-        )
-        """Which path computes the cycle's numerics and why; logged at start-up."""
+        self._numerics_why = why
         # The driver's maps and the winding model the model has (fixed: those it lacks
         # pass the voltage through and are not called every cycle; the maps' own tests).
         self._sag, self._current_limit = not eff.battery_sag <= 0.0, not eff.current_limit <= 0.0
         self._dead_zone, self._drift = self.dead_zone.active, self.winding.active
         self._forget()
+
+    @property
+    def backend(self) -> str:
+        """Which path computes the cycle's numerics and why (start-up log, health); a
+        wrapped ``mpc.solve`` (fault injection, replay's recording) runs the Python path."""
+        why = "the MPC's solve is wrapped" if "solve" in self.mpc.__dict__ else ""
+        if self._numerics is None or why:
+            why = why or self._numerics_why
+            return f"MPC {self.mpc.backend}; feedforward and command checks in Python ({why})"
+        return "compiled (MPC, feedforward and command checks in one call)"
 
     def _forget(self) -> None:
         """Set every state learned from past cycles to its start (the counters stay)."""
@@ -294,7 +300,9 @@ class Controller:
         mode, v_ref, lead = how
         applied = self._applied_prev()
         state = (v, gap, applied, self.disturbance_v, self._r_scale, self._u_hi(), v_ref)
-        res, (u, ff, acting, _) = self._numerics.run(mode != "follow", lead, state, v_lead)
+        res, (u, ff, acting, finished) = self._numerics.run(mode != "follow", lead, state, v_lead)
+        if res.ok and finished != 1.0:  # the call and the outcome disagree: never its command
+            res = dataclasses.replace(res, ok=False, status="unfinished")
         if not res.ok:
             self._v_act = v  # the speed when the command acts (no delay: now)
             self.solver_failures += 1

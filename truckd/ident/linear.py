@@ -195,6 +195,8 @@ def electrical(runs: Sequence[Series], p: VehicleParams) -> tuple[float, float] 
     u = np.concatenate([r.inp for r in runs])
     i = np.concatenate([r.i for r in runs if r.i is not None])
     w = np.concatenate([r.v for r in runs]) / p.ratio
+    if i.size == 0:
+        return None
     # A current limit holds the current while the command asks for more: there ``u`` is
     # not the motor's voltage.  The samples near the largest current are left out (half
     # the samples of a weak truck held at 22 A gave R_m 2x and K_v 2x the true ones).
