@@ -1,9 +1,10 @@
-"""Shared fixtures: the shipped default vehicle."""
+"""Shared fixtures: the shipped default vehicle; the compiled MPC cycle as if not built."""
 
 from __future__ import annotations
 
 import os
 from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
 
@@ -29,3 +30,15 @@ def _scheduling_left_as_found() -> Iterator[None]:
         "the test left this process on real-time scheduling: run the daemon with "
         "runtime.realtime: false in-process"
     )
+
+
+@pytest.fixture
+def no_library(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> Iterator[None]:
+    """The compiled MPC cycle's library as if it were not built (the loader's cache
+    emptied before and after)."""
+    from truckd.control import ccycle
+
+    monkeypatch.setattr(ccycle, "LIBRARY", tmp_path / "libtruckd_mpc.so")
+    monkeypatch.setattr(ccycle, "_state", {})
+    yield
+    ccycle._state.clear()

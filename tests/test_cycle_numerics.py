@@ -10,7 +10,7 @@ import dataclasses
 import gc
 import math
 import random
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -44,15 +44,6 @@ def garbage_solvers_give_theirs_back() -> None:
     """Solvers earlier tests left as garbage give their compiled instances back."""
     gc.unfreeze()
     gc.collect()
-
-
-@pytest.fixture
-def no_library(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> Iterator[None]:
-    """The library as if it were not built (the loader's cache emptied before and after)."""
-    monkeypatch.setattr(ccycle, "LIBRARY", tmp_path / "libtruckd_mpc.so")
-    monkeypatch.setattr(ccycle, "_state", {})
-    yield
-    ccycle._state.clear()
 
 
 def _counted(ctrl: Controller) -> list[int]:

@@ -7,7 +7,6 @@ from __future__ import annotations
 import dataclasses
 import gc
 import random
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -44,15 +43,6 @@ def _free_instances() -> int:
     lib, _ = ccycle.library()
     assert lib is not None
     return int(lib.truckd_mpc_instances()) - len(ccycle._held)
-
-
-@pytest.fixture
-def no_library(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> Iterator[None]:
-    """The library as if it were not built (the loader's cache emptied before and after)."""
-    monkeypatch.setattr(ccycle, "LIBRARY", tmp_path / "libtruckd_mpc.so")
-    monkeypatch.setattr(ccycle, "_state", {})
-    yield
-    ccycle._state.clear()
 
 
 def _replay(compiled: bool, monkeypatch: pytest.MonkeyPatch) -> tuple[list[Any], str]:

@@ -31,7 +31,7 @@ from truckd.control.estimator import EncoderSample, Estimate, Estimator, RangeSa
 from truckd.control.fallback import braking_law, held_plan_move, limit_command
 from truckd.control.feedforward import breakaway_feedforward, moving_feedforward
 from truckd.control.lead import LeadSpeeds
-from truckd.control.mpc import MpcSolver
+from truckd.control.mpc import MpcResult, MpcSolver
 from truckd.control.output import ControlOutput
 from truckd.control.pipeline import predict_pipeline
 from truckd.control.qp import ControlModel, QpInputs
@@ -269,16 +269,8 @@ class Controller:
         )
         res = self.mpc.solve("follow" if mode == "follow" else "cruise", inp)
         if not res.ok:
-            self.solver_failures += 1
-            self.overruns += res.status == "overrun"
-            return self._fallback(
-                est, v, f"solver_{res.status}", mode, gap_ref, res.status, res.iterations,
-                res.run_time_s, ff,
-            )  # fmt: skip
-        assert res.u is not None and res.v is not None
-        self._plan = res.u.tolist()  # Python floats
-        self._plan_age = 0
-        self._v_expected = float(res.v[1])
+            return self._solver_failed(est, v, res, mode, gap_ref, ff)
+        self._keep_plan(res)
         return self._finish(
             est, v, res.u0, ff, mode, None, res.status, res.iterations, res.run_time_s, gap_ref
         )
@@ -305,16 +297,8 @@ class Controller:
             res = dataclasses.replace(res, ok=False, status="unfinished")
         if not res.ok:
             self._v_act = v  # the speed when the command acts (no delay: now)
-            self.solver_failures += 1
-            self.overruns += res.status == "overrun"
-            return self._fallback(
-                est, v, f"solver_{res.status}", mode, gap_ref, res.status, res.iterations,
-                res.run_time_s, ff,
-            )  # fmt: skip
-        assert res.u is not None and res.v is not None
-        self._plan = res.u.tolist()  # Python floats
-        self._plan_age = 0
-        self._v_expected = float(res.v[1])
+            return self._solver_failed(est, v, res, mode, gap_ref, ff)
+        self._keep_plan(res)
         self._limited = False  # no current limit (cnumerics.unsupported)
         self.u_prev = self._out = u
         self._wanted = acting
@@ -324,6 +308,25 @@ class Controller:
             est, self.solver_failures, self.fallback_cycles, self.overruns,
             self.braking_cycles, self.mpc.inaccurate, self.disturbance_v,
         )  # fmt: skip
+
+    def _solver_failed(
+        self, est: Estimate, v: float, res: MpcResult, mode: str, gap_ref: float, ff: float
+    ) -> ControlOutput:
+        """A failed solve counted and handed to :meth:`_fallback` (``ff``: feedforward, V)."""
+        self.solver_failures += 1
+        self.overruns += res.status == "overrun"
+        return self._fallback(
+            est, v, f"solver_{res.status}", mode, gap_ref, res.status, res.iterations,
+            res.run_time_s, ff,
+        )  # fmt: skip
+
+    def _keep_plan(self, res: MpcResult) -> None:
+        """A usable solve's plan (V, Python floats), held for the cycles it may stand in
+        for, and the speed it expects next (m/s)."""
+        assert res.u is not None and res.v is not None
+        self._plan = res.u.tolist()
+        self._plan_age = 0
+        self._v_expected = float(res.v[1])
 
     def _update_winding(self, v: float) -> None:
         """One period of the winding's thermal model (``resistance_drift``) at the current
