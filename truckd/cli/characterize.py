@@ -250,6 +250,13 @@ def _select(log: Log, keep: Any, source: str) -> Log:
     return Log({c: a[keep] for c, a in log.columns.items()}, source=source)
 
 
+def _loop_counts(d: Daemon) -> dict[str, int]:
+    """The drive's loop counters: cycles run, cycles past their deadline, and whole
+    periods skipped after overruns (the log has no row for a skipped period)."""
+    s = d.rk.stats()
+    return {"cycles": s.cycles, "misses": s.misses, "skipped_periods": s.skipped_periods}
+
+
 def characterize(
     cfg: TruckConfig,
     backend: str | None,
@@ -279,6 +286,7 @@ def characterize(
         if result.stop_reason
         else None,
         "log_rows": len(log) if log is not None else 0,
+        "loop": _loop_counts(d),
         "raw_logs": [str(f.relative_to(out)) for f in files if f.exists()],
     }
     failed = [c for c in result.checks if not c.ok]
