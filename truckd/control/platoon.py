@@ -293,8 +293,23 @@ def plan_speed(plan: Plan, t: float) -> float:
 
 def lead_forecast(plan: Plan, t: float, dt: float, n: int) -> list[float]:
     """The lead speed over the follower's horizon: ``n`` values at ``t + k dt`` (s), taken
-    from the predecessor's plan aligned in time (see :func:`plan_speed`)."""
-    return [plan_speed(plan, t + k * dt) for k in range(n)]
+    from the predecessor's plan aligned in time (see :func:`plan_speed`, whose arithmetic
+    this repeats inline: a call per value cost more than the value)."""
+    v, t0, pdt = plan.v, plan.t, plan.dt
+    last = len(v) - 1
+    out: list[float] = []
+    for k in range(n):
+        tk = t + k * dt
+        if tk <= t0:
+            out.append(v[0])
+            continue
+        x = (tk - t0) / pdt
+        j = int(x)
+        if j >= last:
+            out.append(plan_speed(plan, tk))  # past the plan's end: held or braking
+            continue
+        out.append(v[j] + (x - j) * (v[j + 1] - v[j]))
+    return out
 
 
 def plan_age(plan: Plan, t: float) -> float:
