@@ -19,6 +19,10 @@ Array = NDArray[np.float64]
 LIBRARY = Path(__file__).resolve().parent / "kernel" / "build" / "libtruckd_fastrun.so"
 """Where ``make firmware`` puts the kernel."""
 
+ABI = 1
+"""The kernel version this module calls (``TRUCKD_FASTRUN_ABI`` in ``fastrun.c``): a
+library built from another version (or before versions) is refused, the Python loop runs."""
+
 _state: dict[str, ctypes.CDLL | None] = {}
 
 
@@ -32,6 +36,8 @@ def library() -> ctypes.CDLL | None:
             lib = ctypes.CDLL(str(LIBRARY))
         except OSError:
             lib = None
+    if lib is not None and not _current(lib):
+        lib = None
     if lib is not None:
         dp = ctypes.c_void_p  # double *, passed as an address
         ip = ctypes.c_void_p  # int64_t *
@@ -48,6 +54,17 @@ def library() -> ctypes.CDLL | None:
         wr.argtypes = [dp, dp, i, d, d, d, d, d, dp]
     _state["lib"] = lib
     return lib
+
+
+def _current(lib: ctypes.CDLL) -> bool:
+    """Whether ``lib`` is the kernel version :data:`ABI` (a stale build is not)."""
+    try:
+        version = lib.truckd_fastrun_abi
+    except AttributeError:
+        return False
+    version.restype = ctypes.c_int
+    version.argtypes = []
+    return int(version()) == ABI
 
 
 def available() -> bool:
