@@ -17,6 +17,7 @@ from labkit.synth import EFFECT_RANGES, excitation, plant_log
 from truckd.ident.candidates import voltage_candidates
 from truckd.ident.data import Series, series_from_log
 from truckd.ident.fastsim import (
+    DRIVER_FIELDS,
     ForceModel,
     simulate_force,
     simulate_voltage,
@@ -24,7 +25,7 @@ from truckd.ident.fastsim import (
     unsupported_effects,
 )
 from truckd.ident.voltage import predict
-from truckd.model.effects import EFFECT_NAMES, Effects
+from truckd.model.effects import ARRAYS, EFFECT_NAMES, Effects, driver_output
 from truckd.model.params import VehicleParams
 from truckd.sim.plant import PlantConfig, simulate_open_loop
 
@@ -211,3 +212,31 @@ def test_every_effect_is_a_candidate_of_the_diagnosis(params: VehicleParams) -> 
     log = plant_log(params, Effects(), seed=4, n=3000)
     names = {c.param.name for c in voltage_candidates(params, series_from_log(log))}
     assert set(EFFECT_NAMES) <= names
+
+
+def test_driver_output_reads_only_the_fields_its_cache_keys_on(params: VehicleParams) -> None:
+    """The fast simulator keeps the driver's output per series, battery voltage and
+    DRIVER_FIELDS: changing any other field of the effects must not change it."""
+    u = np.linspace(-20.0, 20.0, 81)
+    base = Effects(dead_zone=0.4, dead_zone_offset=0.2, voltage_saturation=9.0, battery_sag=0.05)
+    ref = driver_output(u, base, params.V_batt, ARRAYS)
+    for f in dataclasses.fields(Effects):
+        if f.name in DRIVER_FIELDS:
+            continue
+        moved = dataclasses.replace(base, **{f.name: float(getattr(base, f.name)) + 0.37})
+        out = driver_output(u, moved, params.V_batt, ARRAYS)
+        assert np.array_equal(out[0], ref[0]) and np.array_equal(out[1], ref[1]), f.name
+
+
+def test_cached_run_inputs_give_the_same_prediction(params: VehicleParams) -> None:
+    """A run after another on the same series (driver, currents' timing and settling
+    kept) equals the run on a fresh copy of the series, bit for bit, current included."""
+    log = plant_log(params, Effects(input_delay=0.012), seed=4, n=600)
+    s = series_from_log(log)
+    e1 = Effects(input_delay=0.012, dead_zone=0.3)
+    e2 = dataclasses.replace(e1, viscous_friction=1e-4)
+    predict(params, e1, s)
+    again = predict(params, e2, s)
+    fresh = predict(params, e2, dataclasses.replace(s, t=s.t.copy(), inp=s.inp.copy()))
+    for got, want in ((again.v, fresh.v), (again.i, fresh.i), (again.volts, fresh.volts)):
+        assert np.array_equal(got, want)

@@ -56,3 +56,28 @@ def test_kernel_matches_the_python_loop(k: int, monkeypatch: pytest.MonkeyPatch)
     assert scale > 0.0
     assert np.max(np.abs(fast.v - ref.v)) <= 1e-9 * scale
     assert np.max(np.abs(fast.x - ref.x)) <= 1e-9 * max(float(np.max(np.abs(ref.x))), 1.0)
+
+
+def test_the_kernel_version_is_checked() -> None:
+    """The library's version is the one the source declares and the loader expects; a
+    library without it (built before versions) or of another version is refused."""
+    import ctypes
+    import re
+
+    src = (ckernel.LIBRARY.parents[1] / "fastrun.c").read_text()
+    declared = re.search(r"#define TRUCKD_FASTRUN_ABI (\d+)", src)
+    assert declared is not None and int(declared.group(1)) == ckernel.ABI
+    lib = ckernel.library()
+    assert lib is not None and ckernel._current(lib)
+
+    class Stale:
+        """A library without the version function."""
+
+    assert not ckernel._current(Stale())  # type: ignore[arg-type]
+    other = ctypes.CDLL(str(ckernel.LIBRARY))
+    saved = ckernel.ABI
+    try:
+        ckernel.ABI = saved + 1
+        assert not ckernel._current(other)
+    finally:
+        ckernel.ABI = saved

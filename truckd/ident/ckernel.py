@@ -19,6 +19,10 @@ Array = NDArray[np.float64]
 LIBRARY = Path(__file__).resolve().parent / "kernel" / "build" / "libtruckd_fastrun.so"
 """Where ``make firmware`` puts the kernel."""
 
+ABI = 1
+"""The kernel version this module calls (``TRUCKD_FASTRUN_ABI`` in ``fastrun.c``): a
+library built from another version (or before versions) is refused, the Python loop runs."""
+
 _state: dict[str, ctypes.CDLL | None] = {}
 
 
@@ -32,6 +36,8 @@ def library() -> ctypes.CDLL | None:
             lib = ctypes.CDLL(str(LIBRARY))
         except OSError:
             lib = None
+    if lib is not None and not _current(lib):
+        lib = None
     if lib is not None:
         dp = ctypes.c_void_p  # double *, passed as an address
         ip = ctypes.c_void_p  # int64_t *
@@ -50,6 +56,17 @@ def library() -> ctypes.CDLL | None:
     return lib
 
 
+def _current(lib: ctypes.CDLL) -> bool:
+    """Whether ``lib`` is the kernel version :data:`ABI` (a stale build is not)."""
+    try:
+        version = lib.truckd_fastrun_abi
+    except AttributeError:
+        return False
+    version.restype = ctypes.c_int
+    version.argtypes = []
+    return int(version()) == ABI
+
+
 def available() -> bool:
     """Whether the C kernel is built and loads."""
     return library() is not None
@@ -58,6 +75,25 @@ def available() -> bool:
 def _dp(a: NDArray[np.float64] | NDArray[np.int64] | None) -> int | None:
     """The address of a contiguous array's data (None: a NULL pointer)."""
     return None if a is None else int(a.ctypes.data)
+
+
+ADDRESSES_KEPT = 32
+"""Arrays whose data address :func:`_address` keeps (a fit passes the same per-command
+coefficients and timeline to run after run while only its friction or loads change)."""
+_ADDRESSES: dict[int, tuple[NDArray[np.float64] | NDArray[np.int64], int]] = {}
+
+
+def _address(a: NDArray[np.float64] | NDArray[np.int64]) -> int:
+    """:func:`_dp` of a contiguous array, kept for the last :data:`ADDRESSES_KEPT` arrays
+    (the cache holds each array: its identity is not reused, its data does not move)."""
+    hit = _ADDRESSES.get(id(a))
+    if hit is not None and hit[0] is a:
+        return hit[1]
+    addr = int(a.ctypes.data)
+    if len(_ADDRESSES) >= ADDRESSES_KEPT:
+        del _ADDRESSES[next(iter(_ADDRESSES))]
+    _ADDRESSES[id(a)] = (a, addr)
+    return addr
 
 
 def run(
@@ -101,9 +137,11 @@ def run(
     dt = np.ascontiguousarray(dt, dtype=np.float64)
     cmd = np.ascontiguousarray(cmd, dtype=np.int64)
     se = np.ascontiguousarray(sample_end, dtype=np.int64)
-    out = np.empty(n)
-    raw = np.empty(n)
-    pos = np.empty(n)
+    # The three outputs in one block: one address to convert, the rows at fixed offsets.
+    block = np.empty((3, n))
+    out, raw, pos = block[0], block[1], block[2]
+    at = int(block.ctypes.data)
+    row = 8 * n  # bytes per row of float64
     ter = None if terrain is None else np.array(terrain, dtype=np.float64)
     stb = None if stribeck is None else np.array(stribeck, dtype=np.float64)
     lim = None if limit is None else np.array(limit, dtype=np.float64)
@@ -116,9 +154,10 @@ def run(
                 raise ValueError("the gap's arrays must be contiguous float64")
     f = float
     lib.truckd_fastrun(
-        _dp(a), _dp(b), f(a_idle), f(b_idle), f(c), f(sigma), f(d), f(drag), _dp(sc), f(lag),
-        _dp(dt), _dp(cmd), _dp(se), len(dt), n, f(w0), f(sensor_lag), _dp(out), _dp(raw),
-        _dp(pos), _dp(ter), _dp(stb), _dp(lim), _dp(gp), _dp(gvolts), _dp(gr), _dp(gstate),
+        _address(a), _address(b), f(a_idle), f(b_idle), f(c), f(sigma), f(d), f(drag),
+        None if sc is None else _address(sc), f(lag), _address(dt), _address(cmd),
+        _address(se), len(dt), n, f(w0), f(sensor_lag), at, at + row, at + 2 * row,
+        _dp(ter), _dp(stb), _dp(lim), _dp(gp), _dp(gvolts), _dp(gr), _dp(gstate),
         _dp(rotor_out),
     )  # fmt: skip
     return out, raw, pos

@@ -12,7 +12,8 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from functools import cached_property, partial
 from typing import Any
 
 import numpy as np
@@ -20,6 +21,8 @@ from numpy.typing import NDArray
 
 from truckd.ident import ckernel
 from truckd.ident.data import Series
+from truckd.ident.forcerun import ForceModel as ForceModel  # re-exported
+from truckd.ident.forcerun import simulate_force as simulate_force
 from truckd.ident.freerun import GapRun, Stribeck, merge_equal
 from truckd.ident.freerun import Kinetics as Kinetics  # re-exported: the run's inputs
 from truckd.ident.freerun import Terrain as Terrain
@@ -46,18 +49,35 @@ Array = NDArray[np.float64]
 
 @dataclass(frozen=True)
 class VoltagePrediction:
-    """Free-run prediction of a voltage-input log (SI)."""
+    """Free-run prediction of a voltage-input log (SI).
+
+    The current and the driver voltage at each sample are computed when first read
+    (a speed-only fit never reads them)."""
 
     v: Array
     """Speed as the sensor reports it (m/s)."""
     v_true: Array
     """True speed (m/s)."""
-    i: Array
-    """Quasi-static motor current at each sample (A)."""
     x: Array
     """Position (m)."""
-    volts: Array
-    """Open-circuit driver voltage active at each sample (V)."""
+    sampled: Callable[[], tuple[Array, Array]] = field(repr=False, compare=False)
+    """Computes ``(i, volts)``: the run's current and driver voltage at each sample."""
+
+    @cached_property
+    def _at_samples(self) -> tuple[Array, Array]:
+        # As simulate_voltage runs: absurd trial parameters overflow silently.
+        with np.errstate(over="ignore", invalid="ignore"):
+            return self.sampled()
+
+    @property
+    def i(self) -> Array:
+        """Quasi-static motor current at each sample (A)."""
+        return self._at_samples[0]
+
+    @property
+    def volts(self) -> Array:
+        """Open-circuit driver voltage active at each sample (V)."""
+        return self._at_samples[1]
 
 
 def electrical_correction(
@@ -203,7 +223,6 @@ def simulate_voltage(
         )
     hist = 0 if t_hist is None or u_hist is None else len(t_hist)
     t = np.asarray(t, float)
-    t_cmd = t if not hist else np.concatenate([np.asarray(t_hist, float), t])
     # A fit's trial parameters can be absurd (a winding heated without bound): the run
     # then overflows to inf or NaN, which the residuals score as a miss; no warning.
     with np.errstate(over="ignore", invalid="ignore"):
@@ -211,6 +230,7 @@ def simulate_voltage(
         if eff.resistance_drift == 0.0:
             return out
         # Each command sees the winding as it was when the command was issued.
+        t_cmd = t if not hist else np.concatenate([np.asarray(t_hist, float), t])
         k = np.clip(np.searchsorted(t, t_cmd, "right") - 1, 0, len(t) - 1)
         for _ in range(DRIFT_PASSES):
             rise = winding_rises(p, eff, t, out.i, rise0)
@@ -249,6 +269,31 @@ def winding_rises(p: VehicleParams, eff: Effects, t: Array, i: Array, rise0: flo
     return out
 
 
+DRIVER_FIELDS = ("dead_zone", "dead_zone_offset", "voltage_saturation", "battery_sag")
+"""The effects' fields :func:`truckd.model.effects.driver_output` reads (with the
+battery voltage; ``tests/test_ident_fastsim.py`` checks no other field changes it)."""
+_DRIVER: dict[tuple[object, ...], tuple[Array, Array | None, tuple[Array, Array]]] = {}
+
+
+def _driver(
+    p: VehicleParams, eff: Effects, u: Array, u_hist: Array | None, hist: int
+) -> tuple[Array, Array]:
+    """:func:`driver_output` of the ``hist`` commands ``u_hist`` then ``u`` (V), kept per
+    series (the cache holds the arrays: an identity is not reused while cached), battery
+    voltage and driver effects (:data:`DRIVER_FIELDS`): a fit that moves the motor's
+    constants reuses it."""
+    key = (id(u), id(u_hist), hist, p.V_batt, *[getattr(eff, n) for n in DRIVER_FIELDS])
+    hit = _DRIVER.get(key)
+    if hit is not None and hit[0] is u and hit[1] is u_hist:
+        return hit[2]
+    u_all = np.asarray(u, float) if not hist else np.concatenate([u_hist, u])
+    out = driver_output(u_all, eff, p.V_batt, ARRAYS)
+    for arr in out:
+        arr.flags.writeable = False  # shared by the runs that hit the cache
+    _put(_DRIVER, key, (u, u_hist, out), PREP_CACHE)
+    return out
+
+
 def _simulate(
     p: VehicleParams,
     eff: Effects,
@@ -265,8 +310,6 @@ def _simulate(
     (ohm, over the history and the log's commands; None = cold)."""
     n = len(t)
     hist = 0 if t_hist is None or u_hist is None else len(t_hist)
-    u_all = np.asarray(u, float) if not hist else np.concatenate([u_hist, u])
-    t_cmd = t if not hist else np.concatenate([t_hist, t])
     # The gap opens on the command itself (the plant decides it on the quasi-static
     # current): no electrical lag before the command acts.  A winding's resistance
     # changes per pass: neither is cached.
@@ -278,7 +321,8 @@ def _simulate(
     if hit is not None and hit[0] is t and hit[1] is u and hit[2] is t_hist and hit[3] is u_hist:
         volts, r_tot, k_arr, kappa, lag_e, a, b, tl = hit[4]
     else:
-        volts, r_sag = driver_output(u_all, eff, p.V_batt, ARRAYS)
+        volts, r_sag = _driver(p, eff, u, u_hist, hist)
+        t_cmd = t if not hist else np.concatenate([t_hist, t])
         r_tot = p.R_m + r_sag
         if r_drift is not None:
             r_tot = r_tot + r_drift
@@ -323,10 +367,11 @@ def _simulate(
     w0 = p.omega(v0)
     meas, raw, pos = run(kin, tl, n, w0, eff.sensor_lag)
     rotor = raw if kin.gap is None else kin.gap.rotor_out
-    idx = _active(t, t_hist, t_cmd, eff.input_delay)
-    cur, v_at = _sample_currents(p, eff, idx, volts, None if same_r else r_tot, v_pre, raw, rotor)
+    idx = _active(t, t_hist, hist, eff.input_delay)
+    sampled = partial(_sample_currents, p, eff, idx, volts, None if same_r else r_tot, v_pre)
+    # v, v_true, x; the current and driver voltage when read
     return VoltagePrediction(
-        v=meas * p.ratio, v_true=raw * p.ratio, i=cur, x=pos * p.ratio, volts=v_at
+        meas * p.ratio, raw * p.ratio, pos * p.ratio, partial(sampled, raw, rotor)
     )
 
 
@@ -412,12 +457,13 @@ class Active:
     """Minus the time (s) since the active command acted (-inf where none is)."""
 
 
-def _active(t: Array, t_hist: Array | None, t_cmd: Array, delay: float) -> Active:
-    """The command (in ``t_cmd``) active at each sample instant under the input delay
-    ``delay`` (s), kept per series and delay."""
-    key = ("active", id(t), id(t_hist), delay, len(t_cmd))
+def _active(t: Array, t_hist: Array | None, hist: int, delay: float) -> Active:
+    """The command (of the ``hist`` ones at ``t_hist``, then those at ``t``) active at
+    each sample instant under the input delay ``delay`` (s), kept per series and delay."""
+    key = ("active", id(t), id(t_hist), delay, len(t) + hist)
     out = _timed(key, t, t_hist)
     if out is None:
+        t_cmd = t if not hist else np.concatenate([t_hist, t])
         act = t_cmd + delay
         idx = np.searchsorted(act, t, "left") - 1
         on, at = idx >= 0, np.maximum(idx, 0)
@@ -426,6 +472,41 @@ def _active(t: Array, t_hist: Array | None, t_cmd: Array, delay: float) -> Activ
         out = Active(on, at, prev >= 0, np.maximum(prev, 0), -since)
         _keep(key, t, t_hist, out)
     return out  # type: ignore[no-any-return]
+
+
+SAMPLED_CACHE = 16
+"""Runs whose per-sample command voltages and settling factors are kept: a fit's runs
+that change only friction, loads or lag share them."""
+_SAMPLED: dict[tuple[object, ...], tuple[tuple[object, ...], tuple[Array, Array]]] = {}
+
+
+def _sample_volts(idx: Active, volts: Array, v_pre: float) -> tuple[Array, Array]:
+    """The driver voltage (V) of the command active at each sample and of the one before
+    it (``v_pre`` where none is), kept per timing, command voltages and ``v_pre`` (the
+    cache holds ``idx`` and ``volts``: an identity is not reused while cached)."""
+    key = ("volts", id(idx), id(volts), v_pre)
+    hit = _SAMPLED.get(key)
+    if hit is not None and hit[0][0] is idx and hit[0][1] is volts:
+        return hit[1]
+    v_at = np.where(idx.on, volts[idx.at], v_pre)
+    v_old = np.where(idx.prev_on, volts[idx.prev], v_pre)
+    for arr in (v_at, v_old):
+        arr.flags.writeable = False  # shared by the runs that hit the cache
+    _put(_SAMPLED, key, ((idx, volts), (v_at, v_old)), SAMPLED_CACHE)
+    return v_at, v_old
+
+
+def _settling(idx: Active, r: float, inductance: float) -> Array:
+    """``exp(-since r / L)``: what is left at each sample of the current's step at the
+    last command (``r`` ohm, ``inductance`` H), kept per timing, ``r`` and ``L``."""
+    key = ("settle", id(idx), r, inductance)
+    hit = _SAMPLED.get(key)
+    if hit is not None and hit[0][0] is idx:
+        return hit[1][0]
+    settle = np.exp(idx.neg_since * r / inductance)
+    settle.flags.writeable = False
+    _put(_SAMPLED, key, ((idx,), (settle, settle)), SAMPLED_CACHE)
+    return settle
 
 
 def _sample_currents(
@@ -444,18 +525,20 @@ def _sample_currents(
     acted just before, within the current limit; ``raw`` the load's speed, ``rotor``
     the rotor's (rad/s); ``idx`` the command active at each sample (:func:`_active`).
     ``r_tot`` None: ``R_m`` for every command (the same numbers, fewer arrays)."""
-    v_at = np.where(idx.on, volts[idx.at], v_pre)
-    v_old = np.where(idx.prev_on, volts[idx.prev], v_pre)
+    v_at, v_old = _sample_volts(idx, volts, v_pre)
     back_emf = p.K_v * rotor
     r_at: Array | float = p.R_m
     r_old: Array | float = p.R_m
     if r_tot is not None:
         r_at = np.where(idx.on, r_tot[idx.at], p.R_m)
         r_old = np.where(idx.prev_on, r_tot[idx.prev], p.R_m)
+        settle = np.exp(idx.neg_since * r_at / p.L_m)
+    else:
+        settle = _settling(idx, p.R_m, p.L_m)
     cur = (v_at - back_emf) / r_at
     # A command that acted just before the sample: the current is still settling.
     cur_old = (v_old - back_emf) / r_old
-    cur = cur + (cur_old - cur) * np.exp(idx.neg_since * r_at / p.L_m)
+    cur = cur + (cur_old - cur) * settle
     if eff.current_limit != 0.0:
         cur = np.clip(cur, -eff.current_limit, eff.current_limit)
         room = r_at * eff.current_limit
@@ -494,39 +577,3 @@ def _winding_rise_before(p: VehicleParams, e: Effects, s: Series) -> float:
         rises = winding_rises(p, e, o.t, predict(p, e, o).i, 0.0)
         hit = _put(_RISES, key, (o, rises), RISE_CACHE)
     return float(hit[1][s.offset])
-
-
-@dataclass(frozen=True)
-class ForceModel:
-    """Rigid body with friction under a force input (SI, load side).
-
-    ``M dv/dt = F - F_v v - F_c sign(v) - offset - c_drag v|v|``; held at rest while
-    ``|F - offset| <= F_s`` (``F_s`` defaults to ``F_c``).
-    """
-
-    M: float
-    F_c: float
-    F_v: float = 0.0
-    offset: float = 0.0
-    F_s: float | None = None
-    c_drag: float = 0.0
-
-
-def simulate_force(m: ForceModel, t: Array, f: Array, v0: float = 0.0) -> tuple[Array, Array]:
-    """Free run of a force-input model: per-sample (speed m/s, position m from 0)."""
-    n = len(t)
-    fs = m.F_c if m.F_s is None else m.F_s
-    b = m.F_v / m.M
-    kin = Kinetics(
-        a=np.asarray(f, float) / m.M,
-        b=np.full(n, b),
-        a_idle=0.0,
-        b_idle=b,
-        c=m.F_c / m.M,
-        sigma=fs / m.M,
-        d=m.offset / m.M,
-        drag=m.c_drag / m.M,
-    )
-    tl = timeline(np.asarray(t, float), 0.0)
-    _, raw, pos = run(kin, tl, n, v0)
-    return raw, pos

@@ -24,7 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from truckd.ident.data import Series, initial_speed, noise_std, split
-from truckd.ident.fastsim import ForceModel, simulate_force
+from truckd.ident.forcerun import ForceModel, simulate_force
 from truckd.ident.residuals import whiteness
 from truckd.ident.result import CandidateRow, Diagnosis, Finding, ModelSummary, Traces
 from truckd.ident.selection import close, delta_bic, passes, structured

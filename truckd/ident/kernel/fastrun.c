@@ -8,6 +8,17 @@
 #include <math.h>
 #include <stdint.h>
 
+/* The kernel's version: raise it with every change of the loops' arithmetic or of the
+ * functions' arguments, together with ABI in truckd/ident/ckernel.py, which refuses a
+ * library of another version (a stale build) and runs the Python loop instead. */
+#define TRUCKD_FASTRUN_ABI 1
+
+int truckd_fastrun_abi(void);
+int truckd_fastrun_abi(void)
+{
+    return TRUCKD_FASTRUN_ABI;
+}
+
 #ifndef M_PI
 #define M_PI 3.14159265358979323846
 #endif
