@@ -51,13 +51,19 @@ def _counted(ctrl: Controller) -> list[int]:
     num = ctrl._numerics
     assert num is not None
     calls = [0]
-    run = num.run
+    run, run_cycle = num.run, num.run_cycle
 
     def counting(*args: Any) -> Any:
         calls[0] += 1
         return run(*args)
 
+    def counting_cycle(*args: Any) -> Any:
+        status, est = run_cycle(*args)
+        calls[0] += status != ccycle.ESTIMATED  # it went on to the solve
+        return status, est
+
     num.run = counting  # type: ignore[method-assign]
+    num.run_cycle = counting_cycle  # type: ignore[method-assign]
     return calls
 
 
@@ -283,7 +289,8 @@ def test_without_the_library_the_numerics_run_python_and_say_why() -> None:
     ctrl = Controller(ControlModel(load_config().vehicle), cfg, TICKS)
     assert ctrl.backend == (
         "MPC python (libtruckd_mpc.so not built (make firmware)); feedforward and command "
-        "checks in Python (the MPC runs its Python path)"
+        "checks in Python (the MPC runs its Python path); estimator in Python (the MPC runs "
+        "its Python path)"
     )
     assert ctrl.control(_estimate(0.8, 0.9, 0.7, 1.0)).fallback_reason is None
 
