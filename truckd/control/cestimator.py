@@ -73,6 +73,7 @@ class CompiledEstimator:
         self.cfg = cfg
         self.tick_len = tick_len
         """m per encoder tick (the Python estimator's)."""
+        self._cc = cc
         self._lib = cc.lib
         self._instance = cc.instance
         self._run = cc.lib.truckd_cycle_run
@@ -97,6 +98,11 @@ class CompiledEstimator:
     def reset(self) -> None:
         """The state starts again (a new estimator)."""
         self._bind(self.inputs.size, True)
+
+    def fresh(self) -> CompiledEstimator:
+        """A new estimator in the same instance, its state started again (this one no
+        longer bound: not to be used)."""
+        return CompiledEstimator(self._cc, self.cfg, self.tick_len)
 
     def put(
         self, t: float, encoders: Sequence[EncoderSample], ranges: Sequence[RangeSample]

@@ -153,7 +153,8 @@ class Controller:
         a world that has moved on): a new estimator, no MPC warm start, no held plan, no
         commands in the pipeline, no disturbance estimate, no standstill hold."""
         if isinstance(self.estimator, cestimator.CompiledEstimator):
-            self.estimator.reset()
+            self.estimator = self.estimator.fresh()  # the library's state starts again
+            self._fused = self._fused and (self._fused[0], self.estimator)
         else:
             self.estimator = Estimator(
                 self.cfg.estimator, self.model.params.r_w, self._ticks_per_rev
