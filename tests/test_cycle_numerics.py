@@ -257,8 +257,11 @@ def test_constants_come_from_the_model_and_configuration() -> None:
         p.R_m, p.K_T, p.K_v, p.ratio,
     )  # fmt: skip
     assert (values["u_max"], values["du"], values["time_budget_s"]) == (6.0, 0.25, 0.004)
+    assert (values["d_0"], values["v_set"], values["hold_gap_tol"]) == (
+        cfg.d_0, cfg.v_set, cfg.hold_gap_tol,
+    )  # fmt: skip
     source = (Path(__file__).parents[1] / "truckd/control/kernel/cycle_numerics.c").read_text()
-    for v in (p.R_m, p.K_T, cfg.moving_speed, cfg.v_max, cfg.start_voltage):
+    for v in (p.R_m, p.K_T, cfg.moving_speed, cfg.v_max, cfg.start_voltage, cfg.v_set, cfg.d_0):
         assert repr(v) not in source
 
 

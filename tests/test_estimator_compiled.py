@@ -12,6 +12,7 @@ import dataclasses
 import gc
 import math
 import random
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -20,7 +21,7 @@ from test_cycle_numerics import DATA, TICKS, _counted, _python_controller, _same
 from truckd.config.truck import load_config
 from truckd.control import ccycle
 from truckd.control import mpc as mpc_module
-from truckd.control.cestimator import CONSTANTS, CompiledEstimator
+from truckd.control.cestimator import CONSTANTS, CompiledEstimator, constants
 from truckd.control.config import ControlConfig
 from truckd.control.controller import Controller
 from truckd.control.estimator import EncoderSample, Estimate, Estimator, RangeSample
@@ -262,6 +263,22 @@ def test_the_decisions_in_the_compiled_call_give_the_python_commands(
         assert "hold" in modes
     if trouble:
         assert any(o.fallback_reason is not None for o in a)
+
+
+def test_the_estimator_constants_come_from_the_configuration() -> None:
+    """No configured value is written in the C file: each constant it takes is named and
+    comes from the estimator's configuration and tick length."""
+    cfg = dataclasses.replace(load_config().control.estimator, gate_sigma=3.5, reinit_count=7)
+    values = dict(zip(CONSTANTS, constants(cfg, 0.002), strict=True))
+    assert (values["gate_sigma"], values["reinit_count"], values["tick_len"]) == (3.5, 7.0, 0.002)
+    assert values["r_tick"] == 0.002 * 0.002 / 12.0
+    source = (Path(__file__).parents[1] / "truckd/control/kernel/estimator.c").read_text()
+    default = load_config().control.estimator
+    for v in (
+        default.sample_time_modulo, default.lead_timeout_s, default.speed_max,
+        default.accel_max, default.lead_accel_std, default.ticks_modulo,
+    ):  # fmt: skip
+        assert repr(v) not in source
 
 
 @pytest.mark.usefixtures("no_library")
