@@ -140,6 +140,26 @@ def test_the_compiled_estimator_gives_the_python_estimates_on_hostile_samples(se
 
 
 @needs_library
+def test_a_cycle_of_many_samples_gives_the_python_estimate() -> None:
+    """More samples in one cycle (a loop that was late) than the inputs first held: they
+    grow, the state stays."""
+    cfg = load_config().control.in_simulated_time()
+    ctrl = Controller(ControlModel(load_config().vehicle), cfg, TICKS)
+    compiled = ctrl.estimator
+    assert isinstance(compiled, CompiledEstimator)
+    python = Estimator(cfg.estimator, load_config().vehicle.r_w, TICKS)
+    size = compiled.inputs.size
+    for k, (t, encoders, ranges) in enumerate(_hostile(3, 200)):
+        if k % 50 == 49:  # the next 40 cycles' samples at once
+            batch = _hostile(3, 240)[k : k + 40]
+            encoders = [e for _, es, _ in batch for e in es]
+            ranges = [r for _, _, rs in batch for r in rs]
+        a, b = compiled.cycle(t, encoders, ranges), python.cycle(t, encoders, ranges)
+        assert not _differences(a, b), k
+    assert compiled.inputs.size > size and b.encoder_samples > 200
+
+
+@needs_library
 def test_the_comparison_fails_where_the_compiled_estimator_differs() -> None:
     """One constant of the compiled estimator a little off (the own-speed filter's process
     noise): the comparison finds the estimates differ."""

@@ -55,6 +55,11 @@ _HEAD = 3
 """Inputs before the samples: the caller's time (s), the numbers of encoder and range
 samples."""
 
+_PUT_HEAD = struct.Struct(f"={_HEAD}d").pack_into
+_ENC = struct.Struct("=5d").pack_into
+_RNG = struct.Struct("=2d").pack_into
+_NAN = math.nan
+
 
 def constants(cfg: EstimatorConfig, tick_len: float) -> list[float]:
     """:data:`CONSTANTS`' values (``tick_len`` m, the estimator's)."""
@@ -81,7 +86,6 @@ class CompiledEstimator:
         self._m = cfg.ticks_modulo
         self.est = np.zeros(FIELDS)
         """The estimate the library wrote last (:data:`FIELDS`)."""
-        self._structs: dict[tuple[int, int], struct.Struct] = {}
         self._bind(64, True)
 
     def _bind(self, size: int, reset: bool) -> None:
@@ -107,24 +111,23 @@ class CompiledEstimator:
     def put(
         self, t: float, encoders: Sequence[EncoderSample], ranges: Sequence[RangeSample]
     ) -> None:
-        """A cycle's samples into :attr:`inputs` (one ``struct`` call): the counters modulo
-        ``ticks_modulo`` (Python's exact integers: the same differences), a range
-        without a target as NaN (as None: no target either way)."""
+        """A cycle's samples into :attr:`inputs` (a ``struct`` call per sample: no list
+        of them built): the counters modulo ``ticks_modulo`` (Python's exact integers: the
+        same differences), a range without a target as NaN (as None: no target either
+        way)."""
         ne, nr = len(encoders), len(ranges)
-        pack = self._structs.get((ne, nr))
-        if pack is None:
-            n = _HEAD + 5 * ne + 2 * nr
-            if n > self.inputs.size:
-                self._bind(2 * n, False)
-            pack = self._structs[(ne, nr)] = struct.Struct(f"={n}d")
-        m = self._m
-        vals: list[float | int | bool] = [t, ne, nr]
+        if _HEAD + 5 * ne + 2 * nr > self.inputs.size:
+            self._bind(2 * (_HEAD + 5 * ne + 2 * nr), False)
+        m, mv, enc, rng = self._m, self._in_mv, _ENC, _RNG
+        _PUT_HEAD(mv, 0, t, ne, nr)
+        at = 8 * _HEAD
         for e in encoders:
-            vals += (e.ticks_left % m, e.ticks_right % m, e.sample_time, e.left_ok, e.right_ok)
+            enc(mv, at, e.ticks_left % m, e.ticks_right % m, e.sample_time, e.left_ok, e.right_ok)
+            at += 40
         for r in ranges:
             d = r.distance
-            vals += (math.nan if d is None else d, r.sample_time)
-        pack.pack_into(self._in_mv, 0, *vals)
+            rng(mv, at, _NAN if d is None else d, r.sample_time)
+            at += 16
 
     def read(self) -> Estimate:
         """The estimate the library wrote (:attr:`est`) as the Python estimator's."""
