@@ -182,8 +182,7 @@ static int64_t wrap_ticks(int64_t a, int64_t b, int64_t m) {
     return (r < 0 ? r + m : r) - half;
 }
 
-/* Estimator.update_encoders.  Long because it is the Python method's one body, branch for
- * branch (the reference reads the same). */
+/* Estimator.update_encoders, branch for branch. */
 static void update_encoders(const double *c, Speed *st, double t, const Sample *s) {
     if (!(isfinite(t) && isfinite(s->time))) return;
     st->samples += 1;
@@ -379,8 +378,8 @@ int64_t truckd_estimator_cycle(int64_t inst) {
     if (inst < 0 || inst >= TRUCKD_MPC_INSTANCES || !EST[inst].bound) return -1;
     const double *c = EST[inst].c, *in = EST[inst].in;
     double t = in[0], n_enc = in[1], n_rng = in[2];
-    if (!(n_enc >= 0.0 && n_rng >= 0.0 && 3.0 + 5.0 * n_enc + 2.0 * n_rng <= (double)EST[inst].size))
-        return -2;
+    double needed = 3.0 + 5.0 * n_enc + 2.0 * n_rng;
+    if (!(n_enc >= 0.0 && n_rng >= 0.0 && needed <= (double)EST[inst].size)) return -2;
     Speed *st = &EST[inst].s;
     Lead *ld = &EST[inst].l;
     const double *e = in + 3;
