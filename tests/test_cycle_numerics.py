@@ -51,13 +51,19 @@ def _counted(ctrl: Controller) -> list[int]:
     num = ctrl._numerics
     assert num is not None
     calls = [0]
-    run = num.run
+    run, run_cycle = num.run, num.run_cycle
 
     def counting(*args: Any) -> Any:
         calls[0] += 1
         return run(*args)
 
+    def counting_cycle(*args: Any) -> Any:
+        status, est = run_cycle(*args)
+        calls[0] += status != ccycle.ESTIMATED  # it went on to the solve
+        return status, est
+
     num.run = counting  # type: ignore[method-assign]
+    num.run_cycle = counting_cycle  # type: ignore[method-assign]
     return calls
 
 
@@ -251,8 +257,11 @@ def test_constants_come_from_the_model_and_configuration() -> None:
         p.R_m, p.K_T, p.K_v, p.ratio,
     )  # fmt: skip
     assert (values["u_max"], values["du"], values["time_budget_s"]) == (6.0, 0.25, 0.004)
+    assert (values["d_0"], values["v_set"], values["hold_gap_tol"]) == (
+        cfg.d_0, cfg.v_set, cfg.hold_gap_tol,
+    )  # fmt: skip
     source = (Path(__file__).parents[1] / "truckd/control/kernel/cycle_numerics.c").read_text()
-    for v in (p.R_m, p.K_T, cfg.moving_speed, cfg.v_max, cfg.start_voltage):
+    for v in (p.R_m, p.K_T, cfg.moving_speed, cfg.v_max, cfg.start_voltage, cfg.v_set, cfg.d_0):
         assert repr(v) not in source
 
 
@@ -283,7 +292,8 @@ def test_without_the_library_the_numerics_run_python_and_say_why() -> None:
     ctrl = Controller(ControlModel(load_config().vehicle), cfg, TICKS)
     assert ctrl.backend == (
         "MPC python (libtruckd_mpc.so not built (make firmware)); feedforward and command "
-        "checks in Python (the MPC runs its Python path)"
+        "checks in Python (the MPC runs its Python path); estimator in Python (the MPC runs "
+        "its Python path)"
     )
     assert ctrl.control(_estimate(0.8, 0.9, 0.7, 1.0)).fallback_reason is None
 

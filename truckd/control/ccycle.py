@@ -34,11 +34,15 @@ Vec = NDArray[np.float64]
 LIBRARY = Path(__file__).resolve().parent / "kernel" / "build" / "libtruckd_mpc.so"
 """Where ``make firmware`` puts the compiled cycle."""
 
-ABI = 7
+ABI = 8
 """The interface version this module speaks (``truckd_mpc_abi`` of the library)."""
 
 BAD_INPUT = -100
 """``truckd_numerics_run``'s status for inputs refused before the solve (qp.inputs_ok)."""
+
+ESTIMATED = -101
+"""``truckd_cycle_run``'s status when it stopped after the estimator's update (asked to,
+or the next decision is the Python controller's)."""
 
 _state: dict[str, object] = {}
 
@@ -97,6 +101,14 @@ def _declare(lib: ctypes.CDLL) -> None:
     lib.truckd_numerics_bind.argtypes = [i, p, i, p, p, p, p, p, i]
     lib.truckd_numerics_run.restype = i
     lib.truckd_numerics_run.argtypes = [i, i]
+    lib.truckd_estimator_consts.restype = i
+    lib.truckd_estimator_consts.argtypes = []
+    lib.truckd_estimator_bind.restype = i
+    lib.truckd_estimator_bind.argtypes = [i, p, i, p, p, i, i]
+    lib.truckd_cycle_bind.restype = i
+    lib.truckd_cycle_bind.argtypes = [i, p, p]
+    lib.truckd_cycle_run.restype = i
+    lib.truckd_cycle_run.argtypes = [i, i]
 
 
 def _addr(a: NDArray[np.float64] | NDArray[np.int64]) -> int:

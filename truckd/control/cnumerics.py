@@ -19,13 +19,17 @@ the controller runs them in Python (the MPC's solve still compiled).  Loading is
 
 from __future__ import annotations
 
+import math
 import struct
+from collections.abc import Sequence
 
 import numpy as np
 
 from truckd.control import ccycle
+from truckd.control.cestimator import CompiledEstimator
 from truckd.control.config import ControlConfig
 from truckd.control.effect_use import EFFECT_USES, torque_terms
+from truckd.control.estimator import EncoderSample, Estimate, RangeSample
 from truckd.control.feedforward import breakaway_feedforward
 from truckd.control.mpc import MpcResult, MpcSolver
 from truckd.control.qp import INPUT_LIMIT, ControlModel
@@ -49,11 +53,25 @@ CONSTANTS = (
     "aero_drag",
     "has_load_force",
     "load_force",
+    "d_0",
+    "time_headway",
+    "follow_window",
+    "v_set",
+    "cruise_on_lead_lost",
+    "hold_lead_speed",
+    "hold_gap_tol",
+    "disturbance_gain",
+    "disturbance_max",
+    "b_v",
+    "saturated_v",
 )
 """The constants ``truckd_numerics_bind`` takes, in its order (see :func:`constants`)."""
 
 _DRAG, _LOAD = EFFECT_USES["aero_drag"].torque, EFFECT_USES["load_force"].torque
 """The feedforward torque terms the compiled numerics compute (aero drag, constant load)."""
+
+MODES = ("follow", "cruise", "stop")
+"""The controller's modes by ``truckd_cycle_run``'s code."""
 
 N_IN_FIXED = 7
 """Per-cycle inputs before the lead's speeds: v (m/s), gap as the QP sees it (m), the
@@ -62,11 +80,18 @@ the highest voltage the driver applies (V), the speed reference (m/s)."""
 
 
 def constants(
-    model: ControlModel, cfg: ControlConfig, u_max: float, du: float, time_budget_s: float
+    model: ControlModel,
+    cfg: ControlConfig,
+    u_max: float,
+    du: float,
+    time_budget_s: float,
+    b_v: float = math.nan,
+    saturated_v: float = math.nan,
 ) -> list[float]:
     """:data:`CONSTANTS`' values from the model and the configuration (``u_max`` V, ``du``
     V per period and the solve's ``time_budget_s`` s as the controller and its MPC have
-    them)."""
+    them; ``b_v`` its speed per volt over one step, m/s/V, ``saturated_v`` V, as the
+    controller's offset-free action has them)."""
     p, eff = model.params, model.effects
     named = {
         "R_m": p.R_m,
@@ -89,6 +114,18 @@ def constants(
         "aero_drag": eff.aero_drag,
         "has_load_force": 1.0 if _LOAD in torque_terms(eff) else 0.0,
         "load_force": eff.load_force,
+        # the controller's decisions before the solve (truckd_cycle_run)
+        "d_0": cfg.d_0,
+        "time_headway": cfg.time_headway,
+        "follow_window": cfg.follow_window,
+        "v_set": cfg.v_set,
+        "cruise_on_lead_lost": 1.0 if cfg.on_lead_lost == "cruise" else 0.0,
+        "hold_lead_speed": cfg.hold_lead_speed,
+        "hold_gap_tol": cfg.hold_gap_tol,
+        "disturbance_gain": cfg.disturbance_gain,
+        "disturbance_max": cfg.disturbance_max,
+        "b_v": b_v,
+        "saturated_v": saturated_v,
     }
     return [float(named[k]) for k in CONSTANTS]
 
@@ -136,6 +173,18 @@ class CompiledNumerics:
             raise RuntimeError(f"truckd_numerics_bind refused ({flag})")
         self._run = lib.truckd_numerics_run
         self._instance = cc.instance
+        self.decisions_in = np.zeros(8)
+        """``truckd_cycle_run``'s decisions' inputs (:meth:`run_cycle`)."""
+        self.decisions_out = np.zeros(4)
+        """``[mode (MODES), lead (1/0), gap_ref (m), disturbance (V)]`` it decided."""
+        self._pack_d = struct.Struct("=8d").pack_into
+        self._d_mv = self.decisions_in.data
+        flag = lib.truckd_cycle_bind(
+            cc.instance, int(self.decisions_in.ctypes.data), int(self.decisions_out.ctypes.data)
+        )
+        if flag != 0:
+            raise RuntimeError(f"truckd_cycle_bind refused ({flag})")
+        self._run_cycle = lib.truckd_cycle_run
 
     def run(
         self, mode: int, lead: bool, state: tuple[float, ...], v_lead: list[float]
@@ -150,10 +199,36 @@ class CompiledNumerics:
         res = self._mpc.compiled_outcome(int(self._run(self._instance, how)))
         return res, self.out.tolist()
 
+    def run_cycle(
+        self,
+        estimator: CompiledEstimator,
+        t: float,
+        encoders: Sequence[EncoderSample],
+        ranges: Sequence[RangeSample],
+        decisions: tuple[float, ...],
+    ) -> tuple[int, Estimate]:
+        """The estimator's update on the cycle's samples (at caller time ``t``, s), the
+        controller's decisions and :meth:`run`'s numerics in one call.  ``decisions``:
+        the time headway (s), the voltage acting now (V), the speed the last plan
+        expected (m/s, NaN: none), whether the last command was current-limited (1/0), the
+        voltage it was meant to apply (V), the highest voltage the driver applies (V), the
+        disturbance estimate (V), the winding's resistance over R_m.  Returns the call's
+        status (:data:`~truckd.control.ccycle.ESTIMATED`: only the estimate, the rest is
+        the Python controller's; else :meth:`outcome`'s) and the estimate."""
+        estimator.put(t, encoders, ranges)
+        self._pack_d(self._d_mv, 0, *decisions)
+        how = self._cc.how(0, False, self._mpc.has_warm_start) | 32
+        status = int(self._run_cycle(self._instance, how))
+        return status, estimator.read()
+
+    def outcome(self, status: int) -> tuple[MpcResult, list[float]]:
+        """The MPC's outcome of :meth:`run_cycle`'s solve and :attr:`out` (as :meth:`run`)."""
+        return self._mpc.compiled_outcome(status), self.out.tolist()
+
 
 def bind(
     mpc: MpcSolver, model: ControlModel, cfg: ControlConfig, u_max: float, du: float,
-    delay_steps: int,
+    delay_steps: int, b_v: float = math.nan, saturated_v: float = math.nan,
 ) -> tuple[CompiledNumerics | None, str]:  # fmt: skip
     """The compiled numerics for a controller's MPC solver, or None and why not (its MPC
     runs the Python path, or the model needs what only the Python path computes)."""
@@ -163,5 +238,5 @@ def bind(
     why = unsupported(model, delay_steps)
     if why:
         return None, why
-    consts = constants(model, cfg, u_max, du, mpc.cfg.time_budget_s)
+    consts = constants(model, cfg, u_max, du, mpc.cfg.time_budget_s, b_v, saturated_v)
     return CompiledNumerics(mpc, cc, consts), ""

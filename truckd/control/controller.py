@@ -16,8 +16,9 @@ import math
 from collections import deque
 from collections.abc import Sequence
 
-from truckd.control import cnumerics
+from truckd.control import ccycle, cestimator, cnumerics
 from truckd.control.config import ControlConfig
+from truckd.control.decisions import SATURATED_V, disturbance_update, hold_update, mode_of
 from truckd.control.effect_use import (
     DeadZoneLaw,
     Winding,
@@ -36,8 +37,7 @@ from truckd.control.output import ControlOutput
 from truckd.control.pipeline import predict_pipeline
 from truckd.control.qp import ControlModel, QpInputs
 
-SATURATED_V = 0.01
-"""A command this close to the driver's limit (V, the QP's accuracy) is at the limit."""
+__all__ = ["SATURATED_V", "Controller"]
 
 
 class Controller:
@@ -49,7 +49,12 @@ class Controller:
         self.model = model
         self.cfg = cfg
         self.mpc = MpcSolver(model, cfg)
-        self.estimator = Estimator(cfg.estimator, model.params.r_w, ticks_per_rev)
+        reference = Estimator(cfg.estimator, model.params.r_w, ticks_per_rev)
+        compiled, self._estimator_why = cestimator.bind(
+            self.mpc.compiled_cycle, cfg.estimator, reference.tick_len
+        )
+        self.estimator: Estimator | cestimator.CompiledEstimator = compiled or reference
+        """The estimator: compiled with the MPC's compiled cycle, else the Python one."""
         self._ticks_per_rev = ticks_per_rev
         sat = model.effects.voltage_saturation
         self.u_max = min(cfg.u_max, model.params.V_batt, sat if sat > 0.0 else math.inf)
@@ -78,13 +83,18 @@ class Controller:
         self.lead_speeds = LeadSpeeds(cfg, self.mpc.horizon)
         """The lead's speeds the MPC is given (:mod:`truckd.control.lead`)."""
         self._numerics, why = cnumerics.bind(
-            self.mpc, model, cfg, self.u_max, self._du, self._delay_steps
+            self.mpc, model, cfg, self.u_max, self._du, self._delay_steps, self._b_v, SATURATED_V
         )
         self._numerics_why = why
         # The driver's maps and the winding model the model has (fixed: those it lacks
         # pass the voltage through and are not called every cycle; the maps' own tests).
         self._sag, self._current_limit = not eff.battery_sag <= 0.0, not eff.current_limit <= 0.0
         self._dead_zone, self._drift = self.dead_zone.active, self.winding.active
+        self._fused: tuple[cnumerics.CompiledNumerics, cestimator.CompiledEstimator] | None = None
+        """The numerics and the estimator that run the estimator's update, the decisions
+        and the solve in one call (:meth:`step`); None: not for this model (:attr:`backend`)."""
+        if compiled is not None and self._numerics is not None and not self._drift:
+            self._fused = (self._numerics, compiled)
         self._forget()
 
     @property
@@ -94,8 +104,17 @@ class Controller:
         why = "the MPC's solve is wrapped" if "solve" in self.mpc.__dict__ else ""
         if self._numerics is None or why:
             why = why or self._numerics_why
-            return f"MPC {self.mpc.backend}; feedforward and command checks in Python ({why})"
-        return "compiled (MPC, feedforward and command checks in one call)"
+            e_why = self._estimator_why
+            est = f"estimator in Python ({e_why})" if e_why else "estimator compiled"
+            return (
+                f"MPC {self.mpc.backend}; feedforward and command checks in Python ({why}); {est}"
+            )
+        if self._fused is None:
+            return (
+                "compiled (MPC, feedforward and command checks in one call; the estimator "
+                "in another: the winding model's resistance is Python's)"
+            )
+        return "compiled (estimator, decisions, MPC, feedforward and command checks in one call)"
 
     def _forget(self) -> None:
         """Set every state learned from past cycles to its start (the counters stay)."""
@@ -118,7 +137,7 @@ class Controller:
         """Estimated input-voltage disturbance (V), added to the feedforward."""
         self._v_expected = math.nan
         self.holding = False
-        """Standstill hold active (see :meth:`_update_hold`)."""
+        """Standstill hold active (see :func:`~truckd.control.decisions.hold_update`)."""
         self._release_cycles = 0
         self._limited = False
         """The last command was cut to the driver's current limit (no wind-up)."""
@@ -133,7 +152,13 @@ class Controller:
         """Forget the state learned from past cycles (after the loop stalled: it describes
         a world that has moved on): a new estimator, no MPC warm start, no held plan, no
         commands in the pipeline, no disturbance estimate, no standstill hold."""
-        self.estimator = Estimator(self.cfg.estimator, self.model.params.r_w, self._ticks_per_rev)
+        if isinstance(self.estimator, cestimator.CompiledEstimator):
+            self.estimator = self.estimator.fresh()  # the library's state starts again
+            self._fused = self._fused and (self._fused[0], self.estimator)
+        else:
+            self.estimator = Estimator(
+                self.cfg.estimator, self.model.params.r_w, self._ticks_per_rev
+            )
         self.mpc.restart()
         self._forget()
 
@@ -169,12 +194,29 @@ class Controller:
         feedback (NaN: none), used by the battery sag map.
         """
         self.current, self.vbat = current, vbat
-        for e in encoders:
-            self.estimator.update_encoders(t, e)
-        for r in ranges:
-            v_now, _ = self.estimator.speed(t)
-            self.estimator.update_range(t, r, v_now)
-        return self.control(self.estimator.estimate(t), v_lead_forecast, headway)
+        fused = None if self.holding or v_lead_forecast is not None else self._fused
+        if fused is None or "solve" in self.mpc.__dict__:
+            est = self.estimator.cycle(t, encoders, ranges)
+            return self.control(est, v_lead_forecast, headway)
+        # The estimator's update, the decisions and the solve in one compiled call; it
+        # stops after the estimate where the next decision is Python's (no valid speed,
+        # the standstill hold begins): control() goes on from there.
+        numerics, estimator = fused
+        h = self.cfg.time_headway if headway is None else headway
+        decisions = (
+            h, self._applied_prev(), self._v_expected, 1.0 if self._limited else 0.0,
+            self._wanted, self._u_hi(), self.disturbance_v, self._r_scale,
+        )  # fmt: skip
+        status, est = numerics.run_cycle(estimator, t, encoders, ranges, decisions)
+        if status == ccycle.ESTIMATED:
+            return self.control(est, v_lead_forecast, headway)
+        mode_code, lead, gap_ref, self.disturbance_v = numerics.decisions_out.tolist()
+        self._v_expected = math.nan  # (as control() sets it)
+        if lead != 1.0:
+            self.lead_speeds.reset_speed()
+        res, out = numerics.outcome(status)
+        mode = cnumerics.MODES[int(mode_code)]
+        return self._compiled_output(est, est.v, res, out, mode, gap_ref)
 
     def control(
         self,
@@ -190,11 +232,11 @@ class Controller:
         it drives the same spacing error without a new factorisation.
 
         The steps: the winding's thermal model (:meth:`_update_winding`); without a valid
-        speed the fallback; the standstill hold (:meth:`_update_hold`); the mode
-        (:meth:`_mode`); the offset-free action (:meth:`_update_disturbance`); the lead's
-        speeds (:class:`~truckd.control.lead.LeadSpeeds`); the plan and its first move
-        (:meth:`_solve`), made a command by :meth:`_finish` (breakaway, limits, the
-        driver's maps); or both at once compiled (:meth:`_solve_compiled`).
+        speed the fallback; the standstill hold, the mode and the offset-free action
+        (:mod:`truckd.control.decisions`); the lead's speeds (:mod:`truckd.control.lead`);
+        the plan and its first move (:meth:`_solve`), made a command by :meth:`_finish`
+        (breakaway, limits, the driver's maps); or both at once compiled
+        (:meth:`_solve_compiled`).
         """
         cfg = self.cfg
         v = est.v if math.isfinite(est.v) else 0.0
@@ -207,26 +249,21 @@ class Controller:
         lead = est.lead_valid and math.isfinite(est.gap) and math.isfinite(est.v_lead)
         h = cfg.time_headway if headway is None else headway
         gap_ref = cfg.d_0 + h * v if lead else math.nan
-        if self._update_hold(est, v, lead):
+        self.holding, self._release_cycles = hold_update(
+            cfg, self.holding, self._release_cycles, est, v, lead
+        )
+        if self.holding:
             return self._hold(est, v, gap_ref)
-        mode, v_ref = self._mode(est, lead, gap_ref)
-        self._update_disturbance(v)
+        mode, v_ref = mode_of(cfg, est, lead, gap_ref)
+        expected, self._v_expected = self._v_expected, math.nan
+        self.disturbance_v = disturbance_update(
+            cfg, self.disturbance_v, expected, v, self._limited, self._wanted, self.u_max,
+            self._u_hi(), self._b_v,
+        )  # fmt: skip
         n_pipe = self._pipeline_steps() if self._delay_steps > 0 else 0
         v_lead_all = self.lead_speeds.speeds(est, forecast, mode, lead, n_pipe)
         gap = est.gap - (h - cfg.time_headway) * v if lead else 0.0
         return self._solve(est, v, gap, v_lead_all, n_pipe, (mode, v_ref, lead), gap_ref)
-
-    def _mode(self, est: Estimate, lead: bool, gap_ref: float) -> tuple[str, float]:
-        """The MPC's mode and speed reference (m/s): follow a lead that is near and either
-        slower than the set speed or too close; otherwise cruise at the set speed (the
-        minimum gap is still a constraint), or stop without a lead when so configured."""
-        cfg = self.cfg
-        near = lead and est.gap - gap_ref < cfg.follow_window
-        if near and (est.v_lead <= cfg.v_set or est.gap < gap_ref):
-            return "follow", cfg.v_set
-        if lead or cfg.on_lead_lost == "cruise":
-            return "cruise", cfg.v_set
-        return "stop", 0.0
 
     def _solve(
         self,
@@ -292,7 +329,21 @@ class Controller:
         mode, v_ref, lead = how
         applied = self._applied_prev()
         state = (v, gap, applied, self.disturbance_v, self._r_scale, self._u_hi(), v_ref)
-        res, (u, ff, acting, finished) = self._numerics.run(mode != "follow", lead, state, v_lead)
+        res, out = self._numerics.run(mode != "follow", lead, state, v_lead)
+        return self._compiled_output(est, v, res, out, mode, gap_ref)
+
+    def _compiled_output(
+        self,
+        est: Estimate,
+        v: float,
+        res: MpcResult,
+        out: list[float],
+        mode: str,
+        gap_ref: float,
+    ) -> ControlOutput:
+        """The output of the compiled numerics' cycle: ``out`` their command, feedforward,
+        voltage acting (V) and finished flag; a failed solve goes to :meth:`_fallback`."""
+        u, ff, acting, finished = out
         if res.ok and finished != 1.0:  # the call and the outcome disagree: never its command
             res = dataclasses.replace(res, ok=False, status="unfinished")
         if not res.ok:
@@ -380,34 +431,6 @@ class Controller:
         c = -u_max if -u_max > c else c
         return u_max if u_max < c else c
 
-    def _update_hold(self, est: Estimate, v: float, lead: bool) -> bool:
-        """Standstill hold, as an ACC holds the car behind a stopped lead.
-
-        Entered at rest (``|v| <= moving_speed``) behind a lead no faster than
-        ``hold_lead_speed`` with the gap at most ``d_0 + hold_gap_tol``; left only when the
-        lead is faster than ``hold_release_speed`` or the gap exceeds ``d_0 +
-        hold_release_gap`` (both above the entry thresholds) for ``hold_release_cycles``
-        consecutive cycles (the lead-speed estimate is noisy at rest): no chatter.  A lead
-        lost while holding keeps the hold: it was last seen stopped just ahead.
-        """
-        cfg = self.cfg
-        if self.holding:
-            going = lead and (
-                est.v_lead > cfg.hold_release_speed or est.gap > cfg.d_0 + cfg.hold_release_gap
-            )
-            self._release_cycles = self._release_cycles + 1 if going else 0
-            if self._release_cycles >= cfg.hold_release_cycles:
-                self.holding = False
-                self._release_cycles = 0
-        elif (
-            lead
-            and abs(v) <= cfg.moving_speed
-            and est.v_lead <= cfg.hold_lead_speed
-            and est.gap <= cfg.d_0 + cfg.hold_gap_tol
-        ):
-            self.holding = True
-        return self.holding
-
     def _hold(self, est: Estimate, v: float, gap_ref: float) -> ControlOutput:
         """0 V, no MPC solve: the truck stands on stiction.  Solving would cost a QP per
         cycle whose answer is not used, and a plan of standing still is no warm start for
@@ -418,30 +441,6 @@ class Controller:
         self._v_expected = math.nan
         self.mpc.reset()
         return self._finish(est, v, 0.0, 0.0, "hold", None, "not-run", 0, 0.0, gap_ref)
-
-    def _update_disturbance(self, v: float) -> float:
-        """Offset-free action (``disturbance_gain`` > 0): the voltage the model lacks.
-
-        The speed the last plan expected now minus the speed measured, divided by the
-        model's speed-per-volt over one step, is an input-voltage disturbance; a slow
-        integrator (gain per cycle) estimates it and the feedforward adds it.  Frozen at
-        rest (stiction, not a disturbance), after fallbacks (no plan expected anything) and
-        while the last command was at the driver's limit (no wind-up).
-        """
-        gain = self.cfg.disturbance_gain
-        expected, self._v_expected = self._v_expected, math.nan
-        w = self._wanted  # at the driver's limit the model's error is no disturbance
-        if (
-            gain > 0.0
-            and not self._limited
-            and math.isfinite(expected)
-            and abs(v) > self.cfg.moving_speed
-            and -self.u_max + SATURATED_V < w < self._u_hi() - SATURATED_V
-        ):
-            self.disturbance_v += gain * (expected - v) / self._b_v
-            limit = self.cfg.disturbance_max
-            self.disturbance_v = min(max(self.disturbance_v, -limit), limit)
-        return self.disturbance_v
 
     def _feedforward(self, v: float, x: float) -> float:
         """The feedforward voltage (V) at speed v (m/s), road position x (m): friction

@@ -30,6 +30,7 @@ reading has been accepted for ``lead_timeout_s``.  Pure numerics: times are pass
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 from truckd.control.config import EstimatorConfig
@@ -351,6 +352,18 @@ class Estimator:
             # Behind the last one: the firmware's clock restarted (or one sample came out
             # of order): predict from here on, not never again.
             ld.t_mcu = t_mcu
+
+    def cycle(
+        self, t: float, encoders: Sequence[EncoderSample], ranges: Sequence[RangeSample]
+    ) -> Estimate:
+        """A cycle's samples (oldest first) received at caller time t (s): the encoders,
+        then the ranges (each with the own speed as it stands), then :meth:`estimate`.
+        The reference of the compiled update (:mod:`truckd.control.cestimator`)."""
+        for e in encoders:
+            self.update_encoders(t, e)
+        for r in ranges:
+            self.update_range(t, r, self._s.kf.x1)  # v_own: speed(t)'s
+        return self.estimate(t)
 
     def estimate(self, t: float) -> Estimate:
         """The state at caller time t (s): gap predicted to the latest encoder sample."""

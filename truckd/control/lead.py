@@ -48,6 +48,10 @@ class LeadSpeeds:
         self._v_lead_prev = math.nan
         self._a_lead = 0.0
 
+    def reset_speed(self) -> None:
+        """Forget the lead's last speed (as :meth:`speeds` does without a lead)."""
+        self._v_lead_prev = math.nan
+
     def speeds(
         self,
         est: Estimate,

@@ -321,13 +321,7 @@ class CompanionCycle:
         """The estimator as in :meth:`Controller.step` on this cycle's samples, the voltage
         from ``src`` (finite, within the controller's voltage limit), no MPC solve."""
         ctrl, s = self.controller, self.sensors
-        estimator = ctrl.estimator
-        for e in encoders:
-            estimator.update_encoders(t, e)
-        for r in ranges:
-            v_now, _ = estimator.speed(t)
-            estimator.update_range(t, r, v_now)
-        est = estimator.estimate(t)
+        est = ctrl.estimator.cycle(t, encoders, ranges)
         u = src(t, est, s)
         u = min(max(u, -self.u_max), self.u_max) if math.isfinite(u) else 0.0
         return ControlOutput(

@@ -7,12 +7,18 @@
  * truckd/control/qp.py (first_move_bounds, inputs_ok) and truckd/control/condensed.py
  * (gather): tests/test_cycle_numerics.py compares the commands of both paths.
  *
+ * truckd_cycle_run puts the estimator's update (estimator.c) and the controller's decisions
+ * before them in the same call: Controller.control's speed check, standstill hold entry,
+ * mode, offset-free action and the lead's speeds (truckd/control/lead.py), as in Python;
+ * a decision that only Python takes (no valid speed, the hold) returns after the estimate.
+ *
  * Every constant (the motor's, the limits, the tolerances) comes from Python when it binds
  * (truckd/control/cnumerics.py): none is written here.  Used only for models whose
  * feedforward has no torque terms but aero drag and a constant load (no terrain, no
  * Stribeck curve), without an input delay and without the driver's maps
  * (the controller checks; the others run in Python). */
 #include <math.h>
+#include <stddef.h>
 #include <stdint.h>
 
 #include "instances.h"
@@ -38,6 +44,17 @@ enum {
     C_AERO,        /* its coefficient (N/(m/s)^2) */
     C_HAS_LOAD,    /* the feedforward has the constant load term (1) or not (0) */
     C_LOAD,        /* its force (N) */
+    C_D0,          /* d_0 (m) */
+    C_HEADWAY,     /* time_headway, the QP's (s) */
+    C_WINDOW,      /* follow_window (m) */
+    C_V_SET,       /* v_set (m/s) */
+    C_CRUISE_LOST, /* on_lead_lost is cruise (1) or stop (0) */
+    C_HOLD_LEAD,   /* hold_lead_speed (m/s) */
+    C_HOLD_GAP,    /* hold_gap_tol (m) */
+    C_DIST_GAIN,   /* disturbance_gain (per cycle) */
+    C_DIST_MAX,    /* disturbance_max (V) */
+    C_B_V,         /* speed per volt over one step (m/s/V) */
+    C_SATURATED,   /* controller.SATURATED_V (V) */
     C_COUNT
 };
 
@@ -52,8 +69,10 @@ enum { NX = 3, N_SCALARS = 8 };
 
 static struct {
     double c[C_COUNT];
-    const double *in;
+    double *in; /* written by truckd_cycle_run's decisions */
     double *values, *out;
+    const double *d_in; /* the decisions' inputs and outputs (truckd_cycle_bind) */
+    double *d_out;
     const double *u, *info; /* the MPC cycle's plan and info (truckd_mpc_bind_io's) */
     int64_t horizon;
     int bound;
@@ -65,7 +84,7 @@ int64_t truckd_numerics_consts(void) { return C_COUNT; }
  * in (I_LEAD0 + horizon), values (the MPC cycle's inputs, NX + N_SCALARS + horizon), out
  * (4), the plan's u and the MPC cycle's info. */
 int64_t truckd_numerics_bind(int64_t inst, const double *consts, int64_t n_consts,
-                             const double *in, double *values, double *out, const double *u,
+                             double *in, double *values, double *out, const double *u,
                              const double *info, int64_t horizon) {
     if (inst < 0 || inst >= TRUCKD_MPC_INSTANCES || n_consts != C_COUNT || horizon < 1)
         return -1;
@@ -180,4 +199,98 @@ int64_t truckd_numerics_run(int64_t inst, int64_t how) {
     out[O_FF] = ff;
     out[O_FINISHED] = 1.0;
     return status;
+}
+
+/* The decisions' inputs (truckd_cycle_bind's d_in) and outputs (d_out), see
+ * truckd/control/cnumerics.py. */
+enum { D_HEADWAY, D_APPLIED, D_V_EXPECTED, D_LIMITED, D_WANTED, D_U_HI, D_DIST, D_R_SCALE };
+enum { DO_MODE, DO_LEAD, DO_GAP_REF, DO_DIST };
+enum { MODE_FOLLOW, MODE_CRUISE, MODE_STOP };
+
+/* The arrays of the decisions (owned by Python): d_in (8), d_out (4). */
+int64_t truckd_cycle_bind(int64_t inst, const double *d_in, double *d_out) {
+    if (inst < 0 || inst >= TRUCKD_MPC_INSTANCES || !NUM[inst].bound) return -1;
+    NUM[inst].d_in = d_in;
+    NUM[inst].d_out = d_out;
+    return 0;
+}
+
+/* Controller.control from the estimate to the numerics' inputs, when Python holds no
+ * standstill (the caller's condition): 0 when a decision is Python's (no valid speed,
+ * the hold entered), else 1 with in filled and d_out written.  The same comparisons, in
+ * the same order, as controller.py (control, _update_hold's entry, _mode,
+ * _update_disturbance) and lead.py (LeadSpeeds.speeds without a forecast or a delay). */
+static int decide(const double *c, const double *est, const double *d, double *in,
+                  double *d_out, int64_t n) {
+    double v = est[0];
+    if (!(est[1] != 0.0 && isfinite(v))) return 0; /* the speed fallback: Python's */
+    double e_gap = est[2], e_vl = est[3];
+    int lead = est[4] != 0.0 && isfinite(e_gap) && isfinite(e_vl);
+    double h = d[D_HEADWAY];
+    double gap_ref = lead ? c[C_D0] + h * v : NAN;
+    if (lead && fabs(v) <= c[C_MOVING] && e_vl <= c[C_HOLD_LEAD] &&
+        e_gap <= c[C_D0] + c[C_HOLD_GAP])
+        return 0; /* the hold begins: Python's */
+    int mode;
+    double v_ref = c[C_V_SET];
+    int near = lead && e_gap - gap_ref < c[C_WINDOW];
+    if (near && (e_vl <= c[C_V_SET] || e_gap < gap_ref))
+        mode = MODE_FOLLOW;
+    else if (lead || c[C_CRUISE_LOST] != 0.0)
+        mode = MODE_CRUISE;
+    else {
+        mode = MODE_STOP;
+        v_ref = 0.0;
+    }
+    /* _update_disturbance */
+    double dist = d[D_DIST], gain = c[C_DIST_GAIN], expected = d[D_V_EXPECTED];
+    double w = d[D_WANTED], u_hi = d[D_U_HI];
+    if (gain > 0.0 && d[D_LIMITED] == 0.0 && isfinite(expected) && fabs(v) > c[C_MOVING] &&
+        -c[C_U_MAX] + c[C_SATURATED] < w && w < u_hi - c[C_SATURATED]) {
+        dist += gain * (expected - v) / c[C_B_V];
+        double limit = c[C_DIST_MAX];
+        dist = -limit > dist ? -limit : dist; /* min(max(d, -limit), limit) */
+        dist = limit < dist ? limit : dist;
+    }
+    /* LeadSpeeds.speeds: the estimate held, in [0, cap]; 0 without a lead */
+    double vl = 0.0;
+    if (lead) {
+        double cap = mode == MODE_FOLLOW ? c[C_V_SET] : c[C_V_MAX];
+        vl = 0.0 > e_vl ? 0.0 : e_vl;
+        vl = cap < vl ? cap : vl;
+    }
+    in[I_V] = v;
+    in[I_GAP] = lead ? e_gap - (h - c[C_HEADWAY]) * v : 0.0;
+    in[I_APPLIED] = d[D_APPLIED];
+    in[I_DIST] = dist;
+    in[I_R_SCALE] = d[D_R_SCALE];
+    in[I_U_HI] = u_hi;
+    in[I_V_REF] = v_ref;
+    for (int64_t k = 0; k < n; ++k) in[I_LEAD0 + k] = vl;
+    d_out[DO_MODE] = mode;
+    d_out[DO_LEAD] = lead;
+    d_out[DO_GAP_REF] = gap_ref;
+    d_out[DO_DIST] = dist;
+    return 1;
+}
+
+/* One cycle in one call: the estimator's update (estimator.c), then, when how's bit 5 is
+ * set (Python holds no standstill, no forecast), the decisions and truckd_numerics_run
+ * (how's bits 3 and 4 as there; the mode and lead bits are decided here).  Returns
+ * TRUCKD_CYCLE_ESTIMATED when it stopped after the estimate (not asked further, or a
+ * decision that is Python's), else truckd_numerics_run's status; another negative
+ * number when the call itself is wrong. */
+int64_t truckd_cycle_run(int64_t inst, int64_t how) {
+    if (inst < 0 || inst >= TRUCKD_MPC_INSTANCES || how < 0 || how > 63) return -1;
+    int64_t r = truckd_estimator_cycle(inst);
+    if (r != 0) return r - 10;
+    if (!(how & 32)) return TRUCKD_CYCLE_ESTIMATED;
+    if (!NUM[inst].bound || NUM[inst].d_in == NULL) return -1;
+    const double *est = truckd_estimator_output(inst);
+    if (!decide(NUM[inst].c, est, NUM[inst].d_in, NUM[inst].in, NUM[inst].d_out,
+                NUM[inst].horizon))
+        return TRUCKD_CYCLE_ESTIMATED;
+    int64_t mode = NUM[inst].d_out[DO_MODE] == MODE_FOLLOW ? 0 : 1;
+    int64_t lead = NUM[inst].d_out[DO_LEAD] != 0.0;
+    return truckd_numerics_run(inst, mode | lead << 1 | (how & 24));
 }
