@@ -109,7 +109,7 @@ def tuned_control(
     return replace(control, r_du=control.r_du * gain**2, block_tau_fraction=MIXED_BLOCK_TAU)
 
 
-DIAGNOSED_DISTURBANCE_GAIN = 0.01
+DIAGNOSED_DISTURBANCE_GAIN = 0.03
 """``control.disturbance_gain`` (at least) of a controller on a diagnosed model: the
 offset-free action takes up what the diagnosis did not name (aero drag, small load forces,
 viscous friction folded into the back-EMF), which otherwise leaves each such truck a
