@@ -79,7 +79,7 @@ def test_drawn_trucks_drive_on_their_own_diagnosed_models(
     truth (the mass, resistance and inertia a voltage log cannot separate differ), and
     within :data:`FF_TOL` and :data:`DELAY_TOL_S` of it in what the log shows; the plant is
     the truth.  No collision, the minimum gap kept, every plan followed (CACC), and the
-    fleet test's bounds: spacing-error ratio at most 1.1 on the brake, 1 on the sine.
+    bounds the fleet test had: spacing-error ratio at most 1.1 on the brake, 1 on the sine.
     Three trucks, not the fleet test's ten: a diagnosis takes seconds, and with ten drawn
     trucks on their diagnosed models the ratios exceed these bounds (a load force or
     battery sag the diagnosis does not name; docs/platoon.md, "Drawn trucks on their
