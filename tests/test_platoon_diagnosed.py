@@ -20,6 +20,7 @@ from truckd.control.qp import ControlModel
 from truckd.modelfile import ModelFile
 from truckd.sim.closed_loop import SimSetup
 from truckd.sim.platoon import make_platoon_scenario, run_platoon
+from truckd.sim.platoon_truck import DIAGNOSED_DISTURBANCE_GAIN
 
 LINK: dict[str, Any] = {
     "loss": 0.3,
@@ -78,7 +79,7 @@ def test_drawn_trucks_drive_on_their_own_diagnosed_models(
     truth (the mass, resistance and inertia a voltage log cannot separate differ), and
     within :data:`FF_TOL` and :data:`DELAY_TOL_S` of it in what the log shows; the plant is
     the truth.  No collision, the minimum gap kept, every plan followed (CACC), and the
-    fleet test's bounds: spacing-error ratio at most 1.1 on the brake, 1 on the sine.
+    bounds the fleet test had: spacing-error ratio at most 1.1 on the brake, 1 on the sine.
     Three trucks, not the fleet test's ten: a diagnosis takes seconds, and with ten drawn
     trucks on their diagnosed models the ratios exceed these bounds (a load force or
     battery sag the diagnosis does not name; docs/platoon.md, "Drawn trucks on their
@@ -98,6 +99,9 @@ def test_drawn_trucks_drive_on_their_own_diagnosed_models(
         assert abs(q.R_m / p.R_m - 1.0) > 0.05 or abs(q.J_S / p.J_S - 1.0) > 0.05  # not the truth
         assert made.model.effects.input_delay == pytest.approx(diag["input_delay_s"])
         assert made.control.r_du != truth.control.r_du  # tuned to the diagnosed model
+        # the offset-free action takes up what the diagnosis did not name
+        assert made.control.disturbance_gain == DIAGNOSED_DISTURBANCE_GAIN > 0.0
+        assert truth.control.disturbance_gain == 0.0
         assert max(abs(e) for e in diag["feedforward_relerr"].values()) <= FF_TOL, diag
         assert abs(diag["tau_m_s"] / diag["tau_m_true_s"] - 1.0) <= FF_TOL, diag
         assert abs(diag["input_delay_s"] - diag["input_delay_true_s"]) <= DELAY_TOL_S, diag

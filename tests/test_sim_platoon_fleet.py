@@ -4,6 +4,7 @@ with drawn delays, unsynchronised clocks, trucks joining and leaving), in simula
 from __future__ import annotations
 
 import json
+import random
 from dataclasses import replace
 from pathlib import Path
 
@@ -17,7 +18,7 @@ from truckd.control.qp import ControlModel
 from truckd.sim import platoon
 from truckd.sim.closed_loop import SimSetup
 from truckd.sim.platoon import PREROLL_S, PlatoonTrace, make_platoon_scenario, run_platoon
-from truckd.sim.platoon_truck import scaled_truck
+from truckd.sim.platoon_truck import draw_platoon_truck, scaled_truck
 
 LINK = {"loss": 0.3, "delay_s": (0.0, 0.05), "clock_offset_s": 2.0, "clock_drift_ppm": 100.0}
 
@@ -48,9 +49,10 @@ def test_ten_drawn_trucks_on_lossy_links_with_their_own_clocks(name: str) -> Non
     a draw in 0-50 ms, each truck's clock off by up to 2 s and drifting by up to 100 ppm:
     no collision, the minimum gap kept, plans used (CACC) nearly throughout, and the
     disturbance does not grow down the platoon (acceleration ratios).  Spacing-error
-    ratios from the second follower on: at most 1 on the sine; on the brake at most 1.1
-    (a known gap, docs/platoon.md "Mixed trucks": 1.02 / 1.00 with this draw, 1.20 / 1.19
-    before the input blocks were fitted to each truck's mechanical time constant)."""
+    ratios from the second follower on at most 1 (brake 0.985 / 0.988, sine 0.874 /
+    0.906; on the brake 1.02 / 1.00 with a single truck's relative-speed weight, before
+    ``platoon.q_rel_speed``, and 1.20 / 1.19 before the input blocks were fitted to each
+    truck's mechanical time constant: docs/platoon.md)."""
     pcfg = _pcfg()
     m, _ = run_platoon(make_platoon_scenario(name), _setup(), pcfg, 10, mixed=True, seed=5, **LINK)
     assert not m["collision"]
@@ -61,8 +63,7 @@ def test_ten_drawn_trucks_on_lossy_links_with_their_own_clocks(name: str) -> Non
     assert min(m["cacc_fraction"]) > 0.9, m["cacc_fraction"]
     assert len(m["accel_ratio_l2"]) == 8
     assert max(m["accel_ratio_l2"] + m["accel_ratio_max"]) <= 1.0, m
-    bound = 1.0 if name == "platoon-sine" else 1.1
-    assert max(m["string_ratio_l2"] + m["string_ratio_max"]) <= bound, m
+    assert max(m["string_ratio_l2"] + m["string_ratio_max"]) <= 1.0, m
     assert sum(m["solver_failures"]) == 0
 
 
@@ -90,6 +91,40 @@ def test_a_quick_truck_behind_the_shipped_one_makes_no_larger_spacing_error(
     m, _ = run_platoon(sc, _setup(), _pcfg(), 3, mixed=True, duration=8.0)
     assert not m["collision"] and m["min_gap_m"] >= load_config().control.d_min
     assert (max(m["string_ratio_l2"] + m["string_ratio_max"]) <= 1.0) == stable, m
+
+
+@pytest.mark.parametrize(("q_rel", "bound"), [(None, 1.02), (5.0, None)])
+def test_a_drawn_trucks_own_spacing_error_area_is_the_configured_trucks(
+    monkeypatch: pytest.MonkeyPatch, q_rel: float | None, bound: float | None
+) -> None:
+    """The spacing-error area (``integral of e dt`` from 3 s, the brake's) a truck makes
+    behind the configured truck sets the low-frequency ratio of its pair: a truck that
+    makes more than the truck ahead gives a ratio above 1 anywhere in a long platoon
+    (docs/platoon.md).  Truck 2 of seed 1's draw (viscous friction, 0.64x the mass)
+    behind two configured trucks, ideal link: with the platoon's relative-speed weight
+    (``platoon.q_rel_speed``, the follower's speed following its predecessor's plan)
+    its area is within 2 % of truck 1's (1.018); with a single truck's weight (5, the
+    control experiment) 12 % larger (1.117)."""
+    kinds = iter([False, False, True])
+
+    def truck(s: SimSetup, _rng: object) -> SimSetup:
+        if not next(kinds):
+            return scaled_truck(s, 1.0, 1.0)
+        rng = random.Random(1)
+        return [draw_platoon_truck(s, rng) for _ in range(3)][2]
+
+    monkeypatch.setattr(platoon, "draw_platoon_truck", truck)
+    pcfg = load_config().platoon
+    if q_rel is not None:
+        pcfg = replace(pcfg, q_rel_speed=q_rel)
+    _m, tr = run_platoon(make_platoon_scenario("platoon-brake"), _setup(), pcfg, 3, mixed=True)
+    t = np.asarray(tr.t)
+    err = (np.asarray(tr.gap) - np.asarray(tr.gap_ref))[t >= 3.0]
+    ratio = float(err[:, 2].sum() / err[:, 1].sum())
+    if bound is not None:
+        assert ratio <= bound, ratio
+    else:
+        assert ratio > 1.08, ratio
 
 
 def test_identical_trucks_ride_out_bursts_of_lost_plans_string_stable() -> None:

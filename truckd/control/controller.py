@@ -373,11 +373,12 @@ class Controller:
 
     def _keep_plan(self, res: MpcResult) -> None:
         """A usable solve's plan (V, Python floats), held for the cycles it may stand in
-        for, and the speed it expects next (m/s)."""
+        for, and the speed expected one period from now (m/s): with an input delay the
+        pipeline's prediction, the plan starting where its first move acts."""
         assert res.u is not None and res.v is not None
         self._plan = res.u.tolist()
         self._plan_age = 0
-        self._v_expected = float(res.v[1])
+        self._v_expected = [*self.pipeline_v, float(res.v[0]), float(res.v[1])][1]
 
     def _update_winding(self, v: float) -> None:
         """One period of the winding's thermal model (``resistance_drift``) at the current

@@ -120,6 +120,17 @@ class PlatoonConfig:
         "assumed synchronised)",
         default=True,
     )
+    q_rel_speed: float = spec(
+        "a follower's MPC weight on (v - v_lead)^2 (control.q_rel_speed of a truck in a "
+        "platoon, the lead's included in truckd sim): higher than a single truck's, so a "
+        "follower's speed follows the predecessor's plan and the headway is regained by "
+        "the gap term; the spacing error a speed change leaves is then set by the headway, "
+        "alike for every truck, rather than by each truck's own dynamics and model",
+        unit="s^2/m^2",
+        lo=0.0,
+        hi=1e9,
+        default=15.0,
+    )
     comfort_decel: float = spec(
         "the hardest braking allowed while a gap opens (ACC fallback, room for a "
         "joining truck, a new predecessor); the headway ramp (headway_rate) stays "
@@ -141,13 +152,20 @@ class PlatoonConfig:
         return None
 
 
+def follower_control(control: ControlConfig, cfg: PlatoonConfig) -> ControlConfig:
+    """The controller configuration of a truck that follows another in a platoon: its MPC
+    is built for the CACC headway (the ACC headway is driven by the controller's gap
+    shift, see :meth:`~truckd.control.controller.Controller.control`) and with the
+    platoon's weight on the relative speed (``q_rel_speed``)."""
+    return replace(control, time_headway=cfg.cacc_headway, q_rel_speed=cfg.q_rel_speed)
+
+
 def platoon_control(control: ControlConfig, cfg: PlatoonConfig) -> ControlConfig:
-    """The controller configuration of a truck in a platoon: a follower's MPC is built
-    for the CACC headway (the ACC headway is driven by the controller's gap shift, see
-    :meth:`~truckd.control.controller.Controller.control`); others keep theirs."""
+    """The controller configuration of a truck in a platoon: a follower's is
+    :func:`follower_control`'s; others keep theirs."""
     if not cfg.predecessor:
         return control
-    return replace(control, time_headway=cfg.cacc_headway)
+    return follower_control(control, cfg)
 
 
 @fast_init

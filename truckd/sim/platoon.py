@@ -42,7 +42,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import replace
 from typing import Any
 
-from truckd.control.platoon import ACC, CACC, PlatoonConfig, make_plan
+from truckd.control.platoon import ACC, CACC, PlatoonConfig, follower_control, make_plan
 from truckd.runtime.platoon_link import cycle_plan
 from truckd.sim.closed_loop import SimSetup
 from truckd.sim.plan_channel import LinkConfig, PlanChannel
@@ -121,7 +121,9 @@ def run_platoon(
     ``trucks_diagnosed``), else a drawn truck's controller has its true parameters.
 
     The controllers' configured headway is the CACC headway (their QP is built for it;
-    the ACC headway is driven by the gap shift, see :meth:`Controller.control`).  The
+    the ACC headway is driven by the gap shift, see :meth:`Controller.control`), their
+    relative-speed weight the platoon's (:func:`follower_control`, every truck's, the
+    lead's included: it follows the scenario's virtual vehicle).  The
     trucks' dead time is the scenario's ``input_delay`` unless the plant's is larger; the
     controllers' model knows it.
 
@@ -130,7 +132,7 @@ def run_platoon(
     low = MIN_TRUCKS.get(sc.kind, 2)
     if not low <= n_trucks <= MAX_TRUCKS:
         raise ValueError(f"{sc.name}: a platoon has {low} to {MAX_TRUCKS} trucks, got {n_trucks}")
-    cfg = replace(setup.control, time_headway=pcfg.cacc_headway)
+    cfg = follower_control(setup.control, pcfg)
     setup = replace(setup, control=cfg)
     rng = random.Random(seed)
     setups = [draw_platoon_truck(setup, rng) if mixed else setup for _ in range(n_trucks)]

@@ -109,12 +109,20 @@ def tuned_control(
     return replace(control, r_du=control.r_du * gain**2, block_tau_fraction=MIXED_BLOCK_TAU)
 
 
+DIAGNOSED_DISTURBANCE_GAIN = 0.03
+"""``control.disturbance_gain`` (at least) of a controller on a diagnosed model: the
+offset-free action takes up what the diagnosis did not name (aero drag, small load forces,
+viscous friction folded into the back-EMF), which otherwise leaves each such truck a
+spacing offset of its own that changes with its speed (docs/platoon.md)."""
+
+
 def on_model(base: SimSetup, truck: SimSetup, model: ControlModel) -> SimSetup:
-    """``truck`` (its plant stays) with its controller on ``model``, tuned to that model
-    (:func:`tuned_control` from ``base``'s configuration and truck)."""
-    return replace(
-        truck, control=tuned_control(base.control, base.plant_params, model.params), model=model
-    )
+    """``truck`` (its plant stays) with its controller on ``model`` (a diagnosed one), tuned
+    to that model (:func:`tuned_control` from ``base``'s configuration and truck), with the
+    offset-free action on (:data:`DIAGNOSED_DISTURBANCE_GAIN`)."""
+    control = tuned_control(base.control, base.plant_params, model.params)
+    gain = max(control.disturbance_gain, DIAGNOSED_DISTURBANCE_GAIN)
+    return replace(truck, control=replace(control, disturbance_gain=gain), model=model)
 
 
 class PlanSource:
