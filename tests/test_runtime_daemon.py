@@ -103,12 +103,16 @@ def test_in_process_run_records_a_contract_log(tmp_path: Path) -> None:
     assert d.recorder is not None and d.recorder.path is not None
     log = read_log(d.recorder.path, require=("t", "u", "v"))
     n = d.rk.cycles
-    assert len(log) == n and n >= 150  # nothing lost; most of 200 cycles on a busy machine
+    assert len(log) == n  # nothing lost: a row for every cycle run
+    assert n + d.rk.skipped_periods >= 195  # every period of the 2 s run, or counted skipped
     assert np.all(np.diff(log["t"]) > 0)
     assert np.all(np.abs(log["u"]) <= d.u_max)
     assert MODE_CODE[Mode.ACTIVE] in set(log["mode"].astype(int))
     assert log["v"].max() > 0.3  # it drove
-    assert d.decision.mode in (Mode.ACTIVE, Mode.DEGRADED)  # DEGRADED: a late solve
+    # DEGRADED: a late solve; INIT only when the host stalled the loop (counted, and the
+    # supervisor's cause), the designed reaction to a stall
+    stalled = d.companion.stalls > 0 and "loop_stall" in d.decision.causes
+    assert d.decision.mode in (Mode.ACTIVE, Mode.DEGRADED) or stalled, d.decision
 
 
 def test_sigterm_stops_cleanly_with_exit_0(tmp_path: Path) -> None:
