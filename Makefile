@@ -35,22 +35,17 @@ lint: setup-dev
 
 # Installs nothing outside .venv: a test whose tool is missing (arm-none-eabi-gcc,
 # systemd-analyze) is skipped with the reason in the summary; .ci/run installs them.
-# The tests with real-time processes (marker hil) run at normal priority. Beside them, on
-# one worker, run the diagnosis tests (CPU only: no process, no clock) as idle-class work
-# (SCHED_IDLE where chrt exists, and nice 19): one core stays free and a real-time process
-# that wakes takes the other at once. The other tests follow on both cores. The HIL tests'
-# output (out/test-hil.log) comes last.
+# The tests with real-time processes (marker hil) run at normal priority; the others run
+# beside them on both cores as idle-class work (SCHED_IDLE where chrt exists, and nice 19):
+# they take only the CPU time the real-time processes leave, and give it back at once when
+# one wakes. The HIL tests' output (out/test-hil.log) follows the others'.
 IDLE := $(shell command -v chrt >/dev/null 2>&1 && echo chrt --idle 0) nice -n 19
-BESIDE_HIL := $(wildcard tests/test_diagnose_*.py tests/test_ident_*.py) tests/test_terrain.py \
-	tests/test_emps.py tests/test_platoon_diagnosed.py
 test: lint firmware
 	@mkdir -p out
 	@$(BIN)/pytest -q -m hil -p no:cacheprovider >out/test-hil.log 2>&1 & hil=$$!; \
-	$(IDLE) $(BIN)/pytest -q -m 'not hil' -p no:cacheprovider $(BESIDE_HIL); a=$$?; \
-	wait $$hil; h=$$?; \
-	$(BIN)/pytest -q -m 'not hil' -n 2 --dist loadfile $(addprefix --ignore=,$(BESIDE_HIL)); b=$$?; \
-	echo "--- HIL tests (real-time processes, out/test-hil.log)"; cat out/test-hil.log; \
-	test $$a -eq 0 -a $$b -eq 0 -a $$h -eq 0
+	$(IDLE) $(BIN)/pytest -q -m 'not hil' -n 2 --dist loadfile; unit=$$?; \
+	wait $$hil; h=$$?; echo "--- HIL tests (real-time processes, out/test-hil.log)"; \
+	cat out/test-hil.log; test $$unit -eq 0 -a $$h -eq 0
 
 bench: setup-dev
 	$(BIN)/python benchmarks/run_all.py
