@@ -36,14 +36,12 @@ lint: setup-dev
 # Installs nothing outside .venv: a test whose tool is missing (arm-none-eabi-gcc,
 # systemd-analyze) is skipped with the reason in the summary; .ci/run installs them.
 # The tests with real-time processes (marker hil) run at normal priority; the others run
-# beside them on both cores as idle-class work (SCHED_IDLE where chrt exists, and nice 19):
-# they take only the CPU time the real-time processes leave, and give it back at once when
-# one wakes. The HIL tests' output (out/test-hil.log) follows the others'.
-IDLE := $(shell command -v chrt >/dev/null 2>&1 && echo chrt --idle 0) nice -n 19
+# beside them on both cores at the lowest priority (nice 19), in the CPU time the
+# real-time processes leave. The HIL tests' output (out/test-hil.log) follows the others'.
 test: lint firmware
 	@mkdir -p out
 	@$(BIN)/pytest -q -m hil -p no:cacheprovider >out/test-hil.log 2>&1 & hil=$$!; \
-	$(IDLE) $(BIN)/pytest -q -m 'not hil' -n 2 --dist loadfile; unit=$$?; \
+	nice -n 19 $(BIN)/pytest -q -m 'not hil' -n 2 --dist loadfile; unit=$$?; \
 	wait $$hil; h=$$?; echo "--- HIL tests (real-time processes, out/test-hil.log)"; \
 	cat out/test-hil.log; test $$unit -eq 0 -a $$h -eq 0
 
