@@ -35,15 +35,10 @@ lint: setup-dev
 
 # Installs nothing outside .venv: a test whose tool is missing (arm-none-eabi-gcc,
 # systemd-analyze) is skipped with the reason in the summary; .ci/run installs them.
-# The tests with real-time processes (marker hil) run at normal priority; the others run
-# beside them on both cores at the lowest priority (nice 19), in the CPU time the
-# real-time processes leave. The HIL tests' output (out/test-hil.log) follows the others'.
+# The tests with real-time processes (marker hil) run alone, the others on both cores.
 test: lint firmware
-	@mkdir -p out
-	@$(BIN)/pytest -q -m hil -p no:cacheprovider >out/test-hil.log 2>&1 & hil=$$!; \
-	nice -n 19 $(BIN)/pytest -q -m 'not hil' -n 2 --dist loadfile; unit=$$?; \
-	wait $$hil; h=$$?; echo "--- HIL tests (real-time processes, out/test-hil.log)"; \
-	cat out/test-hil.log; test $$unit -eq 0 -a $$h -eq 0
+	$(BIN)/pytest -q -m 'not hil' -n 2 --dist loadfile
+	$(BIN)/pytest -q -m hil
 
 bench: setup-dev
 	$(BIN)/python benchmarks/run_all.py
