@@ -272,7 +272,7 @@ def winding_rises(p: VehicleParams, eff: Effects, t: Array, i: Array, rise0: flo
 DRIVER_FIELDS = ("dead_zone", "dead_zone_offset", "voltage_saturation", "battery_sag")
 """The effects' fields :func:`truckd.model.effects.driver_output` reads (with the
 battery voltage; ``tests/test_ident_fastsim.py`` checks no other field changes it)."""
-_DRIVER: dict[tuple[object, ...], tuple[Array, Array | None, tuple[Array, Array]]] = {}
+_DRIVER: dict[tuple[object, ...], tuple[object, object, tuple[Array, Array]]] = {}
 
 
 def _driver(
@@ -283,14 +283,14 @@ def _driver(
     voltage and driver effects (:data:`DRIVER_FIELDS`): a fit that moves the motor's
     constants reuses it."""
     key = (id(u), id(u_hist), hist, p.V_batt, *[getattr(eff, n) for n in DRIVER_FIELDS])
-    hit = _DRIVER.get(key)
-    if hit is not None and hit[0] is u and hit[1] is u_hist:
-        return hit[2]
+    hit: tuple[Array, Array] | None = _timed(key, u, u_hist, _DRIVER)
+    if hit is not None:
+        return hit
     u_all = np.asarray(u, float) if not hist else np.concatenate([u_hist, u])
     out = driver_output(u_all, eff, p.V_batt, ARRAYS)
     for arr in out:
         arr.flags.writeable = False  # shared by the runs that hit the cache
-    _put(_DRIVER, key, (u, u_hist, out), PREP_CACHE)
+    _keep(key, u, u_hist, out, _DRIVER, PREP_CACHE)
     return out
 
 
@@ -378,15 +378,15 @@ def _simulate(
 TIMING_CACHE = 64
 """Series whose timing (the timeline of a delay, the command active at each sample) is
 kept: it depends only on the instants and the delay, not on any other parameter."""
-_TIMING: dict[tuple[object, ...], tuple[Array, Array | None, Any]] = {}
+_TIMING: dict[tuple[object, ...], tuple[object, object, Any]] = {}
 
 
 def _timed(
-    key: tuple[object, ...], t: Array, t_hist: Array | None, cache: dict[Any, Any] = _TIMING
+    key: tuple[object, ...], t: object, t_hist: object, cache: dict[Any, Any] = _TIMING
 ) -> Any:
-    """The value ``cache`` (default :data:`_TIMING`) holds under ``key`` for the arrays
-    ``t``, ``t_hist`` (the cache holds them, so an identity is not reused while cached),
-    None when not cached."""
+    """The value ``cache`` (default :data:`_TIMING`) holds under ``key`` for the objects
+    ``t``, ``t_hist`` (arrays, a timing; the cache holds them, so an identity is not
+    reused while cached), None when not cached."""
     hit = cache.get(key)
     if hit is not None and hit[0] is t and hit[1] is t_hist:
         return hit[2]
@@ -395,8 +395,8 @@ def _timed(
 
 def _keep(
     key: tuple[object, ...],
-    t: Array,
-    t_hist: Array | None,
+    t: object,
+    t_hist: object,
     value: Any,
     cache: dict[Any, Any] = _TIMING,
     most: int = TIMING_CACHE,
@@ -477,7 +477,7 @@ def _active(t: Array, t_hist: Array | None, hist: int, delay: float) -> Active:
 SAMPLED_CACHE = 16
 """Runs whose per-sample command voltages and settling factors are kept: a fit's runs
 that change only friction, loads or lag share them."""
-_SAMPLED: dict[tuple[object, ...], tuple[tuple[object, ...], tuple[Array, Array]]] = {}
+_SAMPLED: dict[tuple[object, ...], tuple[object, object, Any]] = {}
 
 
 def _sample_volts(idx: Active, volts: Array, v_pre: float) -> tuple[Array, Array]:
@@ -485,14 +485,14 @@ def _sample_volts(idx: Active, volts: Array, v_pre: float) -> tuple[Array, Array
     it (``v_pre`` where none is), kept per timing, command voltages and ``v_pre`` (the
     cache holds ``idx`` and ``volts``: an identity is not reused while cached)."""
     key = ("volts", id(idx), id(volts), v_pre)
-    hit = _SAMPLED.get(key)
-    if hit is not None and hit[0][0] is idx and hit[0][1] is volts:
-        return hit[1]
+    hit: tuple[Array, Array] | None = _timed(key, idx, volts, _SAMPLED)
+    if hit is not None:
+        return hit
     v_at = np.where(idx.on, volts[idx.at], v_pre)
     v_old = np.where(idx.prev_on, volts[idx.prev], v_pre)
     for arr in (v_at, v_old):
         arr.flags.writeable = False  # shared by the runs that hit the cache
-    _put(_SAMPLED, key, ((idx, volts), (v_at, v_old)), SAMPLED_CACHE)
+    _keep(key, idx, volts, (v_at, v_old), _SAMPLED, SAMPLED_CACHE)
     return v_at, v_old
 
 
@@ -500,12 +500,12 @@ def _settling(idx: Active, r: float, inductance: float) -> Array:
     """``exp(-since r / L)``: what is left at each sample of the current's step at the
     last command (``r`` ohm, ``inductance`` H), kept per timing, ``r`` and ``L``."""
     key = ("settle", id(idx), r, inductance)
-    hit = _SAMPLED.get(key)
-    if hit is not None and hit[0][0] is idx:
-        return hit[1][0]
+    hit: Array | None = _timed(key, idx, None, _SAMPLED)
+    if hit is not None:
+        return hit
     settle = np.exp(idx.neg_since * r / inductance)
     settle.flags.writeable = False
-    _put(_SAMPLED, key, ((idx,), (settle, settle)), SAMPLED_CACHE)
+    _keep(key, idx, None, settle, _SAMPLED, SAMPLED_CACHE)
     return settle
 
 
