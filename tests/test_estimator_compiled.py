@@ -9,17 +9,24 @@ compiled estimator differs; without the library the estimator is Python's and sa
 from __future__ import annotations
 
 import dataclasses
-import gc
 import math
 import random
 from pathlib import Path
 
 import numpy as np
 import pytest
-from test_cycle_numerics import DATA, TICKS, _counted, _python_controller, _same
+from test_cycle_numerics import (  # noqa: F401 - the autouse fixture applies here too
+    DATA,
+    TICKS,
+    _counted,
+    _python_controller,
+    _same,
+    _trouble,
+    garbage_solvers_give_theirs_back,
+    needs_library,
+)
 
 from truckd.config.truck import load_config
-from truckd.control import ccycle
 from truckd.control import mpc as mpc_module
 from truckd.control.cestimator import CONSTANTS, CompiledEstimator, constants
 from truckd.control.config import ControlConfig
@@ -30,17 +37,6 @@ from truckd.control.output import ControlOutput
 from truckd.control.qp import ControlModel
 from truckd.runtime.replay import cycle_from_params
 from truckd.runtime.rxlog import read_rx_log
-
-needs_library = pytest.mark.skipif(
-    ccycle.library()[0] is None, reason="compiled MPC cycle not built (make firmware)"
-)
-
-
-@pytest.fixture(autouse=True)
-def garbage_solvers_give_theirs_back() -> None:
-    """Solvers earlier tests left as garbage give their compiled instances back."""
-    gc.unfreeze()
-    gc.collect()
 
 
 def _differences(a: Estimate, b: Estimate) -> list[str]:
@@ -178,29 +174,12 @@ def test_the_comparison_fails_where_the_compiled_estimator_differs() -> None:
     assert len(differ) > 100
 
 
-def _poke(ctrl: Controller, k: int) -> None:
-    """Solves that run out of iterations, then non-finite values where the controller
-    keeps them (the previous command, the disturbance estimate, the winding's
-    resistance) and back."""
-    ctrl.mpc.set_max_iter(2 if 40 <= k < 46 else ctrl.cfg.max_iter)
-    if k in (60, 61):
-        ctrl.u_prev = (math.nan, math.inf)[k - 60]
-    if k == 80:
-        ctrl.disturbance_v = math.nan
-    if k == 81:
-        ctrl.disturbance_v = 0.0
-    if k == 90:
-        ctrl._r_scale = math.inf
-    if k == 91:
-        ctrl._r_scale = 1.0
-
-
 def _drive(
     ctrls: tuple[Controller, Controller], n: int, trouble: bool
 ) -> list[tuple[ControlOutput, ControlOutput]]:
     """A drive through both controllers' step on the same encoder and range samples (the
     truck moved by the first one's commands): a lead that stops (the standstill hold),
-    goes and disappears for a while; ``trouble``: :func:`_poke`."""
+    goes and disappears for a while; ``trouble``: :func:`test_cycle_numerics._trouble`."""
     rng = np.random.default_rng(5)
     tick_len = ctrls[0].estimator.tick_len
     v, x, x_lead, out = 0.0, 0.0, 1.2, []
@@ -217,7 +196,7 @@ def _drive(
         pair = []
         for ctrl in ctrls:
             if trouble:
-                _poke(ctrl, k)
+                _trouble(ctrl, k)
             pair.append(ctrl.step(t, enc, rngs, None, headway))
         o = pair[0]
         out.append((pair[0], pair[1]))
