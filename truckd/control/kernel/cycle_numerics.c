@@ -218,8 +218,8 @@ int64_t truckd_cycle_bind(int64_t inst, const double *d_in, double *d_out) {
 /* Controller.control from the estimate to the numerics' inputs, when Python holds no
  * standstill (the caller's condition): 0 when a decision is Python's (no valid speed,
  * the hold entered), else 1 with in filled and d_out written.  The same comparisons, in
- * the same order, as controller.py (control, _update_hold's entry, _mode,
- * _update_disturbance) and lead.py (LeadSpeeds.speeds without a forecast or a delay). */
+ * the same order, as controller.py (control) and decisions.py (hold_update's entry, mode_of,
+ * disturbance_update) and lead.py (LeadSpeeds.speeds without a forecast or a delay). */
 static int decide(const double *c, const double *est, const double *d, double *in,
                   double *d_out, int64_t n) {
     double v = est[0];
@@ -242,7 +242,7 @@ static int decide(const double *c, const double *est, const double *d, double *i
         mode = MODE_STOP;
         v_ref = 0.0;
     }
-    /* _update_disturbance */
+    /* disturbance_update */
     double dist = d[D_DIST], gain = c[C_DIST_GAIN], expected = d[D_V_EXPECTED];
     double w = d[D_WANTED], u_hi = d[D_U_HI];
     if (gain > 0.0 && d[D_LIMITED] == 0.0 && isfinite(expected) && fabs(v) > c[C_MOVING] &&
