@@ -16,14 +16,8 @@ from labkit.synth import EFFECT_RANGES, excitation, plant_log
 
 from truckd.ident.candidates import voltage_candidates
 from truckd.ident.data import Series, series_from_log
-from truckd.ident.fastsim import (
-    DRIVER_FIELDS,
-    ForceModel,
-    simulate_force,
-    simulate_voltage,
-    timeline,
-    unsupported_effects,
-)
+from truckd.ident.fastsim import DRIVER_FIELDS, simulate_voltage, timeline, unsupported_effects
+from truckd.ident.forcerun import ForceModel, simulate_force
 from truckd.ident.voltage import predict
 from truckd.model.effects import ARRAYS, EFFECT_NAMES, Effects, driver_output
 from truckd.model.params import VehicleParams

@@ -21,8 +21,6 @@ from numpy.typing import NDArray
 
 from truckd.ident import ckernel
 from truckd.ident.data import Series
-from truckd.ident.forcerun import ForceModel as ForceModel  # re-exported
-from truckd.ident.forcerun import simulate_force as simulate_force
 from truckd.ident.freerun import GapRun, Stribeck, merge_equal
 from truckd.ident.freerun import Kinetics as Kinetics  # re-exported: the run's inputs
 from truckd.ident.freerun import Terrain as Terrain

@@ -1,5 +1,6 @@
 /* What the controller's numerics (cycle_numerics.c) call of the MPC's compiled cycle
- * (mpc_cycle.c) and of the estimator (estimator.c); truckd/control/ccycle.py checks TRUCKD_MPC_ABI against its own ABI. */
+ * (mpc_cycle.c) and of the estimator (estimator.c); truckd/control/ccycle.py checks
+ * TRUCKD_MPC_ABI against its own ABI. */
 #ifndef TRUCKD_MPC_CYCLE_H
 #define TRUCKD_MPC_CYCLE_H
 
