@@ -62,6 +62,20 @@ def test_forecast_is_shifted_by_the_plan_age() -> None:
     assert plan_speed(p, 5.005) == pytest.approx(0.05)
 
 
+@pytest.mark.parametrize("t", [4.0, 4.995, 5.0, 5.003, 5.2, 5.37, 5.4, 6.0])
+def test_forecast_is_the_plan_speed_at_each_step(t: float) -> None:
+    """lead_forecast repeats plan_speed's arithmetic inline: the same value, to the bit,
+    before, within and after a plan (held and braking ends)."""
+    plans = (
+        make_plan(5.0, 1, 0.01, [0.1 * k for k in range(41)]),
+        kinematic_plan(5.0, 1, 0.02, 1.0, -2.0, 20),
+    )
+    for p in plans:
+        for dt in (0.01, 0.007):
+            f = lead_forecast(p, t, dt, 40)
+            assert f == [plan_speed(p, t + k * dt) for k in range(40)]
+
+
 def test_forecast_past_the_plan_end_holds_or_keeps_braking() -> None:
     cruise = make_plan(0.0, 1, 0.1, [1.0, 1.1, 1.2])  # accelerating: held, not extrapolated
     assert plan_speed(cruise, 5.0) == pytest.approx(1.2)
