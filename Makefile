@@ -35,10 +35,14 @@ lint: setup-dev
 
 # Installs nothing outside .venv: a test whose tool is missing (arm-none-eabi-gcc,
 # systemd-analyze) is skipped with the reason in the summary; .ci/run installs them.
-# The tests with real-time processes (marker hil) run alone, the others on both cores.
+# The tests without real-time processes run on both cores; then the tests with real-time
+# processes (marker hil), two files at a time (mostly waiting on real time); then the one
+# that loads the machine by design (marker alone), with nothing beside it.
 test: lint firmware
 	$(BIN)/pytest -q -m 'not hil' -n 2 --dist loadfile
-	$(BIN)/pytest -q -m hil
+	$(BIN)/pytest -q -m 'hil and not alone' -n 2 --dist loadfile
+	$(BIN)/pytest -q -m alone
 
 bench: setup-dev
+	$(BIN)/pip install -q -e '.[dev,bench]'
 	$(BIN)/python benchmarks/run_all.py

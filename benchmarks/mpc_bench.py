@@ -29,6 +29,7 @@ records it from a loop on the true speed and gap instead (smoother: fewer iterat
 Each solver then replays the same sequence.  ``max_abs_diff_u`` is the largest
 first-move difference (V) between the warm-started controller and cvxpy.
 
+    .venv/bin/pip install -e '.[bench]'    # cvxpy, for the comparison (make bench does it)
     .venv/bin/python benchmarks/mpc_bench.py [--json FILE] [--cycles N] [--cvxpy-cycles M]
         [--sequence sim|ideal]
     .venv/bin/python benchmarks/mpc_bench.py --paths [--json FILE --key NAME]
@@ -42,6 +43,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import importlib.metadata
 import json
 import os
 import platform
@@ -50,7 +52,6 @@ import time
 from typing import Any
 from unittest import mock
 
-import cvxpy as cp
 import numpy as np
 import osqp
 import scipy.sparse as sp
@@ -190,6 +191,8 @@ def time_cold(
 def time_cvxpy(
     model: ControlModel, cfg: ControlConfig, seq: list[tuple[str, QpInputs]]
 ) -> tuple[list[float], list[float]]:
+    import cvxpy as cp  # the bench extra (pip install -e '.[bench]'); --paths needs none
+
     qp = MpcSolver(model, cfg).qp
     _, lo0, hi0 = qp.vectors(seq[0][0], seq[0][1])
     has_lo, has_hi = lo0 > -1e20, hi0 < 1e20
@@ -367,7 +370,7 @@ def main(argv: list[str] | None = None) -> int:
                 "python": sys.version.split()[0],
                 "cpus": os.cpu_count(),
                 "osqp": osqp.__version__,
-                "cvxpy": cp.__version__,
+                "cvxpy": importlib.metadata.version("cvxpy"),
                 "loadavg_1_5_15": list(os.getloadavg()),
             },
             "measured": CVXPY_NOTE,

@@ -124,6 +124,7 @@ def rig(tmp_path: Path) -> Iterator[Rig]:
         yield Rig(fw, daemon, watch, probe, cfg, port)
 
 
+@pytest.mark.alone  # 100 000 plans/s from another process: nothing else may share the cores
 def test_a_plan_flood_costs_the_loop_no_deadline(rig: Rig) -> None:
     rig.follow()
     base_misses, base_modes, _n, base_stalled = rig.window(WINDOW_S)

@@ -1,5 +1,5 @@
 """The MPC: prediction model against the plant, first move against an independent solver
-(cvxpy + CLARABEL), terminal cost, feasibility, status handling and fallbacks."""
+(CLARABEL, an interior-point method), terminal cost, feasibility, status handling and fallbacks."""
 
 from __future__ import annotations
 
@@ -8,11 +8,12 @@ import itertools
 import math
 from collections.abc import Iterator
 
-import cvxpy as cp
+import clarabel
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from scipy import sparse
 
 from truckd.config.truck import load_config
 from truckd.control.config import ControlConfig
@@ -40,7 +41,7 @@ def tight(cfg: ControlConfig | None = None, **kw: float | int) -> ControlConfig:
 
 def clarabel_first_move(solver: MpcSolver, mode: str, inp: QpInputs) -> float:
     """The QP the solver solves (P, q, A, l, u: the sparse one, or the move-blocked condensed
-    one) solved by cvxpy with CLARABEL (an interior-point method)."""
+    one) solved by CLARABEL (an interior-point method)."""
     b, cq = solver.qp, solver.condensed
     if cq is None:
         q, lo, hi = b.vectors(mode, inp)
@@ -49,14 +50,29 @@ def clarabel_first_move(solver: MpcSolver, mode: str, inp: QpInputs) -> float:
         q, lo, hi = np.empty(cq.nw), np.empty(cq.m), np.empty(cq.m)
         cq.vectors_into(mode, inp, q, lo, hi)
         p, a, i_u0 = cq.P[mode].toarray(), cq.A.toarray(), 0
-    z = cp.Variable(p.shape[0])
-    has_lo, has_hi = lo > -1e20, hi < 1e20
-    cons = [a[has_lo] @ z >= lo[has_lo], a[has_hi] @ z <= hi[has_hi]]
-    prob = cp.Problem(cp.Minimize(0.5 * cp.quad_form(z, cp.psd_wrap(p)) + q @ z), cons)
-    prob.solve(solver=cp.CLARABEL)
-    assert prob.status == cp.OPTIMAL
-    assert z.value is not None
-    return float(z.value[i_u0])
+    eq = (lo == hi) & (hi < 1e20)
+    has_lo, has_hi = (lo > -1e20) & ~eq, (hi < 1e20) & ~eq
+    # A z = u for the equality rows (the zero cone), then l <= A z <= u as the cone
+    # constraints -A z + s = -l and A z + s = u with s >= 0 (the nonnegative cone)
+    a_cone = sparse.csc_matrix(np.vstack([a[eq], -a[has_lo], a[has_hi]]))
+    b_cone = np.concatenate([hi[eq], -lo[has_lo], hi[has_hi]])
+    cones = [
+        clarabel.ZeroConeT(int(eq.sum())),
+        clarabel.NonnegativeConeT(b_cone.size - int(eq.sum())),
+    ]
+    settings = clarabel.DefaultSettings()
+    settings.verbose = False
+    qp_solver = clarabel.DefaultSolver(
+        sparse.triu(sparse.csc_matrix(p), format="csc"),
+        q,
+        a_cone,
+        b_cone,
+        cones,
+        settings,
+    )
+    sol = qp_solver.solve()
+    assert sol.status == clarabel.SolverStatus.Solved
+    return float(sol.x[i_u0])
 
 
 def random_inputs(rng: np.random.Generator, cfg: ControlConfig, n: int) -> QpInputs:
