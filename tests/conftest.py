@@ -1,4 +1,5 @@
-"""Shared fixtures: the shipped default vehicle; the compiled MPC cycle as if not built."""
+"""Shared fixtures: the shipped default vehicle; device locks per test process; the compiled MPC
+cycle as if not built."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ from pathlib import Path
 import pytest
 
 from truckd.config.truck import load_config
+from truckd.io.devlock import LOCK_DIR_ENV
 from truckd.model.params import VehicleParams
 
 pytest_plugins = ["tool_markers"]  # the needs_tool marker (tests/tool_markers.py)
@@ -18,6 +20,19 @@ pytest_plugins = ["tool_markers"]  # the needs_tool marker (tests/tool_markers.p
 def params() -> VehicleParams:
     """The default truck's parameters (config/truck.yaml)."""
     return load_config().vehicle
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _device_locks_of_this_worker(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
+    """The daemons the tests start lock their devices in a directory of this test
+    process's own (``$TRUCKD_LOCK_DIR``, inherited by the processes it starts; a test of
+    the lock sets its own).  ``make test`` runs HIL files on two workers side by side, and
+    a pty's number that one test freed while its daemon still held the lock of
+    ``/dev/pts/N`` (a firmware killed or unplugged on purpose) can be the other worker's
+    next pty: one directory per worker keeps their locks apart, as two machines' are."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv(LOCK_DIR_ENV, str(tmp_path_factory.mktemp("locks")))
+        yield
 
 
 @pytest.fixture(autouse=True)
