@@ -32,6 +32,9 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol
 
+import numpy as np
+from numpy.typing import NDArray
+
 from firmware_protocol.messages import CompanionHeartbeat, CompanionState, MotorCommand
 from firmware_protocol.timing import timing
 from truckd.control.config import ControlConfig
@@ -344,6 +347,16 @@ class CompanionCycle:
         pipe = self.controller.pipeline_v
         v: list[float] = speeds.tolist()
         return [*pipe, *v] if pipe else v
+
+    def plan_speed_array(self, out: CycleOutputs) -> NDArray[np.float64] | None:
+        """:meth:`plan_speeds` as a float64 array (the MPC's own when no command is in
+        the pipeline: not to be changed)."""
+        c = out.control
+        speeds = self.controller.mpc.last_speeds
+        if c is None or c.fallback_reason is not None or c.solve_iterations == 0 or speeds is None:
+            return None
+        pipe = self.controller.pipeline_v
+        return np.array([*pipe, *speeds.tolist()]) if pipe else speeds
 
     def plan(self, out: CycleOutputs) -> Plan | None:
         """The controller's predicted trajectory of the cycle ``out`` (call it before the
