@@ -382,7 +382,7 @@ class MpcSolver:
             assert self.condensed is not None
             self.condensed.filled = kept
         _, iters_f, run_time, finite_f = cc.info.tolist()
-        iters, finite = int(iters_f), finite_f == 1.0
+        iters, finite = math.trunc(iters_f), finite_f == 1.0  # (int() of a whole float)
         z, y = cc.solution()
         if status_val not in _USABLE_VALUES or not finite:
             status = ccycle.status_text(status_val)
@@ -401,7 +401,7 @@ class MpcSolver:
         if status_val != _SOLVED:
             self.inaccurate += 1
         status = ccycle.STATUS_TEXT[status_val]  # a usable status: status_text's own
-        return MpcResult(True, float(u[0]), status, iters, run_time, u, v)
+        return MpcResult(True, u.item(0), status, iters, run_time, u, v)
 
     def _keep_compiled(self, z: Vec, y: Vec) -> None:
         """The compiled cycle's solution as the next warm start (its arrays then stay as

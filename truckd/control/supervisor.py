@@ -181,6 +181,8 @@ class Supervisor:
     transitions: list[Transition] = field(default_factory=list)
     _c: _Counters = field(default_factory=_Counters)
     _restart_until: float = -math.inf
+    _last: Decision | None = field(default=None, repr=False, compare=False)
+    """The decision returned last (given again while nothing in it changes)."""
 
     def restart(self, t: float) -> None:
         """Back to ``INIT`` after a loop stall at time ``t`` (s): the cause ``loop_stall``
@@ -272,9 +274,21 @@ class Supervisor:
 
     def _set(self, t: float, mode: Mode, causes: dict[str, Mode]) -> Decision:
         names = tuple(sorted(causes)) if causes else ()
-        tr = None
-        if mode is not self.mode:
-            tr = Transition(t, self.mode, mode, names)
-            self.transitions.append(tr)
-            self.mode = mode
-        return Decision(mode, names, tr)
+        last = self._last
+        if mode is self.mode:
+            # The same mode and causes as last time: the same (frozen) decision again, not
+            # a new record every cycle.
+            if (
+                last is not None
+                and last.mode is mode
+                and last.transition is None
+                and last.causes == names
+            ):
+                return last
+            self._last = last = Decision(mode, names)
+            return last
+        tr = Transition(t, self.mode, mode, names)
+        self.transitions.append(tr)
+        self.mode = mode
+        self._last = last = Decision(mode, names, tr)
+        return last
