@@ -48,7 +48,6 @@ from truckd.control.supervisor import (
     Mode,
     Supervisor,
     SupervisorConfig,
-    SupervisorInputs,
 )
 from truckd.io.port import Received
 from truckd.runtime.command import motor_command
@@ -293,13 +292,12 @@ class CompanionCycle:
             speed_age, lead_valid, u_ctrl = est.speed_age, est.lead_valid, out.u
             reason = out.fallback_reason
             solver_ok = reason is None or not reason.startswith("solver_")
-        # Positional, in the fields' order (a keyword call to a class builds a dict of
-        # them, every cycle).
-        sup_in = SupervisorInputs(
+        # The supervisor's inputs (SupervisorInputs' fields) as arguments, positional: no
+        # record built every cycle.
+        dec = self.supervisor.decide(
             t, inp.link_up, link_age, encoder_age, range_age, s.range_raw, s.range_fault,
             speed, speed_age, lead_valid, solver_ok, inp.loop_missed,
         )  # fmt: skip
-        dec = self.supervisor.update(sup_in)
         mode = dec.mode
         self.u, self.enable = motor_command(mode, u_ctrl, self.u, self.ramp_step, self.u_max)
         self.controller.u_prev = self.u  # the rate limit starts from what is sent
