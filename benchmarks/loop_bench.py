@@ -98,7 +98,7 @@ STAGES = (
     ("sensors", "update", "sensors.update"),
     ("controller", "step", "controller.step"),
     ("mpc", "solve", "mpc.solve"),
-    ("supervisor", "update", "supervisor.update"),
+    ("supervisor", "decide", "supervisor.update"),  # (the cycle calls update's decide)
     ("companion", "step", "companion.step"),
     ("daemon", "send_command", "send_command"),
     ("backend", "tick", "backend.tick"),

@@ -221,7 +221,7 @@ def test_solver_failure_holds_the_plan_then_brakes(params: VehicleParams) -> Non
     for _ in range(5):
         good = ctrl.control(est)
     assert good.fallback_reason is None
-    plan = list(ctrl._plan or [])
+    plan = [] if ctrl._plan is None else ctrl._plan.tolist()
     # From now on the solver reports failure (as OSQP would at its iteration limit).
     ctrl.mpc.set_max_iter(1)
     outs = [ctrl.control(est) for _ in range(6)]

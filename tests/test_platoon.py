@@ -6,6 +6,7 @@ import json
 import math
 from dataclasses import replace
 
+import numpy as np
 import pytest
 
 from truckd.config.truck import load_config
@@ -19,6 +20,8 @@ from truckd.control.platoon import (
     kinematic_plan,
     lead_forecast,
     make_plan,
+    plan_of_array,
+    plan_of_floats,
     plan_speed,
 )
 
@@ -236,3 +239,26 @@ def test_a_plan_at_odds_with_the_range_sensor_is_not_followed() -> None:
     m3 = PlatoonMode(cfg, 0.01, 10, initial=CACC)
     d = m3.update(0.0, plan, 1.5, 1.0, 0.4, math.nan, math.nan)  # no lead in range
     assert d.mode == CACC
+
+
+@pytest.mark.parametrize(
+    "speeds",
+    [
+        [1.3, 1.31, 1.33, 1.36, 1.4],
+        [0.2, 0.05, -1e-9, -0.0, 0.1],  # clipped: a negative speed
+        [1.0, math.nan, 1.2, -0.5],  # a NaN kept, the negative clipped
+        [1.0, math.nan, 1.2],  # a NaN alone: nothing clipped
+        [0.7],
+    ],
+)
+def test_plan_of_array_is_plan_of_floats_to_the_bit(speeds: list[float]) -> None:
+    """The plan from the MPC's speed array: the same speeds, accelerations and clipping as
+    from Python floats, bit for bit (NaN and -0.0 included), the array untouched."""
+    arr = np.array(speeds)
+    a, b = plan_of_array(2.5, 7, 0.01, arr, "t1"), plan_of_floats(2.5, 7, 0.01, list(speeds), "t1")
+    assert repr(a) == repr(b)
+    assert [math.copysign(1.0, x) for x in a.v] == [math.copysign(1.0, x) for x in b.v]
+    assert all(type(x) is float for x in (*a.v, *a.a))
+    assert np.array_equal(arr, np.array(speeds), equal_nan=True)
+    with pytest.raises(ValueError):
+        plan_of_array(0.0, 0, 0.01, np.zeros(0))

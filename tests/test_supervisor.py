@@ -234,3 +234,26 @@ def test_frozen_value_check_on_by_default_and_off_at_zero() -> None:
     sup, t = active_supervisor(range_frozen_s=0.0)
     ds = run(sup, t, t + 5.0, lambda tk: healthy(tk, range_value=1.234, speed=1.0))
     assert all(d.mode == Mode.ACTIVE for d in ds)
+
+
+def test_decide_is_update_and_an_unchanged_decision_is_given_again() -> None:
+    """``decide`` of the inputs' fields decides as ``update`` of the record; while the mode
+    and the causes stay, the same decision comes back (a transition or a new cause makes
+    a new one)."""
+    by_update, by_decide = Supervisor(), Supervisor()
+    fields = [f.name for f in dataclasses.fields(SupervisorInputs)]
+    inputs = [healthy(k * P) for k in range(60)]
+    inputs += [healthy(0.6 + k * P, range_age=1.0) for k in range(5)]  # range_stale
+    inputs += [healthy(0.65 + k * P) for k in range(80)]
+    for x in inputs:
+        a = by_update.update(x)
+        b = by_decide.decide(*(getattr(x, f) for f in fields))
+        assert a == b
+    assert by_update.transitions == by_decide.transitions
+    sup = Supervisor()
+    decisions = run(sup, 0.0, 0.3, healthy)
+    assert decisions[0].transition is not None and decisions[0].mode is Mode.ACTIVE
+    assert decisions[1] is not decisions[0] and decisions[1].transition is None
+    assert all(d is decisions[1] for d in decisions[2:])
+    stale = sup.update(healthy(0.3, link_age=1.0))
+    assert stale is not decisions[1] and stale.causes == ("link_stale",)

@@ -59,6 +59,7 @@ _PUT_HEAD = struct.Struct(f"={_HEAD}d").pack_into
 _ENC = struct.Struct("=5d").pack_into
 _RNG = struct.Struct("=2d").pack_into
 _NAN = math.nan
+_TRUNC = math.trunc
 
 
 def constants(cfg: EstimatorConfig, tick_len: float) -> list[float]:
@@ -132,9 +133,10 @@ class CompiledEstimator:
     def read(self) -> Estimate:
         """The estimate the library wrote (:attr:`est`) as the Python estimator's."""
         v, ok, gap, vl, lv, st, std, outl, rein, ne, nr, rs, gl, age, vls, x = self.est.tolist()
+        i = _TRUNC  # int() of a whole float, a third of int()'s cost
         return Estimate(
-            v, ok == 1.0, gap, vl, lv == 1.0, STATUS[int(st)], std, int(outl), int(rein),
-            int(ne), int(nr), int(rs), int(gl), age, vls, x,
+            v, ok == 1.0, gap, vl, lv == 1.0, STATUS[i(st)], std, i(outl), i(rein), i(ne),
+            i(nr), i(rs), i(gl), age, vls, x,
         )  # fmt: skip
 
     def cycle(

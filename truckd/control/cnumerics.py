@@ -218,7 +218,7 @@ class CompiledNumerics:
         estimator.put(t, encoders, ranges)
         self._pack_d(self._d_mv, 0, *decisions)
         how = self._cc.how(0, False, self._mpc.has_warm_start) | 32
-        status = int(self._run_cycle(self._instance, how))
+        status: int = self._run_cycle(self._instance, how)  # an int (restype c_int64)
         return status, estimator.read()
 
     def outcome(self, status: int) -> tuple[MpcResult, list[float]]:

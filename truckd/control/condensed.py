@@ -256,9 +256,7 @@ class CondensedQp:
         self._ws = np.zeros(nw + NX + n + N_SCALARS)
         self._s = self._ws[nw:]
         self._s[c_1] = 1.0
-        self.filled: list[float] = []
-        """The inputs of the last :meth:`fill` as Python floats: ``[x0; u_prev, v_ref,
-        u_lo, u_hi, v_cap, 1, lo0, hi0; v_lead]``."""
+        self._filled: list[float] | Vec = []
         # plan: what the cycle uses of the solution, the inputs (V: each step its block's,
         # a gather from w) and the speeds (one product of 41 rows with [w; x0]; the speed
         # of the lead reaches only the gap states).  The whole sparse vector (expand) is
@@ -423,6 +421,20 @@ class CondensedQp:
             np.dot(f, src, out=dst)
         return True
 
+    @property
+    def filled(self) -> list[float]:
+        """The inputs of the last :meth:`fill` as Python floats: ``[x0; u_prev, v_ref,
+        u_lo, u_hi, v_cap, 1, lo0, hi0; v_lead]`` (kept as given, a list or a copy of the
+        compiled cycle's array, made Python floats when read)."""
+        f = self._filled
+        if not isinstance(f, list):
+            f = self._filled = f.tolist()
+        return f
+
+    @filled.setter
+    def filled(self, values: list[float] | Vec) -> None:
+        self._filled = values
+
     n_fixed_inputs = NX + N_SCALARS
     """Inputs before ``v_lead`` in :meth:`gather`'s list."""
 
@@ -473,7 +485,7 @@ class CondensedQp:
         u: Vec = w.take(self._u_block)
         return u, v
 
-    def expand_filled(self, w: Vec, filled: list[float]) -> Vec:
+    def expand_filled(self, w: Vec, filled: list[float] | Vec) -> Vec:
         """:meth:`expand` for inputs kept from a :meth:`fill` (its :attr:`filled`)."""
         return self.expand(w, np.array(filled[:NX]), np.array(filled[NX + N_SCALARS :]))
 

@@ -35,7 +35,7 @@ from truckd.control.lead import LeadSpeeds
 from truckd.control.mpc import MpcResult, MpcSolver
 from truckd.control.output import ControlOutput
 from truckd.control.pipeline import predict_pipeline
-from truckd.control.qp import ControlModel, QpInputs
+from truckd.control.qp import ControlModel, QpInputs, Vec
 
 __all__ = ["SATURATED_V", "Controller"]
 
@@ -131,7 +131,7 @@ class Controller:
         self._out = 0.0
         """The last command returned (V): while :attr:`u_prev` equals it, the voltage at
         the motor is :attr:`_wanted`."""
-        self._plan: list[float] | None = None
+        self._plan: Vec | None = None
         self._plan_age = 0
         self.disturbance_v = 0.0
         """Estimated input-voltage disturbance (V), added to the feedforward."""
@@ -372,13 +372,13 @@ class Controller:
         )  # fmt: skip
 
     def _keep_plan(self, res: MpcResult) -> None:
-        """A usable solve's plan (V, Python floats), held for the cycles it may stand in
-        for, and the speed expected one period from now (m/s): with an input delay the
-        pipeline's prediction, the plan starting where its first move acts."""
+        """A usable solve's plan (V, the solver's new array), held for the cycles it may
+        stand in for, and the speed expected one period from now (m/s, ``[*pipeline_v,
+        v_0, v_1][1]``): with an input delay the pipeline's prediction, the plan starting
+        where its first move acts."""
         assert res.u is not None and res.v is not None
-        self._plan = res.u.tolist()
-        self._plan_age = 0
-        self._v_expected = [*self.pipeline_v, float(res.v[0]), float(res.v[1])][1]
+        self._plan, self._plan_age, pv = res.u, 0, self.pipeline_v
+        self._v_expected = pv[1] if len(pv) > 1 else float(res.v[1 - len(pv)])
 
     def _update_winding(self, v: float) -> None:
         """One period of the winding's thermal model (``resistance_drift``) at the current

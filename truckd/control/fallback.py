@@ -6,6 +6,10 @@ Pure numerics.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
+
+import numpy as np
+from numpy.typing import NDArray
 
 
 def braking_law(v: float, gain: float, u_max: float) -> float:
@@ -15,11 +19,14 @@ def braking_law(v: float, gain: float, u_max: float) -> float:
     return max(-u_max, -gain * v)
 
 
-def held_plan_move(plan: list[float] | None, age: int, max_age: int) -> float | None:
-    """Move ``age`` steps into the last good plan (V), or None when it is too old/short."""
+def held_plan_move(
+    plan: Sequence[float] | NDArray[np.float64] | None, age: int, max_age: int
+) -> float | None:
+    """Move ``age`` steps into the last good plan (V; a list or an array), or None when it
+    is too old/short."""
     if plan is None or age > max_age or age >= len(plan):
         return None
-    return plan[age]
+    return float(plan[age])
 
 
 def limit_command(u: float, u_prev: float, u_max: float, du: float) -> float:

@@ -171,7 +171,7 @@ class MpcSolver:
             self._solvers[mode] = s
         self._rho0 = float(osqp_settings(cfg)["rho"])
         """The step size every solver starts with (OSQP adapts it while solving)."""
-        self._last: tuple[Vec, list[float]] | None = None
+        self._last: tuple[Vec, list[float] | Vec] | None = None
         """The last accepted solution: OSQP's primal vector and (condensed) the inputs it
         was solved for."""
         self._last_v: Vec | None = None
@@ -377,12 +377,12 @@ class MpcSolver:
         if status_val < 0:  # defensive: the call itself refused
             self.reset()
             return MpcResult(False, math.nan, f"error: compiled cycle {status_val}", 0, 0.0)
-        if values is None:  # the compiled numerics gathered them
-            values = cc.values.tolist()
+        kept: list[float] | Vec = cc.values.copy() if values is None else values
+        if values is None:  # the compiled numerics gathered them (kept as an array)
             assert self.condensed is not None
-            self.condensed.filled = values
+            self.condensed.filled = kept
         _, iters_f, run_time, finite_f = cc.info.tolist()
-        iters, finite = int(iters_f), finite_f == 1.0
+        iters, finite = math.trunc(iters_f), finite_f == 1.0  # (int() of a whole float)
         z, y = cc.solution()
         if status_val not in _USABLE_VALUES or not finite:
             status = ccycle.status_text(status_val)
@@ -394,14 +394,14 @@ class MpcSolver:
         if run_time > self.cfg.time_budget_s:
             self._keep_compiled(z, y)
             return MpcResult(False, math.nan, "overrun", iters, run_time)
-        self._last = (z, values)
+        self._last = (z, kept)
         self._keep_compiled(z, y)
         u, v = cc.u.copy(), cc.v.copy()
         self._last_v = v
         if status_val != _SOLVED:
             self.inaccurate += 1
         status = ccycle.STATUS_TEXT[status_val]  # a usable status: status_text's own
-        return MpcResult(True, float(u[0]), status, iters, run_time, u, v)
+        return MpcResult(True, u.item(0), status, iters, run_time, u, v)
 
     def _keep_compiled(self, z: Vec, y: Vec) -> None:
         """The compiled cycle's solution as the next warm start (its arrays then stay as

@@ -181,6 +181,8 @@ class Supervisor:
     transitions: list[Transition] = field(default_factory=list)
     _c: _Counters = field(default_factory=_Counters)
     _restart_until: float = -math.inf
+    _last: Decision | None = field(default=None, repr=False, compare=False)
+    """The decision returned last (given again while nothing in it changes)."""
 
     def restart(self, t: float) -> None:
         """Back to ``INIT`` after a loop stall at time ``t`` (s): the cause ``loop_stall``
@@ -189,50 +191,80 @@ class Supervisor:
         self._c = _Counters()
         self._restart_until = t + self.config.recovery_s
 
-    def _frozen(self, x: SupervisorInputs) -> bool:
+    def _frozen(self, t: float, v: float | None, speed: float) -> bool:
         """Range value bit-identical for ``range_frozen_s`` of driving time; latched until
         the value changes (stopping does not clear it)."""
         c, cfg = self._c, self.config
-        v = x.range_value
         if cfg.range_frozen_s <= 0.0 or v is None or v != c.frozen_value:
-            c.frozen_value, c.frozen_time, c.frozen_last_t = v, 0.0, x.t
+            c.frozen_value, c.frozen_time, c.frozen_last_t = v, 0.0, t
             return False
-        moving = math.isfinite(x.speed) and abs(x.speed) > cfg.frozen_min_speed
+        moving = math.isfinite(speed) and abs(speed) > cfg.frozen_min_speed
         if moving and c.frozen_last_t is not None:
-            c.frozen_time += max(0.0, x.t - c.frozen_last_t)
-        c.frozen_last_t = x.t
+            c.frozen_time += max(0.0, t - c.frozen_last_t)
+        c.frozen_last_t = t
         return c.frozen_time >= cfg.range_frozen_s
 
     def causes(self, x: SupervisorInputs) -> dict[str, Mode]:
         """Every active cause with the mode it calls for (updates the counters)."""
+        return self._causes(
+            x.t,
+            x.link_up,
+            x.link_age,
+            x.encoder_age,
+            x.range_age,
+            x.range_value,
+            x.range_fault,
+            x.speed,
+            x.speed_age,
+            x.lead_valid,
+            x.solver_ok,
+            x.loop_missed,
+        )
+
+    def _causes(
+        self,
+        t: float,
+        link_up: bool,
+        link_age: float,
+        encoder_age: float,
+        range_age: float,
+        range_value: float | None,
+        range_fault: bool,
+        speed: float,
+        speed_age: float,
+        lead_valid: bool,
+        solver_ok: bool,
+        loop_missed: bool,
+    ) -> dict[str, Mode]:
+        """:meth:`causes` of the inputs' fields."""
         cfg, c = self.config, self._c
-        c.solver_fails = 0 if x.solver_ok else c.solver_fails + 1
-        c.overruns = c.overruns + 1 if x.loop_missed else 0
+        c.solver_fails = 0 if solver_ok else c.solver_fails + 1
+        c.overruns = c.overruns + 1 if loop_missed else 0
         out: dict[str, Mode] = {}
         isfinite = math.isfinite  # stale: not (isfinite(age) and age <= timeout), inline
-        if x.t <= self._restart_until:
+        if t <= self._restart_until:
             out["loop_stall"] = _SAFE_STOP
-        if not x.link_up:
+        if not link_up:
             out["link_down"] = _FAULT
-        age = x.link_age
+        age = link_age
         if not (isfinite(age) and age <= cfg.link_timeout_s):
             out["link_stale"] = _SAFE_STOP
-        age = x.encoder_age
+        age = encoder_age
         if not (isfinite(age) and age <= cfg.encoder_timeout_s):
             out["encoder_stale"] = _SAFE_STOP
-        elif _stale(x.speed_age, 2.0 * cfg.encoder_timeout_s):
+        elif _stale(speed_age, 2.0 * cfg.encoder_timeout_s):
             # Messages arrive, but no speed from them.  Twice the timeout: the estimator's
             # clock is the cycle's, a little before the messages' receipt stamps, so on
             # silence the root cause, encoder_stale, is named first.
             out["speed_stale"] = _SAFE_STOP
-        age = x.range_age
+        age = range_age
         if not (isfinite(age) and age <= cfg.range_timeout_s):
             out["range_stale"] = _SAFE_STOP
-        if self._frozen(x):
+        if self._frozen(t, range_value, speed):
             out["range_frozen"] = _SAFE_STOP
-        if x.range_fault:
+        if range_fault:
             out["range_fault"] = _SAFE_STOP
-        if not x.lead_valid and not (out and _RANGE_CAUSES & out.keys()):
+        if not lead_valid and not (out and _RANGE_CAUSES & out.keys()):
             out["lead_lost"] = _SAFE_STOP if self.lead_lost_action == "stop" else _DEGRADED
         if c.solver_fails >= cfg.solver_fail_limit:
             out["solver_failed"] = _SAFE_STOP
@@ -246,7 +278,52 @@ class Supervisor:
 
     def update(self, x: SupervisorInputs) -> Decision:
         """Decide this cycle's mode."""
-        causes = self.causes(x)
+        return self.decide(
+            x.t,
+            x.link_up,
+            x.link_age,
+            x.encoder_age,
+            x.range_age,
+            x.range_value,
+            x.range_fault,
+            x.speed,
+            x.speed_age,
+            x.lead_valid,
+            x.solver_ok,
+            x.loop_missed,
+        )
+
+    def decide(
+        self,
+        t: float,
+        link_up: bool,
+        link_age: float,
+        encoder_age: float,
+        range_age: float,
+        range_value: float | None = None,
+        range_fault: bool = False,
+        speed: float = 0.0,
+        speed_age: float = 0.0,
+        lead_valid: bool = True,
+        solver_ok: bool = True,
+        loop_missed: bool = False,
+    ) -> Decision:
+        """:meth:`update` of :class:`SupervisorInputs`' fields, in their order and with
+        their defaults (the cycle's call: no record built every cycle)."""
+        causes = self._causes(
+            t,
+            link_up,
+            link_age,
+            encoder_age,
+            range_age,
+            range_value,
+            range_fault,
+            speed,
+            speed_age,
+            lead_valid,
+            solver_ok,
+            loop_missed,
+        )
         c = self._c
         worst = max(causes.values(), key=_SEVERITY.__getitem__) if causes else _ACTIVE
         if not c.ever_ready:
@@ -254,27 +331,39 @@ class Supervisor:
             blocking = {k for k, m in causes.items() if m in _BLOCKING}
             blocking -= _NOT_BLOCKING_INIT
             if blocking:
-                return self._set(x.t, _INIT, causes)
+                return self._set(t, _INIT, causes)
             c.ever_ready = True
         if worst is _ACTIVE:
             if self.mode is _ACTIVE or (c.ever_ready and self.mode is _INIT):
-                c.clear_since = x.t
-                return self._set(x.t, _ACTIVE, causes)
+                c.clear_since = t
+                return self._set(t, _ACTIVE, causes)
             if c.clear_since is None:
-                c.clear_since = x.t
-            if x.t - c.clear_since >= self.config.recovery_s:
-                return self._set(x.t, _ACTIVE, causes)
+                c.clear_since = t
+            if t - c.clear_since >= self.config.recovery_s:
+                return self._set(t, _ACTIVE, causes)
             # hold a driving mode while recovering; a stop/fault holds its stop (as DEGRADED
             # would drive again before the recovery time)
-            return self._set(x.t, self.mode, causes)
+            return self._set(t, self.mode, causes)
         c.clear_since = None
-        return self._set(x.t, worst, causes)
+        return self._set(t, worst, causes)
 
     def _set(self, t: float, mode: Mode, causes: dict[str, Mode]) -> Decision:
         names = tuple(sorted(causes)) if causes else ()
-        tr = None
-        if mode is not self.mode:
-            tr = Transition(t, self.mode, mode, names)
-            self.transitions.append(tr)
-            self.mode = mode
-        return Decision(mode, names, tr)
+        last = self._last
+        if mode is self.mode:
+            # The same mode and causes as last time: the same (frozen) decision again, not
+            # a new record every cycle.
+            if (
+                last is not None
+                and last.mode is mode
+                and last.transition is None
+                and last.causes == names
+            ):
+                return last
+            self._last = last = Decision(mode, names)
+            return last
+        tr = Transition(t, self.mode, mode, names)
+        self.transitions.append(tr)
+        self.mode = mode
+        self._last = last = Decision(mode, names, tr)
+        return last

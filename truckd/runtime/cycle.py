@@ -32,6 +32,9 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol
 
+import numpy as np
+from numpy.typing import NDArray
+
 from firmware_protocol.messages import CompanionHeartbeat, CompanionState, MotorCommand
 from firmware_protocol.timing import timing
 from truckd.control.config import ControlConfig
@@ -45,7 +48,6 @@ from truckd.control.supervisor import (
     Mode,
     Supervisor,
     SupervisorConfig,
-    SupervisorInputs,
 )
 from truckd.io.port import Received
 from truckd.runtime.command import motor_command
@@ -290,13 +292,12 @@ class CompanionCycle:
             speed_age, lead_valid, u_ctrl = est.speed_age, est.lead_valid, out.u
             reason = out.fallback_reason
             solver_ok = reason is None or not reason.startswith("solver_")
-        # Positional, in the fields' order (a keyword call to a class builds a dict of
-        # them, every cycle).
-        sup_in = SupervisorInputs(
+        # The supervisor's inputs (SupervisorInputs' fields) as arguments, positional: no
+        # record built every cycle.
+        dec = self.supervisor.decide(
             t, inp.link_up, link_age, encoder_age, range_age, s.range_raw, s.range_fault,
             speed, speed_age, lead_valid, solver_ok, inp.loop_missed,
         )  # fmt: skip
-        dec = self.supervisor.update(sup_in)
         mode = dec.mode
         self.u, self.enable = motor_command(mode, u_ctrl, self.u, self.ramp_step, self.u_max)
         self.controller.u_prev = self.u  # the rate limit starts from what is sent
@@ -344,6 +345,16 @@ class CompanionCycle:
         pipe = self.controller.pipeline_v
         v: list[float] = speeds.tolist()
         return [*pipe, *v] if pipe else v
+
+    def plan_speed_array(self, out: CycleOutputs) -> NDArray[np.float64] | None:
+        """:meth:`plan_speeds` as a float64 array (the MPC's own when no command is in
+        the pipeline: not to be changed)."""
+        c = out.control
+        speeds = self.controller.mpc.last_speeds
+        if c is None or c.fallback_reason is not None or c.solve_iterations == 0 or speeds is None:
+            return None
+        pipe = self.controller.pipeline_v
+        return np.array([*pipe, *speeds.tolist()]) if pipe else speeds
 
     def plan(self, out: CycleOutputs) -> Plan | None:
         """The controller's predicted trajectory of the cycle ``out`` (call it before the

@@ -24,7 +24,7 @@ from truckd.control.platoon import (
     PlatoonMode,
     decode_plan,
     make_plan,
-    plan_of_floats,
+    plan_of_array,
 )
 from truckd.jsonsafe import json_number
 from truckd.runtime.cycle import CompanionCycle, CycleOutputs
@@ -43,9 +43,9 @@ def cycle_plan(
     clock): the MPC's predicted speeds when it solved, standstill while the controller
     holds the truck at rest, None otherwise (a fallback has no plan to promise: the
     follower's plan goes stale and it falls back to ACC)."""
-    v = cyc.plan_speeds(out)
-    if v is not None:  # a new list of Python floats
-        return plan_of_floats(t, out.seq, cyc.period, v, vehicle_id)
+    v = cyc.plan_speed_array(out)
+    if v is not None:
+        return plan_of_array(t, out.seq, cyc.period, v, vehicle_id)
     c = out.control
     if c is not None and c.mode == "hold":
         n = cyc.controller.mpc.horizon

@@ -15,6 +15,7 @@ from collections.abc import Iterable
 from dataclasses import dataclass, field
 
 from firmware_protocol.messages import (
+    TICKS_MODULO,
     FirmwareFault,
     FirmwareHeartbeat,
     FirmwareState,
@@ -29,6 +30,8 @@ from truckd.io.port import Received
 
 NEVER = -math.inf
 
+_TICKS = TICKS_MODULO
+_HALF = TICKS_MODULO // 2
 _VALID, _SENSOR_FAULT = RangeStatus.VALID, RangeStatus.SENSOR_FAULT
 """Module constants (an enum class's attribute goes through its metaclass's hook)."""
 
@@ -115,8 +118,10 @@ class SensorState:
         last = self._last_ticks
         if last is not None and (left_ok or right_ok):
             # The mean count difference of the healthy wheels (both: their sum over 2).
-            if left_ok and right_ok:
-                d = ticks_delta(m.ticks_left, last[0]) + ticks_delta(m.ticks_right, last[1])
+            if left_ok and right_ok:  # ticks_delta of each, written out (every cycle)
+                dl = (m.ticks_left - last[0]) % _TICKS
+                dr = (m.ticks_right - last[1]) % _TICKS
+                d = (dl - _TICKS if dl >= _HALF else dl) + (dr - _TICKS if dr >= _HALF else dr)
                 self.x += self.tick_len * d / 2
             elif left_ok:
                 self.x += self.tick_len * ticks_delta(m.ticks_left, last[0])
