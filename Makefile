@@ -36,8 +36,9 @@ lint: setup-dev
 # Installs nothing outside .venv: a test whose tool is missing (arm-none-eabi-gcc,
 # systemd-analyze) is skipped with the reason in the summary; .ci/run installs them.
 # The tests without real-time processes run on both cores; then the tests with real-time
-# processes (marker hil), two files at a time (mostly waiting on real time); then the one
-# that loads the machine by design (marker alone), with nothing beside it.
+# processes (marker hil), two files at a time (mostly waiting on real time); then those
+# that load the machine by design or measure timing (marker alone: the plan flood,
+# characterize's drives), with nothing beside them.
 test: lint firmware
 	$(BIN)/pytest -q -m 'not hil' -n 2 --dist loadfile
 	$(BIN)/pytest -q -m 'hil and not alone' -n 2 --dist loadfile

@@ -43,7 +43,7 @@ from truckd.cli.main import main as truckd_main
 from truckd.config.truck import load_config
 from truckd.runtime.telemetry import zenoh_config
 
-pytestmark = [pytest.mark.hil, pytest.mark.slow]
+pytestmark = [pytest.mark.hil, pytest.mark.slow, pytest.mark.alone]
 
 WALL_M = 3.6
 """The simulated firmware's target ahead: a wall (a lead at 0 m/s) this far from the start."""
