@@ -106,8 +106,8 @@ TRUCKS = [(23, "input_delay", "serial"), (11, "load_force", "can"), (37, "dead_z
 """(seed, hidden effect, link) of the drawn trucks, in the order they drive: each truck's
 analysis (one core, 10-20 s) runs at the lowest priority beside the next truck's drive
 (the routine's timing is what the input delay is measured against: that truck drives
-first, with no analysis beside it; `make test` runs the other HIL files on the other core
-meanwhile)."""
+first, with the machine to itself; `make test` runs this module with no other test beside
+it, marker ``alone``)."""
 
 
 @dataclass
