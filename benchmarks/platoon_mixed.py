@@ -13,6 +13,14 @@ figures do not depend on the load; the run times do.
 
     nice -n 10 python benchmarks/platoon_mixed.py --json benchmarks/platoon_mixed.json
         [--trucks 10] [--seeds 1,2,3,4,5,6] [--key KEY] [--diagnosis-cache DIR]
+        [--scenarios platoon-brake,platoon-sine] [--models true,diagnosed]
+        [--q-rel-speed W] [--diagnosed-disturbance-gain G]
+
+``--scenarios`` and ``--models`` run a part of the grid; ``--q-rel-speed`` replaces the
+configured follower's relative-speed weight (``platoon.q_rel_speed``) and
+``--diagnosed-disturbance-gain`` the offset-free gain of a controller on a diagnosed model
+(``DIAGNOSED_DISTURBANCE_GAIN``), for the experiments that vary them (the JSON records
+both as run).
 """
 
 from __future__ import annotations
@@ -29,6 +37,7 @@ from typing import Any
 from platoon_scale import CASES, _areas, _summary
 from results import machine, write_json
 
+import truckd.sim.platoon_truck as platoon_truck
 from truckd.cli.platoon_diagnosis import DiagnosedControllers
 from truckd.config.truck import load_config
 from truckd.sim.closed_loop import SimSetup
@@ -67,13 +76,24 @@ def main() -> int:
     ap.add_argument("--seeds", default="1,2,3,4,5,6")
     ap.add_argument("--key", help="store the run under this key of the --json file")
     ap.add_argument("--diagnosis-cache", metavar="DIR", help="keep the diagnosed models here")
+    ap.add_argument("--scenarios", default=",".join(name for name, _ in SCENARIOS))
+    ap.add_argument("--models", default="true,diagnosed")
+    ap.add_argument("--q-rel-speed", type=float, help="instead of platoon.q_rel_speed")
+    ap.add_argument("--diagnosed-disturbance-gain", type=float,
+                    help="instead of DIAGNOSED_DISTURBANCE_GAIN")  # fmt: skip
     args = ap.parse_args()
     seeds = [int(x) for x in args.seeds.split(",")]
+    scenarios = [(n, d) for n, d in SCENARIOS if n in args.scenarios.split(",")]
+    kinds = [k for k in ("true", "diagnosed") if k in args.models.split(",")]
+    if args.diagnosed_disturbance_gain is not None:
+        platoon_truck.DIAGNOSED_DISTURBANCE_GAIN = args.diagnosed_disturbance_gain
     load_at_start = round(os.getloadavg()[0], 2)
     cfg = load_config()
     setup = SimSetup.from_config(cfg)
     kw = dict(CASES)[LINK_CASE]
     pcfg = replace(cfg.platoon, plan_timeout_s=0.1 + kw["delay_s"][1])
+    if args.q_rel_speed is not None:
+        pcfg = replace(pcfg, q_rel_speed=args.q_rel_speed)
     cache = Path(args.diagnosis_cache) if args.diagnosis_cache else None
     if cache is not None:
         cache.mkdir(parents=True, exist_ok=True)
@@ -88,8 +108,8 @@ def main() -> int:
 
     rows: list[dict[str, Any]] = []
     for seed in seeds:
-        for name, duration in SCENARIOS:
-            for models in ("true", "diagnosed"):
+        for name, duration in scenarios:
+            for models in kinds:
                 t0, before = time.monotonic(), spent[0]
                 ctl = timed if models == "diagnosed" else None
                 m, tr = run_platoon(make_platoon_scenario(name), setup, pcfg, args.trucks,
@@ -120,6 +140,8 @@ def main() -> int:
             "link": LINK_CASE,
             "plan_timeout_s": pcfg.plan_timeout_s,
             "plan_hold_s": pcfg.plan_hold_s,
+            "q_rel_speed": pcfg.q_rel_speed,
+            "diagnosed_disturbance_gain": platoon_truck.DIAGNOSED_DISTURBANCE_GAIN,
             "trucks_diagnosed_per_process": diagnosed.diagnosed,
             "rows": rows,
         }

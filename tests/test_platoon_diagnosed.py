@@ -20,7 +20,7 @@ from truckd.control.qp import ControlModel
 from truckd.modelfile import ModelFile
 from truckd.sim.closed_loop import SimSetup
 from truckd.sim.platoon import make_platoon_scenario, run_platoon
-from truckd.sim.platoon_truck import DIAGNOSED_DISTURBANCE_GAIN
+from truckd.sim.platoon_truck import DIAGNOSED_DISTURBANCE_GAIN, DIAGNOSED_MOVE_BLOCKS
 
 LINK: dict[str, Any] = {
     "loss": 0.3,
@@ -102,6 +102,9 @@ def test_drawn_trucks_drive_on_their_own_diagnosed_models(
         # the offset-free action takes up what the diagnosis did not name
         assert made.control.disturbance_gain == DIAGNOSED_DISTURBANCE_GAIN > 0.0
         assert truth.control.disturbance_gain == 0.0
+        # one input per step on a diagnosed model; the true-parameter trucks keep blocks
+        assert made.control.move_blocks == DIAGNOSED_MOVE_BLOCKS == 0
+        assert truth.control.move_blocks == _setup().control.move_blocks > 0
         assert max(abs(e) for e in diag["feedforward_relerr"].values()) <= FF_TOL, diag
         assert abs(diag["tau_m_s"] / diag["tau_m_true_s"] - 1.0) <= FF_TOL, diag
         assert abs(diag["input_delay_s"] - diag["input_delay_true_s"]) <= DELAY_TOL_S, diag
