@@ -29,7 +29,7 @@ Leaving a degraded mode for ``ACTIVE`` needs every cause clear for ``recovery_s`
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import astuple, dataclass, field
 from enum import StrEnum
 
 from truckd.control.frozen import fast_init
@@ -204,23 +204,6 @@ class Supervisor:
         c.frozen_last_t = t
         return c.frozen_time >= cfg.range_frozen_s
 
-    def causes(self, x: SupervisorInputs) -> dict[str, Mode]:
-        """Every active cause with the mode it calls for (updates the counters)."""
-        return self._causes(
-            x.t,
-            x.link_up,
-            x.link_age,
-            x.encoder_age,
-            x.range_age,
-            x.range_value,
-            x.range_fault,
-            x.speed,
-            x.speed_age,
-            x.lead_valid,
-            x.solver_ok,
-            x.loop_missed,
-        )
-
     def _causes(
         self,
         t: float,
@@ -236,7 +219,7 @@ class Supervisor:
         solver_ok: bool,
         loop_missed: bool,
     ) -> dict[str, Mode]:
-        """:meth:`causes` of the inputs' fields."""
+        """Every active cause with the mode it calls for (updates the counters)."""
         cfg, c = self.config, self._c
         c.solver_fails = 0 if solver_ok else c.solver_fails + 1
         c.overruns = c.overruns + 1 if loop_missed else 0
@@ -277,21 +260,8 @@ class Supervisor:
         return out
 
     def update(self, x: SupervisorInputs) -> Decision:
-        """Decide this cycle's mode."""
-        return self.decide(
-            x.t,
-            x.link_up,
-            x.link_age,
-            x.encoder_age,
-            x.range_age,
-            x.range_value,
-            x.range_fault,
-            x.speed,
-            x.speed_age,
-            x.lead_valid,
-            x.solver_ok,
-            x.loop_missed,
-        )
+        """Decide this cycle's mode (:meth:`decide` of the record's fields, in order)."""
+        return self.decide(*astuple(x))
 
     def decide(
         self,
