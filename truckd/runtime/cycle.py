@@ -338,13 +338,8 @@ class CompanionCycle:
         it before the next step): the speeds over the commands already in the pipeline
         (input delay), then the QP's, whose step 0 lies that many periods ahead; None when
         that cycle's MPC did not solve (hold, fallback)."""
-        c = out.control
-        speeds = self.controller.mpc.last_speeds
-        if c is None or c.fallback_reason is not None or c.solve_iterations == 0 or speeds is None:
-            return None
-        pipe = self.controller.pipeline_v
-        v: list[float] = speeds.tolist()
-        return [*pipe, *v] if pipe else v
+        speeds = self.plan_speed_array(out)
+        return None if speeds is None else speeds.tolist()
 
     def plan_speed_array(self, out: CycleOutputs) -> NDArray[np.float64] | None:
         """:meth:`plan_speeds` as a float64 array (the MPC's own when no command is in
