@@ -14,7 +14,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 from truckd.control import ccycle, cestimator, cnumerics
 from truckd.control.config import ControlConfig
@@ -46,8 +46,7 @@ class Controller:
     def __init__(self, model: ControlModel, cfg: ControlConfig, ticks_per_rev: int) -> None:
         """``ticks_per_rev``: encoder ticks per wheel revolution (``TruckConfig.ticks_per_rev``:
         the configuration's, computed in one place)."""
-        self.model = model
-        self.cfg = cfg
+        self.model, self.cfg = model, cfg
         self.mpc = MpcSolver(model, cfg)
         reference = Estimator(cfg.estimator, model.params.r_w, ticks_per_rev)
         compiled, self._estimator_why = cestimator.bind(
@@ -74,20 +73,15 @@ class Controller:
         self.startup_note = startup_line(eff)
         """One line naming the effects of the model the controller cannot use (None: all
         used); the daemon and ``truckd sim`` log it at start-up."""
-        self.solver_failures = 0
-        self.fallback_cycles = 0
-        self.overruns = 0
-        self.braking_cycles = 0
+        self.solver_failures = self.fallback_cycles = self.overruns = self.braking_cycles = 0
         self._b_v = float(self.mpc.qp.pred.bu[1])
         """Speed per volt over one step (m/s/V), for the offset-free action."""
         self.lead_speeds = LeadSpeeds(cfg, self.mpc.horizon)
         """The lead's speeds the MPC is given (:mod:`truckd.control.lead`)."""
-        self._numerics, why = cnumerics.bind(
+        self._numerics, self._numerics_why = cnumerics.bind(
             self.mpc, model, cfg, self.u_max, self._du, self._delay_steps, self._b_v, SATURATED_V
         )
-        self._numerics_why = why
-        # The driver's maps and the winding model the model has (fixed: those it lacks
-        # pass the voltage through and are not called every cycle; the maps' own tests).
+        # The driver's maps and the winding model this model has (the others never called).
         self._sag, self._current_limit = not eff.battery_sag <= 0.0, not eff.current_limit <= 0.0
         self._dead_zone, self._drift = self.dead_zone.active, self.winding.active
         self._fused: tuple[cnumerics.CompiledNumerics, cestimator.CompiledEstimator] | None = None
@@ -95,6 +89,10 @@ class Controller:
         and the solve in one call (:meth:`step`); None: not for this model (:attr:`backend`)."""
         if compiled is not None and self._numerics is not None and not self._drift:
             self._fused = (self._numerics, compiled)
+        self.redecide: Callable[[Estimate], tuple[Sequence[float] | None, float] | None] | None
+        self.redecide = None
+        """Called with each cycle's estimate before the control law (a platoon's order); a
+        result replaces the forecast and headway.  While set, no fused compiled call."""
         self._forget()
 
     @property
@@ -109,10 +107,11 @@ class Controller:
             return (
                 f"MPC {self.mpc.backend}; feedforward and command checks in Python ({why}); {est}"
             )
-        if self._fused is None:
+        if self._fused is None or self.redecide is not None:
+            why = "the winding model's resistance is Python's" if self._fused is None else ""
             return (
                 "compiled (MPC, feedforward and command checks in one call; the estimator "
-                "in another: the winding model's resistance is Python's)"
+                f"in another: {why or 'a platoon order runs between the two'})"
             )
         return "compiled (estimator, decisions, MPC, feedforward and command checks in one call)"
 
@@ -195,8 +194,10 @@ class Controller:
         """
         self.current, self.vbat = current, vbat
         fused = None if self.holding or v_lead_forecast is not None else self._fused
-        if fused is None or "solve" in self.mpc.__dict__:
+        if fused is None or self.redecide is not None or "solve" in self.mpc.__dict__:
             est = self.estimator.cycle(t, encoders, ranges)
+            if self.redecide is not None and (again := self.redecide(est)) is not None:
+                v_lead_forecast, headway = again
             return self.control(est, v_lead_forecast, headway)
         # The estimator's update, the decisions and the solve in one compiled call; it
         # stops after the estimate where the next decision is Python's (no valid speed,

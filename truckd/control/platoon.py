@@ -51,6 +51,14 @@ class PlatoonConfig:
         "(leading truck or single truck)",
         default="",
     )
+    order: str = spec(
+        "whom to follow: fixed (the predecessor above, always; empty: none) or auto (start "
+        "behind the predecessor above, or with it empty find the platoon's tail ahead from "
+        "the range sensor and the plans heard; then follow the truck that joins in front "
+        "and the predecessor's predecessor when the predecessor leaves: docs/platoon.md)",
+        choices=("fixed", "auto"),
+        default="fixed",
+    )
     cacc_headway: float = spec(
         "time headway while the predecessor's plan is fresh (CACC)",
         unit="s",
@@ -164,9 +172,10 @@ def follower_control(control: ControlConfig, cfg: PlatoonConfig) -> ControlConfi
 
 
 def platoon_control(control: ControlConfig, cfg: PlatoonConfig) -> ControlConfig:
-    """The controller configuration of a truck in a platoon: a follower's is
-    :func:`follower_control`'s; others keep theirs."""
-    if not cfg.predecessor:
+    """The controller configuration of a truck in a platoon: a follower's (a predecessor
+    configured, or the order found by the truck itself) is :func:`follower_control`'s;
+    others keep theirs."""
+    if not cfg.predecessor and cfg.order != "auto":
         return control
     return follower_control(control, cfg)
 

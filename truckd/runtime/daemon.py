@@ -168,7 +168,10 @@ class Daemon:
             self.platoon.limit_ingress(self.telemetry.limit_ingress)
             self.telemetry.start()
             self.platoon.subscribe(
-                self.telemetry.subscribe_key, self.rt.fault_injection, self.telemetry.subscribe_raw
+                self.telemetry.subscribe_key,
+                self.rt.fault_injection,
+                self.telemetry.subscribe_raw,
+                self.telemetry.subscribe_keyed,
             )
             if self.rt.fault_injection:
                 self.telemetry.subscribe("inject", self.faults.apply)

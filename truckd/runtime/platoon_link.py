@@ -10,6 +10,7 @@ predecessor's ``truckd/<predecessor>/plan``, and refuses plans that name another
 from __future__ import annotations
 
 import json
+import logging
 import math
 import threading
 import time
@@ -17,6 +18,7 @@ from collections.abc import Callable
 from dataclasses import replace
 from typing import Any, Protocol
 
+from truckd.control.estimator import Estimate
 from truckd.control.platoon import (
     Plan,
     PlatoonConfig,
@@ -29,6 +31,9 @@ from truckd.control.platoon import (
 from truckd.jsonsafe import json_number
 from truckd.runtime.cycle import CompanionCycle, CycleOutputs
 from truckd.runtime.platoon_clock import PlanClock
+from truckd.runtime.platoon_follow import Follow, HeardPlans
+
+log = logging.getLogger(__name__)
 
 
 def plan_key(vehicle_id: str) -> str:
@@ -193,13 +198,30 @@ publishes one per cycle; a flood arrives at the ingress limit): ``plan_flood`` i
 shown by ``truckd monitor``."""
 
 
+MAX_SENDERS = 32
+"""``platoon.order: auto``: plans are heard from at most this many trucks (the first
+heard); samples from more are dropped and counted (``senders_refused`` in health)."""
+
+
+def plan_sender(key: str) -> str | None:
+    """The vehicle id of a plan key ``truckd/<id>/plan``; None for any other key."""
+    parts = key.split("/")
+    if len(parts) == 3 and parts[0] == "truckd" and parts[2] == "plan" and parts[1]:
+        return parts[1]
+    return None
+
+
 class DaemonPlatoon:
-    """``truckd run``'s platoon part.  Every truck publishes its plan each cycle; a truck
-    with ``platoon.predecessor`` set also follows that truck's plan (CACC/ACC).  Plans are
-    stamped with ``wall()`` (the system clock); with ``platoon.clock_sync`` the
-    predecessor's clock offset and drift are estimated from its plans and each plan is
-    aged on this truck's clock (:mod:`truckd.runtime.platoon_clock`), so the clocks need
-    not agree."""
+    """``truckd run``'s platoon part.  Every truck publishes its plan each cycle.  With
+    ``platoon.order: fixed`` a truck with ``platoon.predecessor`` set follows that truck's
+    plan (CACC/ACC) and subscribes to that key only.  With ``auto`` it hears every truck's
+    plan (``truckd/*/plan``) and follows whom the order finds (:mod:`.platoon_follow`:
+    the tail when ``predecessor`` is empty, the truck that joins in front of it, the
+    predecessor's predecessor when that one leaves), decided between each cycle's
+    estimate and its control law.  Plans are stamped with ``wall()`` (the system clock);
+    with ``platoon.clock_sync`` each sender's clock offset and drift are estimated from
+    its plans and each plan is aged on this truck's clock
+    (:mod:`truckd.runtime.platoon_clock`), so the clocks need not agree."""
 
     def __init__(
         self,
@@ -212,41 +234,104 @@ class DaemonPlatoon:
         self.cfg = cfg
         self.cyc = cyc
         self.wall = wall
-        self.receiver = (  # clock_sync: plans are aged on this clock after the receiver
-            PlanReceiver(cfg.predecessor, None if cfg.clock_sync else wall, cfg.max_clock_skew_s)
-            if cfg.predecessor
+        self.auto = cfg.order == "auto"
+        self._skew_clock = None if cfg.clock_sync else wall  # else aged after the receiver
+        self._fixed = (
+            PlanReceiver(cfg.predecessor, self._skew_clock, cfg.max_clock_skew_s)
+            if cfg.predecessor and not self.auto
             else None
         )
         self.clock = PlanClock()
         self.mode = (
-            PlatoonMode(cfg, cyc.period, cyc.controller.forecast_steps) if cfg.predecessor else None
+            PlatoonMode(cfg, cyc.period, cyc.controller.forecast_steps)
+            if cfg.predecessor or self.auto
+            else None
         )
         self.decision: PlatoonDecision | None = None
         self._now = math.nan
         self._rate_mark = (math.nan, 0)  # (wall time, plans received) at the last health
         self.plan_rate_hz: float | None = None
         """Plans received per second since the previous health message (None: unknown)."""
+        # platoon.order auto: every sender's receiver, the plans heard, whom to follow
+        self.receivers: dict[str, PlanReceiver] = {}
+        self._receivers_lock = threading.Lock()
+        self._blocked = False
+        self.senders_refused = 0
+        """Samples from senders beyond :data:`MAX_SENDERS` (dropped)."""
+        self.heard = HeardPlans()
+        self._heard_next = 0
+        self._first_heard = math.nan
+        """When the first plan of another truck was heard (s, NaN: none yet)."""
+        self.follow: Follow | None = None
+        if self.auto and self.mode is not None:
+            self.follow = Follow(
+                vehicle_id, cfg.predecessor, self.mode, cyc.control_cfg.d_0, wall()
+            )
+            cyc.controller.redecide = self._on_estimate
+
+    @property
+    def receiver(self) -> PlanReceiver | None:
+        """The receiver of the truck followed now (None: none)."""
+        if self.follow is None:
+            return self._fixed
+        return self.receivers.get(self.follow.predecessor) if self.follow.predecessor else None
+
+    @property
+    def predecessor(self) -> str:
+        """The vehicle id followed now ("": none)."""
+        return self.follow.predecessor if self.follow is not None else self.cfg.predecessor
 
     def limit_ingress(self, limit: Callable[[str, float], None]) -> None:
         """Cap the predecessor's plan key at :data:`INGRESS_FACTOR` plans per control
-        period in the session (``limit(key, hz)``, before the session opens)."""
-        if self.receiver is not None:
-            limit(self.receiver.key, INGRESS_FACTOR / self.cyc.period)
+        period in the session (``limit(key, hz)``, before the session opens); with the
+        auto order every sender's plans together at that times :data:`MAX_SENDERS` (Zenoh's
+        rule counts every key it matches together)."""
+        if self._fixed is not None:
+            limit(self._fixed.key, INGRESS_FACTOR / self.cyc.period)
+        elif self.auto:
+            limit(plan_key("*"), INGRESS_FACTOR * MAX_SENDERS / self.cyc.period)
 
     def subscribe(
         self,
         subscribe_key: Callable[[str, Callable[[bytes], None]], None],
         fault_injection: bool = False,
         subscribe_raw: Callable[[str, Callable[[Any], None]], None] | None = None,
+        subscribe_keyed: Callable[[str, Callable[[str, Any], None]], None] | None = None,
     ) -> None:
         """Subscribe to the predecessor's plan key only (nothing for a leading truck),
-        with ``subscribe_raw`` when given (the payload passed uncopied); with
-        ``fault_injection`` also to ``truckd/<vehicle_id>/platoon_fault`` (HIL runs:
-        ``{"link": "down"}`` drops every plan received until ``{"link": "up"}``)."""
-        if self.receiver is not None:
-            (subscribe_raw or subscribe_key)(self.receiver.key, self.receiver.on_payload)
-            if fault_injection:
-                subscribe_key(f"truckd/{self.vehicle_id}/platoon_fault", self.apply_fault)
+        with ``subscribe_raw`` when given (the payload passed uncopied); with the auto
+        order to every plan (``subscribe_keyed``: the callback gets the sample's key and
+        payload); with ``fault_injection`` also to ``truckd/<vehicle_id>/platoon_fault``
+        (HIL runs: ``{"link": "down"}`` drops every plan received until ``{"link":
+        "up"}``)."""
+        following = self._fixed is not None or self.auto
+        if self._fixed is not None:
+            (subscribe_raw or subscribe_key)(self._fixed.key, self._fixed.on_payload)
+        elif self.auto:
+            if subscribe_keyed is None:
+                raise ValueError("the auto order needs a subscription that passes the key")
+            subscribe_keyed(plan_key("*"), self.on_sample)
+        if following and fault_injection:
+            subscribe_key(f"truckd/{self.vehicle_id}/platoon_fault", self.apply_fault)
+
+    def on_sample(self, key: str, payload: bytes | _Payload) -> None:
+        """A plan sample on ``key`` (auto order, Zenoh's thread): handed to its sender's
+        receiver (made at the sender's first sample); constant work, no decoding."""
+        sender = plan_sender(key)
+        if sender is None or sender == self.vehicle_id:
+            return
+        r = self.receivers.get(sender)
+        if r is None:
+            with self._receivers_lock:
+                r = self.receivers.get(sender)
+                if r is None:
+                    if len(self.receivers) >= MAX_SENDERS:
+                        self.senders_refused += 1
+                        return
+                    r = PlanReceiver(sender, self._skew_clock, self.cfg.max_clock_skew_s)
+                    r.blocked = self._blocked
+                    self.receivers = {**self.receivers, sender: r}  # readers see old or new
+        r.on_payload(payload)
 
     def apply_fault(self, payload: bytes) -> None:
         """An injected link fault (see :meth:`subscribe`); anything else is ignored."""
@@ -254,53 +339,120 @@ class DaemonPlatoon:
             cmd = json.loads(payload)
         except ValueError:
             return
-        if (
-            self.receiver is not None
-            and isinstance(cmd, dict)
-            and cmd.get("link") in ("down", "up")
-        ):
-            self.receiver.blocked = cmd["link"] == "down"
+        if not (isinstance(cmd, dict) and cmd.get("link") in ("down", "up")):
+            return
+        self._blocked = cmd["link"] == "down"
+        with self._receivers_lock:
+            for r in [self._fixed, *self.receivers.values()]:
+                if r is not None:
+                    r.blocked = self._blocked
 
     def decide(self, last: CycleOutputs | None) -> PlatoonDecision | None:
-        """Before the cycle: the forecast and headway (None for a leading truck)."""
+        """Before the cycle: the forecast and headway (None for a leading truck with a
+        fixed order)."""
         self._now = self.wall()
-        if self.mode is None or self.receiver is None:
+        if self.mode is None:
             return None
-        plan = self.receiver.latest()
-        if self.cfg.clock_sync:  # the predecessor's clock is not ours (platoon_clock.py)
-            self.clock.observe_latest(plan, self._now)
-            plan = self.clock.to_own(plan)
+        if self.follow is not None:
+            plan = self._hear(self.follow, self._now)
+        else:
+            assert self._fixed is not None
+            plan = self._fixed.latest()
+            if self.cfg.clock_sync:  # the predecessor's clock is not ours (platoon_clock.py)
+                self.clock.observe_latest(plan, self._now)
+                plan = self.clock.to_own(plan)
         self.decision = follower_inputs(self.mode, self._now, plan, last, self.cyc.control_cfg.d_0)
         return self.decision
+
+    def _hear(self, f: Follow, now: float) -> Plan | None:
+        """Auto order: the newest plans of the predecessor and the standby (each cycle)
+        and of one other sender in turn (each receiver decodes at most one sample a
+        cycle; every sender each cycle while no predecessor is followed), noted in
+        :attr:`heard`; the predecessor's plan on this truck's clock."""
+        receivers = self.receivers
+        if receivers and math.isnan(self._first_heard):
+            self._first_heard = now
+        for src in (f.source, f.standby):
+            r = receivers.get(src.sender) if src.sender else None
+            if r is not None:
+                plan = r.latest()
+                if plan is not None:
+                    src.hold_latest(plan, now)
+                    self.heard.note(src.sender, plan, now)
+        others = [v for v in receivers if v not in (f.source.sender, f.standby.sender)]
+        if others and f.predecessor:
+            others = [others[self._heard_next % len(others)]]
+            self._heard_next += 1
+        for vid in others:
+            plan = receivers[vid].latest()
+            if plan is not None:
+                self.heard.note(vid, plan, now)
+        return f.source.on_own_clock(self.cfg.clock_sync)
+
+    def _on_estimate(self, est: Estimate) -> tuple[list[float] | None, float] | None:
+        """Between the cycle's estimate and its control law (auto order): another truck
+        ahead gives this cycle's forecast and headway again."""
+        f = self.follow
+        if f is None or self.decision is None:
+            return None
+        n_events = len(f.events)
+        gap = est.gap if est.lead_valid else None
+        v_lead = est.v_lead if est.lead_valid else math.nan
+        # a tail is taken once the plans have been heard for cacc_return_s
+        settled = self._now - self._first_heard >= self.cfg.cacc_return_s
+        changed = f.step(gap, est.v, v_lead, self.heard, self._now, settled)
+        for _t, what in f.events[n_events:]:
+            log.info("platoon: %s", what)
+        if not changed:
+            return None
+        fc, headway = f.redecide(self.cfg.clock_sync, self._now)
+        self.decision = replace(self.decision, headway=headway, forecast=fc)
+        return fc, headway
 
     def plan_message(self, out: CycleOutputs) -> dict[str, Any] | None:
         """After the cycle: the plan to publish (None when there is none this cycle)."""
         t = self._now if math.isfinite(self._now) else self.wall()
         p = cycle_plan(self.cyc, out, t, self.vehicle_id)
-        return replace(p, predecessor=self.cfg.predecessor).as_dict() if p is not None else None
+        return replace(p, predecessor=self.predecessor).as_dict() if p is not None else None
 
     def health(self) -> dict[str, Any]:
         """The ``platoon`` entry of the health message."""
         d, r, m = self.decision, self.receiver, self.mode
         age = d.plan_age_s if d is not None else math.nan
-        if r is not None:
+        received = (
+            sum(x.received for x in self.receivers.values())
+            if self.auto
+            else (r.received if r is not None else 0)
+        )
+        if m is not None:
             now, (t_mark, n_mark) = self.wall(), self._rate_mark
             if now - t_mark > 0.2:  # NaN at the first call: no rate yet
-                self.plan_rate_hz = (r.received - n_mark) / (now - t_mark)
+                self.plan_rate_hz = (received - n_mark) / (now - t_mark)
             if not now - t_mark <= 0.2:
-                self._rate_mark = (now, r.received)
+                self._rate_mark = (now, received)
         rate = self.plan_rate_hz
-        return {
-            "predecessor": self.cfg.predecessor or None,
+        senders = max(1, len(self.receivers)) if self.auto else 1
+        out: dict[str, Any] = {
+            "predecessor": self.predecessor or None,
             "mode": d.mode if d is not None else None,
             "headway_s": d.headway if d is not None else None,
             "plan_age_s": json_number(age),
             "plans_accepted": r.accepted if r is not None else 0,
             "plans_refused": r.refused if r is not None else 0,
             "plans_dropped": r.dropped if r is not None else 0,
-            "plans_received": r.received if r is not None else 0,
+            "plans_received": received,
             "plan_rate_hz": rate,
-            "plan_flood": rate is not None and rate > FLOOD_FACTOR / self.cyc.period,
+            "plan_flood": rate is not None and rate > senders * FLOOD_FACTOR / self.cyc.period,
             "switches": m.switches if m is not None else 0,
             "plans_disagreeing": m.disagreements if m is not None else 0,
         }
+        if self.follow is not None:
+            ev = self.follow.events
+            out["order"] = {
+                "standby": self.follow.standby.sender or None,
+                "senders": sorted(self.receivers),
+                "senders_refused": self.senders_refused,
+                "changes": len(ev),
+                "last_change": ev[-1][1] if ev else None,
+            }
+        return out

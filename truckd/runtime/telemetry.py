@@ -213,6 +213,20 @@ class Telemetry:
 
         self._subs.append(self._session.declare_subscriber(key, on_sample))
 
+    def subscribe_keyed(self, key: str, callback: Callable[[str, zenoh.ZBytes], None]) -> None:
+        """Like :meth:`subscribe_raw` on a key expression (e.g. ``truckd/*/plan``),
+        passing the sample's key as well: ``callback(key, payload)``."""
+        if self._session is None:
+            raise RuntimeError("Telemetry.subscribe before start")
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            try:
+                callback(str(sample.key_expr), sample.payload)
+            except Exception as exc:  # never kill zenoh's callback thread
+                log.warning("%s handler failed: %s", key, exc)
+
+        self._subs.append(self._session.declare_subscriber(key, on_sample))
+
     def declare(self, suffix: str) -> None:
         """One more publisher, on ``truckd/<vehicle_id>/<suffix>`` (JSON; e.g.
         ``characterize``): after :meth:`start`, before the loop (declaring blocks)."""

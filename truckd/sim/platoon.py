@@ -43,10 +43,11 @@ from dataclasses import replace
 from typing import Any
 
 from truckd.control.platoon import ACC, CACC, PlatoonConfig, follower_control, make_plan
+from truckd.runtime.platoon_follow import HeardPlans
 from truckd.runtime.platoon_link import cycle_plan
 from truckd.sim.closed_loop import SimSetup
 from truckd.sim.plan_channel import LinkConfig, PlanChannel
-from truckd.sim.platoon_joins import HeardPlans, follow_order, lane_targets, try_merge
+from truckd.sim.platoon_joins import follow_order, lane_targets, try_merge
 from truckd.sim.platoon_metrics import PlatoonTrace, platoon_metrics, record_cycle, string_ratios
 from truckd.sim.platoon_scenarios import (
     ACTUATION_DELAY_S,
@@ -155,6 +156,7 @@ def run_platoon(
     back = sc.v0 * t0  # where everyone is at t0, relative to the places at 0 s
     xv = [gap0 + back]  # the lead's driver: a virtual vehicle on the scenario's profile
     trucks: list[PlatoonTruck] = []
+    events: list[tuple[float, str]] = []
     clocks = [
         (
             rng.uniform(-clock_offset_s, clock_offset_s),
@@ -180,7 +182,7 @@ def run_platoon(
         trucks.append(
             PlatoonTruck(
                 f"truck{i}", setups[i], pcfg, x0 + back, sc.v0, range_fn, clocks[i], ahead,
-                initial, t0,
+                initial, t0, events,
             )
         )  # fmt: skip
     starts = [f.plant.x for f in trucks]
@@ -192,7 +194,6 @@ def run_platoon(
     seen[:], _ = lane_targets(trucks, xv[0], range_max)
     steps = trucks[0].cyc.controller.forecast_steps + 1
     tr = PlatoonTrace()
-    events: list[tuple[float, str]] = []
     cycles = max(1, round(dur / dt))
     for k in range(-pre, cycles):
         t = k * dt
@@ -208,7 +209,7 @@ def run_platoon(
             heard.forget(gone.vid)
             events.append((t, f"{gone.vid} leaves"))
         if sc.kind == "join" and t >= sc.event_s and not trucks[-2].announce:
-            trucks[-2].announce, trucks[-2].pred_since = True, t
+            trucks[-2].announce, trucks[-2].follow.pred_since = True, t
             events.append((t, f"{trucks[-2].vid} announces: joins behind {trucks[-2].predecessor}"))
         seen[:], true_gaps = lane_targets(trucks, xv[0], range_max)
         if sc.kind == "join" and trucks[-2].lane == 1 and trucks[-2].announce:
@@ -225,9 +226,7 @@ def run_platoon(
                 f.cycle(t, driver)
             else:
                 f._sync = pcfg.clock_sync
-                f.order = functools.partial(
-                    follow_order, f, heard=heard, pcfg=pcfg, events=events, t=t
-                )
+                f.order = functools.partial(follow_order, f, heard=heard, t=t)
                 for src in (f.source, f.standby):
                     if src.sender:
                         ch = links.get((src.sender, f.vid))

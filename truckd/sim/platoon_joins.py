@@ -6,20 +6,10 @@ from __future__ import annotations
 
 import math
 
-from truckd.control.platoon import Plan, PlatoonConfig
-from truckd.control.platoon_order import (
-    CLOSER,
-    FARTHER,
-    joiner_for,
-    range_jump,
-    standby_for,
-    tail_candidate,
-)
-from truckd.sim.platoon_truck import PlanSource, PlatoonTruck
-
-RANGE_JUMP_M = 0.25
-"""A change of the measured gap larger than this within one cycle is another vehicle ahead
-(a join or a leave): at 2 m/s^2 of relative braking a gap changes by 0.02 m per 10 ms."""
+from truckd.control.estimator import Estimate
+from truckd.control.platoon import PlatoonConfig
+from truckd.runtime.platoon_follow import HeardPlans
+from truckd.sim.platoon_truck import PlatoonTruck
 
 
 def lane_targets(
@@ -49,83 +39,17 @@ def lane_targets(
     return seen, true
 
 
-class HeardPlans:
-    """The plans heard on ``truckd/*/plan`` (the discovery view; in the simulation taken
-    as each plan is sent): who follows whom, since when, and each truck's planned speed
-    now."""
-
-    def __init__(self) -> None:
-        self.pre: dict[str, str] = {}
-        self.since: dict[str, float] = {}
-        self.speed: dict[str, float] = {}
-
-    def note(self, vid: str, plan: Plan, t: float) -> None:
-        if self.pre.get(vid) != plan.predecessor or vid not in self.since:
-            self.since[vid] = t
-        self.pre[vid] = plan.predecessor
-        self.speed[vid] = plan.v[0]
-
-    def forget(self, vid: str) -> None:
-        for d in (self.pre, self.since, self.speed):
-            d.pop(vid, None)
-
-
-def follow_order(
-    f: PlatoonTruck,
-    gap: float | None,
-    *,
-    heard: HeardPlans,
-    pcfg: PlatoonConfig,
-    events: list[tuple[float, str]],
-    t: float,
-) -> bool:
-    """Who this follower follows, from the gap its lead filter measures this cycle and
-    the plans heard (:mod:`truckd.control.platoon_order`); a joining truck ahead: room
-    opened.  True when the predecessor changed."""
-    jump = range_jump(f.range_prev, gap, RANGE_JUMP_M)
-    f.range_prev = gap
-    d_0 = f.cyc.control_cfg.d_0
+def follow_order(f: PlatoonTruck, est: Estimate, *, heard: HeardPlans, t: float) -> bool:
+    """Who this follower follows, from this cycle's estimate and the plans heard (the
+    daemon's order, :class:`~truckd.runtime.platoon_follow.Follow`); a truck in the next
+    lane follows the truck it announced until it moves in.  True when the predecessor
+    changed."""
+    gap = est.gap if est.lead_valid else None
     if f.lane != 0:
+        f.follow.range_prev = gap
         return False
-    if not f.predecessor:
-        if gap is None:
-            return False
-        est = f.out.control.estimate if f.out is not None and f.out.control is not None else None
-        v_lead = est.v_lead if est is not None and est.lead_valid else math.nan
-        pick = tail_candidate(f.vid, heard.pre, heard.speed, v_lead, pcfg.plan_speed_tolerance)
-        if pick:
-            f.predecessor, f.source, f.pred_since = pick, PlanSource(pick), t
-            f.mode.retarget(f.time_gap(gap))
-            events.append((t, f"{f.vid} follows {pick} (the tail)"))
-            return True
-        return False
-    joiner = joiner_for(f.vid, f.predecessor, heard.pre, heard.since, f.pred_since)
-    if joiner and jump == CLOSER and f.standby.sender == joiner:
-        _swap(f, gap, events, t, "joined in front")
-        return True
-    if jump == FARTHER and f.standby.sender and not joiner:
-        _swap(f, gap, events, t, "left")
-        return True
-    want = standby_for(f.vid, f.predecessor, heard.pre, heard.since, f.pred_since)
-    if want != f.standby.sender and f.predecessor in heard.pre:  # gone: keep the standby
-        f.standby = PlanSource(want)
-    if joiner and f.mode.extra_headway == 0.0 and f.plant.v > 0.1:
-        # room for the joining truck: its own CACC gap (d_0 + h v) as extra headway
-        f.mode.extra_headway = (d_0 + pcfg.cacc_headway * f.plant.v) / f.plant.v
-        events.append((t, f"{f.vid} opens room for {joiner}"))
-    return False
-
-
-def _swap(
-    f: PlatoonTruck, gap: float | None, events: list[tuple[float, str]], t: float, why: str
-) -> None:
-    old = f.predecessor
-    f.predecessor, f.source, f.standby = f.standby.sender, f.standby, PlanSource("")
-    f.pred_since = t
-    f.mode.extra_headway = 0.0
-    if gap is not None:
-        f.mode.retarget(f.time_gap(gap))
-    events.append((t, f"{f.vid} follows {f.predecessor} ({old} {why})"))
+    v_lead = est.v_lead if est.lead_valid else math.nan
+    return f.follow.step(gap, est.v, v_lead, heard, t)
 
 
 def try_merge(

@@ -5,28 +5,25 @@ platoon."""
 
 from __future__ import annotations
 
-import math
 import random
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import replace
 from typing import Any
 
 from truckd.control.config import ControlConfig
 from truckd.control.estimator import Estimate
-from truckd.control.output import ControlOutput
 from truckd.control.platoon import (
     CACC,
     Plan,
     PlatoonConfig,
     PlatoonDecision,
     PlatoonMode,
-    lead_forecast,
 )
 from truckd.control.qp import ControlModel
 from truckd.io.port import companion_port
 from truckd.model.params import VehicleParams
 from truckd.runtime.cycle import CompanionCycle, CycleInputs, CycleOutputs
-from truckd.runtime.platoon_clock import PlanClock
+from truckd.runtime.platoon_follow import Follow, PlanSource
 from truckd.runtime.platoon_link import follower_inputs
 from truckd.sim.closed_loop import SimSetup
 from truckd.sim.truck import build_truck
@@ -136,23 +133,6 @@ def on_model(base: SimSetup, truck: SimSetup, model: ControlModel) -> SimSetup:
     return replace(truck, control=control, model=model)
 
 
-class PlanSource:
-    """A sender's plans as one receiver holds them: the newest (by ``seq``, or a sender
-    that restarted) and the sender's clock."""
-
-    def __init__(self, sender: str) -> None:
-        self.sender = sender
-        self.clock = PlanClock()
-        self.held: Plan | None = None
-
-    def take(self, arrivals: list[tuple[float, Plan]], own: Callable[[float], float]) -> None:
-        for at, plan in arrivals:
-            self.clock.observe(plan, own(at))
-            old = self.held
-            if old is None or plan.seq > old.seq or plan.t > old.t + 1.0:
-                self.held = plan
-
-
 class PlatoonTruck:
     def __init__(
         self,
@@ -166,9 +146,11 @@ class PlatoonTruck:
         predecessor: str,
         initial: str = CACC,
         t0: float = 0.0,
+        events: list[tuple[float, str]] | None = None,
     ) -> None:
         """``x0`` (m) and ``v0`` (m/s) the truck's position and speed at ``t0`` (s, the
-        plant's clock at the start: before 0 with a pre-roll)."""
+        plant's clock at the start: before 0 with a pre-roll); ``events``: the run's list
+        of joins and leaves."""
         self.vid = vid
         cfg = setup.control
         spec = setup.truck
@@ -186,52 +168,47 @@ class PlatoonTruck:
         )
         self.mode = PlatoonMode(pcfg, cfg.period, self.cyc.controller.forecast_steps, initial)
         self.clock_offset, self.clock_drift = clock
-        self.predecessor = predecessor
-        self.source = PlanSource(predecessor)
-        self.standby = PlanSource("")
+        self.follow = Follow(vid, predecessor, self.mode, cfg.d_0, t0, events)
+        """Whom it follows (predecessor, standby, their plans): the daemon's order."""
         self.lane = 0
         self.active = True
         self.announce = True
         """Publishes its plans (a truck about to join in the middle is silent until it
         announces)."""
-        self.range_prev: float | None = None
-        self.pred_since = t0
-        """When this truck took its predecessor (simulated time, s)."""
         self.out: CycleOutputs | None = None
         self.dec: PlatoonDecision | None = None
-        self.order: Callable[[float | None], bool] | None = None
-        """Who to follow, given the gap the lead filter measures this cycle (None: no
-        lead); True when the predecessor changed."""
+        self.order: Callable[[Estimate], bool] | None = None
+        """Who to follow, given this cycle's estimate; True when the predecessor changed
+        (None: a fixed predecessor)."""
         self._sync = True
         self._now = 0.0
-        ctl = self.cyc.controller
-        law = ctl.control
+        self.cyc.controller.redecide = self._on_estimate
 
-        def control(
-            est: Estimate, forecast: Sequence[float] | None = None, headway: float | None = None
-        ) -> ControlOutput:
-            # Between the estimate and the control law: a new vehicle ahead is seen by
-            # the order and the controller in the same cycle (no step on a stale headway).
-            if self.order is not None and self.order(est.gap if est.lead_valid else None):
-                forecast, headway = self._redecide()
-            return law(est, forecast, headway)
+    @property
+    def predecessor(self) -> str:
+        return self.follow.predecessor
 
-        setattr(ctl, "control", control)  # noqa: B010 (an instance's own control law)
+    @property
+    def source(self) -> PlanSource:
+        return self.follow.source
+
+    @property
+    def standby(self) -> PlanSource:
+        return self.follow.standby
+
+    def _on_estimate(self, est: Estimate) -> tuple[list[float] | None, float] | None:
+        """Between the estimate and the control law: a new vehicle ahead is seen by the
+        order and the controller in the same cycle (no step on a stale headway)."""
+        if self.order is not None and self.order(est):
+            return self._redecide()
+        return None
 
     def _redecide(self) -> tuple[list[float] | None, float]:
         """After a change of predecessor within the cycle: the new headway and forecast."""
-        plan = self.plan_in(self._sync)
-        m = self.mode
-        fc = None
-        if (
-            m.mode == CACC
-            and plan is not None
-            and (m.fresh(plan, self._now) or m.held(plan, self._now))
-        ):
-            fc = lead_forecast(plan, self._now, m.period, m.horizon)
+        fc, headway = self.follow.redecide(self._sync, self._now)
         if self.dec is not None:
-            self.dec = replace(self.dec, headway=m.headway, forecast=fc)
-        return fc, m.headway
+            self.dec = replace(self.dec, headway=headway, forecast=fc)
+        return fc, headway
 
     def own(self, t: float) -> float:
         """This truck's clock at simulated time t (s)."""
@@ -240,7 +217,7 @@ class PlatoonTruck:
     def plan_in(self, sync: bool) -> Plan | None:
         """The predecessor's newest plan on this truck's clock (as received when the
         clocks are taken as synchronised)."""
-        return self.source.clock.to_own(self.source.held) if sync else self.source.held
+        return self.follow.source.on_own_clock(sync)
 
     def cycle(self, t: float, plan: Plan | None) -> None:
         """One cycle at simulated time t (s): the daemon's companion cycle with the
@@ -260,10 +237,6 @@ class PlatoonTruck:
         self.port.send(self.out.command)
         if self.out.heartbeat is not None:
             self.port.send(self.out.heartbeat)
-
-    def time_gap(self, gap: float) -> float:
-        d_0 = self.cyc.control_cfg.d_0
-        return (gap - d_0) / self.plant.v if self.plant.v > 0.1 else math.nan
 
 
 def with_delay(s: SimSetup, delay: float) -> SimSetup:

@@ -1,0 +1,244 @@
+"""``platoon.order: auto`` in the daemon: the truck finds whom to follow from its range
+sensor and the plans heard on ``truckd/*/plan`` (the tail ahead, the truck that joins in
+front of it, the predecessor's predecessor when the predecessor leaves), decided between
+each cycle's estimate and its control law (:class:`DaemonPlatoon`, the order of
+:mod:`truckd.runtime.platoon_follow` that ``truckd sim --platoon`` uses too)."""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import zenoh
+from runtime_support import endpoint, free_port, wait_for, write_config
+
+from truckd.config.truck import load_config
+from truckd.control.estimator import Estimate
+from truckd.control.platoon import (
+    ACC,
+    CACC,
+    PlatoonConfig,
+    encode_plan,
+    kinematic_plan,
+    platoon_control,
+)
+from truckd.control.qp import ControlModel
+from truckd.runtime.cycle import CompanionCycle
+from truckd.runtime.daemon import Daemon
+from truckd.runtime.platoon_link import MAX_SENDERS, DaemonPlatoon
+from truckd.runtime.telemetry import zenoh_config
+
+PERIOD = 0.01
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.t = 1000.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def _daemon_platoon(predecessor: str = "") -> tuple[DaemonPlatoon, Clock]:
+    cfg = load_config()
+    pcfg: PlatoonConfig = replace(cfg.platoon, order="auto", predecessor=predecessor)
+    cyc = CompanionCycle(
+        ControlModel(cfg.vehicle),
+        platoon_control(cfg.control, pcfg),
+        cfg.runtime.supervisor,
+        cfg.ticks_per_rev,
+        cfg.runtime.stop_ramp_v_per_s,
+        time_budget=False,
+    )
+    clock = Clock()
+    return DaemonPlatoon("me", pcfg, cyc, wall=clock), clock
+
+
+def _estimate(gap: float | None, v: float, v_lead: float) -> Estimate:
+    return Estimate(
+        v=v, speed_valid=True, gap=gap if gap is not None else 0.0, v_lead=v_lead,
+        lead_valid=gap is not None, lead_status="ok" if gap is not None else "none",
+        gap_std=0.002, outliers=0, reinits=0, encoder_samples=1, range_samples=1,
+    )  # fmt: skip
+
+
+def _drive(
+    dp: DaemonPlatoon,
+    clock: Clock,
+    senders: dict[str, str],
+    cycles: int,
+    gap: float | None,
+    v: float = 1.0,
+    v_lead: float = 1.0,
+    seq0: int = 0,
+) -> list[tuple[Any, ...] | None]:
+    """``cycles`` cycles: each sender (vehicle id -> the truck it follows) publishes a plan
+    at ``v_lead``, then the daemon decides and the controller's hook sees the estimate.
+    Returns what the hook returned each cycle."""
+    hook = dp.cyc.controller.redecide
+    assert hook is not None
+    out = []
+    for k in range(cycles):
+        clock.t += PERIOD
+        for vid, pre in senders.items():
+            plan = replace(
+                kinematic_plan(clock.t, seq0 + k, PERIOD, v_lead, 0.0, 40, vid), predecessor=pre
+            )
+            dp.on_sample(f"truckd/{vid}/plan", encode_plan(plan))
+        dp.decide(None)
+        out.append(hook(_estimate(gap, v, v_lead)))
+    return out
+
+
+def test_auto_order_finds_the_tail_ahead_and_drives_cacc_behind_it() -> None:
+    """No predecessor configured, a platoon t0 <- t1 <- t2 heard and a vehicle in range at
+    t2's speed: the truck takes t2 (the tail: nobody follows it) and drives CACC on its
+    plans; its own plan names it.  The control case: the vehicle in range drives 2 m/s
+    faster than any plan heard (not a truck of the fleet): nobody is taken, ACC."""
+    fleet = {"t0": "", "t1": "t0", "t2": "t1"}
+    dp, clock = _daemon_platoon()
+    assert "platoon order runs between" in dp.cyc.controller.backend  # said at start-up
+    _drive(dp, clock, {"t0": "", "t1": "t0"}, 10, gap=1.2)
+    assert dp.predecessor == ""  # t2 not heard yet: listening
+    _drive(dp, clock, fleet, 60, gap=1.2, seq0=10)
+    assert dp.predecessor == "t2"
+    _drive(dp, clock, fleet, 80, gap=1.2, seq0=70)
+    assert dp.decision is not None and dp.decision.mode == CACC
+    assert dp.decision.forecast is not None
+    h = dp.health()
+    assert h["predecessor"] == "t2" and h["order"]["senders"] == ["t0", "t1", "t2"]
+    assert "t2 (the tail)" in h["order"]["last_change"]
+
+    other, clock2 = _daemon_platoon()
+    _drive(other, clock2, fleet, 90, gap=1.2, v_lead=1.0)  # plans at 1.0 m/s ...
+    assert other.predecessor == "t2"
+    stranger, clock3 = _daemon_platoon()
+    for k in range(90):  # ... the vehicle in range at 3.0 m/s
+        clock3.t += PERIOD
+        for vid, pre in fleet.items():
+            plan = replace(kinematic_plan(clock3.t, k, PERIOD, 1.0, 0.0, 40, vid), predecessor=pre)
+            stranger.on_sample(f"truckd/{vid}/plan", encode_plan(plan))
+        stranger.decide(None)
+        hook = stranger.cyc.controller.redecide
+        assert hook is not None
+        hook(_estimate(1.2, 1.0, 3.0))
+    assert stranger.predecessor == ""
+    assert stranger.decision is not None and stranger.decision.mode == ACC
+
+
+def test_auto_order_takes_the_predecessors_predecessor_when_it_leaves() -> None:
+    """Behind t2 (configured) in CACC, t1 ahead of it: when the range sensor jumps farther
+    (t2 left the lane) the truck follows t1 in the same cycle, on t1's fresh plan (held as
+    the standby's all along), without a switch to ACC.  Without the jump it stays."""
+    fleet = {"t0": "", "t1": "t0", "t2": "t1"}
+    dp, clock = _daemon_platoon("t2")
+    _drive(dp, clock, fleet, 80, gap=1.0)
+    assert dp.decision is not None and dp.decision.mode == CACC
+    assert dp.health()["order"]["standby"] == "t1"
+    switches = dp.mode.switches if dp.mode is not None else -1
+    _drive(dp, clock, fleet, 20, gap=1.0, seq0=80)
+    assert dp.predecessor == "t2"  # no jump: no change
+    got = _drive(dp, clock, fleet, 1, gap=2.3, seq0=100)
+    assert dp.predecessor == "t1"
+    assert got[0] is not None and got[0][0] is not None  # this cycle: t1's forecast
+    _drive(dp, clock, fleet, 30, gap=2.3, seq0=101)
+    assert dp.decision is not None and dp.decision.mode == CACC
+    assert dp.mode is not None and dp.mode.switches == switches
+
+
+def test_auto_order_opens_room_for_a_joining_truck_and_follows_it() -> None:
+    """Behind t2: a truck j announces that it follows t2 (it will move in in front of this
+    truck): the truck opens room (extra headway, ramped) and listens to j; when the range
+    sensor jumps closer (j moved in) it follows j."""
+    fleet = {"t1": "", "t2": "t1"}
+    dp, clock = _daemon_platoon("t2")
+    _drive(dp, clock, fleet, 80, gap=1.0)
+    assert dp.mode is not None and dp.mode.extra_headway == 0.0
+    _drive(dp, clock, {**fleet, "j": "t2"}, 20, gap=1.0, seq0=80)
+    assert dp.mode.extra_headway > 0.0
+    assert dp.health()["order"]["standby"] == "j"
+    assert dp.predecessor == "t2"
+    _drive(dp, clock, {**fleet, "j": "t2"}, 1, gap=0.6, seq0=100)
+    assert dp.predecessor == "j"
+    assert dp.mode.extra_headway == 0.0
+
+
+def test_auto_order_hears_other_trucks_plan_keys_only_and_at_most_max_senders() -> None:
+    """Its own plans, other keys and senders beyond :data:`MAX_SENDERS` are not heard (the
+    last counted); a plan on one truck's key naming another truck is refused."""
+    dp, clock = _daemon_platoon()
+    plan = kinematic_plan(clock.t, 1, PERIOD, 1.0, 0.0, 40, "me")
+    dp.on_sample("truckd/me/plan", encode_plan(plan))
+    dp.on_sample("truckd/a/state", b"{}")
+    dp.on_sample("truckd/a/b/plan", b"{}")
+    assert dp.receivers == {}
+    for i in range(MAX_SENDERS + 5):
+        vid = f"s{i}"
+        dp.on_sample(f"truckd/{vid}/plan", encode_plan(replace(plan, vehicle_id=vid)))
+    assert len(dp.receivers) == MAX_SENDERS and dp.senders_refused == 5
+    dp.on_sample("truckd/s0/plan", encode_plan(replace(plan, vehicle_id="s1", seq=2)))
+    r = dp.receivers["s0"]
+    r.latest()
+    assert r.refused == 1 and "expected 's0'" in r.last_error
+
+
+def test_daemon_with_auto_order_finds_the_tail_over_zenoh(tmp_path: Path) -> None:
+    """``truckd run`` (simulated truck, its lead ahead at 0.7 of the set speed) with
+    ``platoon.order: auto`` and no predecessor: two trucks' plans heard on the loopback
+    router (t0 leads, t1 follows it, at the lead's speed); the daemon follows t1, reaches
+    CACC and publishes plans naming t1; its health lists both senders."""
+    port = free_port()
+    cfg_path = write_config(
+        tmp_path / "truck.yaml",
+        {"vehicle_id": "f1", "platoon": {"order": "auto"},
+         "runtime": {"realtime": False, "recorder": {"enabled": False},
+                     "telemetry": {"listen": [], "connect": [endpoint(port)]}}},
+    )  # fmt: skip
+    cfg = load_config(cfg_path)
+    v_lead = 0.7 * cfg.control.v_set
+    s = zenoh.open(zenoh_config(listen=[endpoint(port)]))
+    states: list[dict[str, Any]] = []
+    plans: list[dict[str, Any]] = []
+    health: list[dict[str, Any]] = []
+    s.declare_subscriber(
+        "truckd/f1/state", lambda m: states.append(json.loads(m.payload.to_bytes()))
+    )
+    s.declare_subscriber("truckd/f1/plan", lambda m: plans.append(json.loads(m.payload.to_bytes())))
+    s.declare_subscriber(
+        "truckd/f1/health", lambda m: health.append(json.loads(m.payload.to_bytes()))
+    )
+    stop = threading.Event()
+
+    def fleet() -> None:
+        pubs = {v: s.declare_publisher(f"truckd/{v}/plan") for v in ("t0", "t1")}
+        seq = 0
+        while not stop.is_set():
+            for vid, pre in (("t0", ""), ("t1", "t0")):
+                p = replace(
+                    kinematic_plan(time.time(), seq, 0.01, v_lead, 0.0, 40, vid), predecessor=pre
+                )
+                pubs[vid].put(encode_plan(p))
+            seq += 1
+            time.sleep(0.01)
+
+    th = threading.Thread(target=fleet, daemon=True)
+    th.start()
+    d = Daemon(cfg, "sim", duration=5.0, env={})
+    try:
+        assert d.run() == 0
+    finally:
+        stop.set()
+        th.join(5.0)
+        s.close()
+    assert wait_for(lambda: bool(plans), 1.0)
+    modes = [m.get("platoon") for m in states]
+    assert "CACC" in modes, modes[-20:]
+    assert plans[-1]["predecessor"] == "t1"
+    entries = [h["platoon"] for h in health if "platoon" in h]
+    assert entries and entries[-1]["predecessor"] == "t1"
+    assert entries[-1]["order"]["senders"] == ["t0", "t1"]
+    assert entries[-1]["plans_accepted"] > 10

@@ -1,0 +1,189 @@
+"""Whom a follower follows while trucks join and leave: the plans heard from every truck,
+the plan sources of the predecessor and of the standby, and the order's rules
+(:mod:`truckd.control.platoon_order`) applied once a cycle between the estimate and the
+control law, so that a new vehicle ahead is seen by the order and the controller in the
+same cycle.  Used by ``truckd run`` (``platoon.order: auto``, :mod:`.platoon_link`) and by
+``truckd sim --platoon`` alike; pure state, no I/O and no clock (times are passed in)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+from truckd.control.platoon import CACC, Plan, PlatoonConfig, PlatoonMode, lead_forecast
+from truckd.control.platoon_order import (
+    CLOSER,
+    FARTHER,
+    joiner_for,
+    range_jump,
+    standby_for,
+    tail_candidate,
+)
+from truckd.runtime.platoon_clock import PlanClock
+
+RANGE_JUMP_M = 0.25
+"""A change of the measured gap larger than this within one cycle is another vehicle ahead
+(a join or a leave): at 2 m/s^2 of relative braking a gap changes by 0.02 m per 10 ms."""
+
+
+class HeardPlans:
+    """The plans heard on ``truckd/*/plan`` (the discovery view): who follows whom, since
+    when (s, on the receiver's clock), and each truck's planned speed (m/s) at its plan's
+    start."""
+
+    def __init__(self) -> None:
+        self.pre: dict[str, str] = {}
+        self.since: dict[str, float] = {}
+        self.speed: dict[str, float] = {}
+
+    def note(self, vid: str, plan: Plan, t: float) -> None:
+        """``plan`` heard from ``vid`` at time t (s)."""
+        if self.pre.get(vid) != plan.predecessor or vid not in self.since:
+            self.since[vid] = t
+        self.pre[vid] = plan.predecessor
+        self.speed[vid] = plan.v[0]
+
+    def forget(self, vid: str) -> None:
+        """``vid`` is no longer heard (it left, or went silent)."""
+        for d in (self.pre, self.since, self.speed):
+            d.pop(vid, None)
+
+
+class PlanSource:
+    """A sender's plans as one receiver holds them: the newest (by ``seq``, or a sender
+    that restarted) and the sender's clock ("" : no sender)."""
+
+    def __init__(self, sender: str) -> None:
+        self.sender = sender
+        self.clock = PlanClock()
+        self.held: Plan | None = None
+
+    def offer(self, plan: Plan, own_t: float) -> None:
+        """``plan`` arrived at ``own_t`` (s, the receiver's clock)."""
+        self.clock.observe(plan, own_t)
+        old = self.held
+        if old is None or plan.seq > old.seq or plan.t > old.t + 1.0:
+            self.held = plan
+
+    def hold_latest(self, plan: Plan, now: float) -> None:
+        """The daemon's way: ``plan`` the newest its receiver holds (already the newest
+        by ``seq``), arrived by ``now`` (s, the receiver's clock; noted once)."""
+        self.clock.observe_latest(plan, now)
+        self.held = plan
+
+    def take(self, arrivals: list[tuple[float, Plan]], own: Callable[[float], float]) -> None:
+        """Plans that arrived at the given times (s), ``own`` mapping them to the
+        receiver's clock."""
+        for at, plan in arrivals:
+            self.offer(plan, own(at))
+
+    def on_own_clock(self, sync: bool = True) -> Plan | None:
+        """The newest plan restamped on the receiver's clock (as received without
+        ``sync``: the clocks taken as agreeing)."""
+        return self.clock.to_own(self.held) if sync else self.held
+
+
+class Follow:
+    """One follower's order: its predecessor and standby sources and what its range sensor
+    saw last.  :meth:`step` once a cycle with the gap the lead filter measures."""
+
+    def __init__(
+        self,
+        vid: str,
+        predecessor: str,
+        mode: PlatoonMode,
+        d_0: float,
+        t0: float = 0.0,
+        events: list[tuple[float, str]] | None = None,
+    ) -> None:
+        """``d_0`` (m) the standstill gap; ``t0`` (s) when ``predecessor`` was taken;
+        ``events``: the list changes are appended to (a new one when None)."""
+        self.vid = vid
+        self.predecessor = predecessor
+        self.source = PlanSource(predecessor)
+        self.standby = PlanSource("")
+        self.mode = mode
+        self.d_0 = d_0
+        self.range_prev: float | None = None
+        self.pred_since = t0
+        """When this truck took its predecessor (s)."""
+        self.events: list[tuple[float, str]] = [] if events is None else events
+        """``(t, what)`` of every change (a new predecessor, room opened)."""
+
+    @property
+    def cfg(self) -> PlatoonConfig:
+        return self.mode.cfg
+
+    def step(
+        self,
+        gap: float | None,
+        v: float,
+        v_lead: float,
+        heard: HeardPlans,
+        t: float,
+        settled: bool = True,
+    ) -> bool:
+        """Who this follower follows, from the gap (m; None: no lead) its lead filter
+        measures this cycle, its own speed ``v`` and the lead's ``v_lead`` (m/s, NaN:
+        unknown) and the plans heard; a joining truck ahead: room opened.  True when the
+        predecessor changed (the caller decides the forecast and headway again).
+        ``settled``: the plans heard are the whole platoon (a receiver that has listened
+        only briefly may not yet have heard the true tail: no tail is taken before)."""
+        pcfg = self.cfg
+        jump = range_jump(self.range_prev, gap, RANGE_JUMP_M)
+        self.range_prev = gap
+        if not self.predecessor:
+            if gap is None or not settled:
+                return False
+            pick = tail_candidate(
+                self.vid, heard.pre, heard.speed, v_lead, pcfg.plan_speed_tolerance
+            )
+            if pick:
+                self.predecessor, self.source, self.pred_since = pick, PlanSource(pick), t
+                self.mode.retarget(self.time_gap(gap, v))
+                self.events.append((t, f"{self.vid} follows {pick} (the tail)"))
+                return True
+            return False
+        joiner = joiner_for(self.vid, self.predecessor, heard.pre, heard.since, self.pred_since)
+        if joiner and jump == CLOSER and self.standby.sender == joiner:
+            self._swap(gap, v, t, "joined in front")
+            return True
+        if jump == FARTHER and self.standby.sender and not joiner:
+            self._swap(gap, v, t, "left")
+            return True
+        want = standby_for(self.vid, self.predecessor, heard.pre, heard.since, self.pred_since)
+        if want != self.standby.sender and self.predecessor in heard.pre:  # gone: keep it
+            self.standby = PlanSource(want)
+        if joiner and self.mode.extra_headway == 0.0 and v > 0.1:
+            # room for the joining truck: its own CACC gap (d_0 + h v) as extra headway
+            self.mode.extra_headway = (self.d_0 + pcfg.cacc_headway * v) / v
+            self.events.append((t, f"{self.vid} opens room for {joiner}"))
+        return False
+
+    def _swap(self, gap: float | None, v: float, t: float, why: str) -> None:
+        old = self.predecessor
+        self.predecessor, self.source, self.standby = (
+            self.standby.sender,
+            self.standby,
+            PlanSource(""),
+        )
+        self.pred_since = t
+        self.mode.extra_headway = 0.0
+        if gap is not None:
+            self.mode.retarget(self.time_gap(gap, v))
+        self.events.append((t, f"{self.vid} follows {self.predecessor} ({old} {why})"))
+
+    def redecide(self, sync: bool, now: float) -> tuple[list[float] | None, float]:
+        """After a change of predecessor within a cycle: the headway (s) and the forecast
+        (m/s; None unless in CACC on a fresh or held plan of the new predecessor) at
+        ``now`` (s, this truck's clock)."""
+        plan = self.source.on_own_clock(sync)
+        m = self.mode
+        fc = None
+        if m.mode == CACC and plan is not None and (m.fresh(plan, now) or m.held(plan, now)):
+            fc = lead_forecast(plan, now, m.period, m.horizon)
+        return fc, m.headway
+
+    def time_gap(self, gap: float, v: float) -> float:
+        """The time gap (s) driven at gap (m) and speed v (m/s); NaN near standstill."""
+        return (gap - self.d_0) / v if v > 0.1 else math.nan
