@@ -11,6 +11,11 @@ daemon's mode.  Every process is ended by its pid.
 
     python benchmarks/platoon_hil.py --json benchmarks/platoon_hil.json
 
+``--order auto`` runs the followers with ``platoon.order: auto`` (the last one with no
+predecessor: it finds the tail) and other phases: the lead drives off until every
+follower is in CACC, then truck 1 leaves the lane (the world moves it aside) and truck 2
+must follow truck 0 from then on; each truck's predecessor is read from its plans.
+
 ``--trucks N`` runs N trucks (and N daemons); ``--router`` connects every daemon and the
 watcher as clients to one Zenoh router (``config/zenoh-router.json5`` on a free loopback
 port, its own process, started as ``benchmarks/router_bench.py`` does) instead of the
@@ -58,12 +63,16 @@ def _ep(port: int) -> str:
     return f"tcp/127.0.0.1:{port}"
 
 
-def _config(tmp: Path, i: int, ports: list[int], router: int = 0) -> Path:
+def _config(tmp: Path, i: int, ports: list[int], router: int = 0, order: str = "fixed") -> Path:
     cfg = yaml.safe_load(default_config_path().read_text())
     cfg["vehicle_id"] = f"p{i}"
     cfg["link"].update({"serial_device": str(tmp / f"tty{i}"), "reconnect_interval": 0.1})
     cfg["control"]["on_lead_lost"] = "stop"
     cfg["platoon"]["predecessor"] = f"p{i - 1}" if i > 0 else ""
+    if order == "auto" and i > 0:
+        cfg["platoon"]["order"] = "auto"
+        if i == N - 1:
+            cfg["platoon"]["predecessor"] = ""  # finds the tail
     rt = cfg["runtime"]
     rt.update({"backend": "serial", "realtime": False, "fault_injection": True})
     if router:
@@ -133,12 +142,45 @@ def _summary(
     return {"left_active": left, "platoon_switches": switches, "faults_named": causes}
 
 
+def _leave_phases(
+    world: World,
+    wait: Callable[[Callable[[], bool], float, str], float],
+    pre: Callable[[str], str | None],
+    plat: Callable[[str], str | None],
+    all_cacc: Callable[[], bool],
+    result: dict[str, Any],
+    t0: float,
+) -> None:
+    """``--order auto``: the lead drives off, the last truck finds the tail once the
+    trucks move, every follower reaches CACC; truck 1 leaves the lane and truck 2 follows
+    truck 0."""
+    tail = f"p{N - 1}"
+    world.cmd({"cmd": "lead", "speed": 1.0, "accel": 0.5})
+    result["lead_go_s"] = time.monotonic() - t0
+    result["tail_found_s"] = wait(lambda: pre(tail) == f"p{N - 2}", 20.0, f"{tail} finds the tail")
+    result["cacc_s"] = wait(all_cacc, 30.0, "every follower CACC")
+    time.sleep(3.0)  # drive in CACC
+    world.cmd({"cmd": "leave", "truck": 1})
+    result["leave_s"] = time.monotonic() - t0
+    result["p2_follows_p0_after_s"] = (
+        wait(lambda: pre("p2") == "p0", 10.0, "p2 follows p0 after p1 left") - result["leave_s"]
+    )
+    result["p2_cacc_after_leave_s"] = (
+        wait(lambda: plat("p2") == "CACC", 15.0, "p2 CACC behind p0") - result["leave_s"]
+    )
+    time.sleep(3.0)  # drive on behind the new predecessor
+    result["leave_phase_end_s"] = time.monotonic() - t0  # then the daemons are stopped
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--json", help="write the results here")
     ap.add_argument("--key", help="store the result under this key of the --json file")
     ap.add_argument("--trucks", type=int, default=3, help="trucks and daemons (3..10)")
     ap.add_argument("--router", action="store_true", help="every daemon a client of one router")
+    ap.add_argument(
+        "--order", choices=("fixed", "auto"), default="fixed", help="platoon.order of followers"
+    )
     args = ap.parse_args()
     global N
     N = args.trucks
@@ -159,8 +201,9 @@ def main() -> int:
     gaps: list[list[float]] = []
     stop_poll = threading.Event()
     t0 = time.monotonic()
-    result: dict[str, Any] = {"trucks": N, "router": args.router,
+    result: dict[str, Any] = {"trucks": N, "router": args.router, "order": args.order,
                               "load_average_start": os.getloadavg()}  # fmt: skip
+    preds: dict[str, list[tuple[float, str]]] = {}  # vehicle -> (t, predecessor) changes
     session = None
     router_proc: subprocess.Popen[Any] | None = None
     router_port = 0
@@ -185,7 +228,7 @@ def main() -> int:
                         "truckd.cli.main",
                         "run",
                         "--config",
-                        str(_config(tmp, i, ports, router_port)),
+                        str(_config(tmp, i, ports, router_port, args.order)),
                     ],
                     stderr=log,
                 )
@@ -208,11 +251,24 @@ def main() -> int:
 
         session.declare_subscriber("truckd/*/state", on_state)
 
+        def on_plan(s: zenoh.Sample) -> None:
+            vid = str(s.key_expr).split("/")[1]
+            pre = str(json.loads(s.payload.to_bytes()).get("predecessor", ""))
+            seen = preds.setdefault(vid, [])
+            if not seen or seen[-1][1] != pre:
+                seen.append((time.monotonic() - t0, pre))
+
+        session.declare_subscriber("truckd/*/plan", on_plan)
+
         def poll() -> None:
             while not stop_poll.is_set():
                 st = world.cmd({"cmd": "status"})
-                xs = [st["lead_x"], *st["x"]]
-                gaps.append([time.monotonic() - t0] + [xs[k] - xs[k + 1] for k in range(N)])
+                row = [time.monotonic() - t0]
+                for k in range(N):  # to the nearest ahead in lane 0 (NaN: out of the lane)
+                    ahead = [st["x"][j] for j in range(k) if st["lanes"][j] == 0]
+                    x_ahead = ahead[-1] if ahead else st["lead_x"]
+                    row.append(x_ahead - st["x"][k] if st["lanes"][k] == 0 else float("nan"))
+                gaps.append(row)
                 time.sleep(0.05)
 
         threading.Thread(target=poll, daemon=True).start()
@@ -236,31 +292,38 @@ def main() -> int:
         def all_cacc() -> bool:
             return all(plat(f"p{i}") == "CACC" for i in range(1, N))
 
+        def pre(vid: str) -> str | None:
+            seen = preds.get(vid)
+            return seen[-1][1] if seen else None
+
         result["all_active_s"] = wait(active, 90.0 + 10.0 * N, "every daemon ACTIVE")
-        world.cmd({"cmd": "lead", "speed": 1.0, "accel": 0.5})
-        result["lead_go_s"] = time.monotonic() - t0
-        result["cacc_s"] = wait(all_cacc, 30.0, "every follower CACC")
-        time.sleep(3.0)  # drive in CACC
-        result["brake_s"] = time.monotonic() - t0
-        world.cmd({"cmd": "lead", "speed": 0.3, "accel": 1.5})
-        time.sleep(5.0)
-        world.cmd({"cmd": "lead", "speed": 1.0, "accel": 0.5})
-        time.sleep(2.0)
-        wait(lambda: plat("p2") == "CACC", 20.0, "p2 CACC after the brake")
-        session.put("truckd/p2/platoon_fault", json.dumps({"link": "down"}))
-        result["link_down_s"] = time.monotonic() - t0
-        result["acc_after_s"] = (
-            wait(lambda: plat("p2") == "ACC", 10.0, "p2 ACC after the link loss")
-            - result["link_down_s"]
-        )
-        time.sleep(3.0)
-        session.put("truckd/p2/platoon_fault", json.dumps({"link": "up"}))
-        result["link_up_s"] = time.monotonic() - t0
-        result["cacc_again_after_s"] = (
-            wait(lambda: plat("p2") == "CACC", 15.0, "p2 CACC after the link returns")
-            - result["link_up_s"]
-        )
-        time.sleep(1.0)
+        if args.order == "auto":
+            _leave_phases(world, wait, pre, plat, all_cacc, result, t0)
+        else:
+            world.cmd({"cmd": "lead", "speed": 1.0, "accel": 0.5})
+            result["lead_go_s"] = time.monotonic() - t0
+            result["cacc_s"] = wait(all_cacc, 30.0, "every follower CACC")
+            time.sleep(3.0)  # drive in CACC
+            result["brake_s"] = time.monotonic() - t0
+            world.cmd({"cmd": "lead", "speed": 0.3, "accel": 1.5})
+            time.sleep(5.0)
+            world.cmd({"cmd": "lead", "speed": 1.0, "accel": 0.5})
+            time.sleep(2.0)
+            wait(lambda: plat("p2") == "CACC", 20.0, "p2 CACC after the brake")
+            session.put("truckd/p2/platoon_fault", json.dumps({"link": "down"}))
+            result["link_down_s"] = time.monotonic() - t0
+            result["acc_after_s"] = (
+                wait(lambda: plat("p2") == "ACC", 10.0, "p2 ACC after the link loss")
+                - result["link_down_s"]
+            )
+            time.sleep(3.0)
+            session.put("truckd/p2/platoon_fault", json.dumps({"link": "up"}))
+            result["link_up_s"] = time.monotonic() - t0
+            result["cacc_again_after_s"] = (
+                wait(lambda: plat("p2") == "CACC", 15.0, "p2 CACC after the link returns")
+                - result["link_up_s"]
+            )
+            time.sleep(1.0)
         result["ok"] = True
     except (RuntimeError, KeyboardInterrupt) as exc:
         result["ok"] = False
@@ -276,10 +339,17 @@ def main() -> int:
             router_proc.stdin.close()
             _end(router_proc)
     g = [row[1:] for row in gaps]
-    result["min_true_gap_m"] = [min(r[k] for r in g) for k in range(N)] if g else None
-    result["collision"] = bool(g) and min(min(r) for r in g) <= 0.0
+    lane0 = [[r[k] for r in g if r[k] == r[k]] for k in range(N)]  # (NaN: out of the lane)
+    result["min_true_gap_m"] = [min(c) if c else None for c in lane0] if g else None
+    result["collision"] = any(c and min(c) <= 0.0 for c in lane0)
+    result["predecessors"] = preds
     result["events"] = events
     result["summary_after_lead_go"] = _summary(events, result.get("lead_go_s"), causes)
+    if "leave_phase_end_s" in result:  # --order auto: p2's moments in ACC after the leave
+        t_leave, t_end = result["leave_s"], result["leave_phase_end_s"]
+        result["p2_acc_after_leave"] = sum(
+            1 for t, vid, pl, _m in events if vid == "p2" and pl == "ACC" and t_leave <= t < t_end
+        )
     result["load_average_end"] = os.getloadavg()
     result["daemon_stderr_tail"] = {
         f"p{i}": (tmp / f"p{i}.stderr").read_text()[-600:] for i in range(N)

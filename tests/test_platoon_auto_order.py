@@ -63,6 +63,7 @@ def _estimate(gap: float | None, v: float, v_lead: float) -> Estimate:
         v=v, speed_valid=True, gap=gap if gap is not None else 0.0, v_lead=v_lead,
         lead_valid=gap is not None, lead_status="ok" if gap is not None else "none",
         gap_std=0.002, outliers=0, reinits=0, encoder_samples=1, range_samples=1,
+        v_lead_std=0.02,
     )  # fmt: skip
 
 
@@ -97,8 +98,8 @@ def _drive(
 def test_auto_order_finds_the_tail_ahead_and_drives_cacc_behind_it() -> None:
     """No predecessor configured, a platoon t0 <- t1 <- t2 heard and a vehicle in range at
     t2's speed: the truck takes t2 (the tail: nobody follows it) and drives CACC on its
-    plans; its own plan names it.  The control case: the vehicle in range drives 2 m/s
-    faster than any plan heard (not a truck of the fleet): nobody is taken, ACC."""
+    plans.  Not at rest (every plan says 0 m/s there), and not when the vehicle in range
+    drives 2 m/s faster than any plan heard (not a truck of the fleet): ACC."""
     fleet = {"t0": "", "t1": "t0", "t2": "t1"}
     dp, clock = _daemon_platoon()
     assert "platoon order runs between" in dp.cyc.controller.backend  # said at start-up
@@ -113,9 +114,9 @@ def test_auto_order_finds_the_tail_ahead_and_drives_cacc_behind_it() -> None:
     assert h["predecessor"] == "t2" and h["order"]["senders"] == ["t0", "t1", "t2"]
     assert "t2 (the tail)" in h["order"]["last_change"]
 
-    other, clock2 = _daemon_platoon()
-    _drive(other, clock2, fleet, 90, gap=1.2, v_lead=1.0)  # plans at 1.0 m/s ...
-    assert other.predecessor == "t2"
+    at_rest, clock2 = _daemon_platoon()
+    _drive(at_rest, clock2, fleet, 90, gap=1.2, v=0.0, v_lead=0.0)
+    assert at_rest.predecessor == ""  # at rest every plan says 0 m/s: no tail taken
     stranger, clock3 = _daemon_platoon()
     for k in range(90):  # ... the vehicle in range at 3.0 m/s
         clock3.t += PERIOD

@@ -50,3 +50,13 @@ def test_the_tail_is_the_truck_nobody_follows_whose_speed_fits() -> None:
     assert tail_candidate("new", two_tails, speeds, 0.3, 0.7) == "x"
     assert tail_candidate("new", two_tails, speeds, 1.2, 0.7) == "t3"
     assert tail_candidate("t3", CHAIN, speeds, math.nan, 0.7) == ""  # never itself
+
+
+def test_a_leader_never_takes_its_own_tail() -> None:
+    """The platoon's leader (t0) seeing a vehicle ahead at the platoon's speed: the truck
+    nobody follows (t3) is behind it, down the chain, and is not a tail for it; a truck in
+    the middle (t1) never takes a tail behind it either.  Another platoon's tail is."""
+    speeds = {"t0": 1.2, "t1": 1.2, "t2": 1.2, "t3": 1.2, "y": 1.2}
+    assert tail_candidate("t0", CHAIN, speeds, 1.2, 0.7) == ""
+    assert tail_candidate("t1", CHAIN, speeds, 1.2, 0.7) == ""
+    assert tail_candidate("t0", {**CHAIN, "y": ""}, speeds, 1.2, 0.7) == "y"

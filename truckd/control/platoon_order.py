@@ -93,14 +93,26 @@ def tail_candidate(
     tolerance: float,
 ) -> str:
     """For a truck without predecessor and a vehicle in range: the tail (a truck heard that
-    nobody follows, not ``own``) whose plan speed now (``speeds``, m/s) is nearest the lead
+    nobody follows, not ``own`` and not behind it: a platoon's leader never takes its own
+    tail) whose plan speed now (``speeds``, m/s) is nearest the lead
     speed measured (``v_lead``, m/s) and within ``tolerance``; "" when none fits."""
     followed = set(heard.values())
     best, err = "", math.inf
     for v in sorted(heard):
-        if v == own or v in followed or v not in speeds:
+        if v == own or v in followed or v not in speeds or _behind(own, v, heard):
             continue
         e = abs(speeds[v] - v_lead) if math.isfinite(v_lead) else 0.0
         if e <= tolerance and e < err:
             best, err = v, e
     return best
+
+
+def _behind(own: str, v: str, heard: Mapping[str, str]) -> bool:
+    """Whether ``v`` follows ``own``, directly or down a chain of predecessors heard."""
+    for _ in range(len(heard)):
+        v = heard.get(v, "")
+        if not v:
+            return False
+        if v == own:
+            return True
+    return False

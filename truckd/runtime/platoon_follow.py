@@ -26,6 +26,12 @@ RANGE_JUMP_M = 0.25
 (a join or a leave): at 2 m/s^2 of relative braking a gap changes by 0.02 m per 10 ms."""
 
 
+TAIL_MIN_SPEED = 0.2
+"""m/s: a tail is taken only while the vehicle ahead surely moves at least this fast (at
+rest every truck's plan says 0 m/s and the speed check tells nothing apart; a lead filter
+that has just found its target is unsure of the speed)."""
+
+
 class HeardPlans:
     """The plans heard on ``truckd/*/plan`` (the discovery view): who follows whom, since
     when (s, on the receiver's clock), and each truck's planned speed (m/s) at its plan's
@@ -122,18 +128,21 @@ class Follow:
         heard: HeardPlans,
         t: float,
         settled: bool = True,
+        v_lead_std: float = 0.0,
     ) -> bool:
         """Who this follower follows, from the gap (m; None: no lead) its lead filter
         measures this cycle, its own speed ``v`` and the lead's ``v_lead`` (m/s, NaN:
         unknown) and the plans heard; a joining truck ahead: room opened.  True when the
         predecessor changed (the caller decides the forecast and headway again).
         ``settled``: the plans heard are the whole platoon (a receiver that has listened
-        only briefly may not yet have heard the true tail: no tail is taken before)."""
+        only briefly may not yet have heard the true tail: no tail is taken before); and
+        no tail unless the vehicle ahead moves: its speed less three standard deviations
+        ``v_lead_std`` (m/s; NaN: unknown) at least :data:`TAIL_MIN_SPEED`."""
         pcfg = self.cfg
         jump = range_jump(self.range_prev, gap, RANGE_JUMP_M)
         self.range_prev = gap
         if not self.predecessor:
-            if gap is None or not settled:
+            if gap is None or not settled or not v_lead - 3.0 * v_lead_std >= TAIL_MIN_SPEED:
                 return False
             pick = tail_candidate(
                 self.vid, heard.pre, heard.speed, v_lead, pcfg.plan_speed_tolerance

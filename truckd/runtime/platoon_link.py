@@ -400,7 +400,7 @@ class DaemonPlatoon:
         v_lead = est.v_lead if est.lead_valid else math.nan
         # a tail is taken once the plans have been heard for cacc_return_s
         settled = self._now - self._first_heard >= self.cfg.cacc_return_s
-        changed = f.step(gap, est.v, v_lead, self.heard, self._now, settled)
+        changed = f.step(gap, est.v, v_lead, self.heard, self._now, settled, est.v_lead_std)
         for _t, what in f.events[n_events:]:
             log.info("platoon: %s", what)
         if not changed:

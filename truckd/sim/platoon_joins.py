@@ -49,7 +49,7 @@ def follow_order(f: PlatoonTruck, est: Estimate, *, heard: HeardPlans, t: float)
         f.follow.range_prev = gap
         return False
     v_lead = est.v_lead if est.lead_valid else math.nan
-    return f.follow.step(gap, est.v, v_lead, heard, t)
+    return f.follow.step(gap, est.v, v_lead, heard, t, v_lead_std=est.v_lead_std)
 
 
 def try_merge(

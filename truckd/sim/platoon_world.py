@@ -7,14 +7,16 @@ Usage::
         [--gap M] [--control-port N] [--tick S]
 
 Truck i's firmware is on ``DIR/tty<i>`` (a symlink to the pty slave).  Every truck starts
-at rest, ``--gap`` behind the one ahead; truck i's range sensor sees truck i-1, truck 0's
-sees a virtual lead ``--gap`` ahead, standing until told to drive.  Prints one JSON line
+at rest in lane 0, ``--gap`` behind the one ahead; a truck's range sensor sees the nearest
+truck ahead in lane 0, truck 0's a virtual lead ``--gap`` ahead, standing until told to
+drive; a truck in lane 1 (it left) sees nothing.  Prints one JSON line
 ``{"ready": true, "devices": [...], "control_port": N, "pid": P}``, then runs in real time.
 
 Control: JSON datagrams to ``127.0.0.1:control_port`` (UDP), each answered:
-``{"cmd": "status"}`` (time, positions, speeds, the lead's, the firmware states),
+``{"cmd": "status"}`` (time, positions, speeds, lanes, the lead's, the firmware states),
 ``{"cmd": "lead", "speed": S, "accel": A}`` (the virtual lead changes speed towards S
-m/s at |A| m/s^2), ``{"cmd": "stop"}``.  SIGTERM/SIGINT stop it cleanly.
+m/s at |A| m/s^2), ``{"cmd": "leave", "truck": I}`` (truck I moves to lane 1: the truck
+behind it now sees the next one ahead), ``{"cmd": "stop"}``.  SIGTERM/SIGINT stop it cleanly.
 """
 
 from __future__ import annotations
@@ -63,6 +65,7 @@ class World:
         self.plants: list[Plant] = []
         self.fws: list[SimulatedFirmware] = []
         self.devices: list[PtyDevice] = []
+        self.lanes = [0] * n
         for i in range(n):
             device = partial(PtyDevice, str(pty_dir / f"tty{i}"))
             truck = build_truck(spec, self._range_fn(i), device=device, x0=-i * gap)
@@ -73,7 +76,12 @@ class World:
 
     def _range_fn(self, i: int) -> Any:
         def fn(t: float, x: float) -> float | None:
-            ahead = self.lead.x if i == 0 else self.plants[i - 1].x
+            if self.lanes[i] != 0:
+                return None
+            ahead = next(
+                (self.plants[j].x for j in range(i - 1, -1, -1) if self.lanes[j] == 0),
+                self.lead.x,
+            )
             return max(ahead - x, 0.0)
 
         return fn
@@ -90,6 +98,7 @@ class World:
             "t": self.fws[0].t,
             "x": [p.x for p in self.plants],
             "v": [p.v for p in self.plants],
+            "lanes": list(self.lanes),
             "lead_x": self.lead.x,
             "lead_v": self.lead.v,
             "states": [fw.state.name for fw in self.fws],
@@ -113,6 +122,15 @@ class World:
             ):
                 return {"ok": False, "error": "lead: speed and accel must be numbers"}, False
             self.lead.target, self.lead.accel = max(float(speed), 0.0), float(accel)
+            return {"ok": True}, False
+        if what == "leave":
+            i = cmd.get("truck")
+            if not (isinstance(i, int) and 0 <= i < len(self.lanes)):
+                return {
+                    "ok": False,
+                    "error": f"leave: truck must be 0..{len(self.lanes) - 1}",
+                }, False
+            self.lanes[i] = 1
             return {"ok": True}, False
         return {"ok": False, "error": f"unknown command {what!r}"}, False
 
