@@ -26,6 +26,7 @@ ORDER = (
     "platoon_frequency",
     "router_bench",
     "platoon_hil",
+    "platoon_order_bench",
     "pil_bench",  # needs qemu-system-arm and arm-none-eabi-gcc (node for its readers part)
 )
 

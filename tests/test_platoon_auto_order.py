@@ -197,7 +197,8 @@ def test_daemon_with_auto_order_finds_the_tail_over_zenoh(tmp_path: Path) -> Non
         tmp_path / "truck.yaml",
         {"vehicle_id": "f1", "platoon": {"order": "auto"},
          "runtime": {"realtime": False, "recorder": {"enabled": False},
-                     "telemetry": {"listen": [], "connect": [endpoint(port)]}}},
+                     "telemetry": {"listen": [endpoint(free_port())],
+                                   "connect": [endpoint(port)]}}},
     )  # fmt: skip
     cfg = load_config(cfg_path)
     v_lead = 0.7 * cfg.control.v_set

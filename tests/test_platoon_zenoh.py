@@ -120,7 +120,8 @@ def test_daemon_follows_its_predecessors_plan_then_falls_back_to_acc(
         tmp_path / "truck.yaml",
         {"vehicle_id": "f1", "platoon": {"predecessor": "lead"},
          "runtime": {"realtime": False, "recorder": {"enabled": False},
-                     "telemetry": {"listen": [], "connect": [endpoint(port)]}}},
+                     "telemetry": {"listen": [endpoint(free_port())],
+                                   "connect": [endpoint(port)]}}},
     )  # fmt: skip
     s = zenoh.open(zenoh_config(listen=[endpoint(port)]))
     states: list[dict[str, Any]] = []

@@ -198,6 +198,11 @@ publishes one per cycle; a flood arrives at the ingress limit): ``plan_flood`` i
 shown by ``truckd monitor``."""
 
 
+HEAR_OTHERS_EVERY = 10
+"""``platoon.order: auto`` while following: another sender's plan is decoded once every
+this many cycles, in turn (a decode costs about 30 us; the chain changes when a truck
+announces a join, long before it moves in): with 10 trucks each is heard every second."""
+
 MAX_SENDERS = 32
 """``platoon.order: auto``: plans are heard from at most this many trucks (the first
 heard); samples from more are dropped and counted (``senders_refused`` in health)."""
@@ -366,9 +371,9 @@ class DaemonPlatoon:
 
     def _hear(self, f: Follow, now: float) -> Plan | None:
         """Auto order: the newest plans of the predecessor and the standby (each cycle)
-        and of one other sender in turn (each receiver decodes at most one sample a
-        cycle; every sender each cycle while no predecessor is followed), noted in
-        :attr:`heard`; the predecessor's plan on this truck's clock."""
+        and of one other sender in turn every :data:`HEAR_OTHERS_EVERY` cycles (every
+        sender each cycle while no predecessor is followed), noted in :attr:`heard`; the
+        predecessor's plan on this truck's clock."""
         receivers = self.receivers
         if receivers and math.isnan(self._first_heard):
             self._first_heard = now
@@ -380,9 +385,10 @@ class DaemonPlatoon:
                     src.hold_latest(plan, now)
                     self.heard.note(src.sender, plan, now)
         others = [v for v in receivers if v not in (f.source.sender, f.standby.sender)]
-        if others and f.predecessor:
-            others = [others[self._heard_next % len(others)]]
+        if others and f.predecessor:  # one other sender every HEAR_OTHERS_EVERY cycles
             self._heard_next += 1
+            k, turn = divmod(self._heard_next, HEAR_OTHERS_EVERY)
+            others = [] if turn else [others[k % len(others)]]
         for vid in others:
             plan = receivers[vid].latest()
             if plan is not None:
