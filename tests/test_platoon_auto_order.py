@@ -168,6 +168,21 @@ def test_auto_order_opens_room_for_a_joining_truck_and_follows_it() -> None:
     assert dp.mode.extra_headway == 0.0
 
 
+def test_trucks_heard_from_the_start_behind_the_same_predecessor_are_no_joiners() -> None:
+    """Two daemons started together behind t1 (this one and x, say beside it in the next
+    lane): x's plans name t1 from the first one heard, so x was there first, not a truck
+    joining in front; no room is opened.  The control case: the same x heard only after
+    a second is a joiner."""
+    dp, clock = _daemon_platoon("t1")
+    _drive(dp, clock, {"t1": "", "x": "t1"}, 150, gap=1.0)
+    assert dp.mode is not None and dp.mode.extra_headway == 0.0
+    assert dp.health()["order"]["standby"] is None
+    late, clock2 = _daemon_platoon("t1")
+    _drive(late, clock2, {"t1": ""}, 100, gap=1.0)
+    _drive(late, clock2, {"t1": "", "x": "t1"}, 50, gap=1.0, seq0=100)
+    assert late.mode is not None and late.mode.extra_headway > 0.0
+
+
 def test_auto_order_hears_other_trucks_plan_keys_only_and_at_most_max_senders() -> None:
     """Its own plans, other keys and senders beyond :data:`MAX_SENDERS` are not heard (the
     last counted); a plan on one truck's key naming another truck is refused."""

@@ -135,7 +135,7 @@ class Follow:
         unknown) and the plans heard; a joining truck ahead: room opened.  True when the
         predecessor changed (the caller decides the forecast and headway again).
         ``settled``: the plans heard are the whole platoon (a receiver that has listened
-        only briefly may not yet have heard the true tail: no tail is taken before); and
+        only briefly may not yet have heard the true tail: no change is made before); and
         no tail unless the vehicle ahead moves: its speed less three standard deviations
         ``v_lead_std`` (m/s; NaN: unknown) at least :data:`TAIL_MIN_SPEED`."""
         pcfg = self.cfg
@@ -152,6 +152,8 @@ class Follow:
                 self.mode.retarget(self.time_gap(gap, v))
                 self.events.append((t, f"{self.vid} follows {pick} (the tail)"))
                 return True
+            return False
+        if not settled:
             return False
         joiner = joiner_for(self.vid, self.predecessor, heard.pre, heard.since, self.pred_since)
         if joiner and jump == CLOSER and self.standby.sender == joiner:

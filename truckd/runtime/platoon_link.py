@@ -267,6 +267,7 @@ class DaemonPlatoon:
         self._heard_next = 0
         self._first_heard = math.nan
         """When the first plan of another truck was heard (s, NaN: none yet)."""
+        self._settled = False
         self.follow: Follow | None = None
         if self.auto and self.mode is not None:
             self.follow = Follow(
@@ -404,8 +405,12 @@ class DaemonPlatoon:
         n_events = len(f.events)
         gap = est.gap if est.lead_valid else None
         v_lead = est.v_lead if est.lead_valid else math.nan
-        # a tail is taken once the plans have been heard for cacc_return_s
+        # a tail is taken once the plans have been heard for cacc_return_s; trucks heard
+        # naming this truck's predecessor before then were there first (not joiners)
         settled = self._now - self._first_heard >= self.cfg.cacc_return_s
+        if settled and not self._settled:
+            self._settled = True
+            f.pred_since = max(f.pred_since, self._now)
         changed = f.step(gap, est.v, v_lead, self.heard, self._now, settled, est.v_lead_std)
         for _t, what in f.events[n_events:]:
             log.info("platoon: %s", what)
