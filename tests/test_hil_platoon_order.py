@@ -48,7 +48,9 @@ def test_the_tail_is_found_and_a_leave_is_followed_with_separate_processes(
     p2 = [pre for _t, pre in r["predecessors"]["p2"]]
     # configured with none ("" until the trucks move), then the tail, then past the leaver
     assert p2 in (["p1", "p0"], ["", "p1", "p0"]), p2
-    assert [pre for _t, pre in r["predecessors"]["p1"]] == ["p0"]
+    t_p0 = r["predecessors"]["p2"][-1][0]
+    assert t_p0 >= r["leave_s"], (t_p0, r["leave_s"])  # after the leave, not before
+    assert r["predecessors"]["p1"][0][1] == "p0"  # (what the leaver does next is its own)
     # p2 drives CACC behind p0 at the phase's end (then the daemons are stopped, the lead
     # first).  A moment in ACC right after the leave (the lead filter restarting on the
     # new target under load) is reported by the script, not failed: real time on a

@@ -29,7 +29,8 @@ from truckd.control.platoon import (
 from truckd.control.qp import ControlModel
 from truckd.runtime.cycle import CompanionCycle
 from truckd.runtime.daemon import Daemon
-from truckd.runtime.platoon_link import MAX_SENDERS, DaemonPlatoon
+from truckd.runtime.platoon_follow import LEAD_GONE_S
+from truckd.runtime.platoon_link import HEAR_OTHERS_EVERY, MAX_SENDERS, SILENT_S, DaemonPlatoon
 from truckd.runtime.telemetry import zenoh_config
 
 PERIOD = 0.01
@@ -55,7 +56,7 @@ def _daemon_platoon(predecessor: str = "") -> tuple[DaemonPlatoon, Clock]:
         time_budget=False,
     )
     clock = Clock()
-    return DaemonPlatoon("me", pcfg, cyc, wall=clock), clock
+    return DaemonPlatoon("me", pcfg, cyc, wall=clock, mono=clock), clock
 
 
 def _estimate(gap: float | None, v: float, v_lead: float) -> Estimate:
@@ -151,6 +152,39 @@ def test_auto_order_takes_the_predecessors_predecessor_when_it_leaves() -> None:
     assert dp.mode is not None and dp.mode.switches == switches
 
 
+def test_a_lead_dropout_is_no_leave() -> None:
+    """Behind t2 (t1 ahead of it heard): cycles without a lead (a range dropout, the lead
+    filter restarting after a stall), shorter than LEAD_GONE_S, then the same gap again:
+    the truck still follows t2."""
+    fleet = {"t0": "", "t1": "t0", "t2": "t1"}
+    dp, clock = _daemon_platoon("t2")
+    _drive(dp, clock, fleet, 80, gap=1.0)
+    assert dp.health()["order"]["standby"] == "t1"
+    _drive(dp, clock, fleet, 1, gap=None, seq0=80)
+    _drive(dp, clock, fleet, 10, gap=1.0, seq0=81)
+    _drive(dp, clock, fleet, round(0.9 * LEAD_GONE_S / PERIOD), gap=None, seq0=91)
+    _drive(dp, clock, fleet, 10, gap=1.0, seq0=200)
+    assert dp.predecessor == "t2" and dp.health()["order"]["changes"] == 0
+
+
+def test_when_the_truck_ahead_goes_and_none_is_known_ahead_of_it_acc() -> None:
+    """Behind t0, the platoon's leader (it follows nobody): the range sensor jumps farther
+    (t0 left; a car farther ahead): the truck follows nobody and drives ACC from this
+    cycle (no forecast), the headway ramped from the time gap it drives.  Likewise when
+    nothing is in range for LEAD_GONE_S."""
+    fleet = {"t0": ""}
+    dp, clock = _daemon_platoon("t0")
+    _drive(dp, clock, fleet, 80, gap=0.7)
+    assert dp.decision is not None and dp.decision.mode == CACC
+    got = _drive(dp, clock, fleet, 1, gap=2.5, seq0=80)
+    assert dp.predecessor == "" and got[0] is not None and got[0][0] is None
+    assert dp.mode is not None and dp.mode.mode == ACC and dp.mode.headway > 0.5
+    gone, clock2 = _daemon_platoon("t0")
+    _drive(gone, clock2, fleet, 80, gap=0.7)
+    _drive(gone, clock2, fleet, round(LEAD_GONE_S / PERIOD) + 2, gap=None, seq0=80)
+    assert gone.predecessor == "" and gone.mode is not None and gone.mode.mode == ACC
+
+
 def test_auto_order_opens_room_for_a_joining_truck_and_follows_it() -> None:
     """Behind t2: a truck j announces that it follows t2 (it will move in in front of this
     truck): the truck opens room (extra headway, ramped) and listens to j; when the range
@@ -181,6 +215,46 @@ def test_trucks_heard_from_the_start_behind_the_same_predecessor_are_no_joiners(
     _drive(late, clock2, {"t1": ""}, 100, gap=1.0)
     _drive(late, clock2, {"t1": "", "x": "t1"}, 50, gap=1.0, seq0=100)
     assert late.mode is not None and late.mode.extra_headway > 0.0
+
+
+def test_hostile_plans_never_stop_the_decision() -> None:
+    """A plan with a subnormal step (5e-324 s: a sample index past any float) is refused;
+    a receiver that raises makes the decision ACC on the range sensor, counted in health's
+    ``errors``, not an exception in the loop."""
+    dp, clock = _daemon_platoon("t0")
+    _drive(dp, clock, {"t0": ""}, 80, gap=0.7)
+    bad = json.loads(encode_plan(kinematic_plan(clock.t, 999, PERIOD, 1.0, 0.0, 40, "t0")))
+    bad["dt"] = 5e-324
+    dp.on_sample("truckd/t0/plan", json.dumps(bad).encode())
+    r = dp.receivers["t0"]
+    refused = r.refused
+    dp.decide(None)
+    assert r.refused == refused + 1 and "'dt'" in r.last_error
+
+    def broken(max_bytes: int = 0) -> None:
+        raise OverflowError("cannot convert float infinity to integer")
+
+    r.latest = broken  # type: ignore[method-assign]
+    d = dp.decide(None)
+    assert d is not None and d.forecast is None and dp.health()["errors"] == 1
+
+
+def test_senders_beyond_the_limit_never_lock_out_the_predecessor() -> None:
+    """MAX_SENDERS strangers heard first: the configured predecessor's plans are still
+    taken (it is always admitted); strangers silent for SILENT_S are forgotten, making
+    room for others."""
+    dp, clock = _daemon_platoon("t0")
+    plan = kinematic_plan(clock.t, 1, PERIOD, 1.0, 0.0, 40, "x")
+    for i in range(MAX_SENDERS):
+        dp.on_sample(f"truckd/x{i}/plan", encode_plan(replace(plan, vehicle_id=f"x{i}")))
+    dp.on_sample("truckd/y/plan", encode_plan(replace(plan, vehicle_id="y")))
+    assert "y" not in dp.receivers and dp.senders_refused == 1
+    _drive(dp, clock, {"t0": ""}, 80, gap=0.7)
+    assert "t0" in dp.receivers and dp.decision is not None and dp.decision.mode == CACC
+    _drive(dp, clock, {"t0": ""}, round(SILENT_S / PERIOD) + 2 * HEAR_OTHERS_EVERY, gap=0.7)
+    assert set(dp.receivers) == {"t0"}
+    dp.on_sample("truckd/y/plan", encode_plan(replace(plan, vehicle_id="y")))
+    assert "y" in dp.receivers
 
 
 def test_auto_order_hears_other_trucks_plan_keys_only_and_at_most_max_senders() -> None:

@@ -33,6 +33,8 @@ def test_a_joiner_is_an_announcement_newer_than_the_own_predecessor() -> None:
     assert joiner_for("j", "t1", heard, since, after=4.0) == ""
     assert joiner_for("t3", "t2", heard, since, after=0.0) == ""
     assert joiner_for("t0", "", heard) == ""
+    # a truck naming itself as its predecessor joins nothing
+    assert joiner_for("t2", "t1", {**CHAIN, "t1": "t1"}, since, after=0.0) == ""
 
 
 def test_the_standby_is_a_joiner_else_the_predecessors_predecessor() -> None:

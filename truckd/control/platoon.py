@@ -279,6 +279,13 @@ def encode_plan(plan: Plan) -> bytes:
     return json.dumps(plan.as_dict(), allow_nan=False).encode()
 
 
+MIN_PLAN_DT = 1e-4
+"""s: a plan's step is at least this (a 10 kHz loop); a tiny ``dt`` would overflow the
+sample index of any time after the plan's start."""
+
+MAX_PLAN_T = 1e12
+"""s: a plan's stamp lies within this of 0 (about 31 700 years of any clock)."""
+
 _NUMBERS = frozenset((float, int))
 """The JSON numbers' Python types (not bool: ``type(True)`` is bool)."""
 
@@ -305,12 +312,12 @@ def decode_plan(payload: bytes | str) -> Plan:
     if not isinstance(d, dict):
         raise ValueError("a plan is a JSON object")
     t, seq, dt = d.get("t"), d.get("seq"), d.get("dt")
-    if isinstance(t, bool) or not isinstance(t, int | float) or not math.isfinite(t):
-        raise ValueError("'t' must be a finite number")
+    if isinstance(t, bool) or not isinstance(t, int | float) or not abs(t) < MAX_PLAN_T:
+        raise ValueError(f"'t' must be a number within +-{MAX_PLAN_T:g} s")
     if isinstance(seq, bool) or not isinstance(seq, int):
         raise ValueError("'seq' must be an integer")
-    if isinstance(dt, bool) or not isinstance(dt, int | float) or not (0.0 < dt < 10.0):
-        raise ValueError("'dt' must be a number in (0, 10) s")
+    if isinstance(dt, bool) or not isinstance(dt, int | float) or not (MIN_PLAN_DT <= dt < 10.0):
+        raise ValueError(f"'dt' must be a number in [{MIN_PLAN_DT:g}, 10) s")
     v, a = _floats(d.get("v"), "v"), _floats(d.get("a"), "a")
     if len(a) != len(v):
         raise ValueError("'v' and 'a' must have the same length")
@@ -420,6 +427,19 @@ class PlatoonMode:
         if math.isfinite(headway):
             self.headway = min(max(headway, self.cfg.cacc_headway), self.cfg.acc_headway)
 
+    def fall_back(self, gap: float, v: float, d_0: float) -> None:
+        """To ACC now (no plan to follow, or none trusted): the headway ramp starts from the
+        time gap driven (``(gap - d_0) / v``: gap and ``d_0`` in m, ``v`` in m/s; within
+        the two headways) so the reference gap does not jump."""
+        if self.mode == ACC:
+            return
+        self.mode = ACC
+        self.switches += 1
+        self._fresh_since = math.inf
+        if math.isfinite(gap) and math.isfinite(v) and v > 0.1:
+            actual = (gap - d_0) / v
+            self.headway = min(max(actual, self.headway), self.cfg.acc_headway)
+
     def fresh(self, plan: Plan | None, t: float) -> bool:
         """Whether ``plan`` is fresh at time t (s): not older than the timeout, not from
         the future beyond the allowed clock skew."""
@@ -488,11 +508,7 @@ class PlatoonMode:
         else:
             self._fresh_since = math.inf
         if self.mode == CACC and not usable:
-            self.mode = ACC
-            self.switches += 1
-            if math.isfinite(gap) and math.isfinite(v) and v > 0.1:
-                actual = (gap - d_0) / v
-                self.headway = min(max(actual, self.headway), cfg.acc_headway)
+            self.fall_back(gap, v, d_0)
         elif self.mode == ACC and fresh and t - self._fresh_since >= cfg.cacc_return_s:
             self.mode = CACC
             self.switches += 1

@@ -63,7 +63,7 @@ def joiner_for(
         v
         for v, p in heard.items()
         if p == predecessor
-        and v not in (own, "")
+        and v not in (own, predecessor, "")
         and (since is None or since.get(v, -math.inf) > after)
     )
     return names[0] if names else ""

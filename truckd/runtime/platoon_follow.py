@@ -32,6 +32,11 @@ rest every truck's plan says 0 m/s and the speed check tells nothing apart; a le
 that has just found its target is unsure of the speed)."""
 
 
+LEAD_GONE_S = 1.0
+"""s: no lead in range this long while following: the predecessor went (a jump farther;
+longer than the lead filter's restarts after a dropout or a stall)."""
+
+
 class HeardPlans:
     """The plans heard on ``truckd/*/plan`` (the discovery view): who follows whom, since
     when (s, on the receiver's clock), and each truck's planned speed (m/s) at its plan's
@@ -111,6 +116,9 @@ class Follow:
         self.mode = mode
         self.d_0 = d_0
         self.range_prev: float | None = None
+        """The last valid gap (m) the lead filter measured."""
+        self._seen_lead = t0
+        """When the lead filter last had a lead (s)."""
         self.pred_since = t0
         """When this truck took its predecessor (s)."""
         self.events: list[tuple[float, str]] = [] if events is None else events
@@ -139,8 +147,16 @@ class Follow:
         no tail unless the vehicle ahead moves: its speed less three standard deviations
         ``v_lead_std`` (m/s; NaN: unknown) at least :data:`TAIL_MIN_SPEED`."""
         pcfg = self.cfg
-        jump = range_jump(self.range_prev, gap, RANGE_JUMP_M)
-        self.range_prev = gap
+        # A jump compares a valid gap with the last valid one: a cycle without a lead (a
+        # dropout, the lead filter restarting after a stall) is no other vehicle; no lead
+        # for LEAD_GONE_S is one that went.
+        jump = None
+        if gap is not None:
+            if self.range_prev is not None:
+                jump = range_jump(self.range_prev, gap, RANGE_JUMP_M)
+            self.range_prev, self._seen_lead = gap, t
+        elif self.predecessor and t - self._seen_lead >= LEAD_GONE_S:
+            jump, self.range_prev, self._seen_lead = FARTHER, None, t
         if not self.predecessor:
             if gap is None or not settled or not v_lead - 3.0 * v_lead_std >= TAIL_MIN_SPEED:
                 return False
@@ -157,10 +173,13 @@ class Follow:
             return False
         joiner = joiner_for(self.vid, self.predecessor, heard.pre, heard.since, self.pred_since)
         if joiner and jump == CLOSER and self.standby.sender == joiner:
-            self._swap(gap, v, t, "joined in front")
+            self._swap(gap, v, t, f"{joiner} joined in front")
             return True
-        if jump == FARTHER and self.standby.sender and not joiner:
-            self._swap(gap, v, t, "left")
+        if jump == FARTHER and not joiner:
+            if self.standby.sender:
+                self._swap(gap, v, t, f"{self.predecessor} left")
+            else:  # gone, and no truck known ahead of it: ACC, the tail searched again
+                self._lose(gap, v, t)
             return True
         want = standby_for(self.vid, self.predecessor, heard.pre, heard.since, self.pred_since)
         if want != self.standby.sender and self.predecessor in heard.pre:  # gone: keep it
@@ -172,7 +191,6 @@ class Follow:
         return False
 
     def _swap(self, gap: float | None, v: float, t: float, why: str) -> None:
-        old = self.predecessor
         self.predecessor, self.source, self.standby = (
             self.standby.sender,
             self.standby,
@@ -182,7 +200,15 @@ class Follow:
         self.mode.extra_headway = 0.0
         if gap is not None:
             self.mode.retarget(self.time_gap(gap, v))
-        self.events.append((t, f"{self.vid} follows {self.predecessor} ({old} {why})"))
+        self.events.append((t, f"{self.vid} follows {self.predecessor} ({why})"))
+
+    def _lose(self, gap: float | None, v: float, t: float) -> None:
+        old = self.predecessor
+        self.predecessor, self.source, self.standby = "", PlanSource(""), PlanSource("")
+        self.pred_since = t
+        self.mode.extra_headway = 0.0
+        self.mode.fall_back(gap if gap is not None else math.nan, v, self.d_0)
+        self.events.append((t, f"{self.vid} follows nobody ({old} went, no truck ahead of it)"))
 
     def redecide(self, sync: bool, now: float) -> tuple[list[float] | None, float]:
         """After a change of predecessor within a cycle: the headway (s) and the forecast

@@ -137,7 +137,7 @@ class PlanReceiver:
                 self.dropped += 1
             self._pending = payload
 
-    def _take(self) -> None:
+    def _take(self, max_bytes: int = MAX_PLAN_BYTES) -> None:
         with self._lock:
             raw, self._pending = self._pending, None
         if raw is None:
@@ -145,8 +145,8 @@ class PlanReceiver:
         self.decoded += 1
         try:
             data = raw if isinstance(raw, bytes) else raw.to_bytes()
-            if len(data) > MAX_PLAN_BYTES:
-                raise ValueError(f"{len(data)} bytes, more than {MAX_PLAN_BYTES}")
+            if len(data) > max_bytes:
+                raise ValueError(f"{len(data)} bytes, more than {max_bytes}")
             plan = decode_plan(data)
         except Exception as exc:  # any payload at all: nested too deep, not UTF-8, ...
             self.refused += 1
@@ -170,10 +170,11 @@ class PlanReceiver:
         self.refused += 1
         self.last_error = f"plan seq {plan.seq} not newer than the one held ({old.seq})"
 
-    def latest(self) -> Plan | None:
-        """Decode the pending sample, if any (one at most), and return the newest valid
-        plan (the loop's side: call it once per cycle)."""
-        self._take()
+    def latest(self, max_bytes: int = MAX_PLAN_BYTES) -> Plan | None:
+        """Decode the pending sample, if any (one at most; refused when longer than
+        ``max_bytes``), and return the newest valid plan (the loop's side: call it once
+        per cycle)."""
+        self._take(max_bytes)
         with self._lock:
             return self._latest
 
@@ -205,7 +206,21 @@ announces a join, long before it moves in): with 10 trucks each is heard every s
 
 MAX_SENDERS = 32
 """``platoon.order: auto``: plans are heard from at most this many trucks (the first
-heard); samples from more are dropped and counted (``senders_refused`` in health)."""
+heard, and always the configured predecessor, the one followed and the standby); samples
+from more are dropped and counted (``senders_refused`` in health); a sender silent for
+:data:`SILENT_S` is forgotten, making room."""
+
+SILENT_S = 4.0
+"""s: a sender heard from no sample this long is forgotten (its receiver and what its
+plans said of the order), unless followed or the standby: five ``plan_hold_s``."""
+
+OTHER_PLAN_BYTES = 16384
+"""Plans of senders neither followed nor the standby are decoded up to this size only (a
+plan of 40 steps is about 2 kB, of the configuration's longest horizon about 20 kB: such
+a truck is heard once it is the standby); a decode of 64 kB costs about 2.4 ms."""
+
+SEARCH_DECODES = 4
+"""Senders decoded per cycle, in turn, while no predecessor is followed (the tail search)."""
 
 
 def plan_sender(key: str) -> str | None:
@@ -234,8 +249,12 @@ class DaemonPlatoon:
         cfg: PlatoonConfig,
         cyc: CompanionCycle,
         wall: Callable[[], float] = time.time,
+        mono: Callable[[], float] = time.monotonic,
     ) -> None:
+        """``wall``: the clock plans are stamped and aged on (the system clock); ``mono``:
+        the order's own times (who was heard since when), which no clock step may move."""
         self.vehicle_id = vehicle_id
+        self.mono = mono
         self.cfg = cfg
         self.cyc = cyc
         self.wall = wall
@@ -265,13 +284,21 @@ class DaemonPlatoon:
         """Samples from senders beyond :data:`MAX_SENDERS` (dropped)."""
         self.heard = HeardPlans()
         self._heard_next = 0
+        self._wanted: frozenset[str] = frozenset({cfg.predecessor} - {""})
+        """Senders always admitted: the configured predecessor, the one followed, the
+        standby (written by the loop, read by Zenoh's thread: one reference swapped)."""
+        self._activity: dict[str, tuple[int, float]] = {}
+        """Per sender: samples received and when that count last changed (monotonic s)."""
+        self.errors = 0
+        """Cycles whose platoon decision raised (the truck then drives ACC); ``last_error``."""
+        self.last_error = ""
         self._first_heard = math.nan
         """When the first plan of another truck was heard (s, NaN: none yet)."""
         self._settled = False
         self.follow: Follow | None = None
         if self.auto and self.mode is not None:
             self.follow = Follow(
-                vehicle_id, cfg.predecessor, self.mode, cyc.control_cfg.d_0, wall()
+                vehicle_id, cfg.predecessor, self.mode, cyc.control_cfg.d_0, mono()
             )
             cyc.controller.redecide = self._on_estimate
 
@@ -331,7 +358,7 @@ class DaemonPlatoon:
             with self._receivers_lock:
                 r = self.receivers.get(sender)
                 if r is None:
-                    if len(self.receivers) >= MAX_SENDERS:
+                    if len(self.receivers) >= MAX_SENDERS and sender not in self._wanted:
                         self.senders_refused += 1
                         return
                     r = PlanReceiver(sender, self._skew_clock, self.cfg.max_clock_skew_s)
@@ -355,69 +382,116 @@ class DaemonPlatoon:
 
     def decide(self, last: CycleOutputs | None) -> PlatoonDecision | None:
         """Before the cycle: the forecast and headway (None for a leading truck with a
-        fixed order)."""
+        fixed order).  Whatever the plans held, it returns: a decision that raised
+        (counted in :attr:`errors`) is ACC on the range sensor, the headway ramped."""
         self._now = self.wall()
         if self.mode is None:
             return None
-        if self.follow is not None:
-            plan = self._hear(self.follow, self._now)
-        else:
-            assert self._fixed is not None
-            plan = self._fixed.latest()
-            if self.cfg.clock_sync:  # the predecessor's clock is not ours (platoon_clock.py)
-                self.clock.observe_latest(plan, self._now)
-                plan = self.clock.to_own(plan)
-        self.decision = follower_inputs(self.mode, self._now, plan, last, self.cyc.control_cfg.d_0)
+        d_0 = self.cyc.control_cfg.d_0
+        try:
+            if self.follow is not None:
+                plan = self._hear(self.follow, self._now, self.mono())
+            else:
+                assert self._fixed is not None
+                plan = self._fixed.latest()
+                if self.cfg.clock_sync:  # the predecessor's clock is not ours
+                    self.clock.observe_latest(plan, self._now)
+                    plan = self.clock.to_own(plan)
+            self.decision = follower_inputs(self.mode, self._now, plan, last, d_0)
+        except Exception as exc:  # the loop goes on, on the range sensor
+            self._failed(exc)
+            self.decision = follower_inputs(self.mode, self._now, None, last, d_0)
         return self.decision
 
-    def _hear(self, f: Follow, now: float) -> Plan | None:
+    def _failed(self, exc: Exception) -> None:
+        self.errors += 1
+        self.last_error = f"{type(exc).__name__}: {exc}"[:200]
+        if self.errors == 1 or self.errors % 500 == 0:
+            log.warning("platoon decision failed (%d so far): %s", self.errors, self.last_error)
+
+    def _hear(self, f: Follow, now: float, mono: float) -> Plan | None:
         """Auto order: the newest plans of the predecessor and the standby (each cycle)
-        and of one other sender in turn every :data:`HEAR_OTHERS_EVERY` cycles (every
-        sender each cycle while no predecessor is followed), noted in :attr:`heard`; the
-        predecessor's plan on this truck's clock."""
+        and of one other sender in turn every :data:`HEAR_OTHERS_EVERY` cycles (while no
+        predecessor is followed, :data:`SEARCH_DECODES` senders each cycle), noted in
+        :attr:`heard` (at ``mono``, the order's clock); senders silent for
+        :data:`SILENT_S` forgotten; the predecessor's plan on this truck's clock (``now``,
+        s)."""
         receivers = self.receivers
         if receivers and math.isnan(self._first_heard):
-            self._first_heard = now
+            self._first_heard = mono
+        mine = (f.source.sender, f.standby.sender)
+        self._wanted = frozenset({self.cfg.predecessor, *mine} - {""})
         for src in (f.source, f.standby):
             r = receivers.get(src.sender) if src.sender else None
             if r is not None:
                 plan = r.latest()
                 if plan is not None:
                     src.hold_latest(plan, now)
-                    self.heard.note(src.sender, plan, now)
-        others = [v for v in receivers if v not in (f.source.sender, f.standby.sender)]
+                    self.heard.note(src.sender, plan, mono)
+        others = [v for v in receivers if v not in mine]
+        self._heard_next += 1
         if others and f.predecessor:  # one other sender every HEAR_OTHERS_EVERY cycles
-            self._heard_next += 1
             k, turn = divmod(self._heard_next, HEAR_OTHERS_EVERY)
             others = [] if turn else [others[k % len(others)]]
+            if not turn:
+                self._forget_silent(mono)
+        elif len(others) > SEARCH_DECODES:
+            k = self._heard_next * SEARCH_DECODES
+            others = [others[(k + i) % len(others)] for i in range(SEARCH_DECODES)]
         for vid in others:
-            plan = receivers[vid].latest()
+            plan = receivers[vid].latest(OTHER_PLAN_BYTES)
             if plan is not None:
-                self.heard.note(vid, plan, now)
+                self.heard.note(vid, plan, mono)
         return f.source.on_own_clock(self.cfg.clock_sync)
+
+    def _forget_silent(self, mono: float) -> None:
+        """Senders with no sample for :data:`SILENT_S` (not wanted) are forgotten."""
+        gone = []
+        for vid, r in self.receivers.items():
+            count, since = self._activity.get(vid, (-1, mono))
+            if r.received != count:
+                self._activity[vid] = (r.received, mono)
+            elif mono - since >= SILENT_S and vid not in self._wanted:
+                gone.append(vid)
+        if gone:
+            with self._receivers_lock:
+                self.receivers = {v: r for v, r in self.receivers.items() if v not in gone}
+            for vid in gone:
+                self._activity.pop(vid, None)
+                self.heard.forget(vid)
 
     def _on_estimate(self, est: Estimate) -> tuple[list[float] | None, float] | None:
         """Between the cycle's estimate and its control law (auto order): another truck
-        ahead gives this cycle's forecast and headway again."""
+        ahead gives this cycle's forecast and headway again (an error: no change)."""
         f = self.follow
         if f is None or self.decision is None:
             return None
+        try:
+            return self._order_step(f, est, self.decision)
+        except Exception as exc:  # the loop goes on with the decision made
+            self._failed(exc)
+            return None
+
+    def _order_step(
+        self, f: Follow, est: Estimate, decision: PlatoonDecision
+    ) -> tuple[list[float] | None, float] | None:
         n_events = len(f.events)
         gap = est.gap if est.lead_valid else None
         v_lead = est.v_lead if est.lead_valid else math.nan
+        mono = self.mono()
         # a tail is taken once the plans have been heard for cacc_return_s; trucks heard
         # naming this truck's predecessor before then were there first (not joiners)
-        settled = self._now - self._first_heard >= self.cfg.cacc_return_s
+        settled = mono - self._first_heard >= self.cfg.cacc_return_s
         if settled and not self._settled:
             self._settled = True
-            f.pred_since = max(f.pred_since, self._now)
-        changed = f.step(gap, est.v, v_lead, self.heard, self._now, settled, est.v_lead_std)
+            f.pred_since = max(f.pred_since, mono)
+        changed = f.step(gap, est.v, v_lead, self.heard, mono, settled, est.v_lead_std)
         for _t, what in f.events[n_events:]:
             log.info("platoon: %s", what)
         if not changed:
             return None
         fc, headway = f.redecide(self.cfg.clock_sync, self._now)
-        self.decision = replace(self.decision, headway=headway, forecast=fc)
+        self.decision = replace(decision, headway=headway, forecast=fc)
         return fc, headway
 
     def plan_message(self, out: CycleOutputs) -> dict[str, Any] | None:
@@ -456,6 +530,7 @@ class DaemonPlatoon:
             "plan_flood": rate is not None and rate > senders * FLOOD_FACTOR / self.cyc.period,
             "switches": m.switches if m is not None else 0,
             "plans_disagreeing": m.disagreements if m is not None else 0,
+            "errors": self.errors,
         }
         if self.follow is not None:
             ev = self.follow.events

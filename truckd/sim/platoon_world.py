@@ -9,7 +9,7 @@ Usage::
 Truck i's firmware is on ``DIR/tty<i>`` (a symlink to the pty slave).  Every truck starts
 at rest in lane 0, ``--gap`` behind the one ahead, truck 0 ``--gap`` behind a virtual lead
 standing until told to drive.  A truck's range sensor sees the nearest vehicle ahead of
-it in lane 0 (the lead included), whichever lane it drives in.  Prints one JSON line
+it in lane 0 (the lead included); a truck in lane 1 (it left) sees nothing.  Prints one JSON line
 ``{"ready": true, "devices": [...], "control_port": N, "pid": P}``, then runs in real time.
 
 Control: JSON datagrams to ``127.0.0.1:control_port`` (UDP), each answered:
@@ -76,6 +76,8 @@ class World:
 
     def _range_fn(self, i: int) -> Any:
         def fn(t: float, x: float) -> float | None:
+            if self.lanes[i] != 0:
+                return None
             ahead = [
                 p.x for j, p in enumerate(self.plants) if j != i and self.lanes[j] == 0 and p.x > x
             ]
