@@ -93,6 +93,7 @@ def _drive(
             dp.on_sample(f"truckd/{vid}/plan", encode_plan(plan))
         dp.decide(None)
         out.append(hook(_estimate(gap, v, v_lead)))
+    assert dp.errors == 0, dp.last_error  # no decision failed (and none hidden)
     return out
 
 
@@ -179,10 +180,71 @@ def test_when_the_truck_ahead_goes_and_none_is_known_ahead_of_it_acc() -> None:
     got = _drive(dp, clock, fleet, 1, gap=2.5, seq0=80)
     assert dp.predecessor == "" and got[0] is not None and got[0][0] is None
     assert dp.mode is not None and dp.mode.mode == ACC and dp.mode.headway > 0.5
+    assert dp.decision is not None and dp.decision.mode == ACC  # reported so this cycle
+    # t0 drives on (next lane), heard, followed by nobody, at the speed of what is ahead:
+    # not taken back as a tail
+    _drive(dp, clock, fleet, 120, gap=2.5, seq0=81)
+    assert dp.predecessor == ""
     gone, clock2 = _daemon_platoon("t0")
     _drive(gone, clock2, fleet, 80, gap=0.7)
     _drive(gone, clock2, fleet, round(LEAD_GONE_S / PERIOD) + 2, gap=None, seq0=80)
     assert gone.predecessor == "" and gone.mode is not None and gone.mode.mode == ACC
+    # never in range since it was taken: its plans alone say nothing of it going
+    blind, clock3 = _daemon_platoon("t0")
+    _drive(blind, clock3, fleet, 80 + round(2 * LEAD_GONE_S / PERIOD), gap=None)
+    assert blind.predecessor == "t0"
+
+
+def test_a_leave_is_a_leave_while_a_join_is_announced() -> None:
+    """Behind t1 (t0 ahead of it), a truck j announcing that it follows t1 (room opened):
+    t1 leaves (the range sensor jumps farther): the truck follows t0, not t1 nor the
+    joiner.  Behind the leader t0 with j announced: t0 leaves: nobody, ACC."""
+    dp, clock = _daemon_platoon("t1")
+    _drive(dp, clock, {"t0": "", "t1": "t0"}, 80, gap=1.0)
+    _drive(dp, clock, {"t0": "", "t1": "t0", "j": "t1"}, 30, gap=1.0, seq0=80)
+    assert dp.mode is not None and dp.mode.extra_headway > 0.0
+    _drive(dp, clock, {"t0": "", "t1": "t0", "j": "t1"}, 1, gap=2.5, seq0=110)
+    assert dp.predecessor == "t0"
+    lead, clock2 = _daemon_platoon("t0")
+    _drive(lead, clock2, {"t0": ""}, 80, gap=0.7)
+    _drive(lead, clock2, {"t0": "", "j": "t0"}, 30, gap=0.7, seq0=80)
+    _drive(lead, clock2, {"t0": "", "j": "t0"}, 1, gap=2.5, seq0=110)
+    assert lead.predecessor == "" and lead.mode is not None and lead.mode.mode == ACC
+
+
+def test_the_first_gap_after_a_dropout_is_no_jump() -> None:
+    """Half a second without a lead while the gap closed by 0.4 m: the truck still follows
+    t2 (a gap that moved during a dropout is not another vehicle)."""
+    fleet = {"t0": "", "t1": "t0", "t2": "t1"}
+    dp, clock = _daemon_platoon("t2")
+    _drive(dp, clock, fleet, 80, gap=1.0)
+    _drive(dp, clock, fleet, 50, gap=None, seq0=80)
+    _drive(dp, clock, fleet, 20, gap=1.4, seq0=130)
+    assert dp.predecessor == "t2"
+
+
+def test_a_joiner_that_goes_silent_lets_the_room_close() -> None:
+    """j announces that it follows t2 (room opened), then falls silent: once it is
+    forgotten (SILENT_S) the room closes (the extra headway back to 0, by the ramp)."""
+    dp, clock = _daemon_platoon("t2")
+    _drive(dp, clock, {"t1": "", "t2": "t1"}, 80, gap=1.0)
+    _drive(dp, clock, {"t1": "", "t2": "t1", "j": "t2"}, 30, gap=1.0, seq0=80)
+    assert dp.mode is not None and dp.mode.extra_headway > 0.0
+    n = round(SILENT_S / PERIOD) + 2 * HEAR_OTHERS_EVERY
+    _drive(dp, clock, {"t1": "", "t2": "t1"}, n, gap=1.0, seq0=110)
+    assert "j" not in dp.receivers and "j" not in dp.heard.pre
+    assert dp.mode.extra_headway == 0.0 and dp.predecessor == "t2"
+
+
+def test_silent_senders_are_forgotten_while_searching_too() -> None:
+    """No predecessor, two trucks heard, then silent for SILENT_S: forgotten; a vehicle
+    in range afterwards is not taken for either of them."""
+    dp, clock = _daemon_platoon()
+    _drive(dp, clock, {"a": "", "b": "a"}, 30, gap=None)
+    _drive(dp, clock, {}, round(SILENT_S / PERIOD) + 2 * HEAR_OTHERS_EVERY, gap=None, seq0=30)
+    assert dp.receivers == {} and dp.heard.pre == {}
+    _drive(dp, clock, {}, 20, gap=1.0, seq0=1000)
+    assert dp.predecessor == ""
 
 
 def test_auto_order_opens_room_for_a_joining_truck_and_follows_it() -> None:
@@ -257,6 +319,15 @@ def test_senders_beyond_the_limit_never_lock_out_the_predecessor() -> None:
     assert "y" in dp.receivers
 
 
+def test_many_trucks_heard_from_the_start_are_no_joiners_either() -> None:
+    """As above with eight more trucks heard from the start (each decoded in turn): none
+    of those naming t1 from their first plan is taken for a joiner."""
+    fleet = {"t1": "", "x": "t1", **{f"o{i}": f"o{i - 1}" if i else "" for i in range(8)}}
+    dp, clock = _daemon_platoon("t1")
+    _drive(dp, clock, fleet, 200, gap=1.0)
+    assert dp.mode is not None and dp.mode.extra_headway == 0.0
+
+
 def test_auto_order_hears_other_trucks_plan_keys_only_and_at_most_max_senders() -> None:
     """Its own plans, other keys and senders beyond :data:`MAX_SENDERS` are not heard (the
     last counted); a plan on one truck's key naming another truck is refused."""
@@ -318,7 +389,7 @@ def test_daemon_with_auto_order_finds_the_tail_over_zenoh(tmp_path: Path) -> Non
 
     th = threading.Thread(target=fleet, daemon=True)
     th.start()
-    d = Daemon(cfg, "sim", duration=5.0, env={})
+    d = Daemon(cfg, "sim", duration=4.0, env={})
     try:
         assert d.run() == 0
     finally:

@@ -40,6 +40,7 @@ def test_a_joiner_is_an_announcement_newer_than_the_own_predecessor() -> None:
 def test_the_standby_is_a_joiner_else_the_predecessors_predecessor() -> None:
     assert standby_for("t3", "t2", CHAIN) == "t1"
     assert standby_for("t1", "t0", CHAIN) == ""  # the lead follows nobody
+    assert standby_for("t2", "t1", {**CHAIN, "t1": "t1"}) == ""  # naming itself: nobody
     heard = {**CHAIN, "j": "t1"}
     assert standby_for("t2", "t1", heard) == "j"
 

@@ -82,7 +82,7 @@ def standby_for(
     if j:
         return j
     nxt = heard.get(predecessor, "") if predecessor else ""
-    return nxt if nxt != own else ""
+    return nxt if nxt not in (own, predecessor) else ""
 
 
 def tail_candidate(

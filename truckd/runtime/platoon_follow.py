@@ -32,6 +32,9 @@ rest every truck's plan says 0 m/s and the speed check tells nothing apart; a le
 that has just found its target is unsure of the speed)."""
 
 
+REJOIN_S = 30.0
+"""s: a predecessor that went is no tail candidate for this long."""
+
 LEAD_GONE_S = 1.0
 """s: no lead in range this long while following: the predecessor went (a jump farther;
 longer than the lead filter's restarts after a dropout or a stall)."""
@@ -119,6 +122,11 @@ class Follow:
         """The last valid gap (m) the lead filter measured."""
         self._seen_lead = t0
         """When the lead filter last had a lead (s)."""
+        self._lead_seen = False
+        """A lead was seen since the predecessor was taken (only then can it go)."""
+        self._gone: dict[str, float] = {}
+        """Predecessors that went (vehicle id -> when, s): not taken as a tail again for
+        :data:`REJOIN_S` (a leader that left drives on, heard, followed by nobody)."""
         self.pred_since = t0
         """When this truck took its predecessor (s)."""
         self.events: list[tuple[float, str]] = [] if events is None else events
@@ -147,39 +155,34 @@ class Follow:
         no tail unless the vehicle ahead moves: its speed less three standard deviations
         ``v_lead_std`` (m/s; NaN: unknown) at least :data:`TAIL_MIN_SPEED`."""
         pcfg = self.cfg
-        # A jump compares a valid gap with the last valid one: a cycle without a lead (a
-        # dropout, the lead filter restarting after a stall) is no other vehicle; no lead
-        # for LEAD_GONE_S is one that went.
-        jump = None
-        if gap is not None:
-            if self.range_prev is not None:
-                jump = range_jump(self.range_prev, gap, RANGE_JUMP_M)
-            self.range_prev, self._seen_lead = gap, t
-        elif self.predecessor and t - self._seen_lead >= LEAD_GONE_S:
-            jump, self.range_prev, self._seen_lead = FARTHER, None, t
+        jump = self._jump(gap, t)
         if not self.predecessor:
             if gap is None or not settled or not v_lead - 3.0 * v_lead_std >= TAIL_MIN_SPEED:
                 return False
-            pick = tail_candidate(
-                self.vid, heard.pre, heard.speed, v_lead, pcfg.plan_speed_tolerance
-            )
+            gone = {vid for vid, when in self._gone.items() if t - when < REJOIN_S}
+            view = {vid: p for vid, p in heard.pre.items() if vid not in gone}
+            pick = tail_candidate(self.vid, view, heard.speed, v_lead, pcfg.plan_speed_tolerance)
             if pick:
-                self.predecessor, self.source, self.pred_since = pick, PlanSource(pick), t
-                self.mode.retarget(self.time_gap(gap, v))
-                self.events.append((t, f"{self.vid} follows {pick} (the tail)"))
+                self._take(PlanSource(pick), gap, v, t, "the tail")
                 return True
             return False
         if not settled:
             return False
         joiner = joiner_for(self.vid, self.predecessor, heard.pre, heard.since, self.pred_since)
-        if joiner and jump == CLOSER and self.standby.sender == joiner:
-            self._swap(gap, v, t, f"{joiner} joined in front")
+        if jump == CLOSER and joiner and self.standby.sender == joiner:
+            self._take(self.standby, gap, v, t, f"{joiner} joined in front")
             return True
-        if jump == FARTHER and not joiner:
-            if self.standby.sender:
-                self._swap(gap, v, t, f"{self.predecessor} left")
-            else:  # gone, and no truck known ahead of it: ACC, the tail searched again
-                self._lose(gap, v, t)
+        if jump == FARTHER:  # the predecessor went, whatever was announced meanwhile
+            old = self.predecessor
+            # the truck ahead of it: from its plans, else (no longer heard) the standby
+            # kept as the predecessor's predecessor (not an announced joiner)
+            ahead = heard.pre.get(old, "" if joiner else self.standby.sender)
+            self._gone[old] = t
+            if ahead in ("", self.vid, old):  # no truck known ahead of it: ACC, search
+                self._lose(gap, v, t, old)
+            else:
+                src = self.standby if self.standby.sender == ahead else PlanSource(ahead)
+                self._take(src, gap, v, t, f"{old} left")
             return True
         want = standby_for(self.vid, self.predecessor, heard.pre, heard.since, self.pred_since)
         if want != self.standby.sender and self.predecessor in heard.pre:  # gone: keep it
@@ -188,24 +191,43 @@ class Follow:
             # room for the joining truck: its own CACC gap (d_0 + h v) as extra headway
             self.mode.extra_headway = (self.d_0 + pcfg.cacc_headway * v) / v
             self.events.append((t, f"{self.vid} opens room for {joiner}"))
+        elif not joiner and self.mode.extra_headway != 0.0:
+            # the joiner no longer announced (gone silent, or changed its mind): the room
+            # closes by the headway ramp
+            self.mode.extra_headway = 0.0
+            self.events.append((t, f"{self.vid} closes the room: no truck joins"))
         return False
 
-    def _swap(self, gap: float | None, v: float, t: float, why: str) -> None:
-        self.predecessor, self.source, self.standby = (
-            self.standby.sender,
-            self.standby,
-            PlanSource(""),
-        )
-        self.pred_since = t
+    def _jump(self, gap: float | None, t: float) -> str | None:
+        """A jump of the range sensor this cycle (CLOSER, FARTHER, None): a valid gap
+        against the valid one the cycle before (after cycles without a lead, a dropout
+        or the lead filter restarting after a stall, the first gap back is no jump: the
+        gap moved meanwhile); no lead for :data:`LEAD_GONE_S` after one was seen behind
+        this predecessor is the predecessor gone (FARTHER)."""
+        jump = None
+        if gap is not None:
+            if self.range_prev is not None:
+                jump = range_jump(self.range_prev, gap, RANGE_JUMP_M)
+            self.range_prev, self._seen_lead, self._lead_seen = gap, t, True
+        else:
+            self.range_prev = None
+            if self.predecessor and self._lead_seen and t - self._seen_lead >= LEAD_GONE_S:
+                jump = FARTHER
+        return jump
+
+    def _take(self, src: PlanSource, gap: float | None, v: float, t: float, why: str) -> None:
+        """Follow ``src``'s sender from now (``why``: for the events)."""
+        self.predecessor, self.source, self.standby = src.sender, src, PlanSource("")
+        self.pred_since, self._lead_seen = t, gap is not None
         self.mode.extra_headway = 0.0
         if gap is not None:
             self.mode.retarget(self.time_gap(gap, v))
-        self.events.append((t, f"{self.vid} follows {self.predecessor} ({why})"))
+        self.events.append((t, f"{self.vid} follows {src.sender} ({why})"))
 
-    def _lose(self, gap: float | None, v: float, t: float) -> None:
-        old = self.predecessor
+    def _lose(self, gap: float | None, v: float, t: float, old: str) -> None:
+        """Follow nobody from now: ACC, the headway ramped from the time gap driven."""
         self.predecessor, self.source, self.standby = "", PlanSource(""), PlanSource("")
-        self.pred_since = t
+        self.pred_since, self._lead_seen = t, False
         self.mode.extra_headway = 0.0
         self.mode.fall_back(gap if gap is not None else math.nan, v, self.d_0)
         self.events.append((t, f"{self.vid} follows nobody ({old} went, no truck ahead of it)"))

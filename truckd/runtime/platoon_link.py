@@ -212,7 +212,7 @@ from more are dropped and counted (``senders_refused`` in health); a sender sile
 
 SILENT_S = 4.0
 """s: a sender heard from no sample this long is forgotten (its receiver and what its
-plans said of the order), unless followed or the standby: five ``plan_hold_s``."""
+plans said of the order), unless configured or followed: five ``plan_hold_s``."""
 
 OTHER_PLAN_BYTES = 16384
 """Plans of senders neither followed nor the standby are decoded up to this size only (a
@@ -412,7 +412,8 @@ class DaemonPlatoon:
     def _hear(self, f: Follow, now: float, mono: float) -> Plan | None:
         """Auto order: the newest plans of the predecessor and the standby (each cycle)
         and of one other sender in turn every :data:`HEAR_OTHERS_EVERY` cycles (while no
-        predecessor is followed, :data:`SEARCH_DECODES` senders each cycle), noted in
+        predecessor is followed, or the plans are not yet heard for ``cacc_return_s``,
+        :data:`SEARCH_DECODES` senders each cycle), noted in
         :attr:`heard` (at ``mono``, the order's clock); senders silent for
         :data:`SILENT_S` forgotten; the predecessor's plan on this truck's clock (``now``,
         s)."""
@@ -428,14 +429,15 @@ class DaemonPlatoon:
                 if plan is not None:
                     src.hold_latest(plan, now)
                     self.heard.note(src.sender, plan, mono)
-        others = [v for v in receivers if v not in mine]
         self._heard_next += 1
-        if others and f.predecessor:  # one other sender every HEAR_OTHERS_EVERY cycles
-            k, turn = divmod(self._heard_next, HEAR_OTHERS_EVERY)
+        k, turn = divmod(self._heard_next, HEAR_OTHERS_EVERY)
+        if not turn:
+            self._forget_silent(mono)
+            receivers = self.receivers
+        others = [v for v in receivers if v not in mine]
+        if others and f.predecessor and self._settled:  # one every HEAR_OTHERS_EVERY cycles
             others = [] if turn else [others[k % len(others)]]
-            if not turn:
-                self._forget_silent(mono)
-        elif len(others) > SEARCH_DECODES:
+        elif len(others) > SEARCH_DECODES:  # searching or settling: every sender soon
             k = self._heard_next * SEARCH_DECODES
             others = [others[(k + i) % len(others)] for i in range(SEARCH_DECODES)]
         for vid in others:
@@ -445,13 +447,16 @@ class DaemonPlatoon:
         return f.source.on_own_clock(self.cfg.clock_sync)
 
     def _forget_silent(self, mono: float) -> None:
-        """Senders with no sample for :data:`SILENT_S` (not wanted) are forgotten."""
+        """Senders with no sample for :data:`SILENT_S` are forgotten, but for the
+        configured predecessor and the one followed (a silent standby is forgotten: an
+        announced joiner that fell silent no longer holds the room open)."""
+        kept = {self.cfg.predecessor, self.predecessor}
         gone = []
         for vid, r in self.receivers.items():
             count, since = self._activity.get(vid, (-1, mono))
             if r.received != count:
                 self._activity[vid] = (r.received, mono)
-            elif mono - since >= SILENT_S and vid not in self._wanted:
+            elif mono - since >= SILENT_S and vid not in kept:
                 gone.append(vid)
         if gone:
             with self._receivers_lock:
@@ -491,7 +496,7 @@ class DaemonPlatoon:
         if not changed:
             return None
         fc, headway = f.redecide(self.cfg.clock_sync, self._now)
-        self.decision = replace(decision, headway=headway, forecast=fc)
+        self.decision = replace(decision, mode=f.mode.mode, headway=headway, forecast=fc)
         return fc, headway
 
     def plan_message(self, out: CycleOutputs) -> dict[str, Any] | None:
