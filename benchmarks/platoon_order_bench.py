@@ -37,6 +37,8 @@ from truckd.runtime.platoon_link import DaemonPlatoon  # noqa: E402
 
 PERIOD = 0.01
 SENDERS = (1, 3, 10, 32)
+BLOCK = 100
+"""Cycles of one mode before the next mode's (interleaved)."""
 
 
 class _Clock:
@@ -69,48 +71,61 @@ def _estimate() -> Estimate:
     )  # fmt: skip
 
 
-def measure(order: str, n: int, cycles: int) -> dict[str, Any]:
-    """Cycle costs (us) of one DaemonPlatoon with ``n`` senders s0 <- s1 <- ... (this
-    truck configured behind s0)."""
-    clock = _Clock()
-    dp = _platoon(order, clock)
-    hook = dp.cyc.controller.redecide
-    est = _estimate()
-    decide_ns: list[int] = []
-    sample_ns: list[int] = []
-    for k in range(cycles):
-        clock.t += PERIOD
-        payloads = [
-            encode_plan(
-                replace(
-                    kinematic_plan(clock.t, k, PERIOD, 1.0, 0.0, 40, f"s{i}"),
-                    predecessor=f"s{i - 1}" if i else "",
+class Run:
+    """One DaemonPlatoon with ``n`` senders s0 <- s1 <- ... (this truck configured behind
+    s0), driven a block of cycles at a time."""
+
+    def __init__(self, order: str, n: int) -> None:
+        self.order, self.n = order, n
+        self.clock = _Clock()
+        self.dp = _platoon(order, self.clock)
+        self.hook = self.dp.cyc.controller.redecide
+        self.est = _estimate()
+        self.k = 0
+        self.decide_ns: list[int] = []
+        self.sample_ns: list[int] = []
+
+    def cycles(self, count: int) -> None:
+        dp, n = self.dp, self.n
+        for _ in range(count):
+            self.clock.t += PERIOD
+            k = self.k
+            self.k += 1
+            payloads = [
+                encode_plan(
+                    replace(
+                        kinematic_plan(self.clock.t, k, PERIOD, 1.0, 0.0, 40, f"s{i}"),
+                        predecessor=f"s{i - 1}" if i else "",
+                    )
                 )
-            )
-            for i in range(n)
-        ]
-        t0 = time.perf_counter_ns()
-        for i, p in enumerate(payloads):
-            if order == "auto":
-                dp.on_sample(f"truckd/s{i}/plan", p)
-            elif i == 0 and dp.receiver is not None:
-                dp.receiver.on_payload(p)
-        t1 = time.perf_counter_ns()
-        dp.decide(None)
-        if hook is not None:
-            hook(est)
-        t2 = time.perf_counter_ns()
-        if k >= 50:  # past the first plans and the settling
-            decide_ns.append(t2 - t1)
-            sample_ns.append((t1 - t0) // n if order == "auto" else t1 - t0)
-    d, s = np.asarray(decide_ns) / 1e3, np.asarray(sample_ns) / 1e3
-    return {
-        "decide_us_p50": float(np.median(d)),
-        "decide_us_p99": float(np.percentile(d, 99)),
-        "per_sample_us_p50": float(np.median(s)),
-        "mode_at_end": dp.decision.mode if dp.decision is not None else None,
-        "predecessor": dp.predecessor,
-    }
+                for i in range(n)
+            ]
+            t0 = time.perf_counter_ns()
+            for i, p in enumerate(payloads):
+                if self.order == "auto":
+                    dp.on_sample(f"truckd/s{i}/plan", p)
+                elif i == 0 and dp.receiver is not None:
+                    dp.receiver.on_payload(p)
+            t1 = time.perf_counter_ns()
+            dp.decide(None)
+            if self.hook is not None:
+                self.hook(self.est)
+            t2 = time.perf_counter_ns()
+            if k >= 100:  # past the first plans and the settling
+                self.decide_ns.append(t2 - t1)
+                self.sample_ns.append((t1 - t0) // n if self.order == "auto" else t1 - t0)
+
+    def result(self) -> dict[str, Any]:
+        d, s = np.asarray(self.decide_ns) / 1e3, np.asarray(self.sample_ns) / 1e3
+        dp = self.dp
+        return {
+            "decide_us_p50": float(np.median(d)),
+            "decide_us_p99": float(np.percentile(d, 99)),
+            "per_sample_us_p50": float(np.median(s)),
+            "mode_at_end": dp.decision.mode if dp.decision is not None else None,
+            "predecessor": dp.predecessor,
+            "errors": dp.errors,
+        }
 
 
 def main() -> int:
@@ -125,15 +140,16 @@ def main() -> int:
         "cycles": args.cycles,
         "runs": {},
     }
-    for n in SENDERS:
-        for order in ("fixed", "auto"):
-            if order == "fixed" and n > 1:
-                continue  # a fixed follower hears its predecessor only
-            r = measure(order, n, args.cycles)
-            result["runs"][f"{order}_{n}_senders"] = r
-            print(f"{order:5s} {n:2d} senders: decide + order p50 {r['decide_us_p50']:.1f} us, "
-                  f"p99 {r['decide_us_p99']:.1f} us; per sample {r['per_sample_us_p50']:.2f} us; "
-                  f"{r['mode_at_end']} behind {r['predecessor']}")  # fmt: skip
+    runs = {f"{o}_{n}_senders": Run(o, n) for n in SENDERS for o in ("fixed", "auto")
+            if o == "auto" or n == 1}  # fmt: skip
+    for _ in range(max(1, (args.cycles + 100) // BLOCK)):
+        for r in runs.values():
+            r.cycles(BLOCK)
+    for name, run in runs.items():
+        r = result["runs"][name] = run.result()
+        print(f"{name:18s}: decide + order p50 {r['decide_us_p50']:.1f} us, "
+              f"p99 {r['decide_us_p99']:.1f} us; per sample {r['per_sample_us_p50']:.2f} us; "
+              f"{r['mode_at_end']} behind {r['predecessor']}")  # fmt: skip
     result["machine_end"] = machine()
     if args.json:
         write_json(args.json, result, args.key)
