@@ -11,10 +11,12 @@ daemon's mode.  Every process is ended by its pid.
 
     python benchmarks/platoon_hil.py --json benchmarks/platoon_hil.json
 
-``--order auto`` runs the followers with ``platoon.order: auto`` (the last one with no
-predecessor: it finds the tail) and other phases: the lead drives off until every
-follower is in CACC, then truck 1 leaves the lane (the world moves it aside) and truck 2
-must follow truck 0 from then on; each truck's predecessor is read from its plans.
+``--order auto`` runs 3 trucks with the followers on ``platoon.order: auto`` (p2 with no
+predecessor: it finds the tail) and other phases: the lead drives off until every follower
+is in CACC, then truck 1 leaves the lane (the world moves it aside) and p2 must follow the
+truck ahead of it; ``--join`` adds a fourth truck that joins in the middle first (put
+beside the platoon behind p0, its daemon started then; p1 opens room and follows it once
+it moved in).  Each truck's predecessor is read from its plans.
 
 ``--trucks N`` runs N trucks (and N daemons); ``--router`` connects every daemon and the
 watcher as clients to one Zenoh router (``config/zenoh-router.json5`` on a free loopback
@@ -63,7 +65,9 @@ def _ep(port: int) -> str:
     return f"tcp/127.0.0.1:{port}"
 
 
-def _config(tmp: Path, i: int, ports: list[int], router: int = 0, order: str = "fixed") -> Path:
+def _config(
+    tmp: Path, i: int, ports: list[int], router: int = 0, order: str = "fixed", join: bool = False
+) -> Path:
     cfg = yaml.safe_load(default_config_path().read_text())
     cfg["vehicle_id"] = f"p{i}"
     cfg["link"].update({"serial_device": str(tmp / f"tty{i}"), "reconnect_interval": 0.1})
@@ -71,7 +75,9 @@ def _config(tmp: Path, i: int, ports: list[int], router: int = 0, order: str = "
     cfg["platoon"]["predecessor"] = f"p{i - 1}" if i > 0 else ""
     if order == "auto" and i > 0:
         cfg["platoon"]["order"] = "auto"
-        if i == N - 1:
+        if join and i == 3:
+            cfg["platoon"]["predecessor"] = "p0"  # joins behind p0, in front of p1
+        elif i == 2:
             cfg["platoon"]["predecessor"] = ""  # finds the tail
     rt = cfg["runtime"]
     rt.update({"backend": "serial", "realtime": False, "fault_injection": True})
@@ -90,9 +96,10 @@ def _config(tmp: Path, i: int, ports: list[int], router: int = 0, order: str = "
 
 
 class World:
-    def __init__(self, tmp: Path) -> None:
+    def __init__(self, tmp: Path, parked: int = 0) -> None:
         self.proc = subprocess.Popen(
-            [PY, "-m", "truckd.sim.platoon_world", "--pty-dir", str(tmp), "--trucks", str(N)],
+            [PY, "-m", "truckd.sim.platoon_world", "--pty-dir", str(tmp), "--trucks", str(N),
+             "--parked", str(parked)],
             stdout=subprocess.PIPE, text=True,
         )  # fmt: skip
         assert self.proc.stdout is not None
@@ -142,31 +149,60 @@ def _summary(
     return {"left_active": left, "platoon_switches": switches, "faults_named": causes}
 
 
-def _leave_phases(
+def _auto_phases(
     world: World,
     wait: Callable[[Callable[[], bool], float, str], float],
     pre: Callable[[str], str | None],
     plat: Callable[[str], str | None],
+    headway: Callable[[str], float | None],
     all_cacc: Callable[[], bool],
     result: dict[str, Any],
     t0: float,
+    start: Callable[[int], None] | None,
 ) -> None:
-    """``--order auto``: the lead drives off, the last truck finds the tail once the
-    trucks move, every follower reaches CACC; truck 1 leaves the lane and truck 2 follows
-    truck 0."""
-    tail = f"p{N - 1}"
+    """``--order auto``: the lead drives off, p2 (configured with no predecessor) finds
+    the tail, p1, once the trucks move, and every follower reaches CACC.  With ``start``
+    (``--join``): truck 3 is put beside, behind p0 in the next lane, and its daemon starts
+    (``platoon.predecessor: p0``); p1 hears it announce and opens room; once the room
+    behind the spot is a CACC gap truck 3 moves in and p1 follows it.  Then truck 1 leaves
+    the lane and p2 follows the truck ahead of it (p3 after a join, else p0)."""
     world.cmd({"cmd": "lead", "speed": 1.0, "accel": 0.5})
     result["lead_go_s"] = time.monotonic() - t0
-    result["tail_found_s"] = wait(lambda: pre(tail) == f"p{N - 2}", 20.0, f"{tail} finds the tail")
+    result["tail_found_s"] = wait(lambda: pre("p2") == "p1", 20.0, "p2 finds the tail (p1)")
     result["cacc_s"] = wait(all_cacc, 30.0, "every follower CACC")
-    time.sleep(3.0)  # drive in CACC
+    ahead_of_p1 = "p0"
+    if start is not None:
+        wait(lambda: (headway("p1") or 1.0) < 0.32, 30.0, "p1 at the CACC headway")
+        world.cmd({"cmd": "beside", "truck": 3, "behind": 0, "gap": 0.75})
+        start(3)
+        result["joiner_started_s"] = time.monotonic() - t0
+        result["p1_opens_room_s"] = wait(
+            lambda: (headway("p1") or 0.0) > 0.45, 60.0, "p1 opening room (p3 heard)"
+        )
+
+        def room() -> bool:
+            st = world.cmd({"cmd": "status"})
+            x, v = st["x"], st["v"]
+            behind = x[3] - x[1] >= 0.97 * (0.4 + 0.3 * v[1])  # d_0 + h v of p1
+            return behind and x[0] - x[3] >= 0.97 * (0.4 + 0.3 * v[3])
+
+        result["room_s"] = wait(room, 30.0, "room behind the spot")
+        world.cmd({"cmd": "merge", "truck": 3})
+        result["merge_s"] = time.monotonic() - t0
+        result["p1_follows_p3_after_s"] = (
+            wait(lambda: pre("p1") == "p3", 10.0, "p1 follows p3") - result["merge_s"]
+        )
+        wait(lambda: plat("p1") == "CACC", 15.0, "p1 CACC behind p3")
+        ahead_of_p1 = "p3"
+    time.sleep(2.0)  # drive in CACC
     world.cmd({"cmd": "leave", "truck": 1})
     result["leave_s"] = time.monotonic() - t0
-    result["p2_follows_p0_after_s"] = (
-        wait(lambda: pre("p2") == "p0", 10.0, "p2 follows p0 after p1 left") - result["leave_s"]
+    result["p2_follows_next_after_s"] = (
+        wait(lambda: pre("p2") == ahead_of_p1, 10.0, f"p2 follows {ahead_of_p1} after p1 left")
+        - result["leave_s"]
     )
-    wait(lambda: plat("p2") == "CACC", 15.0, "p2 CACC behind p0")
-    time.sleep(3.0)  # drive on behind the new predecessor
+    wait(lambda: plat("p2") == "CACC", 15.0, f"p2 CACC behind {ahead_of_p1}")
+    time.sleep(2.0)  # drive on behind the new predecessor
     result["leave_phase_end_s"] = time.monotonic() - t0  # then the daemons are stopped
 
 
@@ -179,11 +215,19 @@ def main() -> int:
     ap.add_argument(
         "--order", choices=("fixed", "auto"), default="fixed", help="platoon.order of followers"
     )
+    ap.add_argument(
+        "--join", action="store_true", help="with --order auto: a fourth truck joins behind p0"
+    )
     args = ap.parse_args()
     global N
-    N = args.trucks
+    N = 4 if args.join else args.trucks
     if not 3 <= N <= 10:
         ap.error("--trucks must be in 3..10 (the world simulates up to 10)")
+    if args.join and args.order != "auto":
+        ap.error("--join needs --order auto")
+    if args.order == "auto" and N != (4 if args.join else 3):
+        ap.error("--order auto runs 3 trucks (4 with --join)")
+    n_start = N - 1 if args.join else N  # the joining truck's daemon starts later
 
     def _term(signum: int, frame: object) -> None:
         raise KeyboardInterrupt  # run the finally below: every child ended by its pid
@@ -191,7 +235,7 @@ def main() -> int:
     signal.signal(signal.SIGTERM, _term)
     tmp = Path(tempfile.mkdtemp(prefix="truckd-platoon-hil-"))
     ports = [_free_port() for _ in range(N)]
-    world = World(tmp)
+    world = World(tmp, parked=N - n_start)
     daemons: list[subprocess.Popen[Any]] = []
     states: dict[str, dict[str, Any]] = {}
     events: list[tuple[float, str, str | None, str]] = []  # (t, vehicle, platoon, mode)
@@ -216,25 +260,22 @@ def main() -> int:
             assert router_proc.stdout is not None
             if router_proc.stdout.readline().strip() != "ready":
                 raise RuntimeError("the router did not start")
-        for i in range(N):
+
+        def start(i: int) -> None:
             log = open(tmp / f"p{i}.stderr", "w")  # noqa: SIM115 - closed with the process
+            cfg_path = _config(tmp, i, ports, router_port, args.order, args.join)
             daemons.append(
                 subprocess.Popen(
-                    [
-                        PY,
-                        "-m",
-                        "truckd.cli.main",
-                        "run",
-                        "--config",
-                        str(_config(tmp, i, ports, router_port, args.order)),
-                    ],
-                    stderr=log,
+                    [PY, "-m", "truckd.cli.main", "run", "--config", str(cfg_path)], stderr=log
                 )
             )
+
+        for i in range(n_start):
+            start(i)
         if router_port:
             session = zenoh.open(zenoh_config(CLIENT_CONF, listen=[], connect=[_ep(router_port)]))
         else:
-            session = zenoh.open(zenoh_config(listen=[], connect=[_ep(p) for p in ports]))
+            session = zenoh.open(zenoh_config(listen=[], connect=[_ep(p) for p in ports[:n_start]]))
 
         def on_state(s: zenoh.Sample) -> None:
             vid = str(s.key_expr).split("/")[1]
@@ -262,10 +303,11 @@ def main() -> int:
             while not stop_poll.is_set():
                 st = world.cmd({"cmd": "status"})
                 row = [time.monotonic() - t0]
+                xs, lanes = st["x"], st["lanes"]
                 for k in range(N):  # to the nearest ahead in lane 0 (NaN: out of the lane)
-                    ahead = [st["x"][j] for j in range(k) if st["lanes"][j] == 0]
-                    x_ahead = ahead[-1] if ahead else st["lead_x"]
-                    row.append(x_ahead - st["x"][k] if st["lanes"][k] == 0 else float("nan"))
+                    ahead = [x for j, x in enumerate(xs) if lanes[j] == 0 and x > xs[k]]
+                    x_ahead = min([*ahead, st["lead_x"]])
+                    row.append(x_ahead - xs[k] if lanes[k] == 0 else float("nan"))
                 gaps.append(row)
                 time.sleep(0.05)
 
@@ -284,11 +326,15 @@ def main() -> int:
         def plat(vid: str) -> str | None:
             return states.get(vid, {}).get("platoon")
 
+        def headway(vid: str) -> float | None:
+            h = states.get(vid, {}).get("headway")
+            return float(h) if isinstance(h, int | float) else None
+
         def active() -> bool:
-            return all(states.get(f"p{i}", {}).get("mode") == "ACTIVE" for i in range(N))
+            return all(states.get(f"p{i}", {}).get("mode") == "ACTIVE" for i in range(n_start))
 
         def all_cacc() -> bool:
-            return all(plat(f"p{i}") == "CACC" for i in range(1, N))
+            return all(plat(f"p{i}") == "CACC" for i in range(1, n_start))
 
         def pre(vid: str) -> str | None:
             seen = preds.get(vid)
@@ -296,7 +342,10 @@ def main() -> int:
 
         result["all_active_s"] = wait(active, 90.0 + 10.0 * N, "every daemon ACTIVE")
         if args.order == "auto":
-            _leave_phases(world, wait, pre, plat, all_cacc, result, t0)
+            _auto_phases(
+                world, wait, pre, plat, headway, all_cacc, result, t0,
+                start if args.join else None,
+            )  # fmt: skip
         else:
             world.cmd({"cmd": "lead", "speed": 1.0, "accel": 0.5})
             result["lead_go_s"] = time.monotonic() - t0
@@ -339,6 +388,11 @@ def main() -> int:
     g = [row[1:] for row in gaps]
     lane0 = [[r[k] for r in g if r[k] == r[k]] for k in range(N)]  # (NaN: out of the lane)
     result["min_true_gap_m"] = [min(c) if c else None for c in lane0] if g else None
+    if args.join and "merge_s" in result:  # the joining truck's gap once in the lane
+        result["min_true_gap_joined_m"] = min(
+            (row[N] for row in gaps if row[0] >= result["merge_s"] and row[N] == row[N]),
+            default=None,
+        )
     result["collision"] = any(c and min(c) <= 0.0 for c in lane0)
     result["predecessors"] = preds
     result["events"] = events

@@ -27,9 +27,10 @@ RANGE_JUMP_M = 0.25
 
 
 TAIL_MIN_SPEED = 0.2
-"""m/s: a tail is taken only while the vehicle ahead surely moves at least this fast (at
-rest every truck's plan says 0 m/s and the speed check tells nothing apart; a lead filter
-that has just found its target is unsure of the speed)."""
+"""m/s: a tail is taken only while this truck and the vehicle ahead surely move at least
+this fast (at rest every truck's plan says 0 m/s and the speed check tells nothing apart;
+a lead filter that has just found its target, or a truck starting up, is unsure of the
+speed)."""
 
 
 REJOIN_S = 30.0
@@ -152,12 +153,14 @@ class Follow:
         predecessor changed (the caller decides the forecast and headway again).
         ``settled``: the plans heard are the whole platoon (a receiver that has listened
         only briefly may not yet have heard the true tail: no change is made before); and
-        no tail unless the vehicle ahead moves: its speed less three standard deviations
-        ``v_lead_std`` (m/s; NaN: unknown) at least :data:`TAIL_MIN_SPEED`."""
+        no tail unless this truck and the vehicle ahead move: ``v`` and the lead's speed
+        less three standard deviations ``v_lead_std`` (m/s; NaN: unknown) at least
+        :data:`TAIL_MIN_SPEED`."""
         pcfg = self.cfg
         jump = self._jump(gap, t)
         if not self.predecessor:
-            if gap is None or not settled or not v_lead - 3.0 * v_lead_std >= TAIL_MIN_SPEED:
+            moving = v >= TAIL_MIN_SPEED and v_lead - 3.0 * v_lead_std >= TAIL_MIN_SPEED
+            if gap is None or not settled or not moving:
                 return False
             gone = {vid for vid, when in self._gone.items() if t - when < REJOIN_S}
             view = {vid: p for vid, p in heard.pre.items() if vid not in gone}

@@ -4,19 +4,24 @@ for the platoon's HIL run (separate ``truckd run`` daemons on the serial backend
 Usage::
 
     python -m truckd.sim.platoon_world --pty-dir DIR --trucks N [--config FILE]
-        [--gap M] [--control-port N] [--tick S]
+        [--gap M] [--parked K] [--control-port N] [--tick S]
 
 Truck i's firmware is on ``DIR/tty<i>`` (a symlink to the pty slave).  Every truck starts
 at rest in lane 0, ``--gap`` behind the one ahead, truck 0 ``--gap`` behind a virtual lead
-standing until told to drive.  A truck's range sensor sees the nearest vehicle ahead of
-it in lane 0 (the lead included); a truck in lane 1 (it left) sees nothing.  Prints one JSON line
+standing until told to drive; with ``--parked K`` the last K trucks start parked off the
+road (lane 2: they see nothing and nothing sees them).  A truck's range sensor sees the
+nearest vehicle ahead of it in lane 0 (the lead included); a truck in lane 1 sees the
+truck it was put beside to join behind, else nothing (it left).  Prints one JSON line
 ``{"ready": true, "devices": [...], "control_port": N, "pid": P}``, then runs in real time.
 
 Control: JSON datagrams to ``127.0.0.1:control_port`` (UDP), each answered:
 ``{"cmd": "status"}`` (time, positions, speeds, lanes, the lead's, the firmware states),
 ``{"cmd": "lead", "speed": S, "accel": A}`` (the virtual lead changes speed towards S
 m/s at |A| m/s^2), ``{"cmd": "leave", "truck": I}`` (truck I moves to lane 1: the truck
-behind it now sees the next one ahead), ``{"cmd": "stop"}``.  SIGTERM/SIGINT stop it cleanly.
+behind it now sees the next one ahead), ``{"cmd": "beside", "truck": I, "behind": J,
+"gap": G}`` (truck I is put in lane 1, G m behind truck J, at J's speed: a truck about to
+join behind J; its range sensor sees J), ``{"cmd": "merge", "truck": I}`` (truck I moves
+to lane 0, where it is), ``{"cmd": "stop"}``.  SIGTERM/SIGINT stop it cleanly.
 """
 
 from __future__ import annotations
@@ -59,13 +64,17 @@ class VirtualLead:
 class World:
     """The trucks, their firmware and the lead (see module docstring)."""
 
-    def __init__(self, pty_dir: Path, n: int, gap: float, config: str | None) -> None:
+    def __init__(
+        self, pty_dir: Path, n: int, gap: float, config: str | None, parked: int = 0
+    ) -> None:
         spec = truck_spec(load_config(config))
         self.lead = VirtualLead(gap)
         self.plants: list[Plant] = []
         self.fws: list[SimulatedFirmware] = []
         self.devices: list[PtyDevice] = []
-        self.lanes = [0] * n
+        self.lanes = [0] * (n - parked) + [2] * parked
+        self.behind: dict[int, int] = {}
+        """Trucks in lane 1 about to join: truck -> the truck it joins behind."""
         for i in range(n):
             device = partial(PtyDevice, str(pty_dir / f"tty{i}"))
             truck = build_truck(spec, self._range_fn(i), device=device, x0=-i * gap)
@@ -77,7 +86,8 @@ class World:
     def _range_fn(self, i: int) -> Any:
         def fn(t: float, x: float) -> float | None:
             if self.lanes[i] != 0:
-                return None
+                j = self.behind.get(i) if self.lanes[i] == 1 else None
+                return max(self.plants[j].x - x, 0.0) if j is not None else None
             ahead = [
                 p.x for j, p in enumerate(self.plants) if j != i and self.lanes[j] == 0 and p.x > x
             ]
@@ -130,8 +140,36 @@ class World:
                     "error": f"leave: truck must be 0..{len(self.lanes) - 1}",
                 }, False
             self.lanes[i] = 1
+            self.behind.pop(i, None)
+            return {"ok": True}, False
+        if what == "beside":
+            return self._beside(cmd), False
+        if what == "merge":
+            i = cmd.get("truck")
+            if not (isinstance(i, int) and i in self.behind):
+                return {"ok": False, "error": "merge: not a truck put beside"}, False
+            self.lanes[i] = 0
+            del self.behind[i]
             return {"ok": True}, False
         return {"ok": False, "error": f"unknown command {what!r}"}, False
+
+    def _beside(self, cmd: dict[str, Any]) -> dict[str, Any]:
+        i, j, gap = cmd.get("truck"), cmd.get("behind"), cmd.get("gap")
+        n = len(self.lanes)
+        if not (
+            isinstance(i, int)
+            and isinstance(j, int)
+            and 0 <= i < n
+            and 0 <= j < n
+            and i != j
+            and isinstance(gap, int | float)
+            and 0.0 < gap < 100.0
+        ):
+            return {"ok": False, "error": "beside: truck, behind (0..n-1, apart) and gap (m)"}
+        ahead = self.plants[j]
+        self.plants[i].hold(ahead.v, ahead.x - float(gap))
+        self.lanes[i], self.behind[i] = 1, j
+        return {"ok": True}
 
     def close(self) -> None:
         for d in self.devices:
@@ -146,14 +184,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--trucks", type=int, default=3)
     ap.add_argument("--config", default=None, help="truck.yaml (default: the shipped one)")
     ap.add_argument("--gap", type=float, default=0.8, help="start gap between trucks, m")
+    ap.add_argument(
+        "--parked", type=int, default=0, help="the last K trucks start parked off the road"
+    )
     ap.add_argument("--control-port", type=int, default=0, help="UDP port on 127.0.0.1")
     ap.add_argument("--tick", type=float, default=0.001, help="simulation step, s")
     args = ap.parse_args(argv)
     if not 1 <= args.trucks <= 10 or not 0.1 <= args.gap <= 4.0 or not 1e-4 <= args.tick <= 0.05:
         print("platoon_world: --trucks 1..10, --gap 0.1..4 m, --tick 1e-4..0.05 s", file=sys.stderr)
         return 2
+    if not 0 <= args.parked < args.trucks:
+        print("platoon_world: --parked 0..trucks-1", file=sys.stderr)
+        return 2
     try:
-        world = World(Path(args.pty_dir), args.trucks, args.gap, args.config)
+        world = World(Path(args.pty_dir), args.trucks, args.gap, args.config, args.parked)
     except InputError as exc:
         print(f"platoon_world: {exc}", file=sys.stderr)
         return 2
