@@ -96,6 +96,12 @@ REFUSED: list[tuple[dict[str, Any], str]] = [
         "else the lead leaves the sensor's range while followed",
     ),
     (
+        {"platoon": {"order": "auto"}, "control": {"estimator": {"range_max": 3.0}}},
+        "key 'control.estimator.range_max' = 3: expected above the gap kept at the speed "
+        "limit, control.d_0 + platoon.acc_headway x control.v_max = 0.4 + 1.1 x 2.4 = 3.04 m, "
+        "else the lead leaves the sensor's range while followed",
+    ),
+    (
         {"control": {"estimator": {"range_min": 0.15}}},
         "key 'control.estimator.range_min' = 0.15: expected below control.d_min (0.15 m): the "
         "sensor must see the minimum gap",

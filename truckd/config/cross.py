@@ -23,7 +23,8 @@ The rules (``docs/reference.md``, "Configuration checks across sections"):
   at least two periods of the message they watch (truck.dbc), else a fresh sensor is stale;
 - ``control.estimator.range_max`` within what RANGE.DISTANCE carries (truck.dbc);
 - the spacing policy's gap at the speed limit (``control.d_0`` + headway x ``control.v_max``,
-  the ACC headway ``platoon.acc_headway`` too when following a predecessor) within
+  the ACC headway ``platoon.acc_headway`` too when following a predecessor, or with
+  ``platoon.order: auto``) within
   ``control.estimator.range_max``: else the lead leaves the sensor's range while followed;
 - ``control.estimator.range_min`` below ``control.d_min``: the sensor must see the minimum
   gap;
@@ -131,7 +132,7 @@ def _range_problems(cfg: TruckConfig) -> str | None:
             f"{_g(distance_max)} m, the largest distance RANGE.DISTANCE carries (truck.dbc)"
         )
     headways = [("control.time_headway", c.time_headway)]
-    if cfg.platoon.predecessor:
+    if cfg.platoon.predecessor or cfg.platoon.order == "auto":  # a follower, or may be
         headways += [
             ("platoon.cacc_headway", cfg.platoon.cacc_headway),
             ("platoon.acc_headway", cfg.platoon.acc_headway),
