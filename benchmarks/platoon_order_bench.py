@@ -103,7 +103,7 @@ class Run:
             t0 = time.perf_counter_ns()
             for i, p in enumerate(payloads):
                 if self.order == "auto":
-                    dp.on_sample(f"truckd/s{i}/plan", p)
+                    dp.hearing.on_sample(f"truckd/s{i}/plan", p)
                 elif i == 0 and dp.receiver is not None:
                     dp.receiver.on_payload(p)
             t1 = time.perf_counter_ns()

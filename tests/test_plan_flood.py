@@ -18,7 +18,7 @@ from truckd.config.runtime import TelemetryConfig
 from truckd.config.truck import load_config
 from truckd.control.platoon import PlatoonConfig, encode_plan, kinematic_plan
 from truckd.control.qp import ControlModel
-from truckd.runtime import platoon_link
+from truckd.runtime import plan_receiver
 from truckd.runtime.cycle import CompanionCycle
 from truckd.runtime.monitor import FleetView
 from truckd.runtime.platoon_link import MAX_PLAN_BYTES, DaemonPlatoon, PlanReceiver
@@ -33,13 +33,13 @@ def _plan(seq: int, v: float = 1.0, vid: str = "lead") -> bytes:
 def decodes(monkeypatch: pytest.MonkeyPatch) -> list[int]:
     """Counts the decoder's calls (one entry per call)."""
     calls: list[int] = []
-    real = platoon_link.decode_plan
+    real = plan_receiver.decode_plan
 
     def counting(payload: Any) -> Any:
         calls.append(1)
         return real(payload)
 
-    monkeypatch.setattr(platoon_link, "decode_plan", counting)
+    monkeypatch.setattr(plan_receiver, "decode_plan", counting)
     return calls
 
 

@@ -29,8 +29,9 @@ from truckd.control.platoon import (
 from truckd.control.qp import ControlModel
 from truckd.runtime.cycle import CompanionCycle
 from truckd.runtime.daemon import Daemon
+from truckd.runtime.plan_hearing import HEAR_OTHERS_EVERY, MAX_SENDERS, SILENT_S
 from truckd.runtime.platoon_follow import LEAD_GONE_S
-from truckd.runtime.platoon_link import HEAR_OTHERS_EVERY, MAX_SENDERS, SILENT_S, DaemonPlatoon
+from truckd.runtime.platoon_link import DaemonPlatoon
 from truckd.runtime.telemetry import zenoh_config
 
 PERIOD = 0.01
@@ -90,7 +91,7 @@ def _drive(
             plan = replace(
                 kinematic_plan(clock.t, seq0 + k, PERIOD, v_lead, 0.0, 40, vid), predecessor=pre
             )
-            dp.on_sample(f"truckd/{vid}/plan", encode_plan(plan))
+            dp.hearing.on_sample(f"truckd/{vid}/plan", encode_plan(plan))
         dp.decide(None)
         out.append(hook(_estimate(gap, v, v_lead)))
     assert dp.errors == 0, dp.last_error  # no decision failed (and none hidden)
@@ -124,7 +125,7 @@ def test_auto_order_finds_the_tail_ahead_and_drives_cacc_behind_it() -> None:
         clock3.t += PERIOD
         for vid, pre in fleet.items():
             plan = replace(kinematic_plan(clock3.t, k, PERIOD, 1.0, 0.0, 40, vid), predecessor=pre)
-            stranger.on_sample(f"truckd/{vid}/plan", encode_plan(plan))
+            stranger.hearing.on_sample(f"truckd/{vid}/plan", encode_plan(plan))
         stranger.decide(None)
         hook = stranger.cyc.controller.redecide
         assert hook is not None
@@ -232,7 +233,7 @@ def test_a_joiner_that_goes_silent_lets_the_room_close() -> None:
     assert dp.mode is not None and dp.mode.extra_headway > 0.0
     n = round(SILENT_S / PERIOD) + 2 * HEAR_OTHERS_EVERY
     _drive(dp, clock, {"t1": "", "t2": "t1"}, n, gap=1.0, seq0=110)
-    assert "j" not in dp.receivers and "j" not in dp.heard.pre
+    assert "j" not in dp.hearing.receivers and "j" not in dp.hearing.heard.pre
     assert dp.mode.extra_headway == 0.0 and dp.predecessor == "t2"
 
 
@@ -242,7 +243,7 @@ def test_silent_senders_are_forgotten_while_searching_too() -> None:
     dp, clock = _daemon_platoon()
     _drive(dp, clock, {"a": "", "b": "a"}, 30, gap=None)
     _drive(dp, clock, {}, round(SILENT_S / PERIOD) + 2 * HEAR_OTHERS_EVERY, gap=None, seq0=30)
-    assert dp.receivers == {} and dp.heard.pre == {}
+    assert dp.hearing.receivers == {} and dp.hearing.heard.pre == {}
     _drive(dp, clock, {}, 20, gap=1.0, seq0=1000)
     assert dp.predecessor == ""
 
@@ -287,8 +288,8 @@ def test_hostile_plans_never_stop_the_decision() -> None:
     _drive(dp, clock, {"t0": ""}, 80, gap=0.7)
     bad = json.loads(encode_plan(kinematic_plan(clock.t, 999, PERIOD, 1.0, 0.0, 40, "t0")))
     bad["dt"] = 5e-324
-    dp.on_sample("truckd/t0/plan", json.dumps(bad).encode())
-    r = dp.receivers["t0"]
+    dp.hearing.on_sample("truckd/t0/plan", json.dumps(bad).encode())
+    r = dp.hearing.receivers["t0"]
     refused = r.refused
     dp.decide(None)
     assert r.refused == refused + 1 and "'dt'" in r.last_error
@@ -308,15 +309,15 @@ def test_senders_beyond_the_limit_never_lock_out_the_predecessor() -> None:
     dp, clock = _daemon_platoon("t0")
     plan = kinematic_plan(clock.t, 1, PERIOD, 1.0, 0.0, 40, "x")
     for i in range(MAX_SENDERS):
-        dp.on_sample(f"truckd/x{i}/plan", encode_plan(replace(plan, vehicle_id=f"x{i}")))
-    dp.on_sample("truckd/y/plan", encode_plan(replace(plan, vehicle_id="y")))
-    assert "y" not in dp.receivers and dp.senders_refused == 1
+        dp.hearing.on_sample(f"truckd/x{i}/plan", encode_plan(replace(plan, vehicle_id=f"x{i}")))
+    dp.hearing.on_sample("truckd/y/plan", encode_plan(replace(plan, vehicle_id="y")))
+    assert "y" not in dp.hearing.receivers and dp.hearing.senders_refused == 1
     _drive(dp, clock, {"t0": ""}, 80, gap=0.7)
-    assert "t0" in dp.receivers and dp.decision is not None and dp.decision.mode == CACC
+    assert "t0" in dp.hearing.receivers and dp.decision is not None and dp.decision.mode == CACC
     _drive(dp, clock, {"t0": ""}, round(SILENT_S / PERIOD) + 2 * HEAR_OTHERS_EVERY, gap=0.7)
-    assert set(dp.receivers) == {"t0"}
-    dp.on_sample("truckd/y/plan", encode_plan(replace(plan, vehicle_id="y")))
-    assert "y" in dp.receivers
+    assert set(dp.hearing.receivers) == {"t0"}
+    dp.hearing.on_sample("truckd/y/plan", encode_plan(replace(plan, vehicle_id="y")))
+    assert "y" in dp.hearing.receivers
 
 
 def test_many_trucks_heard_from_the_start_are_no_joiners_either() -> None:
@@ -333,16 +334,16 @@ def test_auto_order_hears_other_trucks_plan_keys_only_and_at_most_max_senders() 
     last counted); a plan on one truck's key naming another truck is refused."""
     dp, clock = _daemon_platoon()
     plan = kinematic_plan(clock.t, 1, PERIOD, 1.0, 0.0, 40, "me")
-    dp.on_sample("truckd/me/plan", encode_plan(plan))
-    dp.on_sample("truckd/a/state", b"{}")
-    dp.on_sample("truckd/a/b/plan", b"{}")
-    assert dp.receivers == {}
+    dp.hearing.on_sample("truckd/me/plan", encode_plan(plan))
+    dp.hearing.on_sample("truckd/a/state", b"{}")
+    dp.hearing.on_sample("truckd/a/b/plan", b"{}")
+    assert dp.hearing.receivers == {}
     for i in range(MAX_SENDERS + 5):
         vid = f"s{i}"
-        dp.on_sample(f"truckd/{vid}/plan", encode_plan(replace(plan, vehicle_id=vid)))
-    assert len(dp.receivers) == MAX_SENDERS and dp.senders_refused == 5
-    dp.on_sample("truckd/s0/plan", encode_plan(replace(plan, vehicle_id="s1", seq=2)))
-    r = dp.receivers["s0"]
+        dp.hearing.on_sample(f"truckd/{vid}/plan", encode_plan(replace(plan, vehicle_id=vid)))
+    assert len(dp.hearing.receivers) == MAX_SENDERS and dp.hearing.senders_refused == 5
+    dp.hearing.on_sample("truckd/s0/plan", encode_plan(replace(plan, vehicle_id="s1", seq=2)))
+    r = dp.hearing.receivers["s0"]
     r.latest()
     assert r.refused == 1 and "expected 's0'" in r.last_error
 
