@@ -32,10 +32,12 @@ plans said of the order), unless configured or followed: five ``plan_hold_s``.""
 OTHER_PLAN_BYTES = 16384
 """Plans of senders neither followed nor the standby are decoded up to this size only (a
 plan of 40 steps is about 2 kB, of the configuration's longest horizon about 20 kB: such
-a truck is heard once it is the standby); a decode of 64 kB costs about 2.4 ms."""
+a truck is heard once it is the standby, as its follower's predecessor, not as a joiner
+or a tail); a decode of 64 kB costs about 2.4 ms."""
 
 SEARCH_DECODES = 4
-"""Senders decoded per cycle, in turn, while no predecessor is followed (the tail search)."""
+"""Senders decoded per cycle, in turn, while no predecessor is followed (the tail search)
+or the plans have been heard for less than ``cacc_return_s``."""
 
 
 def plan_sender(key: str) -> str | None:
