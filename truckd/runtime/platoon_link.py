@@ -32,8 +32,7 @@ from truckd.jsonsafe import json_number
 from truckd.runtime.cycle import CompanionCycle, CycleOutputs
 from truckd.runtime.plan_hearing import MAX_SENDERS, PlanHearing
 from truckd.runtime.plan_receiver import MAX_PLAN_BYTES, PlanReceiver, plan_key
-from truckd.runtime.platoon_clock import PlanClock
-from truckd.runtime.platoon_follow import Follow
+from truckd.runtime.platoon_follow import Follow, PlanSource
 
 __all__ = [
     "MAX_PLAN_BYTES",
@@ -139,7 +138,9 @@ class DaemonPlatoon:
             if cfg.predecessor and not self.auto
             else None
         )
-        self.clock = PlanClock()
+        self._source = PlanSource(cfg.predecessor)
+        """The fixed predecessor's newest plan and clock (with the auto order: the
+        follower's own sources, :attr:`follow`)."""
         self.mode = (
             PlatoonMode(cfg, cyc.period, cyc.controller.forecast_steps)
             if cfg.predecessor or self.auto
@@ -238,13 +239,15 @@ class DaemonPlatoon:
         try:
             if self.follow is not None and self.hearing is not None:
                 self.hearing.hear(self.follow, self._now, self.mono(), self._settled)
-                plan = self.follow.source.on_own_clock(self.cfg.clock_sync)
+                source = self.follow.source
             else:
                 assert self._fixed is not None
-                plan = self._fixed.latest()
-                if self.cfg.clock_sync:  # the predecessor's clock is not ours
-                    self.clock.observe_latest(plan, self._now)
-                    plan = self.clock.to_own(plan)
+                source = self._source
+                newest = self._fixed.latest()
+                if newest is not None:
+                    source.hold_latest(newest, self._now)
+            # on this truck's clock: the predecessor's is not ours (platoon_clock.py)
+            plan = source.on_own_clock(self.cfg.clock_sync)
             self.decision = follower_inputs(self.mode, self._now, plan, last, d_0)
         except Exception as exc:  # the loop goes on, on the range sensor
             self._failed(exc)
