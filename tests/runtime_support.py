@@ -2,7 +2,12 @@
 
 from __future__ import annotations
 
+import json
+import os
+import signal
 import socket
+import subprocess
+import sys
 import time
 from collections.abc import Callable, Mapping
 from pathlib import Path
@@ -52,3 +57,44 @@ def wait_for(pred: Callable[[], object], timeout: float) -> bool:
             return True
         time.sleep(0.01)
     return bool(pred())
+
+
+def follower_config(path: Path, vehicle_id: str, platoon: Mapping[str, Any], port: int) -> Path:
+    """A ``truckd run`` configuration for a daemon run in the test's process: the shipped
+    truck.yaml with ``vehicle_id``, the ``platoon`` keys, no real-time scheduling, no
+    recorder, listening on a free loopback port of its own and connected to ``port``."""
+    return write_config(
+        path,
+        {"vehicle_id": vehicle_id, "platoon": dict(platoon),
+         "runtime": {"realtime": False, "recorder": {"enabled": False},
+                     "telemetry": {"listen": [endpoint(free_port())],
+                                   "connect": [endpoint(port)]}}},
+    )  # fmt: skip
+
+
+def watch_vehicle(session: Any, vehicle_id: str) -> dict[str, list[dict[str, Any]]]:
+    """Every ``state``, ``plan`` and ``health`` message of ``vehicle_id`` on ``session`` (a
+    Zenoh session), decoded and appended to its list as it arrives (Zenoh's thread)."""
+    got: dict[str, list[dict[str, Any]]] = {"state": [], "plan": [], "health": []}
+    for suffix, seen in got.items():
+        session.declare_subscriber(
+            f"truckd/{vehicle_id}/{suffix}",
+            lambda m, seen=seen: seen.append(json.loads(m.payload.to_bytes())),
+        )
+    return got
+
+
+def run_json_script(args: list[str], out: Path, timeout: float) -> tuple[dict[str, Any], str]:
+    """Run a benchmark script (``args`` after the interpreter) that writes its result to
+    ``out``; past ``timeout`` s it gets SIGTERM (it ends its own children by pid).  The
+    result read from ``out`` and the script's output."""
+    proc = subprocess.Popen(
+        [sys.executable, *args], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+    )
+    try:
+        text, _ = proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        os.kill(proc.pid, signal.SIGTERM)
+        text, _ = proc.communicate(timeout=60)
+    result: dict[str, Any] = json.loads(out.read_text())
+    return result, text

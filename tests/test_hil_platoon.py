@@ -9,14 +9,10 @@ times are reported, not asserted."""
 
 from __future__ import annotations
 
-import json
-import os
-import signal
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
+from runtime_support import run_json_script
 
 pytestmark = [pytest.mark.hil, pytest.mark.slow]
 
@@ -25,16 +21,8 @@ ROOT = Path(__file__).resolve().parent.parent
 
 def test_platoon_brake_and_link_loss_with_separate_processes(tmp_path: Path) -> None:
     out = tmp_path / "hil.json"
-    proc = subprocess.Popen(
-        [sys.executable, str(ROOT / "benchmarks" / "platoon_hil.py"), "--json", str(out)],
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-    )  # fmt: skip
-    try:
-        text, _ = proc.communicate(timeout=180)
-    except subprocess.TimeoutExpired:
-        os.kill(proc.pid, signal.SIGTERM)  # the script ends its children by pid
-        text, _ = proc.communicate(timeout=60)
-    r = json.loads(out.read_text())
+    script = str(ROOT / "benchmarks" / "platoon_hil.py")
+    r, text = run_json_script([script, "--json", str(out)], out, 180.0)
     assert r["ok"], r.get("error", "") + "\n" + text[-2000:]
     assert not r["collision"] and min(r["min_true_gap_m"]) > 0.1
     assert r["exit_codes"] == [0, 0, 0], r["daemon_stderr_tail"]

@@ -15,14 +15,10 @@ times are reported, not asserted."""
 
 from __future__ import annotations
 
-import json
-import os
-import signal
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
+from runtime_support import run_json_script
 
 pytestmark = [pytest.mark.hil, pytest.mark.slow]
 
@@ -31,17 +27,8 @@ ROOT = Path(__file__).resolve().parent.parent
 
 def test_tail_join_and_leave_with_separate_processes(tmp_path: Path) -> None:
     out = tmp_path / "hil.json"
-    proc = subprocess.Popen(
-        [sys.executable, str(ROOT / "benchmarks" / "platoon_hil.py"), "--order", "auto",
-         "--join", "--json", str(out)],
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-    )  # fmt: skip
-    try:
-        text, _ = proc.communicate(timeout=240)
-    except subprocess.TimeoutExpired:
-        os.kill(proc.pid, signal.SIGTERM)  # the script ends its children by pid
-        text, _ = proc.communicate(timeout=60)
-    r = json.loads(out.read_text())
+    script = str(ROOT / "benchmarks" / "platoon_hil.py")
+    r, text = run_json_script([script, "--order", "auto", "--join", "--json", str(out)], out, 240.0)
     assert r["ok"], r.get("error", "") + "\n" + text[-2000:]
     assert r["exit_codes"] == [0, 0, 0, 0], r["daemon_stderr_tail"]
     assert not r["collision"] and min(g for g in r["min_true_gap_m"] if g is not None) > 0.1

@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any
 
 import zenoh
-from runtime_support import endpoint, free_port, wait_for, write_config
+from runtime_support import endpoint, follower_config, free_port, wait_for, watch_vehicle
 
 from truckd.config.truck import load_config
 from truckd.control.estimator import Estimate
@@ -78,18 +78,21 @@ def _drive(
     v: float = 1.0,
     v_lead: float = 1.0,
     seq0: int = 0,
+    plan_v: float | None = None,
 ) -> list[tuple[Any, ...] | None]:
     """``cycles`` cycles: each sender (vehicle id -> the truck it follows) publishes a plan
-    at ``v_lead``, then the daemon decides and the controller's hook sees the estimate.
-    Returns what the hook returned each cycle."""
+    at ``plan_v`` (default ``v_lead``), then the daemon decides and the controller's hook
+    sees the estimate (the lead at ``v_lead``).  Returns what the hook returned each
+    cycle."""
     hook = dp.cyc.controller.redecide
     assert hook is not None
+    plan_v = v_lead if plan_v is None else plan_v
     out = []
     for k in range(cycles):
         clock.t += PERIOD
         for vid, pre in senders.items():
             plan = replace(
-                kinematic_plan(clock.t, seq0 + k, PERIOD, v_lead, 0.0, 40, vid), predecessor=pre
+                kinematic_plan(clock.t, seq0 + k, PERIOD, plan_v, 0.0, 40, vid), predecessor=pre
             )
             dp.hearing.on_sample(f"truckd/{vid}/plan", encode_plan(plan))
         dp.decide(None)
@@ -120,16 +123,8 @@ def test_auto_order_finds_the_tail_ahead_and_drives_cacc_behind_it() -> None:
     at_rest, clock2 = _daemon_platoon()
     _drive(at_rest, clock2, fleet, 90, gap=1.2, v=0.0, v_lead=0.0)
     assert at_rest.predecessor == ""  # at rest every plan says 0 m/s: no tail taken
-    stranger, clock3 = _daemon_platoon()
-    for k in range(90):  # ... the vehicle in range at 3.0 m/s
-        clock3.t += PERIOD
-        for vid, pre in fleet.items():
-            plan = replace(kinematic_plan(clock3.t, k, PERIOD, 1.0, 0.0, 40, vid), predecessor=pre)
-            stranger.hearing.on_sample(f"truckd/{vid}/plan", encode_plan(plan))
-        stranger.decide(None)
-        hook = stranger.cyc.controller.redecide
-        assert hook is not None
-        hook(_estimate(1.2, 1.0, 3.0))
+    stranger, clock3 = _daemon_platoon()  # plans at 1.0 m/s, the vehicle in range at 3.0
+    _drive(stranger, clock3, fleet, 90, gap=1.2, v_lead=3.0, plan_v=1.0)
     assert stranger.predecessor == ""
     assert stranger.decision is not None and stranger.decision.mode == ACC
 
@@ -354,26 +349,11 @@ def test_daemon_with_auto_order_finds_the_tail_over_zenoh(tmp_path: Path) -> Non
     router (t0 leads, t1 follows it, at the lead's speed); the daemon follows t1, reaches
     CACC and publishes plans naming t1; its health lists both senders."""
     port = free_port()
-    cfg_path = write_config(
-        tmp_path / "truck.yaml",
-        {"vehicle_id": "f1", "platoon": {"order": "auto"},
-         "runtime": {"realtime": False, "recorder": {"enabled": False},
-                     "telemetry": {"listen": [endpoint(free_port())],
-                                   "connect": [endpoint(port)]}}},
-    )  # fmt: skip
-    cfg = load_config(cfg_path)
+    cfg = load_config(follower_config(tmp_path / "truck.yaml", "f1", {"order": "auto"}, port))
     v_lead = 0.7 * cfg.control.v_set
     s = zenoh.open(zenoh_config(listen=[endpoint(port)]))
-    states: list[dict[str, Any]] = []
-    plans: list[dict[str, Any]] = []
-    health: list[dict[str, Any]] = []
-    s.declare_subscriber(
-        "truckd/f1/state", lambda m: states.append(json.loads(m.payload.to_bytes()))
-    )
-    s.declare_subscriber("truckd/f1/plan", lambda m: plans.append(json.loads(m.payload.to_bytes())))
-    s.declare_subscriber(
-        "truckd/f1/health", lambda m: health.append(json.loads(m.payload.to_bytes()))
-    )
+    got = watch_vehicle(s, "f1")
+    states, plans, health = got["state"], got["plan"], got["health"]
     stop = threading.Event()
 
     def fleet() -> None:

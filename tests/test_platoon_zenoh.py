@@ -11,7 +11,7 @@ from typing import Any
 
 import pytest
 import zenoh
-from runtime_support import endpoint, free_port, wait_for, write_config
+from runtime_support import endpoint, follower_config, free_port, wait_for, watch_vehicle
 
 from truckd.config.runtime import TelemetryConfig
 from truckd.config.truck import load_config
@@ -116,24 +116,10 @@ def test_daemon_follows_its_predecessors_plan_then_falls_back_to_acc(
     """``offset``: the lead's clock runs this far from the follower's (s); the follower
     estimates it from the plans (``platoon.clock_sync``) and follows all the same."""
     port = free_port()
-    cfg_path = write_config(
-        tmp_path / "truck.yaml",
-        {"vehicle_id": "f1", "platoon": {"predecessor": "lead"},
-         "runtime": {"realtime": False, "recorder": {"enabled": False},
-                     "telemetry": {"listen": [endpoint(free_port())],
-                                   "connect": [endpoint(port)]}}},
-    )  # fmt: skip
+    cfg_path = follower_config(tmp_path / "truck.yaml", "f1", {"predecessor": "lead"}, port)
     s = zenoh.open(zenoh_config(listen=[endpoint(port)]))
-    states: list[dict[str, Any]] = []
-    plans: list[dict[str, Any]] = []
-    health: list[dict[str, Any]] = []
-    s.declare_subscriber(
-        "truckd/f1/state", lambda m: states.append(json.loads(m.payload.to_bytes()))
-    )
-    s.declare_subscriber("truckd/f1/plan", lambda m: plans.append(json.loads(m.payload.to_bytes())))
-    s.declare_subscriber(
-        "truckd/f1/health", lambda m: health.append(json.loads(m.payload.to_bytes()))
-    )
+    got = watch_vehicle(s, "f1")
+    states, plans, health = got["state"], got["plan"], got["health"]
     stop = threading.Event()
     stopped_at: list[float] = []
 
