@@ -24,17 +24,18 @@ clipped to the driven range; a constant ``load_force`` when it covers all of it)
 ``hit_rate`` the hill as placed.
 
     nice .venv/bin/python benchmarks/diagnose_bench.py [--seeds N] [--trucks default|drawn]
-        [--speed-only | --no-speed] [--sizes N,M] [--json FILE]
+        [--speed-only | --no-speed] [--sizes N,M] [--speed-logs F,G] [--jobs N]
+        [--json FILE [--key NAME]]
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import sys
 import time
+from collections.abc import Sequence
 from typing import Any
 
 import lab_path  # noqa: F401 - tests/ on sys.path, for labkit
@@ -51,10 +52,11 @@ from labkit.synth import (
     visibility,
     with_effect,
 )
+from results import write_json
 
 from truckd.config.truck import load_config
 from truckd.ident import ckernel
-from truckd.ident.api import diagnose_log
+from truckd.ident.api import diagnose_log, read_logs
 from truckd.logfile import Log
 from truckd.model.effects import COMPANIONS, EFFECT_NAMES, Effects
 
@@ -368,25 +370,33 @@ SPEED_SAMPLES = (10000, 60000)
 SPEED_REPEATS = 3
 
 
-def _speed(p: Any, sizes: tuple[int, ...] = SPEED_SAMPLES) -> dict[str, Any]:
-    """Diagnose time of a log with a hidden sensor lag at each of ``sizes``: median of
-    :data:`SPEED_REPEATS`, with the 1-minute load average around each run; also the
-    process's CPU time, which other jobs on a loaded machine stretch far less."""
+def _cpu_s() -> float:
+    """CPU seconds of this process and of its children that ended (the diagnosis's
+    workers), user and system."""
+    t = os.times()
+    return t.user + t.system + t.children_user + t.children_system
+
+
+def _timed_rows(p: Any, cases: list[tuple[str, int, list[Log]]], jobs: int) -> list[dict[str, Any]]:
+    """Diagnose time of each ``(name, samples, logs)``: median of :data:`SPEED_REPEATS`,
+    with the 1-minute load average before each run and the CPU time (the workers'
+    included), on ``jobs`` processes (``truckd diagnose --jobs``)."""
     rows = []
-    for n in sizes:
-        log = plant_log(p, with_effect("sensor_lag", 0.06), seed=3, n=n)
+    for name, n, logs in cases:
         secs, cpu, loads = [], [], []
         named: list[str] = []
         for _ in range(SPEED_REPEATS):
             loads.append(os.getloadavg()[0])
-            t0, c0 = time.perf_counter(), time.process_time()
-            d = diagnose_log(log, p)
+            t0, c0 = time.perf_counter(), _cpu_s()
+            d = diagnose_log(logs, p, workers=jobs)
             secs.append(time.perf_counter() - t0)
-            cpu.append(time.process_time() - c0)
+            cpu.append(_cpu_s() - c0)
             named = [f.name for f in d.effects]
         rows.append(
             {
+                "log": name,
                 "samples": n,
+                "jobs": jobs,
                 "seconds": secs,
                 "median_s": float(np.median(secs)),
                 "cpu_seconds": cpu,
@@ -395,8 +405,28 @@ def _speed(p: Any, sizes: tuple[int, ...] = SPEED_SAMPLES) -> dict[str, Any]:
                 "named": named,
             }
         )
-        print(f"  speed {n}: {secs}", file=sys.stderr, flush=True)
-    return {"c_kernel": ckernel.available(), "rows": rows}
+        print(f"  speed {name} ({n} samples, jobs {jobs}): {secs}", file=sys.stderr, flush=True)
+    return rows
+
+
+def _speed(
+    p: Any, sizes: tuple[int, ...] = SPEED_SAMPLES, jobs: int = 1, files: Sequence[str] = ()
+) -> dict[str, Any]:
+    """Diagnose time of a log with a hidden sensor lag at each of ``sizes``, and of
+    each real log in ``files`` (diagnosed whole, as ``truckd diagnose FILE`` does)."""
+    cases: list[tuple[str, int, list[Log]]] = []
+    for n in sizes:
+        cases.append(
+            (
+                f"plant_sensor_lag_{n}",
+                n,
+                [plant_log(p, with_effect("sensor_lag", 0.06), seed=3, n=n)],
+            )
+        )
+    for f in files:
+        logs = read_logs([f])
+        cases.append((f, sum(len(lg.columns["t"]) for lg in logs), logs))
+    return {"c_kernel": ckernel.available(), "rows": _timed_rows(p, cases, jobs)}
 
 
 def main() -> int:
@@ -415,6 +445,15 @@ def main() -> int:
         metavar="N,M",
         help="log lengths of the speed runs (default: 10000,60000)",
     )
+    ap.add_argument(
+        "--jobs", type=int, default=1, help="worker processes of each diagnosis (default 1)"
+    )
+    ap.add_argument(
+        "--speed-logs",
+        metavar="F,G",
+        help="real logs (CSV or SysId JSON) timed whole beside the plant logs",
+    )
+    ap.add_argument("--key", help="with --json: store the run under this name (results.py)")
     ap.add_argument(
         "--cases",
         metavar="A,B",
@@ -472,7 +511,8 @@ def main() -> int:
     speed: dict[str, Any] = {}
     if not args.no_speed:
         sizes = tuple(int(x) for x in args.sizes.split(",")) if args.sizes else SPEED_SAMPLES
-        speed = _speed(p, sizes)
+        files = args.speed_logs.split(",") if args.speed_logs else []
+        speed = _speed(p, sizes, args.jobs, files)
     print(f"\n{'case':20s} {'runs':>5s} {'hit rate':>9s} {'named':>7s} {'median s':>9s}")
     for case, r in table.items():
         named = f"{r['named_rate']:.2f}" if "named_rate" in r else ""
@@ -485,7 +525,8 @@ def main() -> int:
         print(f"\nfalse causes per 100 logs: {false_per_100:.1f} ({len(rows)} logs)")
     for row in speed.get("rows", []):
         print(
-            f"\ndiagnose on {row['samples']} samples: median {row['median_s']:.2f} s of "
+            f"\ndiagnose {row['log']} ({row['jobs']} jobs) on {row['samples']} samples: "
+            f"median {row['median_s']:.2f} s of "
             f"{[round(x, 2) for x in row['seconds']]}, CPU {row['median_cpu_s']:.2f} s "
             f"(load {row['loadavg_1min']})"
         )
@@ -498,20 +539,18 @@ def main() -> int:
     }
     print(f"machine: {machine}")
     if args.json:
-        with open(args.json, "w", encoding="utf-8") as fh:
-            json.dump(
-                {
-                    "trucks": args.trucks,
-                    "table": table,
-                    "false_causes_per_100_logs": false_per_100,
-                    "speed": speed,
-                    "machine": machine,
-                    "runs": rows,
-                },
-                fh,
-                indent=1,
-                default=str,
-            )
+        write_json(
+            args.json,
+            {
+                "trucks": args.trucks,
+                "table": table,
+                "false_causes_per_100_logs": false_per_100,
+                "speed": speed,
+                "machine": machine,
+                "runs": rows,
+            },
+            args.key,
+        )
     return 0
 
 

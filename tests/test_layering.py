@@ -32,7 +32,7 @@ ROOT = REPO / "truckd"
 PACKAGES = ("truckd", "firmware_protocol")
 
 LAYERS: tuple[tuple[str, ...], ...] = (
-    ("truckd.errors",),
+    ("truckd.errors", "truckd.workers"),
     ("truckd.yamlsafe", "truckd.jsonsafe"),
     ("truckd.schema", "truckd.inputs", "truckd.outputs"),
     ("truckd.logfile", "firmware_protocol"),

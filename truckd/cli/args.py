@@ -72,6 +72,21 @@ def volts(text: str) -> float:
     return val
 
 
+MAX_JOBS = 64
+"""Most worker processes ``--jobs`` accepts."""
+
+
+def jobs(text: str) -> int:
+    """A number of worker processes in [1, 64]."""
+    try:
+        val = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if not 1 <= val <= MAX_JOBS:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected 1 to {MAX_JOBS} processes")
+    return val
+
+
 def output_file(what: str, suffixes: Iterable[str] | None = None) -> Callable[[str], str]:
     """An output file path: not a directory, its directory exists and is writable."""
     allowed = tuple(suffixes) if suffixes is not None else None

@@ -1,5 +1,6 @@
 """``truckd diagnose LOG.csv [LOG.csv ...] [--validate LOG.csv ...] [--gap S] [--config FILE]
-[--json FILE] [--report DIR] [--out MODEL.yaml]``: what the simulation gets wrong, and why.
+[--json FILE] [--report DIR] [--out MODEL.yaml] [--jobs N]``: what the simulation gets wrong,
+and why.
 
 Logs are CSV (reference section 3) or WPILib SysId ``FILE.json[:test,...]``."""
 
@@ -11,18 +12,24 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from truckd.cli.args import json_file, model_file, report_dir, report_notes, volts
+from truckd.cli.args import jobs, json_file, model_file, report_dir, report_notes, volts
 from truckd.cli.identify import add_gap_option, check_gap
 from truckd.config.truck import load_config
 from truckd.ident.api import diagnose_log, model_of, read_logs, require_physical
 from truckd.ident.sysid import split_selector
 from truckd.modelfile import model_text
 from truckd.outputs import atomic_dir, check_distinct, guard_inputs, write_set
+from truckd.workers import usable_cpus
 
 DIAGNOSE_MAX_ROWS = 360_000
 """Rows of one log diagnosed at most (an hour at 100 Hz): a longer log is read whole (every
 row checked, memory for the rows kept only) and diagnosed on 8 evenly spread stretches
 of 45 000 rows, each a run, so memory and time stay bounded (docs/diagnosis.md)."""
+
+
+DEFAULT_JOBS_MAX = 4
+"""Worker processes ``--jobs`` defaults to at most: a stage has some 6-13 independent
+fits of unequal length, and each process holds its own copy of what it changes."""
 
 
 def add_subparser(sub: Any) -> None:
@@ -44,6 +51,13 @@ def add_subparser(sub: Any) -> None:
     p.add_argument("--out", type=model_file, metavar="MODEL.yaml", help="write the extended model")
     p.add_argument("--vbat", type=volts, metavar="V", help="supply voltage for a 'duty' log")
     add_gap_option(p)
+    p.add_argument(
+        "--jobs",
+        type=jobs,
+        metavar="N",
+        help="fit the candidates on N processes (default: the CPUs this process may use, "
+        "at most 4; 1: one after another; the result is the same)",
+    )
     p.set_defaults(run=run)
 
 
@@ -67,7 +81,8 @@ def _run(args: argparse.Namespace) -> int:
     logs = read_logs(args.logs, args.vbat, DIAGNOSE_MAX_ROWS)
     val = read_logs(args.validate, args.vbat, DIAGNOSE_MAX_ROWS) if args.validate else None
     report_notes([n for lg in [*logs, *(val or [])] for n in lg.notes])
-    diag = diagnose_log(logs, cfg.vehicle, val, _progress, args.gap)
+    workers = args.jobs if args.jobs is not None else min(usable_cpus(), DEFAULT_JOBS_MAX)
+    diag = diagnose_log(logs, cfg.vehicle, val, _progress, args.gap, workers)
     name = " ".join(args.logs)
     files: list[tuple[str, str | bytes]] = []
     if args.out:

@@ -11,12 +11,14 @@ from threadpoolctl import threadpool_limits
 from truckd.errors import InputError, TruckdError
 from truckd.ident.data import runs_from_logs, series_from_log
 from truckd.ident.diagnose import diagnose_voltage, identify_voltage
+from truckd.ident.fanout import Mapper, in_order
 from truckd.ident.force import diagnose_force
 from truckd.ident.result import Diagnosis
 from truckd.logfile import Log
 from truckd.model.effects import Effects
 from truckd.model.params import VehicleParams
 from truckd.modelfile import ModelFile
+from truckd.workers import ForkMap
 
 
 def _quiet(_: str) -> None:
@@ -82,16 +84,22 @@ def diagnose_log(
     validate: Log | Sequence[Log] | None = None,
     progress: Callable[[str], None] = _quiet,
     gap: float | None = None,
+    workers: int = 1,
 ) -> Diagnosis:
     """Diagnose logs (voltage or force input) against the configured vehicle ``p0``.
 
     Several logs, and the pauses inside one (time steps above ``gap`` s, default 10
     median steps), are separate runs, each simulated from its own measured start.
+    ``workers`` above 1: the fits that do not depend on each other run on that many
+    forked processes (:class:`truckd.workers.ForkMap`; the same result, sooner on as
+    many free cores; one after another here when this process runs other threads).
     """
+    mapper: Mapper = in_order if workers <= 1 else ForkMap(workers)
     with one_blas_thread():
         return _diagnose(
-            _as_list(log), [] if validate is None else _as_list(validate), p0, progress, gap
-        )
+            _as_list(log), [] if validate is None else _as_list(validate), p0, progress, gap,
+            mapper,
+        )  # fmt: skip
 
 
 def _diagnose(
@@ -100,6 +108,7 @@ def _diagnose(
     p0: VehicleParams,
     progress: Callable[[str], None],
     gap: float | None,
+    mapper: Mapper,
 ) -> Diagnosis:
     """:func:`diagnose_log` on lists of logs, the thread limit set."""
     kind = logs[0].input_kind if logs else "voltage"
@@ -120,7 +129,7 @@ def _diagnose(
         return diagnose_force(data, val, progress)
     runs = runs_from_logs(logs, gap)
     val_runs = runs_from_logs(vals, gap) if vals else None
-    return diagnose_voltage(p0, runs, val_runs, progress)
+    return diagnose_voltage(p0, runs, val_runs, progress, mapper)
 
 
 def identify_log(

@@ -17,13 +17,14 @@ from truckd.ident.candidates import (
     Candidate,
 )
 from truckd.ident.extend import fit_candidate
+from truckd.ident.fanout import Mapper, fan_out, in_order
 from truckd.ident.judge import passes_over
 from truckd.ident.pairs import PAIR_TOP, best_pair, pair_order
 from truckd.ident.result import (
     CandidateRow,
 )
 from truckd.ident.runs import Prepared
-from truckd.ident.scoring import Model, Progress, still_structured, val_cost
+from truckd.ident.scoring import Model, Progress, quiet, still_structured, val_cost
 from truckd.ident.seed import Seed
 from truckd.ident.selection import (
     close,
@@ -65,6 +66,8 @@ class _Selecting:
     accepted: list[str] = field(default_factory=list)
     ambiguous: list[tuple[str, str]] = field(default_factory=list)
     rows: dict[str, CandidateRow] = field(default_factory=dict)
+    mapper: Mapper = in_order
+    """How a list of independent fits runs (:mod:`truckd.ident.fanout`)."""
     fitted: dict[tuple[int, tuple[Param, ...], str], tuple[FitResult, FitResult]] = field(
         default_factory=dict
     )
@@ -75,18 +78,53 @@ class _Selecting:
     def fit(self, base: FitResult, extra: list[Param], cand: Candidate) -> FitResult:
         """``base`` + ``cand`` fitted (:func:`fit_candidate`) with ``extra`` freed; the
         same fit again is not redone (the fit is deterministic)."""
-        key = (id(base), tuple(extra), cand.name)
-        hit = self.fitted.get(key)
-        if hit is not None and hit[0] is base:
-            self.progress(f"  {cand.name} with {[x.name for x in extra]} freed: fitted above")
-            return hit[1]
+        return self.fit_all([(base, extra, cand, None)])[0]
+
+    def fit_all(
+        self, jobs: Sequence[tuple[FitResult, list[Param], Candidate, str | None]]
+    ) -> list[FitResult]:
+        """:meth:`fit` of each ``(base, extra, cand, header)``, the header said before
+        the fit's progress.  The fits not done already run through :attr:`mapper`; the
+        progress reads as the plain loop says it, in the jobs' order."""
+        keys = [(id(base), tuple(extra), cand.name) for base, extra, cand, _ in jobs]
+        todo: list[int] = []
+        for k, (base, _, _, _) in enumerate(jobs):
+            hit = self.fitted.get(keys[k])
+            fresh = hit is None or hit[0] is not base
+            if fresh and keys[k] not in (keys[j] for j in todo):
+                todo.append(k)
         p = self.prep
-        out = fit_candidate(
-            base, self.seed.free, extra, cand, p.fit_data, p.w, self.seed.grid, self.progress,
-            p.val_data,
-        )  # fmt: skip
-        self.fitted[key] = (base, out)
-        return out
+
+        def one(k: int, say: Progress) -> FitResult:
+            base, extra, cand, _ = jobs[k]
+            return fit_candidate(
+                base, self.seed.free, extra, cand, p.fit_data, p.w, self.seed.grid, say,
+                p.val_data,
+            )  # fmt: skip
+
+        said: dict[int, list[str]] = {}
+        if self.mapper is not in_order and len(todo) > 1:
+
+            def kept(k: int, _: Progress) -> tuple[FitResult, list[str]]:
+                lines: list[str] = []
+                return one(k, lines.append), lines
+
+            for k, (out, lines) in zip(todo, fan_out(self.mapper, kept, todo, quiet), strict=True):
+                self.fitted[keys[k]] = (jobs[k][0], out)
+                said[k] = lines
+        results = []
+        for k, (base, extra, cand, header) in enumerate(jobs):
+            if header is not None:
+                self.progress(header)
+            if k in said:
+                for line in said[k]:
+                    self.progress(line)
+            elif k in todo:
+                self.fitted[keys[k]] = (base, one(k, self.progress))
+            else:
+                self.progress(f"  {cand.name} with {[x.name for x in extra]} freed: fitted above")
+            results.append(self.fitted[keys[k]][1])
+        return results
 
     def smooth_params(self, names: Sequence[str]) -> list[Param]:
         """The parameters of ``names`` a joint refit frees (the smooth ones)."""
@@ -100,11 +138,14 @@ class _Selecting:
         )
 
 
-def selection_stage(prep: Prepared, seed: Seed, trials: Trials, progress: Progress) -> Choice:
+def selection_stage(
+    prep: Prepared, seed: Seed, trials: Trials, progress: Progress, mapper: Mapper = in_order
+) -> Choice:
     """Stage 5 of the diagnosis: the candidates that passed alone taken greedily, the
     rest tried on top while structure remains, a pair of causes when one is not
-    enough, then a backward check (see :mod:`truckd.ident.diagnose`)."""
-    s = _Selecting(prep, seed, trials, progress, seed.model, rows=dict(trials.rows))
+    enough, then a backward check (see :mod:`truckd.ident.diagnose`); the fits that do
+    not depend on each other run through ``mapper`` (:mod:`truckd.ident.fanout`)."""
+    s = _Selecting(prep, seed, trials, progress, seed.model, rows=dict(trials.rows), mapper=mapper)
     _greedy(s)
     _extra_rounds(s)
     if len(s.accepted) < 2:
@@ -183,9 +224,14 @@ def _extra_rounds(s: _Selecting) -> None:
         rest = [c for c in s.trials.cands if c.name not in taken]
         extra = s.smooth_params(s.accepted)
         best: Model | None = None
-        for cand in rest:
-            s.progress(f"structure remains: trying {cand.name} on top of {', '.join(s.accepted)}")
-            f = s.fit(s.current.fit, extra, cand)
+        on_top = ", ".join(s.accepted)
+        fits = s.fit_all(
+            [
+                (s.current.fit, extra, c, f"structure remains: trying {c.name} on top of {on_top}")
+                for c in rest
+            ]
+        )
+        for cand, f in zip(rest, fits, strict=True):
             new = Model(f, (*s.current.names, cand.name), val_cost(f, s.prep.val_data, s.prep.w))
             if (
                 judge.takes(cand.name, new, s.current)[0]
@@ -217,11 +263,12 @@ def _pair(s: _Selecting) -> None:
     must earn its place against the other alone, the pair against the greedy model."""
     tried, by_name, judge = s.trials.tried, s.trials.by_name, s.trials.judge
 
-    def fit_pair(a: str, b: str) -> Model | None:
-        s.progress(f"pair: {a} + {b}")
+    def own(a: str) -> list[Param]:
         ca = by_name[a]
-        own = [ca.param, *ca.extra] if ca.smooth else []
-        f = s.fit(tried[a].fit, own, by_name[b])
+        return [ca.param, *ca.extra] if ca.smooth else []
+
+    def fit_pair(a: str, b: str) -> Model | None:
+        f = fitted_pairs[(a, b)]
         m = Model(f, (a, b), val_cost(f, s.prep.val_data, s.prep.w))
         return m if judge.possible(m.fit, [a, b]) else None
 
@@ -233,6 +280,8 @@ def _pair(s: _Selecting) -> None:
     impossible = [n for n, r in s.rows.items() if r.note.startswith("physically impossible")]
     order = pair_order(single, s.seed.model.val_cost, skip=impossible, accepted=s.accepted)
     order += _with_delay(tried, s.seed.model, impossible, order)
+    jobs = [(tried[a].fit, own(a), by_name[b], f"pair: {a} + {b}") for a, b in order]
+    fitted_pairs = dict(zip(order, s.fit_all(jobs), strict=True))
     pair = best_pair(order, s.current.val_cost, fit_pair, lambda m: m.val_cost, member_earns)
     if pair is None:
         return

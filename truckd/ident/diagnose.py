@@ -32,6 +32,7 @@ from collections.abc import Sequence
 
 from truckd.ident.choice import selection_stage
 from truckd.ident.data import Series, chunks_of_runs, merged
+from truckd.ident.fanout import Mapper, in_order
 from truckd.ident.linear import least_squares_model, least_squares_stage, linear_start
 from truckd.ident.refit import refit_stage
 from truckd.ident.result import Diagnosis
@@ -49,15 +50,18 @@ def diagnose_voltage(
     runs: Sequence[Series],
     validate: Sequence[Series] | None = None,
     progress: Progress = quiet,
+    mapper: Mapper = in_order,
 ) -> Diagnosis:
     """Diagnose voltage-input runs (see module docstring); ``validate`` runs when given.
     The supply is raised to the largest command when the configured one is lower
-    (:func:`truckd.ident.runs.supply_for`, noted)."""
+    (:func:`truckd.ident.runs.supply_for`, noted).  ``mapper`` runs the fits of stages 4
+    and 5 that do not depend on each other (:mod:`truckd.ident.fanout`; the result is
+    the same whichever runs them)."""
     prep = prepare(p0, runs, validate, progress)
     start = least_squares_stage(prep.p0, prep.est, progress)
-    seed = seed_stage(prep, start, progress)
-    trials = candidates_stage(prep, seed, progress)
-    choice = selection_stage(prep, seed, trials, progress)
+    seed = seed_stage(prep, start, progress, mapper)
+    trials = candidates_stage(prep, seed, progress, mapper)
+    choice = selection_stage(prep, seed, trials, progress, mapper)
     refit = refit_stage(prep, seed, trials, choice, progress)
     return report_stage(prep, start, seed, trials, choice, refit, progress)
 

@@ -15,6 +15,7 @@ import numpy as np
 from truckd.ident.data import (
     Series,
 )
+from truckd.ident.fanout import Mapper, fan_out, in_order
 from truckd.ident.linear import (
     LeastSquares,
     LinearStart,
@@ -54,11 +55,12 @@ def fit_seed(
     progress: Progress,
     ls: LeastSquares | None = None,
     val_data: list[Series] | None = None,
+    mapper: Mapper = in_order,
 ) -> FitResult:
     """Simulation-error refinement from the linear start ``p_lin`` (and from the
     configuration ``p0``, a second start); the best of the refined models and the
     unrefined linear start and least-squares model ``ls`` (the refinement must beat
-    where it started)."""
+    where it started).  The refinements run through ``mapper`` (:mod:`truckd.ident.fanout`)."""
     progress("fitting the seed model (motor, inertia, Coulomb, stiction)")
     r = residuals(p_lin, Effects(), fit_data, w)
     start = FitResult(p_lin, Effects(), float(r @ r), len(r), 0)
@@ -66,24 +68,23 @@ def fit_seed(
     if ls is not None:
         r = residuals(ls.params, Effects(), fit_data, w)
         starts.append(FitResult(ls.params, Effects(), float(r @ r), len(r), 0))
-    first = fit_with_stiction(p_lin, Effects(), free, fit_data, w, grid, progress, max_nfev=80)
-    fits = [first, *starts]
+    refine = [p_lin]
     # Second start: the configuration, unless the data's machine is far from it (then a
     # start there costs evaluations and finds nothing the data's start does not).
     if not configuration_notes(p_lin, p0):
         alt = p0 if p0 != p_lin else p0.replace(J_S=p0.J_S * 2.0, K_coulomb=p0.K_coulomb * 0.5)
-        alt = alt.replace(K_stiction=max(alt.K_stiction, alt.K_coulomb))
-        fits.append(
-            fit_with_stiction(alt, Effects(), free, fit_data, w, grid, progress, max_nfev=80)
-        )
+        refine.append(alt.replace(K_stiction=max(alt.K_stiction, alt.K_coulomb)))
     # Third start: the linear start with its breakaway scanned first.  A stiction far from
     # the configured one made the first fit move Coulomb friction and K_v to absorb it (a
     # local minimum the later scan could not leave: K_coulomb 0.026 for 0.015).
     p_st, _ = scan_stiction(p_lin, Effects(), grid, fit_data, w)
     if p_st.K_stiction != p_lin.K_stiction:
-        fits.append(
-            fit_with_stiction(p_st, Effects(), free, fit_data, w, grid, progress, max_nfev=80)
-        )
+        refine.append(p_st)
+
+    def refined(p_start: VehicleParams, say: Progress) -> FitResult:
+        return fit_with_stiction(p_start, Effects(), free, fit_data, w, grid, say, max_nfev=80)
+
+    fits = [*fan_out(mapper, refined, refine, progress), *starts]
     best = min(fits, key=lambda m: m.sse)
     if val_data is None:
         return best
@@ -171,14 +172,17 @@ class Seed:
     """Relative standard errors of kS, kV, kA of ``fit`` (:func:`fisher_rel_se`)."""
 
 
-def seed_stage(prep: Prepared, start: LinearStart, progress: Progress) -> Seed:
+def seed_stage(
+    prep: Prepared, start: LinearStart, progress: Progress, mapper: Mapper = in_order
+) -> Seed:
     """Stage 3 of the diagnosis: the seed (motor, inertia, Coulomb, stiction) fitted by
-    simulation error from the least-squares stage's starts."""
+    simulation error from the least-squares stage's starts (through ``mapper``)."""
     free = seed_params(start.p_lin, prep.whole.i is not None)
     grid = stiction_grid(prep.p0, prep.whole)
     fit = fit_seed(
-        prep.p0, start.p_lin, free, prep.fit_data, prep.w, grid, progress, start.ls, prep.val_data
-    )
+        prep.p0, start.p_lin, free, prep.fit_data, prep.w, grid, progress, start.ls,
+        prep.val_data, mapper,
+    )  # fmt: skip
     return Seed(
         fit=fit,
         model=Model(fit, (), val_cost(fit, prep.val_data, prep.w)),

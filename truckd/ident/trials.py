@@ -16,6 +16,7 @@ from truckd.ident.candidates import (
     voltage_candidates,
 )
 from truckd.ident.extend import fit_candidate, params_of
+from truckd.ident.fanout import Mapper, fan_out, in_order
 from truckd.ident.judge import Judge
 from truckd.ident.result import (
     CandidateRow,
@@ -44,10 +45,13 @@ class Trials:
     """The selection's tests (the selection stage goes on using them)."""
 
 
-def candidates_stage(prep: Prepared, seed: Seed, progress: Progress) -> Trials:
+def candidates_stage(
+    prep: Prepared, seed: Seed, progress: Progress, mapper: Mapper = in_order
+) -> Trials:
     """Stage 4 of the diagnosis: the candidates (the effects, and a hill or rolling
     terrain located in the seed's residual), each fitted alone on top of the seed
-    and judged against it."""
+    and judged against it; the fits run through ``mapper``
+    (:mod:`truckd.ident.fanout`), the judging after them, in order."""
     base_fit, base = seed.fit, seed.model
     cands = voltage_candidates(base_fit.params, prep.whole)
     stretch = locate(base_fit.params, prep.runs)
@@ -66,19 +70,25 @@ def candidates_stage(prep: Prepared, seed: Seed, progress: Progress) -> Trials:
     tried: dict[str, Model] = {}
     rows: dict[str, CandidateRow] = {}
     base_fit_pct = summary(base_fit.params, base_fit.effects, prep.val)[0].fit_percent
-    for k, cand in enumerate(cands):
-        progress(f"candidate {k + 1}/{len(cands)}: {cand.name}")
+
+    def alone(k: int, say: Progress) -> tuple[Model, float]:
+        cand = cands[k]
+        say(f"candidate {k + 1}/{len(cands)}: {cand.name}")
         f = fit_candidate(
-            base_fit, seed.free, [], cand, prep.fit_data, prep.w, seed.grid, progress, prep.val_data
+            base_fit, seed.free, [], cand, prep.fit_data, prep.w, seed.grid, say, prep.val_data
         )
         m = Model(f, (cand.name,), val_cost(f, prep.val_data, prep.w))
+        return m, summary(f.params, f.effects, prep.val)[0].fit_percent
+
+    fitted = fan_out(mapper, alone, range(len(cands)), progress)
+    for cand, (m, fp) in zip(cands, fitted, strict=True):
+        f = m.fit
         ok, dbic = judge.takes(cand.name, m, base)
         note = "passes alone" if ok else judge.hill_notes.get(cand.name, "")
         if ok and not judge.possible(f, [cand.name]):
             ok = False
             note = f"physically impossible: {judge.rejected[-1].reason}"
         tried[cand.name] = m
-        fp = summary(f.params, f.effects, prep.val)[0].fit_percent
         rows[cand.name] = CandidateRow(
             name=cand.name,
             params=params_of(cand, f.effects),

@@ -1,0 +1,55 @@
+"""A stage's independent fits, one after another or side by side, with the same output.
+
+The candidate stage fits every candidate alone on the seed; the selection tries the
+remaining candidates on top of the accepted ones and fits the pairs: each of those fits
+depends only on what came before the stage. :func:`fan_out` runs such a list through a
+:class:`Mapper` (the plain loop by default; :class:`truckd.workers.ForkMap` on forked
+workers when the caller gives one) and replays each task's progress lines in the tasks'
+order, so the result and the progress read the same whichever way they ran. Pure
+numerics: the caller chooses the mapper.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import Protocol, TypeVar
+
+from truckd.ident.scoring import Progress
+
+T = TypeVar("T")
+R = TypeVar("R")
+
+
+class Mapper(Protocol):
+    """``map``: ``fn`` over ``items``, the results in the items' order."""
+
+    def __call__(self, fn: Callable[[T], R], items: Sequence[T], /) -> list[R]: ...
+
+
+def in_order(fn: Callable[[T], R], items: Sequence[T], /) -> list[R]:
+    """The plain loop (the default :class:`Mapper`)."""
+    return [fn(x) for x in items]
+
+
+def fan_out(
+    mapper: Mapper,
+    task: Callable[[T, Progress], R],
+    items: Sequence[T],
+    progress: Progress,
+) -> list[R]:
+    """``task(item, progress)`` for each item through ``mapper``; with the plain loop
+    the progress goes straight through, else each task's lines are kept and said in the
+    items' order once all are done."""
+    if mapper is in_order or len(items) < 2:
+        return [task(x, progress) for x in items]
+
+    def kept(x: T) -> tuple[R, list[str]]:
+        lines: list[str] = []
+        return task(x, lines.append), lines
+
+    out: list[R] = []
+    for result, lines in mapper(kept, items):
+        for line in lines:
+            progress(line)
+        out.append(result)
+    return out

@@ -1,0 +1,93 @@
+"""Independent CPU-bound tasks on forked copies of this process (the diagnosis's fits).
+
+:class:`ForkMap` is a ``map`` that runs ``fn`` over ``items`` on up to ``workers`` child
+processes forked for the call: each child starts as a copy of the parent (its data and
+caches, nothing pickled on the way in) and sends back only the results, in order. It
+falls back to running the tasks here, one after another, with the same results:
+
+- with fewer than two workers or two tasks, or where ``fork`` does not exist;
+- when this process runs other Python threads (a lock one of them holds at the fork
+  would stay held in the child: pytest's workers, a daemon's threads);
+- when a child dies (killed, out of memory): the whole list is run here again.
+
+An exception a task raises in a child is raised here, as ``map`` would. The children
+end with the call (the executor waits for them); nothing outlives it.
+"""
+
+from __future__ import annotations
+
+import gc
+import multiprocessing
+import os
+import threading
+import warnings
+from collections.abc import Callable, Sequence
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from typing import Any, TypeVar
+
+T = TypeVar("T")
+R = TypeVar("R")
+
+_TASK: tuple[Callable[[Any], Any], Sequence[Any]] | None = None
+"""The call's function and items, set before the children fork (they inherit it)."""
+
+
+def _run(k: int) -> Any:
+    """Run the ``k``-th task of the inherited call (in a child)."""
+    if _TASK is None:  # pragma: no cover - only a child started outside ForkMap sees this
+        raise RuntimeError("no task: a ForkMap child runs only what its parent set")
+    fn, items = _TASK
+    return fn(items[k])
+
+
+def usable_cpus() -> int:
+    """CPUs this process may run on (its affinity where the OS tells it, else the count)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):  # pragma: no cover - not Linux
+        return os.cpu_count() or 1
+
+
+def can_fork() -> bool:
+    """Whether a fork here is safe: the ``fork`` start method exists and no other
+    Python thread runs."""
+    return "fork" in multiprocessing.get_all_start_methods() and threading.active_count() == 1
+
+
+class ForkMap:
+    """``map(fn, items)`` on up to ``workers`` forked children (see the module)."""
+
+    def __init__(self, workers: int) -> None:
+        if workers < 1:
+            raise ValueError(f"workers must be at least 1, got {workers}")
+        self.workers = workers
+        self.fallbacks = 0
+        """Calls that ran here although they asked for children (a child died)."""
+
+    def __call__(self, fn: Callable[[T], R], items: Sequence[T]) -> list[R]:
+        n = min(self.workers, len(items))
+        if n < 2 or not can_fork():
+            return [fn(x) for x in items]
+        global _TASK
+        _TASK = (fn, items)
+        # The children's collector then leaves the inherited objects alone: it would
+        # write to every one and copy each page the fork shares.
+        gc.freeze()
+        try:
+            with warnings.catch_warnings():
+                # Python 3.12+ warns on a fork beside native threads (OpenBLAS's pool,
+                # idle under threadpoolctl's limit): the children run no code of theirs.
+                warnings.filterwarnings(
+                    "ignore", message=r".*use of fork\(\) may lead to deadlocks",
+                    category=DeprecationWarning,
+                )  # fmt: skip
+                ctx = multiprocessing.get_context("fork")
+                with ProcessPoolExecutor(max_workers=n, mp_context=ctx) as pool:
+                    return list(pool.map(_run, range(len(items))))
+        except BrokenProcessPool:
+            self.fallbacks += 1
+            return [fn(x) for x in items]
+        finally:
+            gc.unfreeze()
+            _TASK = None
