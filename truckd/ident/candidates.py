@@ -48,6 +48,12 @@ class Candidate:
     alone on the seed."""
 
 
+def fit_work(c: Candidate) -> float:
+    """A candidate's expected fitting cost, relative (for scheduling only): one per
+    parameter it frees, one more for a grid that is scanned, not refined."""
+    return 1.0 + len(c.extra) + (0.0 if c.smooth else 1.0)
+
+
 def hill_candidate(p0: VehicleParams, stretch: Stretch) -> Candidate:
     """A load on the located stretch of road (``load_force`` with profile hill)."""
     weight = p0.m * 9.81

@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 
 from truckd.ident.candidates import (
     Candidate,
+    fit_work,
 )
 from truckd.ident.extend import fit_candidate
 from truckd.ident.fanout import Mapper, fan_out, in_order
@@ -109,7 +110,11 @@ class _Selecting:
                 lines: list[str] = []
                 return one(k, lines.append), lines
 
-            for k, (out, lines) in zip(todo, fan_out(self.mapper, kept, todo, quiet), strict=True):
+            def work(k: int) -> float:
+                return fit_work(jobs[k][2]) + len(jobs[k][1])
+
+            ran = fan_out(self.mapper, kept, todo, quiet, work)
+            for k, (out, lines) in zip(todo, ran, strict=True):
                 self.fitted[keys[k]] = (jobs[k][0], out)
                 said[k] = lines
         results = []
@@ -295,16 +300,36 @@ def _pair(s: _Selecting) -> None:
 
 
 def _backward(s: _Selecting) -> None:
-    """An effect accepted early may be redundant once later ones are in."""
+    """An effect accepted early may be redundant once later ones are in.  Through a
+    mapper, the model without each cause is fitted ahead from the same current model;
+    once a cause is dropped, the later checks are fitted again from the new model (the
+    progress as one check after another says it)."""
     p, by_name = s.prep, s.trials.by_name
-    for name in list(s.accepted):
-        others = [a for a in s.accepted if a != name]
-        s.progress(f"backward check: {', '.join(others)} without {name}")
-        off = dataclasses.replace(s.current.fit.effects, **{by_name[name].param.name: 0.0})
-        base_wo = FitResult(s.current.fit.params, off, float("inf"), s.current.fit.n, 0)
+
+    def without(start: Model, accepted: list[str], name: str, say: Progress) -> Model:
+        others = [a for a in accepted if a != name]
+        say(f"backward check: {', '.join(others)} without {name}")
+        off = dataclasses.replace(start.fit.effects, **{by_name[name].param.name: 0.0})
         free = [*s.seed.free, *s.smooth_params(others)]
-        f = fit_with_stiction(base_wo.params, off, free, p.fit_data, p.w, s.seed.grid, s.progress)
-        reduced = Model(f, tuple(others), val_cost(f, p.val_data, p.w))
+        f = fit_with_stiction(start.fit.params, off, free, p.fit_data, p.w, s.seed.grid, say)
+        return Model(f, tuple(others), val_cost(f, p.val_data, p.w))
+
+    first, names = s.current, list(s.accepted)
+    ahead: list[tuple[Model, list[str]]] | None = None
+    if s.mapper is not in_order:
+
+        def kept(name: str, _: Progress) -> tuple[Model, list[str]]:
+            lines: list[str] = []
+            return without(first, names, name, lines.append), lines
+
+        ahead = fan_out(s.mapper, kept, names, quiet, lambda n: fit_work(by_name[n]))
+    for k, name in enumerate(names):
+        if ahead is not None and s.current is first:
+            reduced, lines = ahead[k]
+            for line in lines:
+                s.progress(line)
+        else:
+            reduced = without(s.current, s.accepted, name, s.progress)
         ok_hill = s.trials.judge.hill_check(name, s.current, reduced)
         if not passes_over(s.current, reduced, 1, ok_hill)[0]:
             s.accepted.remove(name)

@@ -36,19 +36,27 @@ def fan_out(
     task: Callable[[T, Progress], R],
     items: Sequence[T],
     progress: Progress,
+    work: Callable[[T], float] | None = None,
 ) -> list[R]:
     """``task(item, progress)`` for each item through ``mapper``; with the plain loop
     the progress goes straight through, else each task's lines are kept and said in the
-    items' order once all are done."""
+    items' order once all are done.  ``work``: the items' expected cost; the mapper
+    starts the costliest first (a long task started last leaves the other workers idle)
+    and the results come back in the items' order."""
     if mapper is in_order or len(items) < 2:
         return [task(x, progress) for x in items]
 
-    def kept(x: T) -> tuple[R, list[str]]:
+    def kept(k: int) -> tuple[R, list[str]]:
         lines: list[str] = []
-        return task(x, lines.append), lines
+        return task(items[k], lines.append), lines
 
+    order = list(range(len(items)))
+    if work is not None:
+        order.sort(key=lambda k: -work(items[k]))
+    done = dict(zip(order, mapper(kept, order), strict=True))
     out: list[R] = []
-    for result, lines in mapper(kept, items):
+    for k in range(len(items)):
+        result, lines = done[k]
         for line in lines:
             progress(line)
         out.append(result)

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 from truckd.ident.candidates import (
     Candidate,
+    fit_work,
     hill_candidate,
     rolling_candidate,
     voltage_candidates,
@@ -80,7 +81,7 @@ def candidates_stage(
         m = Model(f, (cand.name,), val_cost(f, prep.val_data, prep.w))
         return m, summary(f.params, f.effects, prep.val)[0].fit_percent
 
-    fitted = fan_out(mapper, alone, range(len(cands)), progress)
+    fitted = fan_out(mapper, alone, range(len(cands)), progress, lambda k: fit_work(cands[k]))
     for cand, (m, fp) in zip(cands, fitted, strict=True):
         f = m.fit
         ok, dbic = judge.takes(cand.name, m, base)
