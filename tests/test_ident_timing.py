@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from truckd.ident import fastsim
+from truckd.ident import ckernel, fastsim
 from truckd.ident.freerun import Timeline, merge_equal, timeline
 from truckd.ident.timing import layout_of, merged, shifted
 
@@ -88,3 +88,32 @@ def test_equal_inputs_merge_and_nan_never_does() -> None:
     a2 = a.copy()
     a2[::2] = 2.0
     assert _same(merged(tl, lay, a2, b), merge_equal(tl, a2, b))
+
+
+@pytest.mark.parametrize("jitter", [False, True])
+@pytest.mark.parametrize("hist", [0, 40])
+def test_the_c_kernel_shifts_and_merges_as_numpy(jitter: bool, hist: int) -> None:
+    """``ckernel.shift_merge`` (one pass in C) is ``merged(shifted(...))`` bit for bit,
+    and refuses the delays whose order the layout does not hold, as ``shifted`` does."""
+    assert ckernel.available(), f"{ckernel.LIBRARY} missing: run `make firmware`"
+    rng = np.random.default_rng(29 + hist + int(jitter))
+    t, t_cmd = _series(rng, jitter, hist)
+    a, b = _inputs(rng, len(t_cmd))
+    made = layout_of(t, 4.7e-4, t_cmd)
+    assert made is not None
+    lay = made[1]
+    kept = refused = 0
+    for d in [*rng.uniform(1e-4, 2e-3, 30), *rng.uniform(0.0, 0.2, 20), 0.01, 0.03]:
+        tl = shifted(lay, t, float(d), t_cmd)
+        got = ckernel.shift_merge(
+            t, t_cmd, float(d), lay.first, lay.stop, lay.order, lay.eps, lay.cmd,
+            lay.sample_end, a, b,
+        )  # fmt: skip
+        if tl is None:
+            assert got is None, f"delay {d}: the C pass kept an order numpy refuses"
+            refused += 1
+            continue
+        assert got is not None, f"delay {d}: the C pass refused an order numpy keeps"
+        assert _same(Timeline(*got), merged(tl, lay, a, b))
+        kept += 1
+    assert kept >= 25 and refused >= 5

@@ -19,7 +19,7 @@ Array = NDArray[np.float64]
 LIBRARY = Path(__file__).resolve().parent / "kernel" / "build" / "libtruckd_fastrun.so"
 """Where ``make firmware`` puts the kernel."""
 
-ABI = 1
+ABI = 2
 """The kernel version this module calls (``TRUCKD_FASTRUN_ABI`` in ``fastrun.c``): a
 library built from another version (or before versions) is refused, the Python loop runs."""
 
@@ -49,6 +49,9 @@ def library() -> ctypes.CDLL | None:
             dp, dp, d, d, d, d, d, d, dp, d, dp, ip, ip, i, i, d, d, dp, dp, dp, dp, dp, dp,
             dp, dp, dp, dp, dp,
         ]  # fmt: skip
+        sm = lib.truckd_shift_merge
+        sm.restype = ctypes.c_int64
+        sm.argtypes = [dp, i, dp, i, d, i, i, ip, d, ip, ip, dp, dp, dp, ip, ip]
         wr = lib.truckd_winding_rises
         wr.restype = ctypes.c_int
         wr.argtypes = [dp, dp, i, d, d, d, d, d, dp]
@@ -161,6 +164,40 @@ def run(
         _dp(rotor_out),
     )  # fmt: skip
     return out, raw, pos
+
+
+def shift_merge(
+    t: Array,
+    t_cmd: Array,
+    delay: float,
+    first: int,
+    stop: int,
+    order: NDArray[np.int64],
+    eps: float,
+    cmd: NDArray[np.int64],
+    sample_end: NDArray[np.int64],
+    a: Array,
+    b: Array,
+) -> tuple[Array, NDArray[np.int64], NDArray[np.int64]] | None:
+    """:func:`truckd.ident.timing.shifted` then :func:`truckd.ident.timing.merged` in C
+    for a layout's ``first``, ``stop``, ``order``, ``eps``, ``cmd`` and ``sample_end``:
+    the merged timeline's ``(dt, cmd, sample_end)``; None when the layout's order does not
+    hold under ``delay`` (s), or the kernel is not built (:func:`available`)."""
+    lib = library()
+    if lib is None:
+        return None
+    subs = len(cmd)
+    out = np.empty(subs)
+    ints = np.empty((2, subs), dtype=np.int64)
+    f = float
+    count = lib.truckd_shift_merge(
+        _address(t), len(t), _address(t_cmd), len(t_cmd), f(delay), first, stop,
+        _address(order), f(eps), _address(cmd), _address(sample_end), _dp(a), _dp(b),
+        int(out.ctypes.data), int(ints.ctypes.data), int(ints.ctypes.data) + 8 * subs,
+    )  # fmt: skip
+    if count < 0:
+        return None
+    return out[:count], ints[0, :count], ints[1, :count]
 
 
 def winding_rises(

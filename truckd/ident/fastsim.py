@@ -423,10 +423,18 @@ def _merged_timeline(
 ) -> Timeline:
     """``merge_equal(timeline(...), a, b)`` of the commands at ``t_cmd`` acting ``delay``
     s later: for a delay in the order of the series' kept layout, from that layout
-    (:mod:`truckd.ident.timing`, the same arrays); else computed, and its layout kept."""
+    (:mod:`truckd.ident.timing`, the same arrays; in one pass of the C kernel when it is
+    built, :func:`truckd.ident.ckernel.shift_merge`); else computed, and its layout kept."""
     if delay > 0.0:
         key = ("layout", id(t), id(t_hist), hist)
         lay: Layout | None = _timed(key, t, t_hist, _LAYOUT)
+        if lay is not None and ckernel.available():
+            done = ckernel.shift_merge(
+                t, t_cmd, delay, lay.first, lay.stop, lay.order, lay.eps, lay.cmd,
+                lay.sample_end, a, b,
+            )  # fmt: skip
+            if done is not None:
+                return Timeline(*done)
         tl = None if lay is None else shifted(lay, t, delay, t_cmd)
         if tl is None:
             made = layout_of(t, delay, t_cmd)

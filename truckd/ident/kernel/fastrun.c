@@ -11,7 +11,7 @@
 /* The kernel's version: raise it with every change of the loops' arithmetic or of the
  * functions' arguments, together with ABI in truckd/ident/ckernel.py, which refuses a
  * library of another version (a stale build) and runs the Python loop instead. */
-#define TRUCKD_FASTRUN_ABI 1
+#define TRUCKD_FASTRUN_ABI 2
 
 int truckd_fastrun_abi(void);
 int truckd_fastrun_abi(void)
@@ -440,4 +440,59 @@ int truckd_winding_rises(const double *h, const double *sq, int64_t n, double ri
         out[k + 1] = rise;
     }
     return 0;
+}
+
+/* timing.shifted and then timing.merged in one pass (truckd/ident/timing.py): the
+ * sub-intervals of n sample instants t and the m commands issued at t_cmd acting delay s
+ * later, in the order a layout keeps (first, stop: the commands acting inside the
+ * series; order: the n + stop - first instants sorted; eps: the tie tolerance; lcmd,
+ * lse: each of the n + stop - first - 1 sub-intervals' command and sample end), each
+ * sub-interval ended by an action instant joined to the next when the commands on both
+ * sides have equal inputs a and b.  Writes the joined sub-intervals' durations, commands
+ * and sample ends, and returns their count; -1 when the layout's order does not hold
+ * under this delay (two instants within eps, or a command crossing the series' ends).
+ * The durations are the same differences of the same numbers, a joined one their sum
+ * from the left, as numpy computes them. */
+int64_t truckd_shift_merge(const double *t, int64_t n, const double *t_cmd, int64_t m,
+                           double delay, int64_t first, int64_t stop, const int64_t *order,
+                           double eps, const int64_t *lcmd, const int64_t *lse, const double *a,
+                           const double *b, double *dt_out, int64_t *cmd_out, int64_t *se_out)
+{
+    const double t0 = t[0], t1 = t[n - 1];
+    const int64_t subs = n + (stop - first) - 1;
+    double prev, acc = 0.0;
+    int64_t count = 0;
+    if (!(t_cmd[first] + delay > t0 && t_cmd[stop - 1] + delay < t1)) {
+        return -1;
+    }
+    if (first > 0 && !(t_cmd[first - 1] + delay <= t0)) {
+        return -1;
+    }
+    if (stop < m && !(t_cmd[stop] + delay >= t1)) {
+        return -1;
+    }
+    prev = order[0] < n ? t[order[0]] : t_cmd[first + order[0] - n] + delay;
+    for (int64_t j = 0; j < subs; ++j) {
+        const int64_t o = order[j + 1];
+        const double next = o < n ? t[o] : t_cmd[first + o - n] + delay;
+        const double d = next - prev;
+        int join = 0;
+        if (!(d > eps)) {
+            return -1;
+        }
+        prev = next;
+        acc += d;
+        if (j + 1 < subs && lse[j] < 0) {
+            const int64_t l = lcmd[j], r = lcmd[j + 1];
+            join = l >= 0 && r >= 0 && a[l] == a[r] && b[l] == b[r];
+        }
+        if (!join) {
+            dt_out[count] = acc;
+            cmd_out[count] = lcmd[j];
+            se_out[count] = lse[j];
+            ++count;
+            acc = 0.0;
+        }
+    }
+    return count;
 }
