@@ -327,12 +327,15 @@ def _simulate(
         k0, l0 = electrical_correction(p, eff.viscous_friction)
         kappa, lag_e = float(k0), float(l0)
         if same_r:
-            # r_tot is R_m throughout: the same numbers as electrical_correction on it.
+            # r_tot is R_m throughout: the same numbers as electrical_correction on it,
+            # and kappa times the constants the same numbers as the array's elements.
             k_arr = np.full(len(r_tot), kappa)
+            a = kappa * p.K_T / p.J_S * volts / r_tot
+            b = kappa * (p.K_T * p.K_v / r_tot + eff.viscous_friction) / p.J_S
         else:
             k_arr, _ = electrical_correction(p, eff.viscous_friction, r_tot)
-        a = k_arr * p.K_T / p.J_S * volts / r_tot
-        b = k_arr * (p.K_T * p.K_v / r_tot + eff.viscous_friction) / p.J_S
+            a = k_arr * p.K_T / p.J_S * volts / r_tot
+            b = k_arr * (p.K_T * p.K_v / r_tot + eff.viscous_friction) / p.J_S
         lag_cmd = lag_e if eff.backlash == 0.0 else 0.0
         tl = _merged_timeline(t, t_hist, eff.input_delay + lag_cmd, hist, t_cmd, a, b)
         if cached:
