@@ -292,6 +292,36 @@ def _driver(
     return out
 
 
+def _prepare(
+    p: VehicleParams,
+    eff: Effects,
+    t: Array,
+    u: Array,
+    t_hist: Array | None,
+    u_hist: Array | None,
+    hist: int,
+    r_drift: Array | None,
+    same_r: bool,
+) -> tuple[Array, Array, Array | float, float, float, Array, Array, Timeline]:
+    """A free run's input side, kept per series and model: driver voltage (V), resistance
+    (ohm), electrical correction (per command; the scalar when ``same_r``: every command
+    sees ``R_m``, so it is theirs), the scalar, its lag (s), input terms, timeline."""
+    volts, r_sag = _driver(p, eff, u, u_hist, hist)
+    t_cmd = t if not hist else np.concatenate([t_hist, t])
+    r_tot = p.R_m + r_sag
+    if r_drift is not None:
+        r_tot = r_tot + r_drift
+    k0, l0 = electrical_correction(p, eff.viscous_friction)
+    kappa, lag_e = float(k0), float(l0)
+    # a scalar gives a and b the numbers an array of it would, in fewer operations
+    k: Array | float = kappa if same_r else electrical_correction(p, eff.viscous_friction, r_tot)[0]
+    a = k * p.K_T / p.J_S * volts / r_tot
+    b = k * (p.K_T * p.K_v / r_tot + eff.viscous_friction) / p.J_S
+    lag_cmd = lag_e if eff.backlash == 0.0 else 0.0
+    tl = _merged_timeline(t, t_hist, eff.input_delay + lag_cmd, hist, t_cmd, a, b)
+    return volts, r_tot, k, kappa, lag_e, a, b, tl
+
+
 def _simulate(
     p: VehicleParams,
     eff: Effects,
@@ -317,29 +347,11 @@ def _simulate(
     key = _prep_key(p, eff, t, u, t_hist, u_hist)
     hit = _PREP.get(key) if cached else None
     if hit is not None and hit[0] is t and hit[1] is u and hit[2] is t_hist and hit[3] is u_hist:
-        volts, r_tot, k_arr, kappa, lag_e, a, b, tl = hit[4]
+        volts, r_tot, k, kappa, lag_e, a, b, tl = hit[4]
     else:
-        volts, r_sag = _driver(p, eff, u, u_hist, hist)
-        t_cmd = t if not hist else np.concatenate([t_hist, t])
-        r_tot = p.R_m + r_sag
-        if r_drift is not None:
-            r_tot = r_tot + r_drift
-        k0, l0 = electrical_correction(p, eff.viscous_friction)
-        kappa, lag_e = float(k0), float(l0)
-        if same_r:
-            # r_tot is R_m throughout: the same numbers as electrical_correction on it,
-            # and kappa times the constants the same numbers as the array's elements.
-            k_arr = np.full(len(r_tot), kappa)
-            a = kappa * p.K_T / p.J_S * volts / r_tot
-            b = kappa * (p.K_T * p.K_v / r_tot + eff.viscous_friction) / p.J_S
-        else:
-            k_arr, _ = electrical_correction(p, eff.viscous_friction, r_tot)
-            a = k_arr * p.K_T / p.J_S * volts / r_tot
-            b = k_arr * (p.K_T * p.K_v / r_tot + eff.viscous_friction) / p.J_S
-        lag_cmd = lag_e if eff.backlash == 0.0 else 0.0
-        tl = _merged_timeline(t, t_hist, eff.input_delay + lag_cmd, hist, t_cmd, a, b)
+        prepared = _prepare(p, eff, t, u, t_hist, u_hist, hist, r_drift, same_r)
+        volts, r_tot, k, kappa, lag_e, a, b, tl = prepared
         if cached:
-            prepared = (volts, r_tot, k_arr, kappa, lag_e, a, b, tl)
             _put(_PREP, key, (t, u, t_hist, u_hist, prepared), PREP_CACHE)
     load = p.force_to_torque(eff.load_force)
     stribeck = None
@@ -354,7 +366,7 @@ def _simulate(
         sigma=kappa * p.K_stiction / p.J_S,
         d=kappa * load / p.J_S,
         drag=kappa * eff.aero_drag * p.ratio**3 / p.J_S,
-        scale=k_arr / kappa if eff.battery_sag != 0.0 or r_drift is not None else None,
+        scale=np.asarray(k) / kappa if not same_r else None,
         lag=lag_e,
         terrain=_terrain(p, eff, kappa, x0),
         # While the limit binds the current is held: no electrical pole slows the drive.
