@@ -18,6 +18,7 @@ from runtime_support import free_port, wait_for
 from truckd.control.platoon import encode_plan, kinematic_plan
 from truckd.errors import InputError
 from truckd.runtime.fleet_tls import Fleet, client_config, make_fleet, router_config
+from truckd.runtime.platoon_join import join_key
 from truckd.runtime.platoon_link import PlanReceiver
 
 REPO = Path(__file__).resolve().parent.parent
@@ -66,14 +67,17 @@ def _plan(t: float, seq: int, v: float, vid: str) -> bytes:
 
 def test_a_spoofed_plan_and_a_trucks_fault_are_refused_by_the_router(net: _Net) -> None:
     """truck2 follows truck1: its plan receiver gets truck1's plans.  truck3 publishes a
-    plan on truck1's key (claiming to be truck1) and injects a fault into truck1: with
-    the access control the router refuses both; the operator's fault passes.  Without
+    plan on truck1's key (claiming to be truck1), injects a fault into truck1 and tells
+    it where to join: with the access control the router refuses all three; the
+    operator's fault and join order pass.  Without
     it (the control experiment) the spoofed plan reaches the controller."""
     t1, t2, t3, op = (net.client(n) for n in ("truck1", "truck2", "truck3", "operator"))
     receiver = PlanReceiver("truck1")
     t2.declare_subscriber(receiver.key, lambda s: receiver.on_payload(s.payload.to_bytes()))
     faults: list[str] = []
     t1.declare_subscriber("truckd/truck1/inject", lambda s: faults.append(s.payload.to_string()))
+    joins: list[str] = []
+    t1.declare_subscriber(join_key("truck1"), lambda s: joins.append(s.payload.to_string()))
     seen: list[str] = []
     t2.declare_subscriber("truckd/truck3/state", lambda s: seen.append(s.payload.to_string()))
     seq = iter(range(1, 10_000))
@@ -81,16 +85,19 @@ def test_a_spoofed_plan_and_a_trucks_fault_are_refused_by_the_router(net: _Net) 
     assert wait_for(lambda: t1.put(receiver.key, _plan(1.0, next(seq), 1.0, "truck1"))
                     or receiver.latest() is not None, 10.0)  # fmt: skip
     assert wait_for(lambda: op.put("truckd/truck1/inject", "op") or "op" in faults, 10.0)
+    assert wait_for(lambda: op.put(join_key("truck1"), "op") or "op" in joins, 10.0)
     held = receiver.latest()
     assert held is not None and held.v[0] == 1.0
     t3.put(receiver.key, _plan(2.0, 10**6, 9.0, "truck1"))  # spoofed: truck3 as truck1
     t3.put("truckd/truck1/inject", "truck3")
+    t3.put(join_key("truck1"), "truck3")  # a truck telling another where to drive
     # after those, in order from the same session: a marker on truck3's own key
     assert wait_for(lambda: t3.put("truckd/truck3/state", "marker") or "marker" in seen, 10.0)
     held = receiver.latest()
     assert held is not None
     assert (held.v[0] == 9.0) is (not net.acl)  # the spoofed plan (9 m/s) reached it
     assert ("truck3" in faults) is (not net.acl)
+    assert ("truck3" in joins) is (not net.acl)
 
 
 def test_only_an_operator_queries_parameters(fleet: Fleet) -> None:

@@ -31,6 +31,7 @@ from truckd.runtime.cycle import CompanionCycle
 from truckd.runtime.daemon import Daemon
 from truckd.runtime.plan_hearing import HEAR_OTHERS_EVERY, MAX_SENDERS, SILENT_S
 from truckd.runtime.platoon_follow import LEAD_GONE_S
+from truckd.runtime.platoon_join import join_key
 from truckd.runtime.platoon_link import DaemonPlatoon
 from truckd.runtime.telemetry import zenoh_config
 
@@ -343,6 +344,104 @@ def test_auto_order_hears_other_trucks_plan_keys_only_and_at_most_max_senders() 
     assert r.refused == 1 and "expected 's0'" in r.last_error
 
 
+def test_an_operator_tells_a_truck_to_join_behind_another_or_to_drive_alone() -> None:
+    """Behind t2 in CACC: told to join behind t1 (the order arrives on Zenoh's thread),
+    the truck follows t1 from the next cycle (its plans announce it: the truck behind t1
+    opens room); told to drive alone, it follows nobody and drives ACC, and takes no tail
+    although one is in range at the platoon's speed; told to join behind t2, it follows
+    t2 again.  Each order is counted and said in the health message."""
+    fleet = {"t0": "", "t1": "t0", "t2": "t1"}
+    dp, clock = _daemon_platoon("t2")
+    _drive(dp, clock, fleet, 80, gap=1.0)
+    assert dp.predecessor == "t2" and dp.decision is not None and dp.decision.mode == CACC
+    dp.joins.on_payload(b'{"behind": "t1"}')
+    assert dp.predecessor == "t2"  # taken by the loop, not on Zenoh's thread
+    _drive(dp, clock, fleet, 1, gap=1.0, seq0=80)
+    assert dp.predecessor == "t1"
+    order = dp.health()["order"]
+    assert order["joins_told"] == 1 and order["last_join"] == "join behind t1"
+    assert "follows t1 (told to join behind it)" in order["last_change"]
+    # moving in: t2 (still in range) changes lanes, t1 comes into range 1.3 m farther:
+    # the truck moved in behind t1, no leave of t1
+    _drive(dp, clock, fleet, 20, gap=1.0, seq0=81)
+    _drive(dp, clock, fleet, 1, gap=2.3, seq0=101)
+    _drive(dp, clock, fleet, 20, gap=2.3, seq0=102)
+    assert dp.predecessor == "t1"
+    # the truck behind t1 hears this one announce it: a joiner, room opened
+    behind, clock2 = _daemon_platoon("t1")
+    _drive(behind, clock2, {"t0": "", "t1": "t0"}, 80, gap=1.0)
+    _drive(behind, clock2, {"t0": "", "t1": "t0", "me2": dp.predecessor}, 20, gap=1.0, seq0=80)
+    assert behind.mode is not None and behind.mode.extra_headway > 0.0
+
+    dp.joins.on_payload(b'{"behind": null}')
+    _drive(dp, clock, fleet, 1, gap=1.0, seq0=122)
+    assert dp.predecessor == "" and dp.mode is not None and dp.mode.mode == ACC
+    _drive(dp, clock, fleet, 200, gap=1.0, seq0=123)  # t2: the tail, in range, at speed
+    assert dp.predecessor == "" and dp.health()["order"]["alone"] is True
+    dp.joins.on_payload(b'{"behind": "t2"}')
+    _drive(dp, clock, fleet, 1, gap=1.0, seq0=323)
+    assert dp.predecessor == "t2" and dp.health()["order"]["alone"] is False
+    assert dp.health()["order"]["joins_told"] == 3
+
+
+def test_a_truck_told_to_join_moves_in_through_a_gap_without_a_lead() -> None:
+    """Told to join behind t1 while t2 is in range: the lane change leaves nothing in
+    range for longer than LEAD_GONE_S, then t1 comes into range: the truck still follows
+    t1 (what it drove behind going out of range is no leave of t1).  Once t1 has been in
+    range, losing it for LEAD_GONE_S is t1 gone again."""
+    fleet = {"t0": "", "t1": "t0", "t2": "t1"}
+    dp, clock = _daemon_platoon("t2")
+    _drive(dp, clock, fleet, 80, gap=1.0)
+    dp.joins.on_payload(b'{"behind": "t1"}')
+    _drive(dp, clock, fleet, 10, gap=1.0, seq0=80)
+    _drive(dp, clock, fleet, round(2 * LEAD_GONE_S / PERIOD), gap=None, seq0=90)
+    assert dp.predecessor == "t1"
+    _drive(dp, clock, fleet, 50, gap=1.5, seq0=300)
+    assert dp.predecessor == "t1"
+    _drive(dp, clock, fleet, round(LEAD_GONE_S / PERIOD) + 2, gap=None, seq0=350)
+    assert dp.predecessor == "t0"  # t1 went: the truck ahead of it
+
+
+def test_join_orders_that_are_not_orders_change_nothing() -> None:
+    """Not JSON, not an object, another key, an id that is no vehicle id, this truck
+    itself, an order too long: each refused and counted, the truck still behind t2."""
+    fleet = {"t1": "", "t2": "t1"}
+    dp, clock = _daemon_platoon("t2")
+    _drive(dp, clock, fleet, 50, gap=1.0)
+    bad = [
+        b"nope", b"\xff\xfe", b'["t1"]', b'{"behind": "t1", "also": 1}', b'{"to": "t1"}',
+        b'{"behind": 5}', b'{"behind": "t 1"}', b'{"behind": "me"}',
+        b'{"behind": "' + b"a" * 300 + b'"}',
+    ]  # fmt: skip
+    for payload in bad:
+        dp.joins.on_payload(payload)
+    _drive(dp, clock, fleet, 10, gap=1.0, seq0=50)
+    order = dp.health()["order"]
+    assert dp.predecessor == "t2" and order["changes"] == 0
+    assert order["joins_refused"] == len(bad) and order["joins_told"] == 0
+    assert order["last_join"].startswith("refused: ")
+
+
+def test_only_the_auto_order_takes_join_orders() -> None:
+    """A truck with ``platoon.order: fixed`` does not subscribe to join orders (its
+    predecessor is the configuration's); with ``auto`` it subscribes to its own key."""
+    keys: dict[str, list[str]] = {"fixed": [], "auto": []}
+    for order in ("fixed", "auto"):
+        cfg = load_config()
+        pcfg: PlatoonConfig = replace(cfg.platoon, order=order, predecessor="t1")
+        cyc = CompanionCycle(
+            ControlModel(cfg.vehicle), platoon_control(cfg.control, pcfg),
+            cfg.runtime.supervisor, cfg.ticks_per_rev, cfg.runtime.stop_ramp_v_per_s,
+            time_budget=False,
+        )  # fmt: skip
+        dp = DaemonPlatoon("me", pcfg, cyc)
+        dp.subscribe(
+            lambda key, _cb, o=order: keys[o].append(key),
+            subscribe_keyed=lambda key, _cb, o=order: keys[o].append(key),
+        )
+    assert join_key("me") in keys["auto"] and join_key("me") not in keys["fixed"]
+
+
 def test_daemon_with_auto_order_finds_the_tail_over_zenoh(tmp_path: Path) -> None:
     """``truckd run`` (simulated truck, its lead ahead at 0.7 of the set speed) with
     ``platoon.order: auto`` and no predecessor: two trucks' plans heard on the loopback
@@ -385,3 +484,51 @@ def test_daemon_with_auto_order_finds_the_tail_over_zenoh(tmp_path: Path) -> Non
     assert entries and entries[-1]["predecessor"] == "t1"
     assert entries[-1]["order"]["senders"] == ["t0", "t1"]
     assert entries[-1]["plans_accepted"] > 10
+
+
+def test_a_running_daemon_is_told_to_join_over_zenoh(tmp_path: Path) -> None:
+    """``truckd run`` (simulated truck) with ``platoon.order: auto`` behind t1 (t0 ahead
+    of it heard): once its plans name t1, an operator's session puts ``{"behind": "t0"}``
+    on ``truckd/f1/platoon_join``; the daemon's plans then name t0 and its health counts
+    the order."""
+    port = free_port()
+    cfg = load_config(
+        follower_config(tmp_path / "truck.yaml", "f1", {"order": "auto", "predecessor": "t1"}, port)
+    )
+    v_lead = 0.7 * cfg.control.v_set
+    s = zenoh.open(zenoh_config(listen=[endpoint(port)]))
+    got = watch_vehicle(s, "f1")
+    plans, health = got["plan"], got["health"]
+    stop = threading.Event()
+    told: list[float] = []
+
+    def fleet() -> None:
+        pubs = {v: s.declare_publisher(f"truckd/{v}/plan") for v in ("t0", "t1")}
+        seq = 0
+        while not stop.is_set():
+            for vid, pre in (("t0", ""), ("t1", "t0")):
+                p = replace(
+                    kinematic_plan(time.time(), seq, 0.01, v_lead, 0.0, 40, vid), predecessor=pre
+                )
+                pubs[vid].put(encode_plan(p))
+            if not told and any(p.get("predecessor") == "t1" for p in list(plans)):
+                s.put(join_key("f1"), json.dumps({"behind": "t0"}))
+                told.append(time.time())
+            seq += 1
+            time.sleep(0.01)
+
+    th = threading.Thread(target=fleet, daemon=True)
+    th.start()
+    d = Daemon(cfg, "sim", duration=4.0, env={})
+    try:
+        assert d.run() == 0
+    finally:
+        stop.set()
+        th.join(5.0)
+        s.close()
+    assert told, "the daemon's plans never named t1"
+    assert wait_for(lambda: bool(plans), 1.0)
+    assert plans[-1]["predecessor"] == "t0"
+    entries = [h["platoon"] for h in health if "platoon" in h and "order" in h["platoon"]]
+    assert entries and entries[-1]["order"]["joins_told"] == 1
+    assert entries[-1]["order"]["last_join"] == "join behind t0"

@@ -9,13 +9,15 @@ links whose client certificate the fleet's authority signed (``enable_mtls``), a
 access control (default deny) lets a truck whose certificate names ``<id>``:
 
 - publish only its own keys, ``truckd/<id>/state``, ``health``, ``plan``,
-  ``characterize`` (never another truck's, nor its own ``inject`` or ``platoon_fault``),
+  ``characterize`` (never another truck's, nor its own ``inject``, ``platoon_fault`` or
+  ``platoon_join``),
   hold its liveliness token ``truckd/<id>/alive``, answer queries on
   ``truckd/<id>/params``;
 - subscribe to every ``truckd/**`` key (the platoon reads its predecessor's plan).
 
-Only an operator certificate may query parameters (``truckd/*/params``) or inject faults
-(``truckd/*/inject``, ``truckd/*/platoon_fault``).  Every endpoint is on 127.0.0.1 unless
+Only an operator certificate may query parameters (``truckd/*/params``), inject faults
+(``truckd/*/inject``, ``truckd/*/platoon_fault``) or tell a truck to join
+(``truckd/*/platoon_join``).  Every endpoint is on 127.0.0.1 unless
 given otherwise; multicast scouting and gossip are off.
 """
 
@@ -35,7 +37,7 @@ ID_RE = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
 """A vehicle id or operator name: a Zenoh key chunk without wildcards, and a CN."""
 
 TRUCK_PUBLISHES = ("state", "health", "plan", "characterize")
-OPERATOR_PUTS = ("inject", "platoon_fault")
+OPERATOR_PUTS = ("inject", "platoon_fault", "platoon_join")
 
 
 @dataclass(frozen=True)

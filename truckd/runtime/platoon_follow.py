@@ -132,6 +132,11 @@ class Follow:
         """When this truck took its predecessor (s)."""
         self.events: list[tuple[float, str]] = [] if events is None else events
         """``(t, what)`` of every change (a new predecessor, room opened)."""
+        self.alone = False
+        """Told to drive alone (:meth:`told`): no tail is searched until told to join."""
+        self._moving_in = False
+        """Told to join: the vehicle in range is still the one driven behind before; the
+        first change of it (a jump, or out of range) is the truck moving in, no leave."""
 
     @property
     def cfg(self) -> PlatoonConfig:
@@ -159,6 +164,8 @@ class Follow:
         pcfg = self.cfg
         jump = self._jump(gap, t)
         if not self.predecessor:
+            if self.alone:
+                return False
             moving = v >= TAIL_MIN_SPEED and v_lead - 3.0 * v_lead_std >= TAIL_MIN_SPEED
             if gap is None or not settled or not moving:
                 return False
@@ -201,6 +208,32 @@ class Follow:
             self.events.append((t, f"{self.vid} closes the room: no truck joins"))
         return False
 
+    def told(self, behind: str | None, gap: float | None, v: float, t: float) -> bool:
+        """An operator's order at time t (s): drive behind the truck ``behind`` (it is
+        announced in this truck's plans from now: the truck behind it opens room), or
+        alone (None: follow nobody, ACC on the range sensor, no tail searched) until told
+        otherwise; ``gap`` (m; None: no lead) and ``v`` (m/s) as :meth:`step` has them.
+        After an order to join, the first change of the vehicle in range (a jump, or none
+        in range) is the truck moving in behind its new predecessor, not a join or a
+        leave.  True when the predecessor changed.  This truck itself is refused
+        (ValueError)."""
+        if behind == self.vid:
+            raise ValueError(f"{self.vid} cannot drive behind itself")
+        if behind is None:
+            self.alone = True
+            if not self.predecessor:
+                return False
+            old = self.predecessor
+            self._lose(gap, v, t, old)
+            self.events[-1] = (t, f"{self.vid} follows nobody (told to drive alone, left {old})")
+            return True
+        self.alone = False
+        if behind == self.predecessor:
+            return False
+        self._take(PlanSource(behind), gap, v, t, "told to join behind it")
+        self._moving_in, self._lead_seen = gap is not None, False
+        return True
+
     def _jump(self, gap: float | None, t: float) -> str | None:
         """A jump of the range sensor this cycle (CLOSER, FARTHER, None): a valid gap
         against the valid one the cycle before (after cycles without a lead, a dropout
@@ -211,9 +244,15 @@ class Follow:
         if gap is not None:
             if self.range_prev is not None:
                 jump = range_jump(self.range_prev, gap, RANGE_JUMP_M)
-            self.range_prev, self._seen_lead, self._lead_seen = gap, t, True
+            self.range_prev, self._seen_lead = gap, t
+            if self._moving_in:  # still behind what it drove behind before the order
+                if jump is None:
+                    return None
+                self._moving_in, jump = False, None  # moved in behind its predecessor
+            self._lead_seen = True
         else:
             self.range_prev = None
+            self._moving_in = False  # the next lead in range is the new predecessor
             if self.predecessor and self._lead_seen and t - self._seen_lead >= LEAD_GONE_S:
                 jump = FARTHER
         return jump
@@ -221,7 +260,7 @@ class Follow:
     def _take(self, src: PlanSource, gap: float | None, v: float, t: float, why: str) -> None:
         """Follow ``src``'s sender from now (``why``: for the events)."""
         self.predecessor, self.source, self.standby = src.sender, src, PlanSource("")
-        self.pred_since, self._lead_seen = t, gap is not None
+        self.pred_since, self._lead_seen, self._moving_in = t, gap is not None, False
         self.mode.extra_headway = 0.0
         if gap is not None:
             self.mode.retarget(self.time_gap(gap, v))
@@ -230,7 +269,7 @@ class Follow:
     def _lose(self, gap: float | None, v: float, t: float, old: str) -> None:
         """Follow nobody from now: ACC, the headway ramped from the time gap driven."""
         self.predecessor, self.source, self.standby = "", PlanSource(""), PlanSource("")
-        self.pred_since, self._lead_seen = t, False
+        self.pred_since, self._lead_seen, self._moving_in = t, False, False
         self.mode.extra_headway = 0.0
         self.mode.fall_back(gap if gap is not None else math.nan, v, self.d_0)
         self.events.append((t, f"{self.vid} follows nobody ({old} went, no truck ahead of it)"))

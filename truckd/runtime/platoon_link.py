@@ -33,6 +33,7 @@ from truckd.runtime.cycle import CompanionCycle, CycleOutputs
 from truckd.runtime.plan_hearing import MAX_SENDERS, PlanHearing
 from truckd.runtime.plan_receiver import MAX_PLAN_BYTES, PlanReceiver, plan_key
 from truckd.runtime.platoon_follow import Follow, PlanSource
+from truckd.runtime.platoon_join import JoinOrders, join_key
 
 __all__ = [
     "MAX_PLAN_BYTES",
@@ -161,6 +162,8 @@ class DaemonPlatoon:
         """Cycles whose platoon decision raised (the truck then drives ACC); ``last_error``."""
         self.last_error = ""
         self._settled = False
+        self.joins = JoinOrders(vehicle_id)
+        """Operators' join orders (``truckd/<id>/platoon_join``, with the auto order)."""
         self.follow: Follow | None = None
         if self.auto and self.mode is not None:
             self.follow = Follow(
@@ -200,7 +203,8 @@ class DaemonPlatoon:
         """Subscribe to the predecessor's plan key only (nothing for a leading truck),
         with ``subscribe_raw`` when given (the payload passed uncopied); with the auto
         order to every plan (``subscribe_keyed``: the callback gets the sample's key and
-        payload); with ``fault_injection`` also to ``truckd/<vehicle_id>/platoon_fault``
+        payload) and to the operators' join orders (:mod:`.platoon_join`); with
+        ``fault_injection`` also to ``truckd/<vehicle_id>/platoon_fault``
         (HIL runs: ``{"link": "down"}`` drops every plan received until ``{"link":
         "up"}``)."""
         following = self._fixed is not None or self.auto
@@ -211,6 +215,8 @@ class DaemonPlatoon:
                 raise ValueError("the auto order needs a subscription that passes the key")
             assert self.hearing is not None
             subscribe_keyed(plan_key("*"), self.hearing.on_sample)
+        if self.auto:
+            subscribe_key(join_key(self.vehicle_id), self.joins.on_payload)
         if following and fault_injection:
             subscribe_key(f"truckd/{self.vehicle_id}/platoon_fault", self.apply_fault)
 
@@ -285,7 +291,10 @@ class DaemonPlatoon:
         if settled and not self._settled:
             self._settled = True
             f.pred_since = max(f.pred_since, mono)
+        told, behind = self.joins.take()  # an operator's order first, then the order's rules
+        moved = told and f.told(behind, gap, est.v, mono)
         changed = f.step(gap, est.v, v_lead, hearing.heard, mono, settled, est.v_lead_std)
+        changed = changed or moved
         for _t, what in f.events[n_events:]:
             log.info("platoon: %s", what)
         if not changed:
@@ -337,5 +346,9 @@ class DaemonPlatoon:
                 "senders_refused": hearing.senders_refused,
                 "changes": len(ev),
                 "last_change": ev[-1][1] if ev else None,
+                "alone": self.follow.alone,
+                "joins_told": self.joins.told,
+                "joins_refused": self.joins.refused,
+                "last_join": self.joins.last or None,
             }
         return out
