@@ -16,7 +16,9 @@ predecessor: it finds the tail) and other phases: the lead drives off until ever
 is in CACC, then truck 1 leaves the lane (the world moves it aside) and p2 must follow the
 truck ahead of it; ``--join`` adds a fourth truck that joins in the middle first (put
 beside the platoon behind p0, its daemon started then; p1 opens room and follows it once
-it moved in).  Each truck's predecessor is read from its plans.
+it moved in); ``--told`` starts that truck with no predecessor and tells it where to join
+(an operator's order on ``truckd/p3/platoon_join``).  Each truck's predecessor is read
+from its plans.
 
 ``--trucks N`` runs N trucks (and N daemons); ``--router`` connects every daemon and the
 watcher as clients to one Zenoh router (``config/zenoh-router.json5`` on a free loopback
@@ -66,7 +68,13 @@ def _ep(port: int) -> str:
 
 
 def _config(
-    tmp: Path, i: int, ports: list[int], router: int = 0, order: str = "fixed", join: bool = False
+    tmp: Path,
+    i: int,
+    ports: list[int],
+    router: int = 0,
+    order: str = "fixed",
+    join: bool = False,
+    told: bool = False,
 ) -> Path:
     cfg = yaml.safe_load(default_config_path().read_text())
     cfg["vehicle_id"] = f"p{i}"
@@ -75,8 +83,8 @@ def _config(
     cfg["platoon"]["predecessor"] = f"p{i - 1}" if i > 0 else ""
     if order == "auto" and i > 0:
         cfg["platoon"]["order"] = "auto"
-        if join and i == 3:
-            cfg["platoon"]["predecessor"] = "p0"  # joins behind p0, in front of p1
+        if join and i == 3:  # joins behind p0, in front of p1: configured, or told
+            cfg["platoon"]["predecessor"] = "" if told else "p0"
         elif i == 2:
             cfg["platoon"]["predecessor"] = ""  # finds the tail
     rt = cfg["runtime"]
@@ -159,13 +167,17 @@ def _auto_phases(
     result: dict[str, Any],
     t0: float,
     start: Callable[[int], None] | None,
+    tell: Callable[[], float] | None = None,
 ) -> None:
     """``--order auto``: the lead drives off, p2 (configured with no predecessor) finds
     the tail, p1, once the trucks move, and every follower reaches CACC.  With ``start``
     (``--join``): truck 3 is put beside, behind p0 in the next lane, and its daemon starts
     (``platoon.predecessor: p0``); p1 hears it announce and opens room; once the room
-    behind the spot is a CACC gap truck 3 moves in and p1 follows it.  Then truck 1 leaves
-    the lane and p2 follows the truck ahead of it (p3 after a join, else p0)."""
+    behind the spot is a CACC gap truck 3 moves in and p1 follows it.  With ``tell``
+    (``--told``) truck 3's daemon starts with no predecessor and, once its plans are
+    heard, an operator's order (``truckd/p3/platoon_join``, ``{"behind": "p0"}``) tells
+    it where to join.  Then truck 1 leaves the lane and p2 follows the truck ahead of it
+    (p3 after a join, else p0)."""
     world.cmd({"cmd": "lead", "speed": 1.0, "accel": 0.5})
     result["lead_go_s"] = time.monotonic() - t0
     result["tail_found_s"] = wait(lambda: pre("p2") == "p1", 20.0, "p2 finds the tail (p1)")
@@ -176,6 +188,8 @@ def _auto_phases(
         world.cmd({"cmd": "beside", "truck": 3, "behind": 0, "gap": 0.75})
         start(3)
         result["joiner_started_s"] = time.monotonic() - t0
+        if tell is not None:
+            result["told_s"] = tell() - t0
         result["p1_opens_room_s"] = wait(
             lambda: (headway("p1") or 0.0) > 0.45, 60.0, "p1 opening room (p3 heard)"
         )
@@ -218,6 +232,12 @@ def main() -> int:
     ap.add_argument(
         "--join", action="store_true", help="with --order auto: a fourth truck joins behind p0"
     )
+    ap.add_argument(
+        "--told",
+        action="store_true",
+        help="with --join: the fourth truck starts with no predecessor and is told where to "
+        "join (truckd/p3/platoon_join)",
+    )
     args = ap.parse_args()
     global N
     N = 4 if args.join else args.trucks
@@ -225,6 +245,8 @@ def main() -> int:
         ap.error("--trucks must be in 3..10 (the world simulates up to 10)")
     if args.join and args.order != "auto":
         ap.error("--join needs --order auto")
+    if args.told and not args.join:
+        ap.error("--told needs --join")
     if args.order == "auto" and N != (4 if args.join else 3):
         ap.error("--order auto runs 3 trucks (4 with --join)")
     n_start = N - 1 if args.join else N  # the joining truck's daemon starts later
@@ -244,9 +266,11 @@ def main() -> int:
     stop_poll = threading.Event()
     t0 = time.monotonic()
     result: dict[str, Any] = {"trucks": N, "router": args.router, "order": args.order,
-                              "load_average_start": os.getloadavg()}  # fmt: skip
+                              "join": ("told" if args.told else "configured") if args.join
+                              else None, "load_average_start": os.getloadavg()}  # fmt: skip
     preds: dict[str, list[tuple[float, str]]] = {}  # vehicle -> (t, predecessor) changes
     session = None
+    extra_sessions: list[Any] = []  # the operator's, with --told
     router_proc: subprocess.Popen[Any] | None = None
     router_port = 0
     try:
@@ -263,7 +287,7 @@ def main() -> int:
 
         def start(i: int) -> None:
             log = open(tmp / f"p{i}.stderr", "w")  # noqa: SIM115 - closed with the process
-            cfg_path = _config(tmp, i, ports, router_port, args.order, args.join)
+            cfg_path = _config(tmp, i, ports, router_port, args.order, args.join, args.told)
             daemons.append(
                 subprocess.Popen(
                     [PY, "-m", "truckd.cli.main", "run", "--config", str(cfg_path)], stderr=log
@@ -272,6 +296,33 @@ def main() -> int:
 
         for i in range(n_start):
             start(i)
+
+        def tell() -> float:
+            """The operator's order to p3 (``{"behind": "p0"}``), from a session of its own
+            connected to p3 (the peers do not route), once p3's plans reach it; again if
+            p3's plans do not announce p0 within a second (the order is idempotent).
+            Returns when it was first put (monotonic s)."""
+            ep = _ep(router_port) if router_port else _ep(ports[3])
+            conf = CLIENT_CONF if router_port else ""
+            op = zenoh.open(zenoh_config(conf, listen=[], connect=[ep]))
+            extra_sessions.append(op)
+            said: list[str] = []
+
+            def on_p3(smp: Any) -> None:
+                said.append(str(json.loads(smp.payload.to_bytes()).get("predecessor", "")))
+
+            op.declare_subscriber("truckd/p3/plan", on_p3)
+            wait(lambda: bool(said), 60.0, "p3's plans on the operator's session")
+            first = time.monotonic()
+            for _ in range(5):
+                op.put("truckd/p3/platoon_join", json.dumps({"behind": "p0"}))
+                deadline = time.monotonic() + 1.0
+                while time.monotonic() < deadline and said[-1] != "p0":
+                    time.sleep(0.02)
+                if said[-1] == "p0":
+                    return first
+            raise RuntimeError(f"p3 never announced p0 after the order (said {said[-1]!r})")
+
         if router_port:
             session = zenoh.open(zenoh_config(CLIENT_CONF, listen=[], connect=[_ep(router_port)]))
         else:
@@ -344,7 +395,7 @@ def main() -> int:
         if args.order == "auto":
             _auto_phases(
                 world, wait, pre, plat, headway, all_cacc, result, t0,
-                start if args.join else None,
+                start if args.join else None, tell if args.told else None,
             )  # fmt: skip
         else:
             world.cmd({"cmd": "lead", "speed": 1.0, "accel": 0.5})
@@ -378,6 +429,8 @@ def main() -> int:
     finally:
         stop_poll.set()
         result["exit_codes"] = [_end(d, 20.0) for d in daemons]
+        for extra in extra_sessions:
+            extra.close()
         if session is not None:
             session.close()  # type: ignore[no-untyped-call]
         world.stop()
