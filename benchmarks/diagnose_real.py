@@ -8,18 +8,20 @@ Reported per case: samples, least-squares fit, seed and extended fit (free run o
 validation logs), causes named, unexplained, the notes a user must see, and the time.
 The logs are not part of the repository: give their paths (and quote their source).
 
-    .venv/bin/python benchmarks/diagnose_real.py CASE [CASE ...] [--json FILE]
+    .venv/bin/python benchmarks/diagnose_real.py CASE [CASE ...] [--jobs N]
+        [--json FILE [--key NAME]]
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import sys
 import time
 from typing import Any
+
+from results import write_json
 
 from truckd.config.truck import load_config
 from truckd.ident import ckernel
@@ -36,13 +38,13 @@ def _split(case: str) -> tuple[list[str], list[str]]:
     return [f"{case}:{','.join(RAMPS)}"], [f"{case}:{','.join(STEPS)}"]
 
 
-def _one(case: str) -> dict[str, Any]:
+def _one(case: str, jobs: int = 1) -> dict[str, Any]:
     fit, val = _split(case)
     p = load_config().vehicle
     logs, vals = read_logs(fit), read_logs(val)
     load = os.getloadavg()[0]
     t0 = time.perf_counter()
-    d = diagnose_log(logs, p, vals)
+    d = diagnose_log(logs, p, vals, workers=jobs)
     secs = time.perf_counter() - t0
     ls = d.least_squares or {}
     return {
@@ -59,6 +61,7 @@ def _one(case: str) -> dict[str, Any]:
         "unexplained": d.unexplained,
         "alerts": d.alerts,
         "seconds": secs,
+        "jobs": jobs,
         "loadavg_1min": round(load, 2),
     }
 
@@ -67,10 +70,14 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("cases", nargs="+", help="FIT=VALIDATE or a SysId FILE.json")
     ap.add_argument("--json", metavar="FILE", help="write the rows as JSON")
+    ap.add_argument("--key", help="with --json: store the run under this name (results.py)")
+    ap.add_argument(
+        "--jobs", type=int, default=1, help="worker processes of each diagnosis (default 1)"
+    )
     args = ap.parse_args()
     rows = []
     for case in args.cases:
-        r = _one(case)
+        r = _one(case, args.jobs)
         rows.append(r)
         ls = r["least_squares_fit_percent"]
         print(
@@ -89,8 +96,7 @@ def main() -> int:
         "c_kernel": ckernel.available(),
     }
     if args.json:
-        with open(args.json, "w", encoding="utf-8") as fh:
-            json.dump({"machine": machine, "rows": rows}, fh, indent=1, default=str)
+        write_json(args.json, {"machine": machine, "rows": rows}, args.key)
     return 0
 
 
