@@ -115,7 +115,9 @@ class _Selecting:
 
             ran = fan_out(self.mapper, kept, todo, quiet, work)
             for k, (out, lines) in zip(todo, ran, strict=True):
-                self.fitted[keys[k]] = (jobs[k][0], out)
+                base = jobs[k][0]
+                # a fit no better than its start is its start, the same object as here
+                self.fitted[keys[k]] = (base, base if out == base else out)
                 said[k] = lines
         results = []
         for k, (base, extra, cand, header) in enumerate(jobs):

@@ -7,6 +7,7 @@ it (:class:`truckd.ident.judge.Judge`).  Pure numerics.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 from truckd.ident.candidates import (
@@ -83,6 +84,8 @@ def candidates_stage(
 
     fitted = fan_out(mapper, alone, range(len(cands)), progress, lambda k: fit_work(cands[k]))
     for cand, (m, fp) in zip(cands, fitted, strict=True):
+        if m.fit is not base_fit and m.fit == base_fit:  # the seed itself (from a worker)
+            m = dataclasses.replace(m, fit=base_fit)
         f = m.fit
         ok, dbic = judge.takes(cand.name, m, base)
         note = "passes alone" if ok else judge.hill_notes.get(cand.name, "")
