@@ -11,8 +11,11 @@ from __future__ import annotations
 import dataclasses
 import os
 import signal
+import subprocess
+import sys
 import threading
 from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import Any, TypeVar
 
 import numpy as np
@@ -141,3 +144,50 @@ def test_jobs_outside_its_range_is_exit_2(value: str, capsys: pytest.CaptureFixt
     assert main(["diagnose", "any.csv", "--jobs", value]) == 2
     err = capsys.readouterr().err
     assert "--jobs" in err and value in err
+
+
+SWERVE = Path(__file__).resolve().parent / "data" / "sysid" / "frc_swerve_12_12.json"
+
+
+def _group(pgid: int) -> list[int]:
+    """The live processes (not zombies) of process group ``pgid`` (Linux /proc)."""
+    out = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:  # ended meanwhile
+            continue
+        if int(fields[2]) == pgid and fields[0] != "Z":
+            out.append(int(stat.parent.name))
+    return out
+
+
+@pytest.mark.parametrize("sig,code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+def test_a_signal_during_the_fits_ends_the_command_and_its_workers(
+    sig: signal.Signals, code: int
+) -> None:
+    """``truckd diagnose --jobs 2`` stopped by Ctrl-C (the whole group) or SIGTERM (the
+    command alone) while its workers fit the candidates: it exits with 128 + the signal
+    and leaves no process of its group behind."""
+    with subprocess.Popen(
+        [sys.executable, "-m", "truckd", "diagnose", str(SWERVE), "--jobs", "2"],
+        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    ) as proc:  # fmt: skip
+        try:
+            assert proc.stderr is not None
+            for line in proc.stderr:  # the candidates' stage: its workers are running
+                if line.startswith("candidate 1/"):
+                    break
+            else:
+                pytest.fail("the diagnosis ended before its candidates were fitted")
+            if sig == signal.SIGINT:
+                os.killpg(proc.pid, sig)
+            else:
+                proc.send_signal(sig)
+            assert proc.wait(timeout=60) == code
+            assert _group(proc.pid) == [], "processes of the command's group left behind"
+        finally:
+            if proc.poll() is None:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait()

@@ -11,7 +11,8 @@ falls back to running the tasks here, one after another, with the same results:
 - when a child dies (killed, out of memory): the whole list is run here again.
 
 An exception a task raises in a child is raised here, as ``map`` would. The children
-end with the call (the executor waits for them); nothing outlives it.
+end with the call (the executor waits for them; on an exception here, Ctrl-C or SIGTERM,
+for the tasks already running only); nothing outlives it.
 """
 
 from __future__ import annotations
@@ -83,8 +84,11 @@ class ForkMap:
                     category=DeprecationWarning,
                 )  # fmt: skip
                 ctx = multiprocessing.get_context("fork")
-                with ProcessPoolExecutor(max_workers=n, mp_context=ctx) as pool:
+                pool = ProcessPoolExecutor(max_workers=n, mp_context=ctx)
+                try:
                     return list(pool.map(_run, range(len(items))))
+                finally:  # on an exception (Ctrl-C, SIGTERM) the tasks not started are dropped
+                    pool.shutdown(wait=True, cancel_futures=True)
         except BrokenProcessPool:
             self.fallbacks += 1
             return [fn(x) for x in items]
