@@ -3,76 +3,59 @@ that survives what its children do.
 
 :class:`truckd.workers.ForkMap` runs a list of tasks on forked children and falls back
 to this process when it cannot fork safely or a child dies; the diagnosis hands it the
-fits of a stage that do not depend on each other (:mod:`truckd.ident.fanout`).
+fits of a stage that do not depend on each other (:mod:`truckd.ident.fanout`).  What needs
+a process that may fork runs in a fresh interpreter (``tests/fork_checks.py``).
 """
 
 from __future__ import annotations
 
-import dataclasses
+import json
 import os
 import signal
 import subprocess
 import sys
 import threading
-from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any
 
-import numpy as np
 import pytest
-from labkit.synth import plant_log, random_effects
 
 from truckd.cli.main import main
-from truckd.ident.api import one_blas_thread
-from truckd.ident.data import runs_from_logs
-from truckd.ident.diagnose import diagnose_voltage
-from truckd.ident.fanout import in_order
-from truckd.model.effects import COMPANIONS, Effects
-from truckd.model.params import VehicleParams
 from truckd.workers import ForkMap, can_fork
 
-T = TypeVar("T")
-R = TypeVar("R")
+FORK_CHECKS = Path(__file__).resolve().parent / "fork_checks.py"
 
-PARENT = os.getpid()
+
+def _fresh(check: str) -> dict[str, Any]:
+    """What ``tests/fork_checks.py CHECK`` saw, in an interpreter of its own (this pytest
+    worker may run other threads, and then nothing forks)."""
+    r = subprocess.run(
+        [sys.executable, str(FORK_CHECKS), check], capture_output=True, text=True, timeout=300
+    )
+    assert r.returncode == 0, r.stderr[-2000:]
+    out: dict[str, Any] = json.loads(r.stdout)
+    return out
+
+
+def test_tasks_run_in_children_and_come_back_in_order() -> None:
+    r = _fresh("order")
+    assert r["can_fork"], "the check's own process runs other threads"
+    assert r["squares"] == [x * x for x in range(12)]
+    assert set(r["pids"]) - {r["parent"]}, "every task ran in the parent"
+    assert r["fallbacks"] == 0
+
+
+def test_an_exception_in_a_child_is_raised_here() -> None:
+    assert _fresh("raised")["raised"] == "ValueError: task 5 refused"
+
+
+def test_a_child_killed_falls_back_to_this_process() -> None:
+    r = _fresh("killed")
+    assert r["out"] == [10 * x for x in range(6)] and r["fallbacks"] == 1
 
 
 def _pid_and_square(x: int) -> tuple[int, int]:
     return os.getpid(), x * x
-
-
-def test_tasks_run_in_children_and_come_back_in_order() -> None:
-    assert can_fork(), "the test process runs other threads: nothing would fork"
-    pool = ForkMap(2)
-    out = pool([*range(12)].__getitem__, range(12))
-    assert out == list(range(12))
-    pids_squares = pool(_pid_and_square, range(12))
-    assert [sq for _, sq in pids_squares] == [x * x for x in range(12)]
-    assert {pid for pid, _ in pids_squares} - {os.getpid()}, "every task ran in this process"
-    assert pool.fallbacks == 0
-
-
-def _raise_on_five(x: int) -> int:
-    if x == 5:
-        raise ValueError(f"task {x} refused")
-    return x
-
-
-def test_an_exception_in_a_child_is_raised_here() -> None:
-    with pytest.raises(ValueError, match="task 5 refused"):
-        ForkMap(2)(_raise_on_five, range(8))
-
-
-def _die_in_a_child(x: int) -> int:
-    if os.getpid() != PARENT and x == 3:
-        os.kill(os.getpid(), signal.SIGKILL)
-    return 10 * x
-
-
-def test_a_child_killed_falls_back_to_this_process() -> None:
-    pool = ForkMap(2)
-    assert pool(_die_in_a_child, range(6)) == [10 * x for x in range(6)]
-    assert pool.fallbacks == 1
 
 
 def test_with_another_thread_running_nothing_forks() -> None:
@@ -93,50 +76,15 @@ def test_workers_below_one_are_refused() -> None:
         ForkMap(0)
 
 
-class _Recording:
-    """ForkMap(2), counting its calls and the processes the tasks ran in."""
-
-    def __init__(self) -> None:
-        self.inner = ForkMap(2)
-        self.calls = 0
-        self.pids: set[int] = set()
-
-    def __call__(self, fn: Callable[[T], R], items: Sequence[T], /) -> list[R]:
-        def tagged(x: T) -> tuple[int, R]:
-            return os.getpid(), fn(x)
-
-        out = self.inner(tagged, items)
-        self.calls += 1
-        self.pids |= {pid for pid, _ in out}
-        return [r for _, r in out]
-
-
-def _json(d: Any) -> Any:
-    return d.to_json()
-
-
-def test_diagnosis_on_workers_is_the_diagnosis_in_order(params: VehicleParams) -> None:
+def test_diagnosis_on_workers_is_the_diagnosis_in_order() -> None:
     """Two causes hidden in a log of the default truck (the pair stage runs): the
     diagnosis with the candidates and pairs fitted on two forked workers is the plain
     loop's, to the last digit, and the progress reads the same."""
-    rng = np.random.default_rng(20261127)
-    fields: dict[str, float] = {}
-    for n in ("current_limit", "sensor_lag"):
-        e = random_effects(n, rng)
-        fields[n] = float(getattr(e, n))
-        fields.update({c: float(getattr(e, c)) for c in COMPANIONS.get(n, ())})
-    log = plant_log(params, dataclasses.replace(Effects(), **fields), seed=7, n=5000)
-    runs = runs_from_logs([log], None)
-    said_plain: list[str] = []
-    said_forked: list[str] = []
-    recording = _Recording()
-    with one_blas_thread():
-        plain = diagnose_voltage(params, runs, None, said_plain.append, in_order)
-        forked = diagnose_voltage(params, runs, None, said_forked.append, recording)
-    assert recording.calls >= 2, "the candidate and pair stages did not use the workers"
-    assert recording.pids - {os.getpid()}, "no fit ran on a worker"
-    assert _json(forked) == _json(plain)
-    assert said_forked == said_plain
+    r = _fresh("diagnosis")
+    assert r["calls"] >= 2, "the candidate and pair stages did not use the workers"
+    assert set(r["pids"]) - {r["parent"]}, "no fit ran on a worker"
+    assert r["forked"] == r["plain"]
+    assert r["said_forked"] == r["said_plain"]
 
 
 @pytest.mark.parametrize("value", ["0", "65", "two", "1.5"])
