@@ -42,6 +42,7 @@ from truckd.cli.platoon_diagnosis import DiagnosedControllers
 from truckd.config.truck import load_config
 from truckd.sim.closed_loop import SimSetup
 from truckd.sim.platoon import make_platoon_scenario, run_platoon
+from truckd.workers import usable_cpus
 
 SCENARIOS = (("platoon-brake", 12.0), ("platoon-sine", 15.0))
 LINK_CASE = "all: 30 % loss, 0-50 ms, +-2 s, 100 ppm, mixed trucks"
@@ -97,7 +98,7 @@ def main() -> int:
     cache = Path(args.diagnosis_cache) if args.diagnosis_cache else None
     if cache is not None:
         cache.mkdir(parents=True, exist_ok=True)
-    diagnosed = DiagnosedControllers(cfg, cache_dir=cache)
+    diagnosed = DiagnosedControllers(cfg, cache_dir=cache, workers=min(usable_cpus(), 4))
     spent = [0.0]
 
     def timed(base: SimSetup, trucks: Any) -> Any:

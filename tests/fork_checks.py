@@ -116,7 +116,48 @@ def diagnosis() -> dict[str, Any]:
     }  # fmt: skip
 
 
-CHECKS = {"order": order, "raised": raised, "killed": killed, "diagnosis": diagnosis}
+def mixed() -> dict[str, Any]:
+    """``truckd sim --mixed``'s drawn trucks (the drive and diagnosis of each replaced by
+    a model made from the truck, the pid it ran in noted): one after another and on two
+    workers, with a repeated truck: the controllers, progress lines and pids of each."""
+    from dataclasses import replace
+
+    import truckd.cli.platoon_diagnosis as pd
+    from truckd.control.qp import ControlModel
+    from truckd.modelfile import ModelFile
+    from truckd.sim.closed_loop import SimSetup
+
+    ran_in: list[int] = []
+    read, write = os.pipe()
+
+    def identify(cfg: Any, truth: SimSetup) -> ModelFile:
+        os.write(write, f"{os.getpid()}\n".encode())
+        p = truth.plant_params
+        return ModelFile(vehicle=p.replace(R_m=p.R_m * 0.9), effects=truth.plant_config.effects)
+
+    pd.identify_truck = identify
+    cfg = load_config()
+    base = SimSetup(cfg.vehicle, cfg.plant, cfg.control, ControlModel(cfg.vehicle), 512)
+    trucks = [replace(base, plant_params=base.plant_params.replace(m=m)) for m in (3.0, 4.0, 5.0)]
+    trucks.append(trucks[0])
+    got: dict[str, Any] = {"parent": PARENT}
+    for workers in (1, 2):
+        pd._MEMO.clear()
+        said: list[str] = []
+        out = pd.DiagnosedControllers(cfg, said.append, workers=workers)(base, trucks)
+        got[f"models_{workers}"] = [repr(setup.model) for setup, _ in out]
+        got[f"summaries_{workers}"] = [summary for _, summary in out]
+        got[f"said_{workers}"] = [line.rsplit(" (", 1)[0] for line in said]  # not the time
+    os.close(write)
+    with os.fdopen(read) as f:
+        ran_in = [int(x) for x in f.read().split()]
+    got["ran_in"] = ran_in
+    return got
+
+
+CHECKS = {
+    "order": order, "raised": raised, "killed": killed, "diagnosis": diagnosis, "mixed": mixed,
+}  # fmt: skip
 
 if __name__ == "__main__":
     print(json.dumps(CHECKS[sys.argv[1]](), default=str))

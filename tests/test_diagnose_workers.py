@@ -87,6 +87,20 @@ def test_diagnosis_on_workers_is_the_diagnosis_in_order() -> None:
     assert r["said_forked"] == r["said_plain"]
 
 
+def test_drawn_trucks_diagnosed_on_workers_get_the_same_controllers() -> None:
+    """``truckd sim --mixed`` drives and diagnoses the drawn trucks on forked workers: the
+    same controllers, summaries and progress as one after another; a repeated truck is
+    diagnosed once; the trucks ran in other processes."""
+    r = _fresh("mixed")
+    assert r["models_2"] == r["models_1"] and r["summaries_2"] == r["summaries_1"]
+    assert r["said_2"] == r["said_1"]
+    assert [line.split(": model ")[1] for line in r["said_1"]] == [
+        "diagnosed", "diagnosed", "diagnosed", "reused",
+    ]  # fmt: skip
+    assert len(r["ran_in"]) == 6  # three trucks, each way
+    assert set(r["ran_in"][3:]) - {r["parent"]}, "no truck was diagnosed on a worker"
+
+
 @pytest.mark.parametrize("value", ["0", "65", "two", "1.5"])
 def test_jobs_outside_its_range_is_exit_2(value: str, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["diagnose", "any.csv", "--jobs", value]) == 2

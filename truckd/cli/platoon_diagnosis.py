@@ -49,8 +49,13 @@ from truckd.runtime.characterize_plan import EXIT_DONE
 from truckd.runtime.ratekeeper import SteppedClock
 from truckd.sim.closed_loop import SimSetup
 from truckd.sim.platoon_truck import on_model
+from truckd.workers import ForkMap
 
 Progress = Callable[[str], None]
+
+DIAGNOSIS_JOBS_MAX = 4
+"""Worker processes ``truckd sim --mixed`` drives and diagnoses the drawn trucks on, at
+most (and at most the CPUs the process may use)."""
 
 _MEMO: dict[str, ModelFile] = {}
 """Diagnosed models of this process, by :func:`identification_key`."""
@@ -203,58 +208,121 @@ class DiagnosedControllers:
 
     ``cfg`` the configuration (its ``vehicle:`` is the diagnosis's starting point, its
     ``characterize:`` section the drive); ``progress`` gets one line per truck;
-    ``cache_dir`` keeps the models on disk (see the module docstring)."""
+    ``cache_dir`` keeps the models on disk (see the module docstring); ``workers`` above
+    1: the trucks to diagnose are driven and diagnosed on that many forked processes
+    (:class:`truckd.workers.ForkMap`; the same models)."""
 
     def __init__(
-        self, cfg: TruckConfig, progress: Progress = _quiet, cache_dir: Path | None = None
+        self,
+        cfg: TruckConfig,
+        progress: Progress = _quiet,
+        cache_dir: Path | None = None,
+        workers: int = 1,
     ) -> None:
         self.cfg = cfg
         self.progress = progress
         self.cache_dir = cache_dir
+        self.workers = workers
         self.diagnosed = 0
         """Trucks diagnosed (not found in the process's memo or the cache)."""
+
+    def _path(self, key: str) -> Path | None:
+        if self.cache_dir is None:
+            return None
+        digest = hashlib.sha256((code_digest() + "\n" + key).encode()).hexdigest()
+        return self.cache_dir / f"{digest}.yaml"
+
+    def _known(self, key: str) -> tuple[ModelFile, str] | None:
+        """The model of an identification ``key`` found in the process's memo ("reused")
+        or the disk cache ("cache"); None when it must be diagnosed."""
+        if key in _MEMO:
+            return _MEMO[key], "reused"
+        path = self._path(key)
+        hit = _cached(path) if path is not None else None
+        if hit is None:
+            return None
+        _MEMO[key] = hit
+        return hit, "cache"
 
     def model(self, truth: SimSetup) -> tuple[ModelFile, str]:
         """The diagnosed model of ``truth`` and where it came from ("diagnosed",
         "reused": diagnosed before in this process, "cache")."""
-        tcfg = identification_config(self.cfg, truth)
-        key = identification_key(tcfg)
-        if key in _MEMO:
-            return _MEMO[key], "reused"
-        path = None
-        if self.cache_dir is not None:
-            digest = hashlib.sha256((code_digest() + "\n" + key).encode()).hexdigest()
-            path = self.cache_dir / f"{digest}.yaml"
-            hit = _cached(path)
-            if hit is not None:
-                _MEMO[key] = hit
-                return hit, "cache"
-        model = identify_truck(self.cfg, truth)
-        self.diagnosed += 1
-        if path is not None:
-            write_model(path, model)
-        _MEMO[key] = model
-        return model, "diagnosed"
+        try:
+            model, where, _ = self._models([truth], lambda _i, _m: None)[0]
+        except _TruckDiagnosisError as exc:
+            raise TruckdError(exc.why) from None
+        return model, where
+
+    def _models(
+        self, trucks: Sequence[SimSetup], done: Callable[[int, tuple[ModelFile, str, float]], None]
+    ) -> list[tuple[ModelFile, str, float]]:
+        """Each truck's model, where it came from and the seconds its identification
+        took, ``done(i, that)`` as each is known (in order); the trucks to diagnose (one
+        per identification) on the workers, all before the first is known, or here one
+        after another.  _TruckDiagnosisError for the first truck whose diagnosis failed."""
+        keys = [identification_key(identification_config(self.cfg, t)) for t in trucks]
+        todo: dict[str, int] = {}
+        for i, key in enumerate(keys):
+            if key not in todo and self._known(key) is None:
+                todo[key] = i
+
+        def identify(i: int) -> tuple[ModelFile | None, str, float]:
+            t0 = time.monotonic()
+            try:
+                return identify_truck(self.cfg, trucks[i]), "", time.monotonic() - t0
+            except (TruckdError, InputError) as exc:
+                return None, str(exc), time.monotonic() - t0
+
+        firsts = list(todo.values())
+        ran = {}
+        if self.workers > 1 and len(firsts) > 1:
+            ran = dict(zip(firsts, ForkMap(self.workers)(identify, firsts), strict=True))
+        out: list[tuple[ModelFile, str, float]] = []
+        for i, key in enumerate(keys):
+            if todo.get(key) == i:
+                model, error, secs = ran[i] if i in ran else identify(i)
+                if model is None:
+                    raise _TruckDiagnosisError(i, error)
+                self.diagnosed += 1
+                path = self._path(key)
+                if path is not None:
+                    write_model(path, model)
+                _MEMO[key] = model
+                out.append((model, "diagnosed", secs))
+            else:
+                known = self._known(key)
+                assert known is not None  # found above, or diagnosed for an earlier truck
+                out.append((*known, 0.0))
+            done(i, out[-1])
+        return out
 
     def __call__(
         self, base: SimSetup, trucks: Sequence[SimSetup]
     ) -> list[tuple[SimSetup, dict[str, Any]]]:
         out: list[tuple[SimSetup, dict[str, Any]]] = []
-        for i, truth in enumerate(trucks):
-            t0 = time.monotonic()
-            try:
-                model, where = self.model(truth)
-            except (TruckdError, InputError) as exc:
-                raise TruckdError(
-                    f"truck{i}: its identification could not be diagnosed ({exc}); "
-                    "--true-models runs the controllers on the drawn trucks' true parameters"
-                ) from None
-            self.progress(
-                f"truck{i} ({i + 1}/{len(trucks)}): model {where} ({time.monotonic() - t0:.1f} s)"
-            )
+
+        def done(i: int, got: tuple[ModelFile, str, float]) -> None:
+            model, where, secs = got
+            self.progress(f"truck{i} ({i + 1}/{len(trucks)}): model {where} ({secs:.1f} s)")
             cm = ControlModel(model.vehicle, model.effects)
-            out.append((on_model(base, truth, cm), diagnosed_summary(model, truth)))
+            out.append((on_model(base, trucks[i], cm), diagnosed_summary(model, trucks[i])))
+
+        try:
+            self._models(trucks, done)
+        except _TruckDiagnosisError as exc:
+            raise TruckdError(
+                f"truck{exc.truck}: its identification could not be diagnosed ({exc.why}); "
+                "--true-models runs the controllers on the drawn trucks' true parameters"
+            ) from None
         return out
+
+
+class _TruckDiagnosisError(Exception):
+    """The diagnosis of truck ``truck`` failed (``why``)."""
+
+    def __init__(self, truck: int, why: str) -> None:
+        super().__init__(why)
+        self.truck, self.why = truck, why
 
 
 def stderr_progress(msg: str) -> None:

@@ -182,12 +182,18 @@ def run_platoon_cli(args: argparse.Namespace) -> int:
     controllers = None
     if args.mixed and not args.true_models:
         # here: the diagnosis stack (scipy) only for the runs that diagnose
-        from truckd.cli.platoon_diagnosis import DiagnosedControllers, stderr_progress
+        from truckd.cli.platoon_diagnosis import (
+            DIAGNOSIS_JOBS_MAX,
+            DiagnosedControllers,
+            stderr_progress,
+        )
+        from truckd.workers import usable_cpus
 
         cache = None
         if args.diagnosis_cache:
             cache = ensure_dir(args.diagnosis_cache, "diagnosis cache directory")
-        controllers = DiagnosedControllers(cfg, stderr_progress, cache)
+        jobs = min(usable_cpus(), DIAGNOSIS_JOBS_MAX)  # the drawn trucks on forked workers
+        controllers = DiagnosedControllers(cfg, stderr_progress, cache, jobs)
     for name in names:
         m, tr = run_platoon(
             make_platoon_scenario(name),
