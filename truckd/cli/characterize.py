@@ -44,6 +44,7 @@ from truckd.runtime.characterize import Routine
 from truckd.runtime.characterize_plan import EXIT_DONE, Check, Experiment, Result, TruckFacts
 from truckd.runtime.daemon import Daemon
 from truckd.runtime.ratekeeper import SteppedClock
+from truckd.workers import usable_cpus
 
 LOG_COLUMNS = ("t", "u", "v", "vbat", "x", "range_raw")
 """The daemon log's columns copied into DIR/log.csv (plus ``experiment``, its index, and
@@ -312,12 +313,14 @@ def _analyse_into(
     out: Path,
     summary: dict[str, Any],
     console: Callable[[str], None],
+    workers: int = 1,
 ) -> int:
     """Analyse ``log`` into ``out`` and write ``summary`` with the analysis keys and
     ``analysed``; exit 0, or 1 when the log cannot be analysed (it is kept, and the summary
-    says why: the files the analysis wrote before it failed are not a set)."""
+    says why: the files the analysis wrote before it failed are not a set).  ``workers``:
+    the diagnosis's (1 after a drive: the process that held the truck forks nothing)."""
     try:
-        summary.update(analyse(cfg, log, result, out, console))
+        summary.update(analyse(cfg, log, result, out, console, workers))
     except (TruckdError, InputError) as exc:
         summary.update(analysed=False, analysis_error=str(exc))
         _write_json(out / "summary.json", summary)
@@ -362,7 +365,8 @@ def analyse_dir(cfg: TruckConfig, d: Path, console: Callable[[str], None] = _con
     except InputError as exc:
         console(f"characterize: {exc}")
         return 2
-    return _analyse_into(cfg, log, result, d, summary, console)
+    # no link to a truck here: the diagnosis's fits may go to forked workers
+    return _analyse_into(cfg, log, result, d, summary, console, min(usable_cpus(), 4))
 
 
 def _experiment(e: dict[str, Any]) -> Experiment:
@@ -393,16 +397,22 @@ def split_validation(log: Log, result: Result) -> tuple[Log, Log | None]:
 
 
 def analyse(
-    cfg: TruckConfig, log: Log, result: Result, out: Path, console: Callable[[str], None]
+    cfg: TruckConfig,
+    log: Log,
+    result: Result,
+    out: Path,
+    console: Callable[[str], None],
+    workers: int = 1,
 ) -> dict[str, Any]:
-    """Diagnose the experiment log (the chirp validates), write model.yaml,
-    diagnosis.json and report.html; the summary's analysis keys."""
+    """Diagnose the experiment log (the chirp validates; its fits on ``workers``
+    processes), write model.yaml, diagnosis.json and report.html; the summary's analysis
+    keys."""
     from truckd.ident.api import diagnose_log, model_of, require_physical
     from truckd.modelfile import write_model
 
     fit, val = split_validation(log, result)
     console("characterize: analysis")
-    diag = diagnose_log(fit, cfg.vehicle, val, lambda m: console(f"  {m}"))
+    diag = diagnose_log(fit, cfg.vehicle, val, lambda m: console(f"  {m}"), workers=workers)
     model = require_physical(model_of(diag, "truckd characterize"), "log.csv", "diagnosed model")
     write_model(out / "model.yaml", model)
     dj = diag.to_json()
