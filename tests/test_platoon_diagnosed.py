@@ -139,15 +139,23 @@ def test_one_diagnosis_per_drawn_truck_and_the_disk_cache(
     cfg = load_config()
     base = _setup()
     a, b = replace(base, plant_params=base.plant_params.replace(m=4.0)), base
-    ctl = pd.DiagnosedControllers(cfg, cache_dir=tmp_path)
+    said: list[str] = []
+    ctl = pd.DiagnosedControllers(cfg, said.append, cache_dir=tmp_path)
     out = ctl(base, [a, b, a])
     assert len(calls) == 2 and ctl.diagnosed == 2  # the third truck is the first again
+    assert [line.split(": model ")[1].split(" (")[0] for line in said] == [
+        "diagnosed", "diagnosed", "reused",
+    ]  # fmt: skip
     assert out[0][0].model.params.R_m == pytest.approx(0.9 * a.plant_params.R_m)
     assert out[0][1] == out[2][1]
     assert len(list(tmp_path.glob("*.yaml"))) == 2
     monkeypatch.setattr(pd, "_MEMO", {})  # a new process
-    pd.DiagnosedControllers(cfg, cache_dir=tmp_path)(base, [a, b])
+    said.clear()
+    pd.DiagnosedControllers(cfg, said.append, cache_dir=tmp_path)(base, [a, b, a])
     assert len(calls) == 2  # both from the cache
+    assert [line.split(": model ")[1].split(" (")[0] for line in said] == [
+        "cache", "cache", "reused",
+    ]  # fmt: skip
     monkeypatch.setattr(pd, "_MEMO", {})
     other = replace(cfg, characterize=replace(cfg.characterize, step_duration_s=1.0))
     pd.DiagnosedControllers(other, cache_dir=tmp_path)(base, [a])

@@ -262,9 +262,14 @@ class DiagnosedControllers:
         after another.  _TruckDiagnosisError for the first truck whose diagnosis failed."""
         keys = [identification_key(identification_config(self.cfg, t)) for t in trucks]
         todo: dict[str, int] = {}
+        found: dict[str, tuple[ModelFile, str]] = {}
         for i, key in enumerate(keys):
-            if key not in todo and self._known(key) is None:
-                todo[key] = i
+            if key not in todo and key not in found:
+                known = self._known(key)
+                if known is None:
+                    todo[key] = i
+                else:
+                    found[key] = known
 
         def identify(i: int) -> tuple[ModelFile | None, str, float]:
             t0 = time.monotonic()
@@ -289,10 +294,9 @@ class DiagnosedControllers:
                     write_model(path, model)
                 _MEMO[key] = model
                 out.append((model, "diagnosed", secs))
-            else:
-                known = self._known(key)
-                assert known is not None  # found above, or diagnosed for an earlier truck
-                out.append((*known, 0.0))
+            else:  # found above (then an identical later truck: reused), or diagnosed above
+                first = found.pop(key, None)
+                out.append((*(first or (_MEMO[key], "reused")), 0.0))
             done(i, out[-1])
         return out
 
