@@ -261,6 +261,23 @@ def test_auto_order_opens_room_for_a_joining_truck_and_follows_it() -> None:
     assert dp.mode.extra_headway == 0.0
 
 
+def test_the_room_for_a_joiner_is_a_cacc_gap_at_the_speed_driven() -> None:
+    """A joiner announced while the platoon drives 1.2 m/s, which then settles at 1.0
+    m/s: the extra headway follows the speed (a CACC gap at 1.0 m/s, d_0 + h v), not
+    the headway of the moment it was heard (a gap 0.06 m short at 1.0 m/s)."""
+    fleet = {"t1": "", "t2": "t1", "j": "t2"}
+    dp, clock = _daemon_platoon("t2")
+    _drive(dp, clock, {"t1": "", "t2": "t1"}, 80, gap=1.0, v=1.2, v_lead=1.2)
+    _drive(dp, clock, fleet, 20, gap=1.0, v=1.2, v_lead=1.2, seq0=80)
+    assert dp.mode is not None
+    d_0, h = dp.cyc.control_cfg.d_0, dp.cfg.cacc_headway
+    assert abs(dp.mode.extra_headway - (d_0 + h * 1.2) / 1.2) < 0.01
+    _drive(dp, clock, fleet, 600, gap=1.0, v=1.0, v_lead=1.0, seq0=100)
+    assert abs(dp.mode.extra_headway * 1.0 - (d_0 + h * 1.0)) < 0.005  # the room, m
+    order = dp.health()["order"]
+    assert order["changes"] == 1 and "opens room for j" in order["last_change"]  # once
+
+
 def test_trucks_heard_from_the_start_behind_the_same_predecessor_are_no_joiners() -> None:
     """Two daemons started together behind t1 (this one and x, say beside it in the next
     lane): x's plans name t1 from the first one heard, so x was there first, not a truck

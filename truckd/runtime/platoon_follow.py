@@ -36,6 +36,9 @@ speed)."""
 REJOIN_S = 30.0
 """s: a predecessor that went is no tail candidate for this long."""
 
+ROOM_SPEED_TAU_S = 1.0
+"""s: time constant of the speed the room for a joining truck is made for."""
+
 LEAD_GONE_S = 1.0
 """s: no lead in range this long while following: the predecessor went (a jump farther;
 longer than the lead filter's restarts after a dropout or a stall)."""
@@ -134,6 +137,9 @@ class Follow:
         """``(t, what)`` of every change (a new predecessor, room opened)."""
         self.alone = False
         """Told to drive alone (:meth:`told`): no tail is searched until told to join."""
+        self._room_v = 0.0
+        self._room_t = t0
+        """The speed (m/s) the room for a joiner is made for, low-passed, and when (s)."""
         self._moving_in = False
         """Told to join: the vehicle in range is still the one driven behind before; the
         first change of it (a jump, or out of range) is the truck moving in, no leave."""
@@ -197,10 +203,17 @@ class Follow:
         want = standby_for(self.vid, self.predecessor, heard.pre, heard.since, self.pred_since)
         if want != self.standby.sender and self.predecessor in heard.pre:  # gone: keep it
             self.standby = PlanSource(want)
-        if joiner and self.mode.extra_headway == 0.0 and v > 0.1:
-            # room for the joining truck: its own CACC gap (d_0 + h v) as extra headway
-            self.mode.extra_headway = (self.d_0 + pcfg.cacc_headway * v) / v
-            self.events.append((t, f"{self.vid} opens room for {joiner}"))
+        if joiner and v > 0.1:
+            # room for the joining truck: its own CACC gap (d_0 + h v) as extra headway, at
+            # the speed driven while it is announced (low-passed: a room made for the speed
+            # of the moment it was heard is too short once the platoon drives faster)
+            if self.mode.extra_headway == 0.0:
+                self._room_v = v
+                self.events.append((t, f"{self.vid} opens room for {joiner}"))
+            else:
+                self._room_v += min(1.0, (t - self._room_t) / ROOM_SPEED_TAU_S) * (v - self._room_v)
+            self._room_t = t
+            self.mode.extra_headway = (self.d_0 + pcfg.cacc_headway * self._room_v) / self._room_v
         elif not joiner and self.mode.extra_headway != 0.0:
             # the joiner no longer announced (gone silent, or changed its mind): the room
             # closes by the headway ramp
