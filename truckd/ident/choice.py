@@ -18,14 +18,14 @@ from truckd.ident.candidates import (
     fit_work,
 )
 from truckd.ident.extend import fit_candidate
-from truckd.ident.fanout import Mapper, fan_out, in_order
+from truckd.ident.fanout import Mapper, in_order, kept_lines
 from truckd.ident.judge import passes_over
 from truckd.ident.pairs import PAIR_TOP, best_pair, pair_order
 from truckd.ident.result import (
     CandidateRow,
 )
 from truckd.ident.runs import Prepared
-from truckd.ident.scoring import Model, Progress, quiet, still_structured, val_cost
+from truckd.ident.scoring import Model, Progress, still_structured, val_cost
 from truckd.ident.seed import Seed
 from truckd.ident.selection import (
     close,
@@ -106,14 +106,10 @@ class _Selecting:
         said: dict[int, list[str]] = {}
         if self.mapper is not in_order and len(todo) > 1:
 
-            def kept(k: int, _: Progress) -> tuple[FitResult, list[str]]:
-                lines: list[str] = []
-                return one(k, lines.append), lines
-
             def work(k: int) -> float:
                 return fit_work(jobs[k][2]) + len(jobs[k][1])
 
-            ran = fan_out(self.mapper, kept, todo, quiet, work)
+            ran = kept_lines(self.mapper, one, todo, work)
             for k, (out, lines) in zip(todo, ran, strict=True):
                 base = jobs[k][0]
                 # a fit no better than its start is its start, the same object as here
@@ -319,12 +315,10 @@ def _backward(s: _Selecting) -> None:
     first, names = s.current, list(s.accepted)
     ahead: list[tuple[Model, list[str]]] | None = None
     if s.mapper is not in_order:
-
-        def kept(name: str, _: Progress) -> tuple[Model, list[str]]:
-            lines: list[str] = []
-            return without(first, names, name, lines.append), lines
-
-        ahead = fan_out(s.mapper, kept, names, quiet, lambda n: fit_work(by_name[n]))
+        ahead = kept_lines(
+            s.mapper, lambda n, say: without(first, names, n, say), names,
+            lambda n: fit_work(by_name[n]),
+        )  # fmt: skip
     for k, name in enumerate(names):
         if ahead is not None and s.current is first:
             reduced, lines = ahead[k]

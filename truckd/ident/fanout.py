@@ -31,20 +31,15 @@ def in_order(fn: Callable[[T], R], items: Sequence[T], /) -> list[R]:
     return [fn(x) for x in items]
 
 
-def fan_out(
+def kept_lines(
     mapper: Mapper,
     task: Callable[[T, Progress], R],
     items: Sequence[T],
-    progress: Progress,
     work: Callable[[T], float] | None = None,
-) -> list[R]:
-    """``task(item, progress)`` for each item through ``mapper``; with the plain loop
-    the progress goes straight through, else each task's lines are kept and said in the
-    items' order once all are done.  ``work``: the items' expected cost; the mapper
-    starts the costliest first (a long task started last leaves the other workers idle)
-    and the results come back in the items' order."""
-    if mapper is in_order or len(items) < 2:
-        return [task(x, progress) for x in items]
+) -> list[tuple[R, list[str]]]:
+    """``task(item, say)`` for each item through ``mapper``, each with the progress lines
+    it said, in the items' order.  ``work``: the items' expected cost; the mapper starts
+    the costliest first (a long task started last leaves the other workers idle)."""
 
     def kept(k: int) -> tuple[R, list[str]]:
         lines: list[str] = []
@@ -54,9 +49,23 @@ def fan_out(
     if work is not None:
         order.sort(key=lambda k: -work(items[k]))
     done = dict(zip(order, mapper(kept, order), strict=True))
+    return [done[k] for k in range(len(items))]
+
+
+def fan_out(
+    mapper: Mapper,
+    task: Callable[[T, Progress], R],
+    items: Sequence[T],
+    progress: Progress,
+    work: Callable[[T], float] | None = None,
+) -> list[R]:
+    """``task(item, progress)`` for each item through ``mapper``; with the plain loop
+    the progress goes straight through, else each task's lines are kept and said in the
+    items' order once all are done (:func:`kept_lines`, ``work`` as there)."""
+    if mapper is in_order or len(items) < 2:
+        return [task(x, progress) for x in items]
     out: list[R] = []
-    for k in range(len(items)):
-        result, lines = done[k]
+    for result, lines in kept_lines(mapper, task, items, work):
         for line in lines:
             progress(line)
         out.append(result)
