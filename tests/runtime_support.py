@@ -8,6 +8,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable, Mapping
 from pathlib import Path
@@ -82,6 +83,21 @@ def watch_vehicle(session: Any, vehicle_id: str) -> dict[str, list[dict[str, Any
             lambda m, seen=seen: seen.append(json.loads(m.payload.to_bytes())),
         )
     return got
+
+
+def run_daemon_beside(daemon: Any, session: Any, publish: Callable[[threading.Event], None]) -> int:
+    """Run ``daemon`` (a :class:`truckd.runtime.daemon.Daemon` with its duration) while
+    ``publish(stop)`` runs on a thread of its own until ``stop`` is set; then the thread
+    is joined and ``session`` (a Zenoh session) closed.  The daemon's exit code."""
+    stop = threading.Event()
+    th = threading.Thread(target=publish, args=(stop,), daemon=True)
+    th.start()
+    try:
+        return int(daemon.run())
+    finally:
+        stop.set()
+        th.join(5.0)
+        session.close()
 
 
 def run_json_script(args: list[str], out: Path, timeout: float) -> tuple[dict[str, Any], str]:

@@ -9,12 +9,20 @@ from __future__ import annotations
 import json
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import zenoh
-from runtime_support import endpoint, follower_config, free_port, wait_for, watch_vehicle
+from runtime_support import (
+    endpoint,
+    follower_config,
+    free_port,
+    run_daemon_beside,
+    wait_for,
+    watch_vehicle,
+)
 
 from truckd.config.truck import load_config
 from truckd.control.estimator import Estimate
@@ -46,9 +54,9 @@ class Clock:
         return self.t
 
 
-def _daemon_platoon(predecessor: str = "") -> tuple[DaemonPlatoon, Clock]:
+def _daemon_platoon(predecessor: str = "", order: str = "auto") -> tuple[DaemonPlatoon, Clock]:
     cfg = load_config()
-    pcfg: PlatoonConfig = replace(cfg.platoon, order="auto", predecessor=predecessor)
+    pcfg: PlatoonConfig = replace(cfg.platoon, order=order, predecessor=predecessor)
     cyc = CompanionCycle(
         ControlModel(cfg.vehicle),
         platoon_control(cfg.control, pcfg),
@@ -444,19 +452,31 @@ def test_only_the_auto_order_takes_join_orders() -> None:
     predecessor is the configuration's); with ``auto`` it subscribes to its own key."""
     keys: dict[str, list[str]] = {"fixed": [], "auto": []}
     for order in ("fixed", "auto"):
-        cfg = load_config()
-        pcfg: PlatoonConfig = replace(cfg.platoon, order=order, predecessor="t1")
-        cyc = CompanionCycle(
-            ControlModel(cfg.vehicle), platoon_control(cfg.control, pcfg),
-            cfg.runtime.supervisor, cfg.ticks_per_rev, cfg.runtime.stop_ramp_v_per_s,
-            time_budget=False,
-        )  # fmt: skip
-        dp = DaemonPlatoon("me", pcfg, cyc)
+        dp, _ = _daemon_platoon("t1", order)
         dp.subscribe(
             lambda key, _cb, o=order: keys[o].append(key),
             subscribe_keyed=lambda key, _cb, o=order: keys[o].append(key),
         )
     assert join_key("me") in keys["auto"] and join_key("me") not in keys["fixed"]
+
+
+def _fleet(
+    session: Any, v_lead: float, stop: threading.Event, each: Callable[[], None] | None = None
+) -> None:
+    """t0 (leading) and t1 (behind t0) publish a plan at ``v_lead`` (m/s) every 10 ms on
+    ``session`` until ``stop``; ``each()`` after every pair of plans."""
+    pubs = {v: session.declare_publisher(f"truckd/{v}/plan") for v in ("t0", "t1")}
+    seq = 0
+    while not stop.is_set():
+        for vid, pre in (("t0", ""), ("t1", "t0")):
+            p = replace(
+                kinematic_plan(time.time(), seq, 0.01, v_lead, 0.0, 40, vid), predecessor=pre
+            )
+            pubs[vid].put(encode_plan(p))
+        if each is not None:
+            each()
+        seq += 1
+        time.sleep(0.01)
 
 
 def test_daemon_with_auto_order_finds_the_tail_over_zenoh(tmp_path: Path) -> None:
@@ -470,29 +490,8 @@ def test_daemon_with_auto_order_finds_the_tail_over_zenoh(tmp_path: Path) -> Non
     s = zenoh.open(zenoh_config(listen=[endpoint(port)]))
     got = watch_vehicle(s, "f1")
     states, plans, health = got["state"], got["plan"], got["health"]
-    stop = threading.Event()
-
-    def fleet() -> None:
-        pubs = {v: s.declare_publisher(f"truckd/{v}/plan") for v in ("t0", "t1")}
-        seq = 0
-        while not stop.is_set():
-            for vid, pre in (("t0", ""), ("t1", "t0")):
-                p = replace(
-                    kinematic_plan(time.time(), seq, 0.01, v_lead, 0.0, 40, vid), predecessor=pre
-                )
-                pubs[vid].put(encode_plan(p))
-            seq += 1
-            time.sleep(0.01)
-
-    th = threading.Thread(target=fleet, daemon=True)
-    th.start()
     d = Daemon(cfg, "sim", duration=4.0, env={})
-    try:
-        assert d.run() == 0
-    finally:
-        stop.set()
-        th.join(5.0)
-        s.close()
+    assert run_daemon_beside(d, s, lambda stop: _fleet(s, v_lead, stop)) == 0
     assert wait_for(lambda: bool(plans), 1.0)
     modes = [m.get("platoon") for m in states]
     assert "CACC" in modes, modes[-20:]
@@ -516,33 +515,15 @@ def test_a_running_daemon_is_told_to_join_over_zenoh(tmp_path: Path) -> None:
     s = zenoh.open(zenoh_config(listen=[endpoint(port)]))
     got = watch_vehicle(s, "f1")
     plans, health = got["plan"], got["health"]
-    stop = threading.Event()
     told: list[float] = []
 
-    def fleet() -> None:
-        pubs = {v: s.declare_publisher(f"truckd/{v}/plan") for v in ("t0", "t1")}
-        seq = 0
-        while not stop.is_set():
-            for vid, pre in (("t0", ""), ("t1", "t0")):
-                p = replace(
-                    kinematic_plan(time.time(), seq, 0.01, v_lead, 0.0, 40, vid), predecessor=pre
-                )
-                pubs[vid].put(encode_plan(p))
-            if not told and any(p.get("predecessor") == "t1" for p in list(plans)):
-                s.put(join_key("f1"), json.dumps({"behind": "t0"}))
-                told.append(time.time())
-            seq += 1
-            time.sleep(0.01)
+    def tell_when_t1() -> None:
+        if not told and any(p.get("predecessor") == "t1" for p in list(plans)):
+            s.put(join_key("f1"), json.dumps({"behind": "t0"}))
+            told.append(time.time())
 
-    th = threading.Thread(target=fleet, daemon=True)
-    th.start()
     d = Daemon(cfg, "sim", duration=4.0, env={})
-    try:
-        assert d.run() == 0
-    finally:
-        stop.set()
-        th.join(5.0)
-        s.close()
+    assert run_daemon_beside(d, s, lambda stop: _fleet(s, v_lead, stop, tell_when_t1)) == 0
     assert told, "the daemon's plans never named t1"
     assert wait_for(lambda: bool(plans), 1.0)
     assert plans[-1]["predecessor"] == "t0"

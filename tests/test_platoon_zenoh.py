@@ -11,7 +11,14 @@ from typing import Any
 
 import pytest
 import zenoh
-from runtime_support import endpoint, follower_config, free_port, wait_for, watch_vehicle
+from runtime_support import (
+    endpoint,
+    follower_config,
+    free_port,
+    run_daemon_beside,
+    wait_for,
+    watch_vehicle,
+)
 
 from truckd.config.runtime import TelemetryConfig
 from truckd.config.truck import load_config
@@ -120,10 +127,9 @@ def test_daemon_follows_its_predecessors_plan_then_falls_back_to_acc(
     s = zenoh.open(zenoh_config(listen=[endpoint(port)]))
     got = watch_vehicle(s, "f1")
     states, plans, health = got["state"], got["plan"], got["health"]
-    stop = threading.Event()
     stopped_at: list[float] = []
 
-    def lead() -> None:
+    def lead(stop: threading.Event) -> None:
         pub = s.declare_publisher("truckd/lead/plan")
         seq = 0
         cacc_seen = None
@@ -138,15 +144,8 @@ def test_daemon_follows_its_predecessors_plan_then_falls_back_to_acc(
             seq += 1
             time.sleep(0.01)
 
-    th = threading.Thread(target=lead, daemon=True)
-    th.start()
     d = Daemon(load_config(cfg_path), "sim", duration=4.0, env={})
-    try:
-        assert d.run() == 0
-    finally:
-        stop.set()
-        th.join(5.0)
-        s.close()
+    assert run_daemon_beside(d, s, lead) == 0
     modes = [m.get("platoon") for m in states]
     assert "CACC" in modes, modes[-20:]
     assert stopped_at, "the daemon never reached CACC"
