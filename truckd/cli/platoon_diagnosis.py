@@ -244,15 +244,6 @@ class DiagnosedControllers:
         _MEMO[key] = hit
         return hit, "cache"
 
-    def model(self, truth: SimSetup) -> tuple[ModelFile, str]:
-        """The diagnosed model of ``truth`` and where it came from ("diagnosed",
-        "reused": diagnosed before in this process, "cache")."""
-        try:
-            model, where, _ = self._models([truth], lambda _i, _m: None)[0]
-        except _TruckDiagnosisError as exc:
-            raise TruckdError(exc.why) from None
-        return model, where
-
     def _models(
         self, trucks: Sequence[SimSetup], done: Callable[[int, tuple[ModelFile, str, float]], None]
     ) -> list[tuple[ModelFile, str, float]]:
