@@ -18,13 +18,10 @@ for the tasks already running only); nothing outlives it.
 from __future__ import annotations
 
 import gc
-import multiprocessing
 import os
 import threading
 import warnings
 from collections.abc import Callable, Sequence
-from concurrent.futures import ProcessPoolExecutor
-from concurrent.futures.process import BrokenProcessPool
 from typing import Any, TypeVar
 
 T = TypeVar("T")
@@ -53,6 +50,8 @@ def usable_cpus() -> int:
 def can_fork() -> bool:
     """Whether a fork here is safe: the ``fork`` start method exists and no other
     Python thread runs."""
+    import multiprocessing  # here: importing this module costs nothing until a fork
+
     return "fork" in multiprocessing.get_all_start_methods() and threading.active_count() == 1
 
 
@@ -70,6 +69,10 @@ class ForkMap:
         n = min(self.workers, len(items))
         if n < 2 or not can_fork():
             return [fn(x) for x in items]
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+        from concurrent.futures.process import BrokenProcessPool
+
         global _TASK
         _TASK = (fn, items)
         # The children's collector then leaves the inherited objects alone: it would
