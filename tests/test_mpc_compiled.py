@@ -176,7 +176,7 @@ def test_without_the_library_the_python_path_runs_and_says_why() -> None:
 def test_a_qp_of_another_shape_runs_the_python_path_and_says_why() -> None:
     cfg = dataclasses.replace(load_config().control, horizon=20)
     s = MpcSolver(_drawn(2), cfg)
-    assert s.backend.startswith("python (generated for a QP of 10 variables and 137 rows")
+    assert s.backend.startswith("python (generated for a QP of 10 variables and 85 rows")
     sparse = MpcSolver(_drawn(2), dataclasses.replace(cfg, move_blocks=0))
     assert sparse.backend.startswith("python (the sparse QP")
 

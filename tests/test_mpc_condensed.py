@@ -10,6 +10,7 @@ import math
 import numpy as np
 import pytest
 
+from truckd.control import condensed
 from truckd.control.condensed import CondensedQp, block_lengths, max_block_steps
 from truckd.control.config import ControlConfig
 from truckd.control.mpc import MpcSolver
@@ -104,14 +105,14 @@ def test_condensed_vectors_equal_the_sparse_ones_condensed(
         qs, ls, hs = qp.vectors(mode, inp)
         c = cq.C0 @ inp.x0 + cq.Cl @ inp.v_lead
         np.testing.assert_allclose(q, cq.ME.T @ (qs + qp.P[mode] @ c), rtol=1e-10, atol=1e-9)
-        r = qp.lay.r_gap
-        ac = a_sparse[r:] @ c
+        sel = qp.lay.r_gap + cq.state_sel
+        ac = a_sparse[sel] @ c
         rows = cq.state_rows
-        finite = ls[r:] > -1e20
-        np.testing.assert_allclose(lo[rows][finite], (ls[r:] - ac)[finite], rtol=1e-12, atol=1e-12)
+        finite = ls[sel] > -1e20
+        np.testing.assert_allclose(lo[rows][finite], (ls[sel] - ac)[finite], rtol=1e-12, atol=1e-12)
         assert np.all(lo[rows][~finite] < -1e20)
-        finite = hs[r:] < 1e20
-        np.testing.assert_allclose(hi[rows][finite], (hs[r:] - ac)[finite], rtol=1e-12, atol=1e-12)
+        finite = hs[sel] < 1e20
+        np.testing.assert_allclose(hi[rows][finite], (hs[sel] - ac)[finite], rtol=1e-12, atol=1e-12)
         assert np.all(hi[rows][~finite] > 1e20)
         b0 = cq.block_rows[0]
         assert (lo[b0], hi[b0]) == (ls[qp.lay.r_u], hs[qp.lay.r_u])
@@ -250,3 +251,59 @@ def test_lists_and_arrays_fill_alike_and_bad_inputs_leave_the_vectors(
             np.testing.assert_array_equal(cq.q_view, ref[0])
         with pytest.raises(ValueError, match="inputs"):
             cq.fill("follow", dataclasses.replace(as_lists, v_lead=as_lists.v_lead[1:]))
+
+
+def _braking_or_capped(rng: np.random.Generator, cfg: ControlConfig, k: int) -> QpInputs:
+    """Inputs whose optimum presses on the speed rows: fast under a low cap, or a lead
+    stopping close ahead (the truck brakes to rest and the no-reverse rows hold it)."""
+    inp = _inputs(rng, cfg, lead=k % 2 == 1)
+    if k % 2 == 0:
+        return dataclasses.replace(inp, x0=np.array([0.0, 2.3, 3.0]), v_cap=rng.uniform(0.5, 1.5))
+    return dataclasses.replace(
+        inp,
+        x0=np.array([rng.uniform(0, 3), rng.uniform(0.5, 2.0), 0.45]),
+        v_lead=np.zeros(cfg.horizon),
+    )
+
+
+def test_speed_rows_inside_a_block_never_bind(
+    params: VehicleParams, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The QP keeps each block's speed rows at its first and last step only: its optimum
+    is the one with every step's speed rows (the speed is monotone within a block), on
+    instances where those rows bind."""
+    cfg = dataclasses.replace(ControlConfig(), eps=1e-9, max_iter=100_000, time_budget_s=10.0)
+    kept = MpcSolver(ControlModel(params), cfg, compiled=False)
+    assert kept.condensed is not None and len(kept.condensed.speed_steps) == 14
+    monkeypatch.setattr(
+        condensed, "speed_steps", lambda ad, blocks, u_max, v_max: tuple(range(sum(blocks)))
+    )
+    every = MpcSolver(ControlModel(params), cfg, compiled=False)
+    assert every.condensed is not None and every.condensed.m == kept.condensed.m + 52
+    qp, n = every.qp, cfg.horizon
+    rng = np.random.default_rng(21)
+    binding = 0
+    for k in range(16):
+        inp = _braking_or_capped(rng, cfg, k)
+        mode = "follow" if inp.lead else "cruise"
+        a, b = kept.solve(mode, inp), every.solve(mode, inp)
+        assert a.ok and b.ok and a.u is not None and b.u is not None
+        np.testing.assert_allclose(a.u, b.u, atol=1e-5)
+        z = every.last_solution
+        assert z is not None
+        _, lo, hi = qp.vectors(mode, inp)
+        az = qp.A @ z
+        rows = np.r_[qp.lay.r_vhi : qp.lay.r_vhi + n, qp.lay.r_vlo : qp.lay.r_vlo + n]
+        binding += int(np.any(np.minimum(az[rows] - lo[rows], hi[rows] - az[rows]) < 1e-6))
+    assert binding >= 8  # the speed rows bind in most instances: the comparison has teeth
+
+
+def test_a_slow_electrical_pole_keeps_every_speed_row(params: VehicleParams) -> None:
+    """Where the current's transient outlasts the period the speed need not be monotone
+    within a block: every step keeps its speed rows."""
+    cfg = ControlConfig()
+    slow = dataclasses.replace(params, L_m=params.L_m * 20.0)
+    cq = MpcSolver(ControlModel(slow), cfg, compiled=False).condensed
+    assert cq is not None and cq.speed_steps == tuple(range(cfg.horizon))
+    fast = MpcSolver(ControlModel(params), cfg, compiled=False).condensed
+    assert fast is not None and cq.m == fast.m + 52

@@ -14,8 +14,9 @@ and with the inputs held constant over blocks of ``L_0, L_1, ..`` steps (move bl
 
 with rows: each block's input within the voltage bounds (the first also within the rate
 limit of the previous command), the change between consecutive blocks within the rate
-limit (it happens in one step), and every step's state rows of the sparse QP (minimum gap,
-speed limits; ``A_s M E w`` between ``l - A_s c`` and ``u - A_s c``) and the slacks.  OSQP
+limit (it happens in one step), and the state rows of the sparse QP (``A_s M E w`` between
+``l - A_s c`` and ``u - A_s c``): every step's minimum gap, the speed limits at each block's
+first and last step (:func:`speed_steps`: the speed is monotone in between), the slacks.  OSQP
 sees them ordered minimum gap, no reverse, block inputs, speed limit, block changes,
 slacks (:attr:`CondensedQp.state_rows`, ``block_rows``, ``change_rows`` say where each
 went), so that the bounds that change from cycle to cycle form one stretch (see
@@ -25,8 +26,9 @@ and the checks downstream are unchanged.
 
 With one step per block this is the sparse QP itself, condensed (measured slower: its
 dense rows cost more per OSQP iteration than the sparse KKT system).  With 8 blocks at
-N = 40 (1, 1, 2, 4, 8, 8, 8, 8 steps) it has 10 variables and 137 rows instead of 165 and
-324: see docs/controller.md for the time and the closed-loop effect.
+N = 40 (1, 1, 2, 4, 8, 8, 8, 8 steps) it has 10 variables and 85 rows (137 with every
+step's speed rows) instead of 165 and 324: see docs/controller.md for the time and the
+closed-loop effect.
 """
 
 from __future__ import annotations
@@ -86,6 +88,44 @@ def max_block_steps(tau_m: float, period: float, fraction: float) -> int | None:
     return max(1, int(fraction * tau_m / period + 1e-9))
 
 
+SPEED_RIPPLE_MAX = 0.005
+"""m/s: how far the speed may stray beyond its values at a block's first and last step for
+the QP to constrain it there only (:func:`speed_steps`): a quarter of the at-rest speed
+(``moving_speed``, 0.02 m/s), a tenth of one encoder tick per period at 100 Hz."""
+
+
+def speed_steps(ad: Mat, blocks: tuple[int, ...], u_max: float, v_max: float) -> tuple[int, ...]:
+    """Steps ``k`` whose predicted speed ``v_{k+1}`` the QP constrains (speed limit and no
+    reverse), for the discrete model ``ad`` (states ``[e, v, d]``, e and voltages in V,
+    speeds in m/s), move blocks ``blocks``, voltage limit ``u_max`` and speed limit ``v_max``.
+
+    Under a block's constant input the current and the speed (the gap does not feed back)
+    relax along two real modes: from the block's first step on the speed is the slow,
+    mechanical mode's exponential, monotone to the block's end, plus what is left of the
+    fast, electrical one, at most ``2 |b| lambda_f`` (``lambda_f`` the fast mode over one
+    period, ``b`` its speed part for any start within twice the limits).  When that is
+    under :data:`SPEED_RIPPLE_MAX` the speed's extremes over a block lie at its first and
+    last step (to within it), and each block keeps those two rows: 14 of 40 steps with 8
+    blocks at N = 40 (the configured truck: 1e-10 m/s at 100 Hz, 1.7 mm/s at 500 Hz).
+    Otherwise (a slow electrical pole for the period, complex or negative modes) every step
+    keeps its rows."""
+    n = sum(blocks)
+    modes, right = np.linalg.eig(ad[:2, :2])
+    if np.any(modes.imag != 0.0) or np.any(modes.real < 0.0):
+        return tuple(range(n))
+    left = np.linalg.inv(right)
+    f = int(np.argmin(np.abs(modes)))
+    start = abs(left[f, 0]) * 4.0 * u_max + abs(left[f, 1]) * 2.0 * v_max
+    if 2.0 * abs(right[1, f]) * start * abs(modes[f]) > SPEED_RIPPLE_MAX:
+        return tuple(range(n))
+    out: list[int] = []
+    first = 0
+    for length in blocks:
+        out += sorted({first, first + length - 1})
+        first += length
+    return tuple(out)
+
+
 def _doubling_blocks(horizon: int, blocks: int) -> tuple[int, ...]:
     out: list[int] = []
     rest = horizon
@@ -114,6 +154,8 @@ class CondensedQp:
         self.nb = nb
         self.nw = nb + 2
         self.ME, self.C0, self.Cl = self._prediction(qp, blocks)
+        self.speed_steps = speed_steps(qp.pred.Ad, blocks, qp.cfg.u_max, qp.cfg.v_max)
+        """Steps ``k`` whose speed ``v_{k+1}`` keeps its rows (speed limit, no reverse)."""
         perm, r = self._constraint_rows(qp)
         self._cost_terms(qp)
         full = self._fill_matrices(qp, perm, r)
@@ -152,11 +194,16 @@ class CondensedQp:
     def _constraint_rows(self, qp: QpBuilder) -> tuple[Vec, int]:
         """The condensed constraint matrix :attr:`A` in OSQP's row order; returns that
         order (``perm``) and the first state row in the order built (``r``)."""
-        lay, n, nb, me, c0, cl = qp.lay, qp.lay.N, self.nb, self.ME, self.C0, self.Cl
+        lay, n, nb, me = qp.lay, qp.lay.N, self.nb, self.ME
         # Rows: block inputs (nb), block changes (nb - 1), the sparse QP's state and slack
-        # rows (from its minimum-gap block to the end).
-        self._r_state = lay.r_gap
-        a_state = qp.A.tocsr()[lay.r_gap :].toarray()
+        # rows (from its minimum-gap block to the end; speed rows at speed_steps only).
+        ks = np.array(self.speed_steps, dtype=np.intp)
+        nv = ks.size
+        self.state_sel = np.concatenate(
+            [np.arange(n), n + ks, 2 * n + ks, 3 * n + np.arange(lay.m - lay.r_slack)]
+        )
+        """The sparse QP's rows ``r_gap`` .. end kept (offsets from ``r_gap``), in order."""
+        a_state = qp.A.tocsr()[lay.r_gap :].toarray()[self.state_sel]
         self.m = 2 * nb - 1 + a_state.shape[0]
         a = np.zeros((self.m, self.nw))
         a[np.arange(nb), np.arange(nb)] = 1.0
@@ -170,15 +217,13 @@ class CondensedQp:
         # (n), block changes (nb - 1), slacks, so that the bounds that change from cycle to
         # cycle are one stretch of fill's buffer (see there).  In the order built above:
         r = 2 * nb - 1
-        gap, vhi, vlo, slack = (
-            r + k - lay.r_gap for k in (lay.r_gap, lay.r_vhi, lay.r_vlo, lay.r_slack)
-        )
+        gap, vhi, vlo, slack = r, r + n, r + n + nv, r + n + 2 * nv
         perm = np.concatenate(
             [
                 np.arange(gap, gap + n),
-                np.arange(vlo, vlo + n),
+                np.arange(vlo, vlo + nv),
                 np.arange(0, nb),
-                np.arange(vhi, vhi + n),
+                np.arange(vhi, vhi + nv),
                 np.arange(nb, r),
                 np.arange(slack, self.m),
             ]
@@ -191,10 +236,10 @@ class CondensedQp:
         self.change_rows = row_of[nb:r]
         """Rows of the changes between consecutive blocks (within the rate limit)."""
         self.state_rows = row_of[r:]
-        """Rows of the sparse QP's rows ``r_gap`` .. end, in that order."""
+        """Rows of the sparse QP's rows :attr:`state_sel`, in that order."""
         self.A = sp.csc_matrix(a[perm])
-        self._a_c0 = a_state @ c0
-        self._a_cl = a_state @ cl
+        self._a_c0 = a_state @ self.C0
+        self._a_cl = a_state @ self.Cl
         self.P: dict[str, sp.csc_matrix] = {}
         return perm, r
 
@@ -238,8 +283,8 @@ class CondensedQp:
             "cruise",
             QpInputs(np.zeros(NX), 0.0, np.zeros(n), False, 0.0, 0.0, -1.0, 1.0),
         )
-        self._lo_state = lo_t[lay.r_gap :].copy()
-        self._hi_state = hi_t[lay.r_gap :].copy()
+        self._lo_state = lo_t[lay.r_gap :][self.state_sel]
+        self._hi_state = hi_t[lay.r_gap :][self.state_sel]
         self._du = cfg.du_max * cfg.period
         # Everything per cycle in few matrix-vector products, bounds included:
         # F [x0; u_prev; v_ref; u_lo; u_hi; v_cap; 1; lo0; hi0; v_lead] = [u; q; l], with
@@ -292,8 +337,9 @@ class CondensedQp:
                 if lead:  # the minimum gap replaces the state rows' own lower bound
                     f[lo_rows[r : r + n], c_1] = cfg.d_min
                 # speed rows: the cap replaces the state rows' own upper bound
-                f[hi_rows[r + n : r + 2 * n], c_1] = 0.0
-                f[hi_rows[r + n : r + 2 * n], c_cap] = 1.0
+                v_hi = hi_rows[r + n : r + n + len(self.speed_steps)]
+                f[v_hi, c_1] = 0.0
+                f[v_hi, c_cap] = 1.0
                 # A side at +-INF stays there whatever the inputs (within qp.INPUT_LIMIT
                 # their terms are below half of INF's spacing): a constant.
                 unbounded = np.abs(f[:, c_1]) >= INF
@@ -312,7 +358,7 @@ class CondensedQp:
         # bound, the speed-limit rows no lower one (+-INF absorbs any physical input, see
         # qp.INPUT_LIMIT), the block changes and the slacks constant ones.  With the rows
         # ordered gap, no-reverse, blocks, speed limit, changes, slacks and the buffer
-        # [u; q; l], every bound that changes lies in one stretch of 155 of its 284 rows
+        # [u; q; l], every bound that changes lies in one stretch of 103 of its 180 rows
         # (N = 40, 8 blocks): the products compute that stretch only, the rest is written
         # once here.
         moving = np.zeros(nw + 2 * m, dtype=bool)
@@ -328,8 +374,8 @@ class CondensedQp:
         self._buf = np.empty(nw + 2 * m)
         self._buf[fixed] = consts[0]
         # The lead's speed reaches only q and the minimum-gap rows (one stretch of the
-        # buffer): the rows around them are products of [x0; scalars] alone (29 instead
-        # of 63 kB of matrix per cycle, three products instead of one).
+        # buffer): the rows around them are products of [x0; scalars] alone (25 instead
+        # of 42 kB of matrix per cycle, three products instead of one).
         on_lead = np.zeros(nw + 2 * m, dtype=bool)
         for f in full.values():
             on_lead |= np.any(f[:, c_vl] != 0.0, axis=1)
@@ -349,7 +395,7 @@ class CondensedQp:
             ]
         # A lead at one speed over the whole horizon (every cycle without a forecast, and
         # with no lead): the lead speed's columns summed into one, and the whole stretch in
-        # one product of 12 columns (15 instead of 29 kB of matrix, one call instead of 3).
+        # one product of 12 columns (10 instead of 25 kB of matrix, one call instead of 3).
         n_const = NX + N_SCALARS + 1
         self._s_const = self._s[:n_const]
         """``[x0; scalars; v_lead[0]]``: a view of the inputs :meth:`fill` writes."""
