@@ -18,7 +18,9 @@ from truckd.control import ccycle
 from truckd.control import mpc as mpc_module
 from truckd.control.config import ControlConfig
 from truckd.control.mpc import MpcSolver
+from truckd.control.platoon import plan_of_array
 from truckd.control.qp import ControlModel, QpInputs
+from truckd.runtime.platoon_link import cycle_plan
 from truckd.runtime.replay import cycle_from_params
 from truckd.runtime.rxlog import read_rx_log
 
@@ -218,3 +220,54 @@ def test_an_instance_used_before_gives_the_same_solves_bit_for_bit() -> None:
     first, other, again = run(5), run(6), run(5)
     assert first[0] == other[0] == again[0]  # the same instance, reused
     assert first[1] == again[1] and first[1] != other[1]
+
+
+def _bits(x: Any) -> list[int]:
+    """Each float's bit pattern (tells -0.0 from 0.0; a NaN equals the same NaN)."""
+    return np.asarray(x, dtype=np.float64).view(np.int64).tolist()
+
+
+@needs_library
+def test_the_compiled_plan_is_plan_of_array_of_the_speeds_on_the_recorded_replay() -> None:
+    """Every cycle of the replay: the plan the compiled cycle made (speeds clipped,
+    accelerations) is, bit for bit, the plan made from the predicted speeds in Python."""
+    t0, params, rx = read_rx_log(DATA / "run.rx.jsonl")
+    cycles = list(rx)
+    cyc = cycle_from_params(params, t0, str(DATA / "run.rx.jsonl"))
+    compiled = 0
+    for k, inp in enumerate(cycles):
+        out = cyc.step(inp)
+        speeds = cyc.plan_speed_array(out)
+        plan = cycle_plan(cyc, out, 0.5 * k, "t1")
+        if speeds is None:
+            assert plan is None or plan.v == (0.0,) * len(plan.v)  # none, or held at rest
+            continue
+        compiled += cyc.compiled_plan(out) is not None
+        ref = plan_of_array(0.5 * k, out.seq, cyc.period, speeds, "t1")
+        assert plan is not None and _bits(plan.v) == _bits(ref.v), k
+        assert _bits(plan.a) == _bits(ref.a) and plan.as_dict() == ref.as_dict(), k
+    assert compiled > 0.9 * len(cycles)
+
+
+@needs_library
+def test_the_compiled_plan_clips_and_differences_any_speeds_as_python_does() -> None:
+    """Speeds no solve gives (negative, -0.0, NaN, infinite, huge) put in the bound speeds:
+    the compiled plan of them is plan_of_array's, bit for bit."""
+    cfg = load_config().control
+    s = MpcSolver(_drawn(4), cfg)
+    cc = s.compiled_cycle
+    assert cc is not None
+    rng = np.random.default_rng(9)
+    specials = np.array([-1.0, -0.0, 0.0, np.nan, np.inf, -np.inf, 1e308, -1e-300, 5e-324])
+    for trial in range(200):
+        v = rng.normal(0.5, 1.0, cc.v.size)
+        if trial % 2:
+            idx = rng.integers(0, v.size, 6)
+            v[idx] = rng.choice(specials, 6)
+        cc.v[:] = v
+        cc.plan_of_v()
+        with np.errstate(over="ignore", invalid="ignore"):  # inf - inf, 1e308 / 0.01
+            ref = plan_of_array(0.0, 0, cfg.period, v)
+        n = cc.v.size
+        assert _bits(cc.plan[:n]) == _bits(ref.v), trial
+        assert _bits(cc.plan[n:]) == _bits(ref.a), trial

@@ -34,7 +34,7 @@ Vec = NDArray[np.float64]
 LIBRARY = Path(__file__).resolve().parent / "kernel" / "build" / "libtruckd_mpc.so"
 """Where ``make firmware`` puts the compiled cycle."""
 
-ABI = 8
+ABI = 9
 """The interface version this module speaks (``truckd_mpc_abi`` of the library)."""
 
 BAD_INPUT = -100
@@ -95,6 +95,10 @@ def _declare(lib: ctypes.CDLL) -> None:
     lib.truckd_mpc_bind_io.argtypes = [i, p, p, p, p, p, p, p, p]
     lib.truckd_mpc_run.restype = i
     lib.truckd_mpc_run.argtypes = [i, i]
+    lib.truckd_mpc_bind_plan.restype = i
+    lib.truckd_mpc_bind_plan.argtypes = [i, p, d]
+    lib.truckd_mpc_plan.restype = i
+    lib.truckd_mpc_plan.argtypes = [i]
     lib.truckd_numerics_consts.restype = i
     lib.truckd_numerics_consts.argtypes = []
     lib.truckd_numerics_bind.restype = i
@@ -161,6 +165,11 @@ class CompiledCycle:
         (x0, y0), (x1, y1) = self._xy
         arrays = (self.values, x0, y0, x1, y1, self.u, self.v, self.info)
         lib.truckd_mpc_bind_io(instance, *(_addr(a) for a in arrays))
+        self.plan = np.zeros(2 * (n + 1))
+        """The plan of the last cycle's speeds :attr:`v`: clipped at 0, then their
+        accelerations over the period (m/s, m/s^2; as
+        :func:`~truckd.control.platoon.plan_of_array` makes them, in the same call)."""
+        lib.truckd_mpc_bind_plan(instance, _addr(self.plan), cq.qp.cfg.period)
         self._run = lib.truckd_mpc_run
         self._cur = 0
 
@@ -215,6 +224,10 @@ class CompiledCycle:
         go over as one integer (``truckd_mpc_run``: ctypes converts two, not twelve)."""
         how = mode | lead << 1 | one_speed << 2 | warm << 3 | self._cur << 4
         return int(self._run(self.instance, how))
+
+    def plan_of_v(self) -> None:
+        """:attr:`plan` again from :attr:`v` as it is now (each cycle does it itself)."""
+        self._lib.truckd_mpc_plan(self.instance)
 
     def solution(self) -> tuple[Vec, Vec]:
         """The last cycle's ``(x, y)`` (arrays the next cycle but one overwrites)."""

@@ -175,6 +175,7 @@ class MpcSolver:
         """The last accepted solution: OSQP's primal vector and (condensed) the inputs it
         was solved for."""
         self._last_v: Vec | None = None
+        self._last_plan: Vec | None = None
         self._warm: tuple[Vec, Vec] | None = None
         self.inaccurate = 0
         """Solutions used although OSQP reported ``solved inaccurate``."""
@@ -233,6 +234,14 @@ class MpcSolver:
         return self._last_v
 
     @property
+    def last_plan(self) -> Vec | None:
+        """The plan of :attr:`last_speeds` as the compiled cycle made it: the speeds
+        clipped at 0, then their accelerations over the period (``2 (N + 1)`` values,
+        m/s and m/s^2, the same as :func:`~truckd.control.platoon.plan_of_array`'s);
+        None when the last accepted solution came from the Python path, or none."""
+        return self._last_plan
+
+    @property
     def has_warm_start(self) -> bool:
         """Whether the next solve is warm started (else it starts from zero)."""
         return self._warm is not None
@@ -247,6 +256,7 @@ class MpcSolver:
         """Forget the previous solution (no warm start next time)."""
         self._last = None
         self._last_v = None
+        self._last_plan = None
         self._warm = None
 
     def restart(self) -> None:
@@ -337,6 +347,7 @@ class MpcSolver:
             u, v = z[u0 : u0 + qp.lay.N], qp.speeds(z)
             self._last = (z, [])
         self._last_v = v
+        self._last_plan = None
         if status_val != osqp.SolverStatus.OSQP_SOLVED:
             self.inaccurate += 1
         return MpcResult(True, float(u[0]), str(info.status), iters, run_time, u, v)
@@ -398,6 +409,7 @@ class MpcSolver:
         self._keep_compiled(z, y)
         u, v = cc.u.copy(), cc.v.copy()
         self._last_v = v
+        self._last_plan = cc.plan.copy()
         if status_val != _SOLVED:
             self.inaccurate += 1
         status = ccycle.STATUS_TEXT[status_val]  # a usable status: status_text's own

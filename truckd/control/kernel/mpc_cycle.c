@@ -46,6 +46,10 @@ static struct {
     const double *values;
     double *x[2], *y[2], *u, *v, *info;
     int bound_io;
+    /* the plan to publish (truckd_mpc_bind_plan): the speeds v clipped at 0 (N + 1),
+     * then their differences over dt (N + 1, the last repeated); dt in s */
+    double *plan;
+    double plan_dt;
 } BOUND[TRUCKD_MPC_INSTANCES];
 
 /* OSQP's linear system, solved reduced and dense.  OSQP's KKT system
@@ -129,6 +133,17 @@ static OSQPInt dense_factor(Dense *d) {
 /* y = A x over the dense copy (y: M values), eight rows at a time over A's columns: each
  * row's sum in the order of j, as a dot product of the row and OSQP's column loop take it
  * (the same numbers), in registers across j. */
+/* The dense products below on x86-64 in two builds chosen when the library loads (GCC's
+ * target clones): AVX where the CPU has it (four doubles per instruction), else the baseline.
+ * The same operations in the same order in each lane and no contraction into fused
+ * multiply-adds (-std=c99: ISO C's -ffp-contract=off): the same numbers either way. */
+#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
+#define TRUCKD_VECTOR_CLONES __attribute__((target_clones("avx", "default")))
+#else
+#define TRUCKD_VECTOR_CLONES
+#endif
+
+TRUCKD_VECTOR_CLONES
 static void dense_ax(const Dense *d, const double *x, double *y) {
     enum { N = TRUCKD_MPC_N, M = TRUCKD_MPC_M, MP = TRUCKD_MPC_MP };
     for (int i0 = 0; i0 < MP; i0 += 8) {
@@ -143,6 +158,7 @@ static void dense_ax(const Dense *d, const double *x, double *y) {
     }
 }
 
+TRUCKD_VECTOR_CLONES
 static OSQPInt dense_solve(LinSysSolver *ls, OSQPVectorf *b, OSQPInt admm_iter) {
     enum { N = TRUCKD_MPC_N, M = TRUCKD_MPC_M, MP = TRUCKD_MPC_MP };
     Dense *d = dense_of(ls);
@@ -413,6 +429,25 @@ int64_t truckd_mpc_cycle(int64_t inst, int64_t mode, int64_t lead, int64_t one_l
     return (int64_t)s->info->status_val;
 }
 
+/* The plan (truckd_mpc_bind_plan's array) of the speeds in the bound v, as truckd/control/platoon.py's
+ * plan_of_array makes it: each speed clipped at 0 as `x < 0 ? 0 : x` (NaN and -0.0 kept),
+ * the accelerations (v[k + 1] - v[k]) / dt of the clipped speeds, the last repeated (the
+ * same IEEE operations: the same numbers).  truckd_mpc_run calls it after each cycle.
+ * 0, or -1 without a bound plan. */
+int64_t truckd_mpc_plan(int64_t inst);
+int64_t truckd_mpc_plan(int64_t inst) {
+    if (solver_of(inst, 0) == NULL || !BOUND[inst].bound_io || BOUND[inst].plan == NULL)
+        return -1;
+    const int64_t n = BOUND[inst].horizon + 1;
+    const double *v = BOUND[inst].v;
+    double *pv = BOUND[inst].plan, *pa = BOUND[inst].plan + n;
+    const double dt = BOUND[inst].plan_dt;
+    for (int64_t k = 0; k < n; ++k) pv[k] = v[k] < 0.0 ? 0.0 : v[k];
+    for (int64_t k = 0; k + 1 < n; ++k) pa[k] = (pv[k + 1] - pv[k]) / dt;
+    pa[n - 1] = n > 1 ? pa[n - 2] : 0.0;
+    return 0;
+}
+
 /* The arrays truckd_mpc_run reads and writes (owned by Python, as in truckd_mpc_cycle):
  * values, the two (x, y) pairs (one the warm start, the other the solution), u, v, info. */
 int64_t truckd_mpc_bind_io(int64_t inst, const double *values, double *x0, double *y0,
@@ -438,8 +473,20 @@ int64_t truckd_mpc_run(int64_t inst, int64_t how) {
     if (solver_of(inst, 0) == NULL || !BOUND[inst].bound_io || how < 0 || how > 31) return -1;
     int cur = (int)((how >> 4) & 1), out = 1 - cur;
     int warm = (int)((how >> 3) & 1);
-    return truckd_mpc_cycle(inst, how & 1, (how >> 1) & 1, (how >> 2) & 1, BOUND[inst].values,
-                            warm ? BOUND[inst].x[cur] : NULL, warm ? BOUND[inst].y[cur] : NULL,
-                            BOUND[inst].x[out], BOUND[inst].y[out], BOUND[inst].u,
-                            BOUND[inst].v, BOUND[inst].info);
+    int64_t status = truckd_mpc_cycle(
+        inst, how & 1, (how >> 1) & 1, (how >> 2) & 1, BOUND[inst].values,
+        warm ? BOUND[inst].x[cur] : NULL, warm ? BOUND[inst].y[cur] : NULL, BOUND[inst].x[out],
+        BOUND[inst].y[out], BOUND[inst].u, BOUND[inst].v, BOUND[inst].info);
+    if (status >= 0) truckd_mpc_plan(inst);
+    return status;
+}
+
+/* Where truckd_mpc_run writes the plan of each cycle (2 (horizon + 1) doubles, see
+ * BOUND), and the plan's step dt (s); plan NULL: none written.  0, or -1 for a wrong
+ * instance or dt. */
+int64_t truckd_mpc_bind_plan(int64_t inst, double *plan, double dt) {
+    if (solver_of(inst, 0) == NULL || !(dt > 0.0)) return -1;
+    BOUND[inst].plan = plan;
+    BOUND[inst].plan_dt = dt;
+    return 0;
 }
