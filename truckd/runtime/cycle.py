@@ -367,6 +367,7 @@ class CompanionCycle:
             or c.fallback_reason is not None
             or c.solve_iterations == 0
             or ctrl.pipeline_v
+            or ctrl.mpc.cfg.period != self.period
         ):
             return None
         values: list[float] = plan.tolist()

@@ -130,9 +130,6 @@ static OSQPInt dense_factor(Dense *d) {
     return 0;
 }
 
-/* y = A x over the dense copy (y: M values), eight rows at a time over A's columns: each
- * row's sum in the order of j, as a dot product of the row and OSQP's column loop take it
- * (the same numbers), in registers across j. */
 /* The dense products below on x86-64 in two builds chosen when the library loads (GCC's
  * target clones): AVX where the CPU has it (four doubles per instruction), else the baseline.
  * The same operations in the same order in each lane and no contraction into fused
@@ -143,6 +140,9 @@ static OSQPInt dense_factor(Dense *d) {
 #define TRUCKD_VECTOR_CLONES
 #endif
 
+/* y = A x over the dense copy (y: M values), eight rows at a time over A's columns: each
+ * row's sum in the order of j, as a dot product of the row and OSQP's column loop take it
+ * (the same numbers), in registers across j. */
 TRUCKD_VECTOR_CLONES
 static void dense_ax(const Dense *d, const double *x, double *y) {
     enum { N = TRUCKD_MPC_N, M = TRUCKD_MPC_M, MP = TRUCKD_MPC_MP };
@@ -429,11 +429,11 @@ int64_t truckd_mpc_cycle(int64_t inst, int64_t mode, int64_t lead, int64_t one_l
     return (int64_t)s->info->status_val;
 }
 
-/* The plan (truckd_mpc_bind_plan's array) of the speeds in the bound v, as truckd/control/platoon.py's
- * plan_of_array makes it: each speed clipped at 0 as `x < 0 ? 0 : x` (NaN and -0.0 kept),
- * the accelerations (v[k + 1] - v[k]) / dt of the clipped speeds, the last repeated (the
- * same IEEE operations: the same numbers).  truckd_mpc_run calls it after each cycle.
- * 0, or -1 without a bound plan. */
+/* The plan (truckd_mpc_bind_plan's array) of the speeds in the bound v, as
+ * truckd/control/platoon.py's plan_of_array makes it: each speed clipped at 0 as
+ * `x < 0 ? 0 : x` (NaN and -0.0 kept), the accelerations (v[k + 1] - v[k]) / dt of the
+ * clipped speeds, the last repeated (the same IEEE operations: the same numbers).
+ * truckd_mpc_run calls it after each cycle.  0, or -1 without a bound plan. */
 int64_t truckd_mpc_plan(int64_t inst);
 int64_t truckd_mpc_plan(int64_t inst) {
     if (solver_of(inst, 0) == NULL || !BOUND[inst].bound_io || BOUND[inst].plan == NULL)
