@@ -10,14 +10,16 @@ delays (``plan_timeout_s`` = 0.1 s + the largest delay).
 
     python benchmarks/platoon_scale.py --json benchmarks/platoon_scale.json [--trucks 10,100]
         [--cases LABEL,...] [--key KEY] [--seed 1] [--seeds 1,2,...] [--scenario platoon-brake]
-        [--steady-start]
+        [--steady-start] [--spacing-rate]
 
 With ``--key`` the run is stored under that key of the JSON file (the file's other keys
 kept: earlier runs stay as they were measured); ``--cases`` runs only the cases whose
 label starts with one of the given prefixes; ``--seeds`` runs each case once per seed,
 ``--scenario`` another platoon scenario (``--duration`` its length), ``--steady-start``
 the trucks started in the steady state of the starting speed (``run_platoon``'s
-``steady_start``: an unrecorded pre-roll).  Each row also has
+``steady_start``: an unrecorded pre-roll), ``--spacing-rate`` the followers on
+``platoon.spacing_rate`` (the spacing error's rate weighed, not the relative speed).
+Each row also has
 the pairwise ratios and every follower's spacing-error area (``integral of e dt`` from
 3 s on, m s: what the time-headway policy passes on with a gain of 1, docs/platoon.md
 "Mixed trucks").  The links' plans are held for the shipped
@@ -138,6 +140,11 @@ def main() -> int:
         action="store_true",
         help="start in the steady state of the starting speed (the unrecorded pre-roll)",
     )
+    ap.add_argument(
+        "--spacing-rate",
+        action="store_true",
+        help="followers weigh the rate of their spacing error (platoon.spacing_rate)",
+    )
     args = ap.parse_args()
     seeds = [int(x) for x in args.seeds.split(",")] if args.seeds else [args.seed]
     load_at_start = round(os.getloadavg()[0], 2)
@@ -151,7 +158,7 @@ def main() -> int:
                 continue
             hi = kw.get("delay_s", (0.02, 0.02))[1]
             timeout = 0.1 + hi if hi > 0.02 else cfg.platoon.plan_timeout_s
-            pcfg = replace(cfg.platoon, plan_timeout_s=timeout)
+            pcfg = replace(cfg.platoon, plan_timeout_s=timeout, spacing_rate=args.spacing_rate)
             for seed in seeds:
                 t0 = time.monotonic()
                 m, tr = run_platoon(make_platoon_scenario(args.scenario), setup, pcfg, n,
@@ -173,6 +180,7 @@ def main() -> int:
             "plan_timeout_s": "0.1 s (shipped); 0.1 s + the largest delay with drawn delays",
             "plan_hold_s": cfg.platoon.plan_hold_s,
             "steady_start": args.steady_start,
+            "spacing_rate": args.spacing_rate,
             "rows": rows,
         }
         write_json(args.json, doc, args.key)

@@ -11,15 +11,19 @@ import scipy.linalg
 
 from truckd.control.config import ControlConfig
 from truckd.control.qp import (
+    I_V,
     ControlModel,
+    QpBuilder,
+    accel_row,
     coordinates,
     prediction_model,
+    rel_speed_row,
     stage_weight,
     terminal_weight,
 )
 from truckd.control.riccati import solve_dare
 from truckd.model.effects import Effects
-from truckd.model.linear import discretize
+from truckd.model.linear import discretize, state_space
 from truckd.model.params import VehicleParams
 
 
@@ -93,3 +97,33 @@ def test_control_config_replace_still_builds(params: VehicleParams) -> None:
     """Horizons and periods other than the shipped ones build a model too."""
     cfg = dataclasses.replace(ControlConfig(), horizon=10)
     assert prediction_model(ControlModel(params), cfg.period).Ad.shape == (3, 3)
+
+
+@pytest.mark.parametrize("scale", [0.2, 1.0, 5.0])
+def test_the_spacing_rate_row_is_speed_plus_headway_times_acceleration(
+    params: VehicleParams, scale: float
+) -> None:
+    """The follow term with ``rel_speed_lookahead`` h weighs ``v + h dv/dt``: its row on
+    the MPC's state, applied to any state, equals the speed plus h times the acceleration
+    of the model's own ``[i, omega_m]`` system (the input acts on the current only; trucks
+    with 0.2-5x the inertia, viscous friction on); with h = 0 it is the speed alone."""
+    p = params.replace(J_S=params.J_S * scale)
+    model = ControlModel(p, Effects(viscous_friction=3e-5))
+    h = 0.3
+    cfg = dataclasses.replace(ControlConfig(), rel_speed_lookahead=h)
+    row = rel_speed_row(cfg, accel_row(model))
+    ss = state_space(p, 3e-5)  # the model's own [i, omega_m] system, dx/dt = A x + B u
+    assert ss.B[1, 0] == 0.0  # the voltage reaches the speed through the current only
+    v_per_omega = 1.0 / p.omega(1.0)
+    rng = np.random.default_rng(int(scale * 10))
+    for _ in range(20):
+        x = rng.normal(0.0, [2.0, 1.0, 1.0])  # [R_m i (V), v (m/s), d (m)]
+        i_omega = np.array([x[0] / p.R_m, p.omega(x[1])])
+        accel = v_per_omega * float((ss.A @ i_omega)[1])  # no input: u = 0
+        assert float(row @ x) == pytest.approx(x[I_V] + h * accel, rel=1e-12, abs=1e-12)
+    assert list(rel_speed_row(ControlConfig(), accel_row(model))) == [0.0, 1.0, 0.0]
+    # The QP weighs it: the follow mode's stage weight is the gap term plus q_rel row row'
+    qp = QpBuilder(model, cfg)
+    c = np.array([0.0, -cfg.time_headway, 1.0])
+    expect = cfg.q_gap * np.outer(c, c) + cfg.q_rel_speed * np.outer(row, row)
+    np.testing.assert_allclose(qp.Q["follow"], expect, rtol=1e-12, atol=1e-12)

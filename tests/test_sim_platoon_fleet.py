@@ -270,3 +270,21 @@ def test_cli_bad_fleet_options_exit_2(
     assert main(["sim", *args]) == 2
     err = capsys.readouterr().err
     assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
+
+
+def test_the_spacing_rate_term_keeps_every_gap_on_its_reference() -> None:
+    """``platoon.spacing_rate``: a follower weighs the rate of its spacing error
+    (``v + h a - v_lead``) instead of the relative speed, so through the lead's braking
+    each gap follows ``d_0 + h v`` instead of lagging it: every follower's peak spacing
+    error at most a quarter of what the relative-speed term leaves (measured: a tenth),
+    no collision, the minimum gap kept, and the braking not amplified down the platoon
+    (acceleration ratios at most 1)."""
+    sc = make_platoon_scenario("platoon-brake")
+    off, _ = run_platoon(sc, _setup(), _pcfg(), 6, seed=1, **LINK)  # type: ignore[arg-type]
+    on, _ = run_platoon(sc, _setup(), replace(_pcfg(), spacing_rate=True), 6, seed=1, **LINK)  # type: ignore[arg-type]
+    assert not on["collision"] and on["min_gap_m"] >= load_config().control.d_min
+    assert min(on["cacc_fraction"]) == 1.0
+    assert max(on["accel_ratio_l2"]) <= 1.0, on["accel_ratio_l2"]
+    e_on, e_off = on["spacing_error_max_m"], off["spacing_error_max_m"]
+    assert len(e_on) == len(e_off) == 5
+    assert all(a <= 0.25 * b for a, b in zip(e_on, e_off, strict=True)), (e_on, e_off)

@@ -37,7 +37,7 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
-from truckd.control.qp import I_V, INF, INPUT_LIMIT, NX, QpBuilder, QpInputs, Vec, inputs_ok
+from truckd.control.qp import I_CUR, I_V, INF, INPUT_LIMIT, NX, QpBuilder, QpInputs, Vec, inputs_ok
 
 Mat = NDArray[np.float64]
 
@@ -268,7 +268,12 @@ class CondensedQp:
             self._hx[mode] = met @ pd @ c0
             hl = met @ pd @ cl
             if mode == "follow":
-                hl[:, 1:n] += -2.0 * cfg.q_rel_speed * speeds
+                # the follow term's linear part: -2 q_rel v_lead times its row on the
+                # state (v + T a: the speed and, for T > 0, the current)
+                rel = speeds
+                if qp.rel_row[I_CUR] != 0.0:
+                    rel = speeds * qp.rel_row[I_V] + met[:, qp._ks_v - I_V] * qp.rel_row[I_CUR]
+                hl[:, 1:n] += -2.0 * cfg.q_rel_speed * rel
                 hl[:, n - 1] += term
                 self._g_ref[mode] = np.zeros(self.nw)
             else:

@@ -185,7 +185,22 @@ class ControlConfig:
     )
     q_gap: float = spec("weight on gap error^2", unit="1/m^2", lo=0.0, hi=1e9, default=30.0)
     q_rel_speed: float = spec(
-        "weight on (v - v_lead)^2 when following", unit="s^2/m^2", lo=0.0, hi=1e9, default=5.0
+        "weight on (v + T a - v_lead)^2 when following (T: rel_speed_lookahead; 0: the "
+        "relative speed)",
+        unit="s^2/m^2",
+        lo=0.0,
+        hi=1e9,
+        default=5.0,
+    )
+    rel_speed_lookahead: float = spec(
+        "T of the follow term q_rel_speed (v + T a - v_lead)^2, a the truck's own predicted "
+        "acceleration: 0 weighs the relative speed; the time headway weighs the spacing "
+        "error's rate (the gap then follows d_0 + h v through speed changes, see "
+        "platoon.spacing_rate)",
+        unit="s",
+        lo=0.0,
+        hi=10.0,
+        default=0.0,
     )
     q_cruise: float = spec(
         "weight on (v - v_set)^2 when cruising",

@@ -142,6 +142,15 @@ class PlatoonConfig:
         hi=1e9,
         default=15.0,
     )
+    spacing_rate: bool = spec(
+        "a follower's q_rel_speed term weighs the rate of its spacing error, "
+        "(v + h a - v_lead)^2 with h the CACC headway (control.rel_speed_lookahead), "
+        "instead of the relative speed: the gap follows d_0 + h v through the "
+        "predecessor's speed changes, spacing errors several times smaller, down to "
+        "each link's own noise (where spacing-error string ratios no longer mean "
+        "anything: docs/platoon.md)",
+        default=False,
+    )
     comfort_decel: float = spec(
         "the hardest braking allowed while a gap opens (ACC fallback, room for a "
         "joining truck, a new predecessor); the headway ramp (headway_rate) stays "
@@ -167,8 +176,14 @@ def follower_control(control: ControlConfig, cfg: PlatoonConfig) -> ControlConfi
     """The controller configuration of a truck that follows another in a platoon: its MPC
     is built for the CACC headway (the ACC headway is driven by the controller's gap
     shift, see :meth:`~truckd.control.controller.Controller.control`) and with the
-    platoon's weight on the relative speed (``q_rel_speed``)."""
-    return replace(control, time_headway=cfg.cacc_headway, q_rel_speed=cfg.q_rel_speed)
+    platoon's weight on the relative speed (``q_rel_speed``), or on the spacing error's
+    rate (``spacing_rate``)."""
+    return replace(
+        control,
+        time_headway=cfg.cacc_headway,
+        q_rel_speed=cfg.q_rel_speed,
+        rel_speed_lookahead=cfg.cacc_headway if cfg.spacing_rate else 0.0,
+    )
 
 
 def platoon_control(control: ControlConfig, cfg: PlatoonConfig) -> ControlConfig:

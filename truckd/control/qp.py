@@ -118,6 +118,25 @@ def prediction_model(model: ControlModel, dt: float) -> Prediction:
     return Prediction(Ad=ad, bu=bd[:, 0].copy(), bl=bd[:, 1].copy(), dt=dt)
 
 
+def accel_row(model: ControlModel) -> Vec:
+    """The truck's acceleration (m/s^2) as a row on the MPC's state ``[R_m i, v, d]``: the
+    linear model's ``dv/dt`` (the input acts on the current only, so no input term)."""
+    p = model.params
+    ss = state_space(p, model.effects.viscous_friction)
+    t = coordinates(p)
+    row = np.zeros(NX)
+    row[:2] = (t @ ss.A @ np.diag(1.0 / np.diag(t)))[I_V]
+    return row
+
+
+def rel_speed_row(cfg: ControlConfig, accel: Vec) -> Vec:
+    """The follow term's speed ``v + T a`` (m/s) as a row on the MPC's state, ``T`` the
+    configuration's ``rel_speed_lookahead`` (s) and ``accel`` :func:`accel_row`."""
+    row = cfg.rel_speed_lookahead * np.asarray(accel, dtype=float)
+    row[I_V] += 1.0
+    return row
+
+
 def steady_state(model: ControlModel, v: float) -> tuple[float, float]:
     """Friction-free steady state at speed v (m/s): ``(R_m i (V), voltage (V))``."""
     p = model.params
@@ -126,13 +145,17 @@ def steady_state(model: ControlModel, v: float) -> tuple[float, float]:
     return e, e + p.K_v * omega
 
 
-def stage_weight(cfg: ControlConfig, mode: str) -> Vec:
-    """State weight matrix Q (3x3) of one mode, in error coordinates."""
+def stage_weight(cfg: ControlConfig, mode: str, rel_row: Vec | None = None) -> Vec:
+    """State weight matrix Q (3x3) of one mode, in error coordinates; ``rel_row`` the
+    follow term's row (:func:`rel_speed_row`; None: the speed alone)."""
     q = np.zeros((NX, NX))
     if mode == "follow":
         c = np.array([0.0, -cfg.time_headway, 1.0])
         q += cfg.q_gap * np.outer(c, c)
-        q[I_V, I_V] += cfg.q_rel_speed
+        if rel_row is None:
+            q[I_V, I_V] += cfg.q_rel_speed
+        else:
+            q += cfg.q_rel_speed * np.outer(rel_row, rel_row)
     elif mode == "cruise":
         q[I_V, I_V] = cfg.q_cruise
     else:
@@ -279,7 +302,10 @@ class QpBuilder:
         self.pred = prediction_model(model, cfg.period)
         self.lay = Layout(cfg.horizon)
         self.A = constraint_matrix(self.pred, self.lay)
-        self.Q = {m: stage_weight(cfg, m) for m in MODES}
+        self.rel_row = rel_speed_row(cfg, accel_row(model))
+        """The follow term's row on the state (``v + T a``, :func:`rel_speed_row`)."""
+        rel = self.rel_row if cfg.rel_speed_lookahead > 0.0 else None
+        self.Q = {m: stage_weight(cfg, m, rel) for m in MODES}
         self.Pf = {m: terminal_weight(self.pred, self.Q[m], cfg.r_du) for m in MODES}
         self.P = {m: cost_matrix(cfg, self.lay, self.Q[m], self.Pf[m]) for m in MODES}
         self._templates()
@@ -354,7 +380,11 @@ class QpBuilder:
         np.copyto(q, self._q0[mode])
         vl = np.asarray(inp.v_lead, dtype=float)
         if mode == "follow":
-            q[self._ks_v] -= (2.0 * cfg.q_rel_speed) * vl[1:n]
+            if self.rel_row[I_CUR] == 0.0:  # T = 0: the relative speed
+                q[self._ks_v] -= (2.0 * cfg.q_rel_speed) * vl[1:n]
+            else:  # v + T a: the speed's and the current's parts
+                q[self._ks_v] -= (2.0 * cfg.q_rel_speed * self.rel_row[I_V]) * vl[1:n]
+                q[self._ks_v - I_V] -= (2.0 * cfg.q_rel_speed * self.rel_row[I_CUR]) * vl[1:n]
             v_end = float(vl[n - 1])
         else:
             q[self._ks_v] -= 2.0 * cfg.q_cruise * inp.v_ref
