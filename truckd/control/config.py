@@ -195,8 +195,8 @@ class ControlConfig:
     rel_speed_lookahead: float = spec(
         "T of the follow term q_rel_speed (v + T a - v_lead)^2, a the truck's own predicted "
         "acceleration: 0 weighs the relative speed; the time headway weighs the spacing "
-        "error's rate (the gap then follows d_0 + h v through speed changes, see "
-        "platoon.spacing_rate)",
+        "error's rate (the gap then follows d_0 + h v through speed changes); a platoon "
+        "follower's is set by platoon.spacing_rate",
         unit="s",
         lo=0.0,
         hi=10.0,
