@@ -143,7 +143,8 @@ def main() -> int:
     ap.add_argument(
         "--spacing-rate",
         action="store_true",
-        help="followers weigh the rate of their spacing error (platoon.spacing_rate)",
+        help="followers weigh the rate of their spacing error (platoon.spacing_rate; "
+        "default: the configuration's)",
     )
     args = ap.parse_args()
     seeds = [int(x) for x in args.seeds.split(",")] if args.seeds else [args.seed]
@@ -158,7 +159,11 @@ def main() -> int:
                 continue
             hi = kw.get("delay_s", (0.02, 0.02))[1]
             timeout = 0.1 + hi if hi > 0.02 else cfg.platoon.plan_timeout_s
-            pcfg = replace(cfg.platoon, plan_timeout_s=timeout, spacing_rate=args.spacing_rate)
+            pcfg = replace(
+                cfg.platoon,
+                plan_timeout_s=timeout,
+                spacing_rate=args.spacing_rate or cfg.platoon.spacing_rate,
+            )
             for seed in seeds:
                 t0 = time.monotonic()
                 m, tr = run_platoon(make_platoon_scenario(args.scenario), setup, pcfg, n,
@@ -180,7 +185,7 @@ def main() -> int:
             "plan_timeout_s": "0.1 s (shipped); 0.1 s + the largest delay with drawn delays",
             "plan_hold_s": cfg.platoon.plan_hold_s,
             "steady_start": args.steady_start,
-            "spacing_rate": args.spacing_rate,
+            "spacing_rate": args.spacing_rate or cfg.platoon.spacing_rate,
             "rows": rows,
         }
         write_json(args.json, doc, args.key)

@@ -86,12 +86,14 @@ def test_blocks_shorter_for_a_truck_with_a_short_mechanical_time_constant(
 @pytest.mark.parametrize("mode", ["follow", "cruise"])
 @pytest.mark.parametrize("lead", [True, False])
 @pytest.mark.parametrize("one_speed", [False, True])
+@pytest.mark.parametrize("lookahead", [0.0, 0.3])
 def test_condensed_vectors_equal_the_sparse_ones_condensed(
-    params: VehicleParams, mode: str, lead: bool, one_speed: bool
+    params: VehicleParams, mode: str, lead: bool, one_speed: bool, lookahead: float
 ) -> None:
     """``one_speed``: the lead at one speed over the horizon (no forecast), which fill
-    computes with the lead's columns summed."""
-    cfg = ControlConfig()
+    computes with the lead's columns summed; ``lookahead``: the follow term on
+    ``v + T a`` (``rel_speed_lookahead``, the spacing error's rate)."""
+    cfg = dataclasses.replace(ControlConfig(), rel_speed_lookahead=lookahead)
     qp = QpBuilder(ControlModel(params), cfg)
     cq = CondensedQp(qp, block_lengths(cfg.horizon, 8))
     rng = np.random.default_rng(11)
@@ -163,9 +165,14 @@ def test_blocked_solution_satisfies_the_sparse_qp(params: VehicleParams) -> None
         assert res.u0 == u[0]
 
 
-def test_one_step_per_block_is_the_sparse_optimum(params: VehicleParams) -> None:
-    """Condensing alone changes nothing: the same optimum as the sparse QP."""
-    base = dataclasses.replace(ControlConfig(), eps=1e-7, max_iter=50_000, time_budget_s=1.0)
+@pytest.mark.parametrize("lookahead", [0.0, 0.3])
+def test_one_step_per_block_is_the_sparse_optimum(params: VehicleParams, lookahead: float) -> None:
+    """Condensing alone changes nothing: the same optimum as the sparse QP (with the
+    follow term on the speed, and on the spacing error's rate)."""
+    base = dataclasses.replace(
+        ControlConfig(), eps=1e-7, max_iter=50_000, time_budget_s=1.0,
+        rel_speed_lookahead=lookahead,
+    )  # fmt: skip
     sparse = MpcSolver(ControlModel(params), dataclasses.replace(base, move_blocks=0))
     dense = MpcSolver(ControlModel(params), dataclasses.replace(base, move_blocks=base.horizon))
     rng = np.random.default_rng(9)

@@ -14,6 +14,7 @@ from truckd.control.qp import (
     I_V,
     ControlModel,
     QpBuilder,
+    QpInputs,
     accel_row,
     coordinates,
     prediction_model,
@@ -127,3 +128,40 @@ def test_the_spacing_rate_row_is_speed_plus_headway_times_acceleration(
     c = np.array([0.0, -cfg.time_headway, 1.0])
     expect = cfg.q_gap * np.outer(c, c) + cfg.q_rel_speed * np.outer(row, row)
     np.testing.assert_allclose(qp.Q["follow"], expect, rtol=1e-12, atol=1e-12)
+
+
+def test_the_sparse_qp_weighs_the_spacing_error_rate_as_written(params: VehicleParams) -> None:
+    """With ``rel_speed_lookahead`` T, the follow QP's objective changes, when the stage
+    states of steps 1..N-1 change, as ``sum q_gap (d - d_0 - h v)^2 + q_rel (v + T a -
+    v_lead)^2`` does, ``a`` the model's acceleration of each state: the quadratic and the
+    linear term built for it (sign and indices), not only its matrix."""
+    cfg = dataclasses.replace(ControlConfig(), rel_speed_lookahead=0.3)
+    model = ControlModel(params, Effects(viscous_friction=2e-5))
+    qp = QpBuilder(model, cfg)
+    n, lay = cfg.horizon, qp.lay
+    rng = np.random.default_rng(3)
+    v_lead = rng.uniform(0.0, 2.0, n)
+    inp = QpInputs(np.array([0.5, 1.0, 1.0]), 0.0, v_lead, True, 1.0, 2.4, -7.2, 7.2)
+    q, _, _ = qp.vectors("follow", inp)
+    p_mat = qp.P["follow"].toarray()
+    accel = accel_row(model)
+
+    def objective(z: np.ndarray) -> float:
+        return float(0.5 * z @ p_mat @ z + q @ z)
+
+    def stage_cost(z: np.ndarray) -> float:
+        total = 0.0
+        for k in range(1, n):
+            x = z[lay.x(k) : lay.x(k) + 3]
+            gap_err = x[2] - cfg.d_0 - cfg.time_headway * x[I_V]
+            rate = x[I_V] + cfg.rel_speed_lookahead * float(accel @ x) - v_lead[k]
+            total += cfg.q_gap * gap_err**2 + cfg.q_rel_speed * rate**2
+        return total
+
+    z1 = rng.normal(size=lay.nz)
+    for _ in range(5):
+        z2 = z1.copy()
+        z2[lay.x(1) : lay.x(n)] = rng.normal(size=lay.x(n) - lay.x(1))  # stage states only
+        assert objective(z2) - objective(z1) == pytest.approx(
+            stage_cost(z2) - stage_cost(z1), rel=1e-9, abs=1e-9
+        )

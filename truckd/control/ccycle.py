@@ -169,7 +169,10 @@ class CompiledCycle:
         """The plan of the last cycle's speeds :attr:`v`: clipped at 0, then their
         accelerations over the period (m/s, m/s^2; as
         :func:`~truckd.control.platoon.plan_of_array` makes them, in the same call)."""
-        lib.truckd_mpc_bind_plan(instance, _addr(self.plan), cq.qp.cfg.period)
+        self.plan_bound = (
+            lib.truckd_mpc_bind_plan(instance, _addr(self.plan), cq.qp.cfg.period) == 0
+        )
+        """Whether the library writes :attr:`plan` (else the plan is made in Python)."""
         self._run = lib.truckd_mpc_run
         self._cur = 0
 

@@ -409,7 +409,7 @@ class MpcSolver:
         self._keep_compiled(z, y)
         u, v = cc.u.copy(), cc.v.copy()
         self._last_v = v
-        self._last_plan = cc.plan.copy()
+        self._last_plan = cc.plan.copy() if cc.plan_bound else None
         if status_val != _SOLVED:
             self.inaccurate += 1
         status = ccycle.STATUS_TEXT[status_val]  # a usable status: status_text's own

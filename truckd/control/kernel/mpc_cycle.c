@@ -131,10 +131,11 @@ static OSQPInt dense_factor(Dense *d) {
 }
 
 /* The dense products below on x86-64 in two builds chosen when the library loads (GCC's
- * target clones): AVX where the CPU has it (four doubles per instruction), else the baseline.
+ * target clones, glibc's ifunc): AVX where the CPU has it (four doubles per instruction),
+ * else the baseline.
  * The same operations in the same order in each lane and no contraction into fused
  * multiply-adds (-std=c99: ISO C's -ffp-contract=off): the same numbers either way. */
-#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
+#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__) && defined(__GLIBC__)
 #define TRUCKD_VECTOR_CLONES __attribute__((target_clones("avx", "default")))
 #else
 #define TRUCKD_VECTOR_CLONES
@@ -461,6 +462,7 @@ int64_t truckd_mpc_bind_io(int64_t inst, const double *values, double *x0, doubl
     BOUND[inst].u = u;
     BOUND[inst].v = v;
     BOUND[inst].info = info;
+    BOUND[inst].plan = NULL; /* until truckd_mpc_bind_plan: none of an earlier owner's */
     BOUND[inst].bound_io = 1;
     return 0;
 }
@@ -485,7 +487,11 @@ int64_t truckd_mpc_run(int64_t inst, int64_t how) {
  * BOUND), and the plan's step dt (s); plan NULL: none written.  0, or -1 for a wrong
  * instance or dt. */
 int64_t truckd_mpc_bind_plan(int64_t inst, double *plan, double dt) {
-    if (solver_of(inst, 0) == NULL || !(dt > 0.0)) return -1;
+    if (solver_of(inst, 0) == NULL) return -1;
+    if (!(dt > 0.0)) {
+        BOUND[inst].plan = NULL;
+        return -1;
+    }
     BOUND[inst].plan = plan;
     BOUND[inst].plan_dt = dt;
     return 0;
