@@ -273,12 +273,15 @@ def _braking_or_capped(rng: np.random.Generator, cfg: ControlConfig, k: int) -> 
     )
 
 
+@pytest.mark.parametrize("inertia", [1.0, 0.01])
 def test_speed_rows_inside_a_block_never_bind(
-    params: VehicleParams, monkeypatch: pytest.MonkeyPatch
+    params: VehicleParams, monkeypatch: pytest.MonkeyPatch, inertia: float
 ) -> None:
     """The QP keeps each block's speed rows at its first and last step only: its optimum
-    is the one with every step's speed rows (the speed is monotone within a block), on
-    instances where those rows bind."""
+    is the one with every step's speed rows (the speed is monotone within a block; with a
+    hundredth of the inertia the motor's modes are complex but vanish within a period),
+    on instances where those rows bind."""
+    params = params.replace(J_S=params.J_S * inertia)
     cfg = dataclasses.replace(ControlConfig(), eps=1e-9, max_iter=100_000, time_budget_s=10.0)
     kept = MpcSolver(ControlModel(params), cfg, compiled=False)
     assert kept.condensed is not None and len(kept.condensed.speed_steps) == 14
@@ -306,11 +309,14 @@ def test_speed_rows_inside_a_block_never_bind(
 
 
 def test_a_slow_electrical_pole_keeps_every_speed_row(params: VehicleParams) -> None:
-    """Where the current's transient outlasts the period the speed need not be monotone
-    within a block: every step keeps its speed rows."""
+    """Where the current's transient, or the motor's ringing, outlasts the period the
+    speed need not be monotone within a block: every step keeps its speed rows."""
     cfg = ControlConfig()
     slow = dataclasses.replace(params, L_m=params.L_m * 20.0)
     cq = MpcSolver(ControlModel(slow), cfg, compiled=False).condensed
     assert cq is not None and cq.speed_steps == tuple(range(cfg.horizon))
+    ringing = dataclasses.replace(params, L_m=params.L_m * 100.0)  # complex modes, |.| 0.9
+    rq = MpcSolver(ControlModel(ringing), cfg, compiled=False).condensed
+    assert rq is not None and rq.speed_steps == tuple(range(cfg.horizon))
     fast = MpcSolver(ControlModel(params), cfg, compiled=False).condensed
     assert fast is not None and cq.m == fast.m + 52
