@@ -242,7 +242,7 @@ def test_the_compiled_plan_is_plan_of_array_of_the_speeds_on_the_recorded_replay
         if speeds is None:
             assert plan is None or plan.v == (0.0,) * len(plan.v)  # none, or held at rest
             continue
-        compiled += cyc.compiled_plan(out) is not None
+        compiled += cyc.compiled_plan(speeds) is not None
         ref = plan_of_array(0.5 * k, out.seq, cyc.period, speeds, "t1")
         assert plan is not None and _bits(plan.v) == _bits(ref.v), k
         assert _bits(plan.a) == _bits(ref.a) and plan.as_dict() == ref.as_dict(), k

@@ -276,9 +276,9 @@ class CondensedQp:
             if mode == "follow":
                 # the follow term's linear part: -2 q_rel v_lead times its row on the
                 # state (v + T a: the speed and, for T > 0, the current)
-                rel = speeds
-                if qp.rel_row[I_CUR] != 0.0:
-                    rel = speeds * qp.rel_row[I_V] + met[:, qp._ks_v - I_V] * qp.rel_row[I_CUR]
+                rel, row = speeds, qp.rel_row
+                if row is not None:
+                    rel = speeds * row[I_V] + met[:, qp._ks_v - I_V] * row[I_CUR]
                 hl[:, 1:n] += -2.0 * cfg.q_rel_speed * rel
                 hl[:, n - 1] += term
                 self._g_ref[mode] = np.zeros(self.nw)

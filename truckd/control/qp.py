@@ -99,9 +99,10 @@ def coordinates(p: VehicleParams) -> Vec:
     return np.diag([p.R_m, p.ratio])
 
 
-def prediction_model(model: ControlModel, dt: float) -> Prediction:
-    """Exact ZOH of the model's linear part (with the known viscous friction), in the MPC's
-    coordinates, with the gap ``dd/dt = v_lead - v`` appended."""
+def continuous_model(model: ControlModel) -> tuple[Vec, Vec]:
+    """The model's linear part (with the known viscous friction) in continuous time, in
+    the MPC's coordinates: ``(A, B)`` of ``d/dt [e, v, d] = A [e, v, d] + B [u, v_lead]``,
+    the gap ``dd/dt = v_lead - v`` appended."""
     p = model.params
     ss = state_space(p, model.effects.viscous_friction)
     # States [e = R_m i (V), v, d]: the current as its resistive voltage drop, so that
@@ -114,18 +115,19 @@ def prediction_model(model: ControlModel, dt: float) -> Prediction:
     bmat = np.zeros((NX, 2))
     bmat[:2, 0] = (t @ ss.B)[:, 0]
     bmat[I_D, 1] = 1.0
-    ad, bd = zoh(a, bmat, dt)
+    return a, bmat
+
+
+def prediction_model(model: ControlModel, dt: float) -> Prediction:
+    """Exact ZOH of :func:`continuous_model` over ``dt`` (s)."""
+    ad, bd = zoh(*continuous_model(model), dt)
     return Prediction(Ad=ad, bu=bd[:, 0].copy(), bl=bd[:, 1].copy(), dt=dt)
 
 
 def accel_row(model: ControlModel) -> Vec:
     """The truck's acceleration (m/s^2) as a row on the MPC's state ``[R_m i, v, d]``: the
     linear model's ``dv/dt`` (the input acts on the current only, so no input term)."""
-    p = model.params
-    ss = state_space(p, model.effects.viscous_friction)
-    t = coordinates(p)
-    row = np.zeros(NX)
-    row[:2] = (t @ ss.A @ np.diag(1.0 / np.diag(t)))[I_V]
+    row: Vec = continuous_model(model)[0][I_V].copy()
     return row
 
 
@@ -302,10 +304,12 @@ class QpBuilder:
         self.pred = prediction_model(model, cfg.period)
         self.lay = Layout(cfg.horizon)
         self.A = constraint_matrix(self.pred, self.lay)
-        self.rel_row = rel_speed_row(cfg, accel_row(model))
-        """The follow term's row on the state (``v + T a``, :func:`rel_speed_row`)."""
-        rel = self.rel_row if cfg.rel_speed_lookahead > 0.0 else None
-        self.Q = {m: stage_weight(cfg, m, rel) for m in MODES}
+        self.rel_row = (
+            rel_speed_row(cfg, accel_row(model)) if cfg.rel_speed_lookahead > 0.0 else None
+        )
+        """The follow term's row on the state (``v + T a``, :func:`rel_speed_row`); None
+        with ``T`` = 0: the speed alone (the relative speed)."""
+        self.Q = {m: stage_weight(cfg, m, self.rel_row) for m in MODES}
         self.Pf = {m: terminal_weight(self.pred, self.Q[m], cfg.r_du) for m in MODES}
         self.P = {m: cost_matrix(cfg, self.lay, self.Q[m], self.Pf[m]) for m in MODES}
         self._templates()
@@ -380,11 +384,12 @@ class QpBuilder:
         np.copyto(q, self._q0[mode])
         vl = np.asarray(inp.v_lead, dtype=float)
         if mode == "follow":
-            if self.rel_row[I_CUR] == 0.0:  # T = 0: the relative speed
+            rel = self.rel_row
+            if rel is None:  # T = 0: the relative speed
                 q[self._ks_v] -= (2.0 * cfg.q_rel_speed) * vl[1:n]
             else:  # v + T a: the speed's and the current's parts
-                q[self._ks_v] -= (2.0 * cfg.q_rel_speed * self.rel_row[I_V]) * vl[1:n]
-                q[self._ks_v - I_V] -= (2.0 * cfg.q_rel_speed * self.rel_row[I_CUR]) * vl[1:n]
+                q[self._ks_v] -= (2.0 * cfg.q_rel_speed * rel[I_V]) * vl[1:n]
+                q[self._ks_v - I_V] -= (2.0 * cfg.q_rel_speed * rel[I_CUR]) * vl[1:n]
             v_end = float(vl[n - 1])
         else:
             q[self._ks_v] -= 2.0 * cfg.q_cruise * inp.v_ref

@@ -351,24 +351,16 @@ class CompanionCycle:
         pipe = self.controller.pipeline_v
         return np.array([*pipe, *speeds.tolist()]) if pipe else speeds
 
-    def compiled_plan(self, out: CycleOutputs) -> list[float] | None:
-        """The plan of the cycle ``out`` as the compiled cycle made it (call it before the
-        next step): the predicted speeds clipped at 0 (m/s), then their accelerations
+    def compiled_plan(self, speeds: NDArray[np.float64]) -> list[float] | None:
+        """The plan of ``speeds``, what :meth:`plan_speed_array` gave for a cycle, as the
+        compiled cycle made it: the speeds clipped at 0 (m/s), then their accelerations
         (m/s^2), ``N + 1`` each in one list, the same as
-        :func:`~truckd.control.platoon.plan_of_array` makes of :meth:`plan_speed_array`;
-        None when that cycle's MPC did not solve, solved on the Python path, or commands
-        are in the pipeline (input delay)."""
-        c = out.control
-        ctrl = self.controller
-        plan = ctrl.mpc.last_plan
-        if (
-            plan is None
-            or c is None
-            or c.fallback_reason is not None
-            or c.solve_iterations == 0
-            or ctrl.pipeline_v
-            or ctrl.mpc.cfg.period != self.period
-        ):
+        :func:`~truckd.control.platoon.plan_of_array` makes of them; None unless they are
+        the MPC's own speeds (no commands in the pipeline) of a compiled solve at this
+        cycle's period."""
+        mpc = self.controller.mpc
+        plan = mpc.last_plan
+        if plan is None or speeds is not mpc.last_speeds or mpc.cfg.period != self.period:
             return None
         values: list[float] = plan.tolist()
         return values

@@ -55,12 +55,13 @@ def cycle_plan(
     clock): the MPC's predicted speeds when it solved, standstill while the controller
     holds the truck at rest, None otherwise (a fallback has no plan to promise: the
     follower's plan goes stale and it falls back to ACC)."""
-    compiled = cyc.compiled_plan(out)
-    if compiled is not None:  # speeds and accelerations made by the compiled cycle
-        n = len(compiled) // 2
-        return Plan(t, out.seq, cyc.period, tuple(compiled[:n]), tuple(compiled[n:]), vehicle_id)
     v = cyc.plan_speed_array(out)
     if v is not None:
+        compiled = cyc.compiled_plan(v)
+        if compiled is not None:  # speeds and accelerations made by the compiled cycle
+            n = len(compiled) // 2
+            v_plan, a_plan = tuple(compiled[:n]), tuple(compiled[n:])
+            return Plan(t, out.seq, cyc.period, v_plan, a_plan, vehicle_id)
         return plan_of_array(t, out.seq, cyc.period, v, vehicle_id)
     c = out.control
     if c is not None and c.mode == "hold":
