@@ -21,6 +21,7 @@ from typing import Any
 import pytest
 
 from truckd.cli.main import main
+from truckd.ident.fanout import as_start
 from truckd.workers import ForkMap, can_fork
 
 FORK_CHECKS = Path(__file__).resolve().parent / "fork_checks.py"
@@ -52,6 +53,15 @@ def test_an_exception_in_a_child_is_raised_here() -> None:
 def test_a_child_killed_falls_back_to_this_process() -> None:
     r = _fresh("killed")
     assert r["out"] == [10 * x for x in range(6)] and r["fallbacks"] == 1
+
+
+def test_a_result_equal_to_its_start_comes_back_as_the_start_object() -> None:
+    start = {"kS": 0.1, "kV": 2.0}
+    copy = dict(start)  # what a worker hands back for a fit that kept its start
+    better = {"kS": 0.1, "kV": 2.1}
+    assert as_start(copy, start) is start
+    assert as_start(start, start) is start
+    assert as_start(better, start) is better
 
 
 def _pid_and_square(x: int) -> tuple[int, int]:

@@ -18,7 +18,7 @@ from truckd.ident.candidates import (
     fit_work,
 )
 from truckd.ident.extend import fit_candidate
-from truckd.ident.fanout import Mapper, in_order, kept_lines
+from truckd.ident.fanout import Mapper, as_start, in_order, kept_lines
 from truckd.ident.judge import passes_over
 from truckd.ident.pairs import PAIR_TOP, best_pair, pair_order
 from truckd.ident.result import (
@@ -112,8 +112,7 @@ class _Selecting:
             ran = kept_lines(self.mapper, one, todo, work)
             for k, (out, lines) in zip(todo, ran, strict=True):
                 base = jobs[k][0]
-                # a fit no better than its start is its start, the same object as here
-                self.fitted[keys[k]] = (base, base if out == base else out)
+                self.fitted[keys[k]] = (base, as_start(out, base))
                 said[k] = lines
         results = []
         for k, (base, extra, cand, header) in enumerate(jobs):

@@ -31,6 +31,13 @@ def in_order(fn: Callable[[T], R], items: Sequence[T], /) -> list[R]:
     return [fn(x) for x in items]
 
 
+def as_start(result: T, start: T) -> T:
+    """``start`` itself when ``result`` equals it: a fit no better than its start is
+    its start, and a worker hands back an equal copy, not the object (the identity keys
+    and ``is`` checks downstream then hold as in one process)."""
+    return start if result is not start and result == start else result
+
+
 def kept_lines(
     mapper: Mapper,
     task: Callable[[T, Progress], R],

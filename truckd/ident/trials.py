@@ -18,7 +18,7 @@ from truckd.ident.candidates import (
     voltage_candidates,
 )
 from truckd.ident.extend import fit_candidate, params_of
-from truckd.ident.fanout import Mapper, fan_out, in_order
+from truckd.ident.fanout import Mapper, as_start, fan_out, in_order
 from truckd.ident.judge import Judge
 from truckd.ident.result import (
     CandidateRow,
@@ -84,8 +84,8 @@ def candidates_stage(
 
     fitted = fan_out(mapper, alone, range(len(cands)), progress, lambda k: fit_work(cands[k]))
     for cand, (m, fp) in zip(cands, fitted, strict=True):
-        if m.fit is not base_fit and m.fit == base_fit:  # the seed itself (from a worker)
-            m = dataclasses.replace(m, fit=base_fit)
+        if (start := as_start(m.fit, base_fit)) is not m.fit:
+            m = dataclasses.replace(m, fit=start)
         f = m.fit
         ok, dbic = judge.takes(cand.name, m, base)
         note = "passes alone" if ok else judge.hill_notes.get(cand.name, "")
