@@ -18,6 +18,8 @@ by ``loop_bench.py``.
   (``code``) and data (``data``, reads and writes) the step fetches from memory, the
   same with and without the steps subtracted.  The cycle's time after the sleep goes
   mostly into these fetches; unlike a time, the count repeats on a busy machine.
+* ``osqp_iterations``: the MPC's OSQP iterations per solve over the replay's cycles that
+  solved (mean, p99, how many);
 * ``hot_us_p50``: wall time per step back to back (caches warm);
   ``paced_us_p50``: the same with a 10 ms sleep after each step: the caches and the
   branch predictors go cold in the sleep, as they do in the daemon's loop, and each numpy
@@ -65,6 +67,7 @@ def step(cyc, inp):  # the cycle's pure work: step, plan, state message, log row
         plan.as_dict()
     cyc.state_message(out)
     cyc.log_row(out)
+    return out
 """  # the step both replays run: each child script starts with it
 
 CHILD = (
@@ -76,19 +79,21 @@ t0, params, cycles = read_rx_log(path)
 cycles = list(cycles)
 cycs = [cycle_from_params(params, t0, path) for _ in range(3)]  # set-up alike for any reps
 times = []
+iterations = []
 pc = time.perf_counter
 for cyc in cycs[:reps]:
     for inp in cycles:
         a = pc()
-        step(cyc, inp)
+        out = step(cyc, inp)
         times.append(pc() - a)
+        iterations.append(out.control.solve_iterations)
         if pace > 0.0 and spin:  # busy, touching nothing of the step's
             end = pc() + pace
             while pc() < end:
                 pass
         elif pace > 0.0:
             time.sleep(pace)
-print(json.dumps({"cycles": len(cycles), "times": times}))
+print(json.dumps({"cycles": len(cycles), "times": times, "iterations": iterations}))
 """
 )
 
@@ -187,6 +192,12 @@ def run(root: Path) -> dict[str, Any]:
     hot, _ = _child(root, 3, 0.0, False)
     paced, _ = _child(root, 1, 0.01, False)
     result["cycles"] = hot["cycles"]
+    solved = [n for n in hot["iterations"][: hot["cycles"]] if n > 0]
+    result["osqp_iterations"] = {
+        "mean": round(sum(solved) / len(solved), 2) if solved else None,
+        "p99": sorted(solved)[int(0.99 * (len(solved) - 1))] if solved else None,
+        "solves": len(solved),
+    }
     result["hot_us_p50"] = _p50_us(hot["times"])
     result["paced_us_p50"] = _p50_us(paced["times"])
     result["busy_gap_us_p50"] = {
