@@ -19,6 +19,7 @@ ORDER = (
     "mpc_bench",
     "loop_bench",
     "cycle_work",
+    "mpc_settings",
     "recorder_bench",
     "diagnose_bench",
     "closed_loop_gain",

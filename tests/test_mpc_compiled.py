@@ -154,6 +154,29 @@ def test_compiled_and_python_solvers_agree_for_drawn_trucks(seed: int) -> None:
 
 
 @needs_library
+def test_the_admm_settings_reach_the_compiled_solver(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Relaxation and rho adaptation other than the generated solver was made with (as
+    ``benchmarks/mpc_settings.py`` tries them): the compiled path takes them from
+    ``osqp_settings`` at start-up and solves as the Python path does."""
+    cfg = dataclasses.replace(load_config().control, time_budget_s=float("inf"))
+    model = _drawn(1)
+    seq = _sequence(cfg, 1, 120)
+    shipped_iters = [MpcSolver(model, cfg).solve(m, i).iterations for m, i in seq[:1]]
+    shipped = mpc_module.osqp_settings
+    other = {"rho": 0.03, "alpha": 1.8, "adaptive_rho_interval": 25, "adaptive_rho_tolerance": 5.0}
+    monkeypatch.setattr(mpc_module, "osqp_settings", lambda c: {**shipped(c), **other})
+    compiled, python = MpcSolver(model, cfg), MpcSolver(model, cfg, compiled=False)
+    assert compiled.backend == "compiled", compiled.backend
+    iters = []
+    for k, (mode, inp) in enumerate(seq):
+        a, b = compiled.solve(mode, inp), python.solve(mode, inp)
+        assert (a.ok, a.status, a.iterations) == (b.ok, b.status, b.iterations), k
+        assert abs(a.u0 - b.u0) <= 1e-9 or (np.isnan(a.u0) and np.isnan(b.u0)), k
+        iters.append(a.iterations)
+    assert iters[:1] != shipped_iters  # the settings changed the solves
+
+
+@needs_library
 def test_non_finite_inputs_are_refused_before_the_compiled_cycle() -> None:
     cfg = load_config().control.in_simulated_time()  # no wall-clock budget
     s = MpcSolver(_drawn(7), cfg)

@@ -34,7 +34,7 @@ Vec = NDArray[np.float64]
 LIBRARY = Path(__file__).resolve().parent / "kernel" / "build" / "libtruckd_mpc.so"
 """Where ``make firmware`` puts the compiled cycle."""
 
-ABI = 9
+ABI = 10
 """The interface version this module speaks (``truckd_mpc_abi`` of the library)."""
 
 BAD_INPUT = -100
@@ -84,7 +84,7 @@ def _declare(lib: ctypes.CDLL) -> None:
     lib.truckd_mpc_pattern.restype = None
     lib.truckd_mpc_pattern.argtypes = [i, p, p, p, p]
     lib.truckd_mpc_setup.restype = i
-    lib.truckd_mpc_setup.argtypes = [i, i, p, p, p, p, p, d, d, i, i, d, d]
+    lib.truckd_mpc_setup.argtypes = [i, i, p, p, p, p, p, d, d, i, i, d, d, d, i, d]
     lib.truckd_mpc_set_max_iter.restype = i
     lib.truckd_mpc_set_max_iter.argtypes = [i, i, i]
     lib.truckd_mpc_update_rho.restype = i
@@ -196,16 +196,21 @@ class CompiledCycle:
         check: int,
         time_limit: float,
         rho: float,
+        alpha: float,
+        rho_interval: int,
+        rho_tolerance: float,
     ) -> int:
         """This truck's matrix values, the vectors :meth:`CondensedQp.fill` left in its
         buffer (the solver's set-up inputs: OSQP scales the cost by them) and the settings
-        (``time_limit`` s, OSQP's) into one mode's solver (0: done)."""
+        (``time_limit`` s; the ADMM's relaxation ``alpha`` and rho adaptation, the
+        generated solver's own left for :func:`truckd.control.mpc.osqp_settings`'s) into
+        one mode's solver (0: done)."""
         px = np.ascontiguousarray(p_x, dtype=np.float64)
         ax = np.ascontiguousarray(a_x, dtype=np.float64)
         cq = self._cq
         q, lo, hi = (_addr(a) for a in (cq.q_view, cq.lo_view, cq.hi_view))
         fn = self._lib.truckd_mpc_setup
-        args = (eps, eps, max_iter, check, time_limit, rho)
+        args = (eps, eps, max_iter, check, time_limit, rho, alpha, rho_interval, rho_tolerance)
         return int(fn(self.instance, mode, _addr(px), _addr(ax), q, lo, hi, *args))
 
     def set_max_iter(self, mode: int, max_iter: int) -> None:

@@ -78,8 +78,21 @@ iterations; adapting every 25 iterations made rho oscillate (see docs/controller
 
 RHO_BLOCKED = 1.0
 """The initial rho of the move-blocked, condensed QP.  On the stop-and-go sequence at N = 40
-(8 blocks), iterations p50/p99: rho 1.0 30/50; 0.3 30/200; 0.1 30/178; 0.03 30/210 (the
-long tail is braking to rest with the minimum-gap and rate rows active)."""
+(8 blocks, 137 rows), iterations p50/p99: rho 1.0 30/50; 0.3 30/200; 0.1 30/178; 0.03 30/210
+(the long tail is braking to rest with the minimum-gap and rate rows active).  On the 85-row
+QP over ten trucks and six scenarios (``benchmarks/mpc_settings.py``, 84 000 QPs), rho 0.03
+with alpha 1.8 and an update tolerance of 5 halves the iterations (mean 17.7 -> 9.3, p99 65 ->
+20, max 315 -> 205) but takes 15 % more on the recorded follow replay (9.36 -> 10.74: past
+the 300 k instructions a cycle), and its rounding lifts a drawn ten-truck platoon's
+spacing-error ratio to 1.004 (0.982 here, 0.987 at the exact optimum): not adopted
+(docs/controller.md)."""
+
+ALPHA_BLOCKED = 1.6
+"""OSQP's relaxation of the move-blocked QP (OSQP's default, as the sparse QP's)."""
+
+RHO_TOLERANCE_BLOCKED = 2.0
+"""How far OSQP's rho estimate must move (a factor) before the move-blocked QP's rho is
+updated (each update refactors the KKT matrix)."""
 
 
 CHECK_DUALGAP_BLOCKED = 0
@@ -103,8 +116,9 @@ def osqp_settings(cfg: ControlConfig) -> dict[str, float | int | bool]:
         "polishing": False,
         "check_termination": 5,
         "rho": RHO if cfg.move_blocks == 0 else RHO_BLOCKED,
+        "alpha": 1.6 if cfg.move_blocks == 0 else ALPHA_BLOCKED,
         "adaptive_rho_interval": 50,
-        "adaptive_rho_tolerance": 2.0,
+        "adaptive_rho_tolerance": 2.0 if cfg.move_blocks == 0 else RHO_TOLERANCE_BLOCKED,
         "check_dualgap": 1 if cfg.move_blocks == 0 else CHECK_DUALGAP_BLOCKED,
     }
 
@@ -206,6 +220,9 @@ class MpcSolver:
                 int(st["check_termination"]),
                 float(st["time_limit"]),
                 self._rho0,
+                float(st["alpha"]),
+                int(st["adaptive_rho_interval"]),
+                float(st["adaptive_rho_tolerance"]),
             )
             if flag != 0:
                 ccycle.release(cc.instance, cc.claim_number)

@@ -300,9 +300,15 @@ void truckd_mpc_pattern(int64_t mode, int64_t *pp, int64_t *pi, int64_t *ap, int
 int64_t truckd_mpc_setup(int64_t inst, int64_t mode, const double *px, const double *ax,
                          const double *q, const double *l, const double *u, double eps_abs,
                          double eps_rel, int64_t max_iter, int64_t check_termination,
-                         double time_limit, double rho) {
+                         double time_limit, double rho, double alpha, int64_t rho_interval,
+                         double rho_tolerance) {
     OSQPSolver *s = solver_of(inst, mode);
     if (s == NULL) return -1;
+    /* The ADMM's settings from the caller (truckd.control.mpc.osqp_settings), not the ones
+     * the generated code was made with: one source for both paths. */
+    s->settings->alpha = alpha;
+    s->settings->adaptive_rho_interval = (OSQPInt)rho_interval;
+    s->settings->adaptive_rho_tolerance = rho_tolerance;
     s->settings->eps_abs = eps_abs;
     s->settings->eps_rel = eps_rel;
     s->settings->max_iter = (OSQPInt)max_iter;

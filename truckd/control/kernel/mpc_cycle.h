@@ -6,7 +6,7 @@
 
 #include <stdint.h>
 
-#define TRUCKD_MPC_ABI 9
+#define TRUCKD_MPC_ABI 10
 
 /* One MPC cycle on the arrays bound by truckd_mpc_bind_io (see mpc_cycle.c). */
 int64_t truckd_mpc_run(int64_t inst, int64_t how);
