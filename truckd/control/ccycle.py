@@ -202,9 +202,8 @@ class CompiledCycle:
     ) -> int:
         """This truck's matrix values, the vectors :meth:`CondensedQp.fill` left in its
         buffer (the solver's set-up inputs: OSQP scales the cost by them) and the settings
-        (``time_limit`` s; the ADMM's relaxation ``alpha`` and rho adaptation, the
-        generated solver's own left for :func:`truckd.control.mpc.osqp_settings`'s) into
-        one mode's solver (0: done)."""
+        (``time_limit`` s; the relaxation ``alpha`` and the rho adaptation's interval and
+        tolerance replace the generated solver's own) into one mode's solver (0: done)."""
         px = np.ascontiguousarray(p_x, dtype=np.float64)
         ax = np.ascontiguousarray(a_x, dtype=np.float64)
         cq = self._cq
