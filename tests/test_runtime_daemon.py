@@ -3,6 +3,7 @@ subprocess runs on the sim backend: clean stop, recorded log, SIGTERM."""
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 import signal
@@ -89,7 +90,10 @@ def test_safe_stop_ramps_to_zero() -> None:
     assert seq[-1] == 0.0
 
 
-def test_in_process_run_records_a_contract_log(tmp_path: Path) -> None:
+def test_in_process_run_records_a_contract_log(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    caplog.set_level(logging.INFO, logger="truckd.daemon")
     cfg_path = write_config(
         tmp_path / "truck.yaml",
         {"runtime": {"realtime": False, "telemetry": {"enabled": False},
@@ -113,6 +117,12 @@ def test_in_process_run_records_a_contract_log(tmp_path: Path) -> None:
     # supervisor's cause), the designed reaction to a stall
     stalled = d.companion.stalls > 0 and "loop_stall" in d.decision.causes
     assert d.decision.mode in (Mode.ACTIVE, Mode.DEGRADED) or stalled, d.decision
+    # the start into ACTIVE is news (INFO); a transition with a cause is a warning
+    modes = [r for r in caplog.records if r.getMessage().startswith("mode ")]
+    assert any("INIT -> ACTIVE" in r.getMessage() for r in modes), modes
+    for r in modes:
+        clear = "-> ACTIVE" in r.getMessage() and r.getMessage().endswith("(all clear)")
+        assert r.levelno == (logging.INFO if clear else logging.WARNING), r.getMessage()
 
 
 def test_sigterm_stops_cleanly_with_exit_0(tmp_path: Path) -> None:

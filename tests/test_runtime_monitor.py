@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 import json
+import os
+import signal
 import subprocess
 import sys
 import threading
 import time
 from collections.abc import Callable
 
+import pytest
 from runtime_support import endpoint, free_port
 
 from truckd.config.runtime import TelemetryConfig
@@ -195,3 +198,41 @@ def test_characterize_progress_is_a_line_under_the_table() -> None:
     evil = {"stage": "\x1b[2Jdone", "experiment": "", "percent": 100}
     v.on_sample("truckd/a/characterize", json.dumps(evil).encode(), 1.0)
     assert "\x1b" not in v.render(1.0)
+
+
+@pytest.mark.parametrize(
+    ("mode", "ready", "sig", "code"),
+    [
+        ("table", "vehicle", signal.SIGTERM, 0),
+        ("table", "vehicle", signal.SIGINT, 130),
+        ("foxglove", "serving on", signal.SIGTERM, 0),
+    ],
+)
+def test_sigterm_stops_the_monitor_cleanly_and_ctrl_c_interrupts_it(
+    mode: str, ready: str, sig: signal.Signals, code: int
+) -> None:
+    """Running until stopped (no ``--duration``): SIGTERM, as a service manager or ``kill``
+    sends it, ends the table and the Foxglove relay with exit 0 (reference section 1);
+    Ctrl-C is an interruption, 130."""
+    argv = [sys.executable, "-m", "truckd.cli.main", "monitor", "--connect",
+            endpoint(free_port()), "--interval", "0.25"]  # fmt: skip
+    if mode == "foxglove":
+        argv += ["--foxglove", "0"]
+    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    lines: list[str] = []
+    try:
+        assert proc.stdout is not None
+        stdout = proc.stdout
+        reader = threading.Thread(target=lambda: lines.extend(stdout), daemon=True)
+        reader.start()
+        assert _wait_output(lines, lambda ln: ready in ln, 60.0), "".join(lines)
+        os.kill(proc.pid, sig)
+        assert proc.wait(timeout=20) == code, proc.stderr.read()  # type: ignore[union-attr]
+        reader.join(timeout=5)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        for f in (proc.stdout, proc.stderr):
+            if f is not None:
+                f.close()

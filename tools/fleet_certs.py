@@ -47,7 +47,12 @@ def main(argv: list[str] | None = None) -> int:
     except InputError as exc:
         print(f"fleet_certs: {exc}", file=sys.stderr)
         return 2
-    print(f"fleet of {len(fleet.trucks)} trucks and {len(fleet.operators)} operators in {out}")
+    trucks, ops = len(fleet.trucks), len(fleet.operators)
+    plural = {True: "s", False: ""}
+    print(
+        f"fleet of {trucks} truck{plural[trucks != 1]} and {ops} "
+        f"operator{plural[ops != 1]} in {out}"
+    )
     return 0
 
 

@@ -24,6 +24,9 @@ from truckd.sim.platoon import (
 )
 from truckd.sim.report import json_safe, trace_text
 
+JOINS_LEAVES = ("platoon-join", "platoon-leave")
+"""Scenarios in which trucks join or leave: their ratios pair trucks by index."""
+
 # the shortest platoon run whose spacing errors the string ratios can compare (s)
 MIN_PLATOON_DURATION_S = 1.0
 
@@ -215,10 +218,13 @@ def run_platoon_cli(args: argparse.Namespace) -> int:
         if trace_dir is not None:  # one log per truck, the lead (truck 0) included
             for i, rows in enumerate(tr.rows):
                 files.append((trace_dir / f"{name}-truck{i}.csv", trace_text(Trace(rows=rows))))
+        # With joins and leaves the ratios pair trucks by index, not road neighbours.
+        by_index = " (pairs by truck index, not road order)" if name in JOINS_LEAVES else ""
         print(
             f"{name}: {args.platoon} trucks, collision {m['collision']}, "
             f"min gap {m['min_gap_m']:.3f} m, string ratio l2 [{_fmt(m['string_ratio_l2'])}] "
-            f"max [{_fmt(m['string_ratio_max'])}], CACC share [{_fmt(m['cacc_fraction'])}]"
+            f"max [{_fmt(m['string_ratio_max'])}]{by_index}, "
+            f"CACC share [{_fmt(m['cacc_fraction'])}]"
         )
     if args.json:
         doc: object = results if args.scenario == "all" else results[0]

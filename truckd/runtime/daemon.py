@@ -359,8 +359,10 @@ class Daemon:
             log.error("controller failed: %s", out.error)
         tr = out.decision.transition
         if tr is not None:
-            log.warning(
-                "mode %s -> %s at t=%.3f s (%s)", tr.old.value, tr.new.value, out.t,
+            # Into ACTIVE with nothing wrong (the start, a recovery) is news, not a warning.
+            level = logging.INFO if tr.new == Mode.ACTIVE and not tr.causes else logging.WARNING
+            log.log(
+                level, "mode %s -> %s at t=%.3f s (%s)", tr.old.value, tr.new.value, out.t,
                 ", ".join(tr.causes) or "all clear",
             )  # fmt: skip
             self._transitions = [*self._transitions[-9:], tr.as_dict()]

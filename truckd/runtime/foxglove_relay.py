@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import json
 import logging
-import signal
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -33,6 +32,7 @@ from truckd.runtime.mcap_log import to_json
 from truckd.runtime.monitor import MAX_VEHICLES
 from truckd.runtime.msg_schemas import KINDS, MESSAGE_ENCODING, SCHEMA_ENCODING, schema_bytes
 from truckd.runtime.msg_schemas import topic as topic_of
+from truckd.runtime.stopping import StopRequested, stop_signals
 from truckd.runtime.telemetry import open_session, zenoh_config
 
 if TYPE_CHECKING:
@@ -218,39 +218,30 @@ def run_relay(
     clock: Callable[[], float] = time.monotonic,
 ) -> RelayStats:
     """Start ``relay``, print its address and, every ``interval`` s when it changed, how
-    many messages went out per topic; until ``duration`` (None: until interrupted)."""
+    many messages went out per topic; until ``duration`` (None: until SIGTERM, which
+    ends it normally, or Ctrl-C, which raises KeyboardInterrupt: :mod:`truckd.runtime.stopping`)."""
     port = relay.start()
-    # Ctrl-C and SIGTERM end the relay.  Installed after the start: the native libraries
+    # The stop signals' handlers are installed after the start: the native libraries
     # (Zenoh, the Foxglove server) set up their runtimes there, and with Python's own
     # SIGINT handler beneath them a Ctrl-C was now and then not seen (the relay kept
     # running; about 1 run in 20 beside a busy core).
-    previous = _on_stop_signals()
-    out.write(f"foxglove: serving on ws://{relay.host}:{port} (open it in Foxglove)\n")
-    out.flush()
-    t_end = None if duration is None else clock() + duration
-    last = ""
     try:
-        while t_end is None or clock() < t_end:
-            time.sleep(interval if t_end is None else max(0.0, min(interval, t_end - clock())))
-            line = ", ".join(f"{t} {n}" for t, n in sorted(relay.stats.messages.items()))
-            if line and line != last:
-                out.write(f"relayed: {line}\n")
+        with stop_signals():
+            try:
+                out.write(f"foxglove: serving on ws://{relay.host}:{port} (open it in Foxglove)\n")
                 out.flush()
-                last = line
-    finally:
-        relay.close()
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+                t_end = None if duration is None else clock() + duration
+                last = ""
+                while t_end is None or clock() < t_end:
+                    left = None if t_end is None else max(0.0, min(interval, t_end - clock()))
+                    time.sleep(interval if left is None else left)
+                    line = ", ".join(f"{t} {n}" for t, n in sorted(relay.stats.messages.items()))
+                    if line and line != last:
+                        out.write(f"relayed: {line}\n")
+                        out.flush()
+                        last = line
+            finally:
+                relay.close()
+    except StopRequested:
+        pass
     return relay.stats
-
-
-def _interrupted(signum: int, frame: object) -> None:
-    raise KeyboardInterrupt  # the CLI's exit code 130, after the relay is closed
-
-
-def _on_stop_signals() -> dict[int, Any]:
-    """SIGINT and SIGTERM raise KeyboardInterrupt in the main thread (only there: a relay
-    run from another thread keeps the process's handlers); the previous handlers."""
-    if threading.current_thread() is not threading.main_thread():
-        return {}
-    return {sig: signal.signal(sig, _interrupted) for sig in (signal.SIGINT, signal.SIGTERM)}

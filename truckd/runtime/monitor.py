@@ -29,6 +29,7 @@ from typing import Any, TextIO
 import zenoh
 
 from truckd.runtime.platoon_view import platoon_lines
+from truckd.runtime.stopping import StopRequested, stop_signals
 from truckd.runtime.telemetry import open_session, zenoh_config
 
 
@@ -234,7 +235,9 @@ def run_monitor(
     clear: bool,
     clock: Callable[[], float] = time.monotonic,
 ) -> FleetView:
-    """Show the fleet table every ``interval`` s until ``duration`` (None: forever)."""
+    """Show the fleet table every ``interval`` s until ``duration`` (None: until SIGTERM,
+    which ends it normally, or Ctrl-C, which raises KeyboardInterrupt:
+    :mod:`truckd.runtime.stopping`)."""
     view = FleetView()
     conf = zenoh_config(zenoh_file, listen=[], connect=list(connect), names=("", "--connect"))
     session = open_session(conf, "monitor")
@@ -254,15 +257,20 @@ def run_monitor(
     view.endpoints = tuple(connect)
     t_end = None if duration is None else clock() + duration
     try:
-        while t_end is None or clock() < t_end:
-            time.sleep(interval if t_end is None else max(0.0, min(interval, t_end - clock())))
-            info = session.info
-            view.connected = bool(info.peers_zid() or info.routers_zid())
-            text = view.render(clock())
-            out.write(("\x1b[H\x1b[2J" if clear else "") + text + "\n\n")
-            out.flush()
-    finally:
-        for s in subs:
-            s.undeclare()  # type: ignore[no-untyped-call]
-        session.close()  # type: ignore[no-untyped-call]
+        with stop_signals():
+            try:
+                while t_end is None or clock() < t_end:
+                    left = None if t_end is None else max(0.0, min(interval, t_end - clock()))
+                    time.sleep(interval if left is None else left)
+                    info = session.info
+                    view.connected = bool(info.peers_zid() or info.routers_zid())
+                    text = view.render(clock())
+                    out.write(("\x1b[H\x1b[2J" if clear else "") + text + "\n\n")
+                    out.flush()
+            finally:
+                for s in subs:
+                    s.undeclare()  # type: ignore[no-untyped-call]
+                session.close()  # type: ignore[no-untyped-call]
+    except StopRequested:
+        pass
     return view

@@ -1,0 +1,47 @@
+"""How a foreground tool that runs until stopped (``truckd monitor``, its Foxglove relay)
+hears the signals that stop it.
+
+SIGTERM (a service manager, ``kill``) is the orderly stop: the loop ends, the tool closes
+what it holds and exits 0 (reference section 1).  SIGINT (Ctrl-C) stays an interruption:
+KeyboardInterrupt, exit 130.  Only the main thread can install handlers; from another
+thread the process's handlers stay as they are.
+"""
+
+from __future__ import annotations
+
+import signal
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+from types import FrameType
+
+
+class StopRequested(BaseException):
+    """SIGTERM asked the tool to stop: end the loop, close, exit 0 (a BaseException, as
+    KeyboardInterrupt: no ``except Exception`` on the way takes it for an error)."""
+
+
+def _terminated(_signum: int, _frame: FrameType | None) -> None:
+    raise StopRequested
+
+
+def _interrupted(_signum: int, _frame: FrameType | None) -> None:
+    raise KeyboardInterrupt
+
+
+@contextmanager
+def stop_signals() -> Iterator[None]:
+    """SIGTERM raises :class:`StopRequested` and SIGINT KeyboardInterrupt in the main
+    thread while the block runs; the previous handlers come back after."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = {
+        signal.SIGTERM: signal.signal(signal.SIGTERM, _terminated),
+        signal.SIGINT: signal.signal(signal.SIGINT, _interrupted),
+    }
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
