@@ -10,11 +10,18 @@ $(BIN)/python:
 	$(PY) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
 
-setup: $(BIN)/python
-	$(BIN)/pip install -q -e '.[plot]'
+# Installed once per change of pyproject.toml (the stamp files in .venv): a second
+# `make sim` or `make test` reinstalls nothing, and needs no package index.
+setup: $(VENV)/.installed-plot
+setup-dev: $(VENV)/.installed-dev
 
-setup-dev: $(BIN)/python
+$(VENV)/.installed-plot: pyproject.toml | $(BIN)/python
+	$(BIN)/pip install -q -e '.[plot]'
+	@touch $@
+
+$(VENV)/.installed-dev: pyproject.toml | $(BIN)/python
 	$(BIN)/pip install -q -e '.[dev]'
+	@touch $@
 
 # the C firmware core as the shared library the simulated truck loads (docs/firmware.md),
 # the identification's C free-run kernel (docs/diagnosis.md), and the MPC's compiled cycle
