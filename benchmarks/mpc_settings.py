@@ -151,13 +151,12 @@ def solve_all(
 def run(seconds: float, variants: dict[str, dict[str, Any]]) -> dict[str, Any]:
     tc = load_config()
     cfg = tc.control.in_simulated_time()  # iterations, not the clock
-    exact = EXACT
     cases = []
     for name, factors in TRUCKS.items():
         p = truck(tc.vehicle, factors)
         for sc in SCENARIO_NAMES:
             seq = record(tc, p, sc, seconds)
-            cases.append((name, sc, p, seq, solve_all(p, cfg, seq, exact)[1]))
+            cases.append((name, sc, p, seq, solve_all(p, cfg, seq, EXACT)[1]))
             print(f"recorded {name}, {sc}: {len(seq)} QPs", file=sys.stderr)
     out: dict[str, Any] = {
         "what": __doc__.split("\n\n")[0].replace("\n", " "),

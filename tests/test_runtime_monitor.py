@@ -12,6 +12,7 @@ import time
 from collections.abc import Callable
 
 import pytest
+from hil_support import end_process
 from runtime_support import endpoint, free_port
 
 from truckd.config.runtime import TelemetryConfig
@@ -104,12 +105,7 @@ def test_monitor_cli_sees_vehicle_then_offline() -> None:
         reader.join(timeout=5)
     finally:
         tel.close()
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-        for f in (proc.stdout, proc.stderr):
-            if f is not None:
-                f.close()
+        end_process(proc)
     out = "".join(lines)
     tables = [t for t in out.split("\n\n") if t.strip()]
     online = [t for t in tables if "mon1" in t and "online" in t and "0.75" in t]
@@ -230,9 +226,4 @@ def test_sigterm_stops_the_monitor_cleanly_and_ctrl_c_interrupts_it(
         assert proc.wait(timeout=20) == code, proc.stderr.read()  # type: ignore[union-attr]
         reader.join(timeout=5)
     finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-        for f in (proc.stdout, proc.stderr):
-            if f is not None:
-                f.close()
+        end_process(proc)
