@@ -1,6 +1,6 @@
 """Run every benchmark in turn, each writing ``benchmarks/<name>.json`` beside its script.
 
-``python benchmarks/run_all.py [NAME ...]``: all of them (about 25 minutes on 2 cores), or
+``python benchmarks/run_all.py [NAME ...]``: all of them (about 30 minutes on 2 cores), or
 only the named ones (the names in ``ORDER`` below).  Run them on a quiet machine: every
 figure is a wall-clock measurement.
 """
@@ -22,6 +22,7 @@ ORDER = (
     "mpc_settings",
     "recorder_bench",
     "diagnose_bench",
+    "diagnose_work",  # the swerve log under callgrind: about 4 minutes
     "closed_loop_gain",
     "platoon_figures",
     "platoon_frequency",

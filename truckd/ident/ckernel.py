@@ -19,7 +19,7 @@ Array = NDArray[np.float64]
 LIBRARY = Path(__file__).resolve().parent / "kernel" / "build" / "libtruckd_fastrun.so"
 """Where ``make firmware`` puts the kernel."""
 
-ABI = 2
+ABI = 3
 """The kernel version this module calls (``TRUCKD_FASTRUN_ABI`` in ``fastrun.c``): a
 library built from another version (or before versions) is refused, the Python loop runs."""
 
@@ -47,11 +47,14 @@ def library() -> ctypes.CDLL | None:
         fn.restype = ctypes.c_int
         fn.argtypes = [
             dp, dp, d, d, d, d, d, d, dp, d, dp, ip, ip, i, i, d, d, dp, dp, dp, dp, dp, dp,
-            dp, dp, dp, dp, dp,
+            dp, dp, dp, dp, dp, dp,
         ]  # fmt: skip
         sm = lib.truckd_shift_merge
         sm.restype = ctypes.c_int64
         sm.argtypes = [dp, i, dp, i, d, i, i, ip, d, ip, ip, dp, dp, dp, ip, ip]
+        fo = lib.truckd_first_order
+        fo.restype = ctypes.c_int
+        fo.argtypes = [dp, i, i, d, d, dp, dp]
         wr = lib.truckd_winding_rises
         wr.restype = ctypes.c_int
         wr.argtypes = [dp, dp, i, d, d, d, d, d, dp]
@@ -120,6 +123,7 @@ def run(
     stribeck: tuple[float, ...] | None = None,
     limit: tuple[float, float] | None = None,
     gap: tuple[tuple[float, ...], Array, Array, Array, Array] | None = None,
+    band: Array | None = None,
 ) -> tuple[Array, Array, Array] | None:
     """:func:`truckd.ident.freerun.run` in C (None: the kernel is not built).
 
@@ -130,7 +134,10 @@ def run(
     ``limit``: ``(a_max, b_mech)`` of a current limit, None for none.  ``gap``: the
     backlash gap as ``(constants, volts, r, state, rotor_out)``
     (:class:`truckd.ident.freerun.GapRun`; ``state`` and ``rotor_out`` are written),
-    None for none."""
+    None for none.  ``band``: two contiguous float64 that receive the run's band of
+    breakaway thresholds ``[stuck, moved)`` (per unit inertia, as ``sigma``): without
+    ``scale`` and ``stribeck`` every ``sigma`` in it gives this run exactly (None: not
+    asked)."""
     lib = library()
     if lib is None:
         return None
@@ -161,7 +168,7 @@ def run(
         None if sc is None else _address(sc), f(lag), _address(dt), _address(cmd),
         _address(se), len(dt), n, f(w0), f(sensor_lag), at, at + row, at + 2 * row,
         _dp(ter), _dp(stb), _dp(lim), _dp(gp), _dp(gvolts), _dp(gr), _dp(gstate),
-        _dp(rotor_out),
+        _dp(rotor_out), _dp(band),
     )  # fmt: skip
     return out, raw, pos
 
@@ -187,17 +194,19 @@ def shift_merge(
     if lib is None:
         return None
     subs = len(cmd)
-    out = np.empty(subs)
-    ints = np.empty((2, subs), dtype=np.int64)
+    # The three outputs in one block (one address to convert): dt, then cmd and sample_end.
+    block = np.empty(3 * subs)
+    at = int(block.ctypes.data)
     f = float
     count = lib.truckd_shift_merge(
         _address(t), len(t), _address(t_cmd), len(t_cmd), f(delay), first, stop,
         _address(order), f(eps), _address(cmd), _address(sample_end), _dp(a), _dp(b),
-        int(out.ctypes.data), int(ints.ctypes.data), int(ints.ctypes.data) + 8 * subs,
+        at, at + 8 * subs, at + 16 * subs,
     )  # fmt: skip
     if count < 0:
         return None
-    return out[:count], ints[0, :count], ints[1, :count]
+    ints = block[subs:].view(np.int64)
+    return block[:count], ints[:count], ints[subs : subs + count]
 
 
 def winding_rises(
@@ -218,3 +227,20 @@ def winding_rises(
         float(tau), _dp(out),
     )  # fmt: skip
     return out
+
+
+def first_order(x: Array, b1: float, a1: float) -> Array | None:
+    """``scipy.signal.lfilter([0, b1], [1, a1], x, axis=0)`` of a 2-D ``x`` in C, the
+    same numbers (scipy's direct form II transposed, from rest); None when the kernel is
+    not built."""
+    lib = library()
+    if lib is None:
+        return None
+    x = np.ascontiguousarray(x, dtype=np.float64)
+    if x.ndim != 2:
+        raise ValueError(f"x must be 2-D, got shape {x.shape}")
+    rows, cols = x.shape
+    y = np.empty((rows, cols))
+    z = np.empty(cols)
+    lib.truckd_first_order(_dp(x), rows, cols, float(b1), float(a1), _dp(z), _dp(y))
+    return y

@@ -11,9 +11,11 @@ neglected electrical pole is kept as a pure lag of ``L_m/R_tot``.  Pure numerics
 from __future__ import annotations
 
 import dataclasses
+import math
+import operator
 from collections.abc import Callable
-from dataclasses import dataclass, field
-from functools import cached_property, partial
+from dataclasses import dataclass
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -27,6 +29,8 @@ from truckd.ident.freerun import Terrain as Terrain
 from truckd.ident.freerun import Timeline as Timeline
 from truckd.ident.freerun import run as run
 from truckd.ident.freerun import timeline as timeline
+from truckd.ident.prediction import StictionBand as StictionBand  # re-exported: the result
+from truckd.ident.prediction import VoltagePrediction as VoltagePrediction
 from truckd.ident.timing import Layout, layout_of, merged, shifted
 from truckd.model.effects import (
     ARRAYS,
@@ -45,42 +49,9 @@ from truckd.model.params import VehicleParams
 Array = NDArray[np.float64]
 
 
-@dataclass(frozen=True)
-class VoltagePrediction:
-    """Free-run prediction of a voltage-input log (SI).
-
-    The current and the driver voltage at each sample are computed when first read
-    (a speed-only fit never reads them)."""
-
-    v: Array
-    """Speed as the sensor reports it (m/s)."""
-    v_true: Array
-    """True speed (m/s)."""
-    x: Array
-    """Position (m)."""
-    sampled: Callable[[], tuple[Array, Array]] = field(repr=False, compare=False)
-    """Computes ``(i, volts)``: the run's current and driver voltage at each sample."""
-
-    @cached_property
-    def _at_samples(self) -> tuple[Array, Array]:
-        # As simulate_voltage runs: absurd trial parameters overflow silently.
-        with np.errstate(over="ignore", invalid="ignore"):
-            return self.sampled()
-
-    @property
-    def i(self) -> Array:
-        """Quasi-static motor current at each sample (A)."""
-        return self._at_samples[0]
-
-    @property
-    def volts(self) -> Array:
-        """Open-circuit driver voltage active at each sample (V)."""
-        return self._at_samples[1]
-
-
 def electrical_correction(
     p: VehicleParams, viscous: float = 0.0, resistance: Array | float | None = None
-) -> tuple[Array, Array]:
+) -> tuple[Array | float, Array | float]:
     """What the neglected electrical pole does to the first-order model.
 
     Returns ``(kappa, lag)`` for the armature circuit resistance ``resistance`` (ohm,
@@ -88,10 +59,27 @@ def electrical_correction(
     model over the quasi-static one (time runs ``kappa`` times faster, steady states
     unchanged) and the fast pole's time constant (s), kept as a pure lag of the input.
     """
+    if resistance is None:
+        try:
+            return _correction_at_r_m(p, viscous)
+        except ZeroDivisionError:
+            pass  # numpy's inf and nan, as for an array
     r = np.asarray(p.R_m if resistance is None else resistance, float)
     tr = -(r / p.L_m + viscous / p.J_S)
     det = (r * viscous + p.K_v * p.K_T) / (p.L_m * p.J_S)
     disc = np.sqrt(np.maximum(tr * tr / 4.0 - det, 0.0))
+    lam_s, lam_f = tr / 2.0 + disc, tr / 2.0 - disc
+    beta = (p.K_T * p.K_v / r + viscous) / p.J_S
+    return -lam_s / beta, -1.0 / lam_f
+
+
+def _correction_at_r_m(p: VehicleParams, viscous: float) -> tuple[float, float]:
+    """:func:`electrical_correction` at ``R_m`` in floats: the same operations in the
+    same order (IEEE doubles either way), without numpy's overhead on scalars."""
+    r = float(p.R_m)
+    tr = -(r / p.L_m + viscous / p.J_S)
+    det = (r * viscous + p.K_v * p.K_T) / (p.L_m * p.J_S)
+    disc = math.sqrt(max(tr * tr / 4.0 - det, 0.0))
     lam_s, lam_f = tr / 2.0 + disc, tr / 2.0 - disc
     beta = (p.K_T * p.K_v / r + viscous) / p.J_S
     return -lam_s / beta, -1.0 / lam_f
@@ -169,6 +157,8 @@ _PREP_VEHICLE = tuple(
 """The vehicle's fields that enter the preparation (all but its friction)."""
 _PREP_EFFECTS = tuple(f.name for f in dataclasses.fields(Effects) if f.name not in _UNPREPARED)
 """The effects' fields that enter it (all but loads, drag, lag and terrain)."""
+_vehicle_key = operator.attrgetter(*_PREP_VEHICLE)
+_effects_key = operator.attrgetter(*_PREP_EFFECTS)
 
 
 def _prep_key(
@@ -178,14 +168,7 @@ def _prep_key(
     identity cannot be reused while cached) and the value of every parameter that enters
     it (the whole vehicle but its friction, the whole effects but loads, drag, lag and
     terrain; a new field is part of the key by construction)."""
-    return (
-        id(t),
-        id(u),
-        id(t_hist),
-        id(u_hist),
-        *[getattr(p, n) for n in _PREP_VEHICLE],
-        *[getattr(eff, n) for n in _PREP_EFFECTS],
-    )
+    return (id(t), id(u), id(t_hist), id(u_hist), *_vehicle_key(p), *_effects_key(eff))
 
 
 def simulate_voltage(
@@ -378,13 +361,23 @@ def _simulate(
         else GapRun(p, eff, volts, r_tot, v_pre, kappa, n, p.omega(v0)),
     )
     w0 = p.omega(v0)
-    meas, raw, pos = run(kin, tl, n, w0, eff.sensor_lag)
+    # The threshold is kin.sigma throughout only without a per-command scale or a Stribeck
+    # friction; the backlash gap reads K_stiction itself.
+    banded = kin.scale is None and kin.stribeck is None and kin.gap is None
+    # the run's own (ctypes lets other threads run during the call); NaN where Python runs
+    band = np.full(2, np.nan) if banded else None
+    meas, raw, pos = run(kin, tl, n, w0, eff.sensor_lag, band=band)
     rotor = raw if kin.gap is None else kin.gap.rotor_out
     idx = _active(t, t_hist, hist, eff.input_delay)
     sampled = partial(_sample_currents, p, eff, idx, volts, None if same_r else r_tot, v_pre)
+    stiction = None
+    if band is not None:
+        stuck, moved = band.tolist()
+        if stuck == stuck and moved == moved:  # not NaN: the kernel ran
+            stiction = StictionBand(stuck, moved, kappa, p.J_S)
     # v, v_true, x; the current and driver voltage when read
     return VoltagePrediction(
-        meas * p.ratio, raw * p.ratio, pos * p.ratio, partial(sampled, raw, rotor)
+        meas * p.ratio, raw * p.ratio, pos * p.ratio, partial(sampled, raw, rotor), stiction
     )
 
 

@@ -35,6 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from truckd.ident import ckernel
 from truckd.ident.data import Series
 from truckd.ident.linear import feedforward_of
 from truckd.model.params import VehicleParams
@@ -216,10 +217,12 @@ def _filtered(
     moving = np.abs(vs) > MOVING * max(float(np.max(np.abs(vs))), 1e-9)
     sign = np.sign(vs)
     inputs = np.column_stack([u, sign, np.ones_like(u), where(x_mid, sign)])
-    from scipy.signal import lfilter  # here: scipy.signal takes a second to import
-
     a = float(np.exp(-hg / tau))
-    filt = np.asarray(lfilter([0.0, 1.0 - a], [1.0, -a], inputs, axis=0))
+    filt = ckernel.first_order(inputs, 1.0 - a, -a)
+    if filt is None:  # the C kernel is not built: scipy's filter, the same numbers
+        from scipy.signal import lfilter  # here: scipy.signal takes a second to import
+
+        filt = np.asarray(lfilter([0.0, 1.0 - a], [1.0, -a], inputs, axis=0))
     target = v.copy()
     new = np.flatnonzero(
         np.concatenate([[True], (moving[1:] != moving[:-1]) | (sign[1:] != sign[:-1])])

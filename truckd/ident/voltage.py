@@ -25,6 +25,7 @@ from scipy.optimize import least_squares
 
 from truckd.ident.data import Series, noise_std
 from truckd.ident.fastsim import predict as predict  # the free run of one series
+from truckd.ident.prediction import StictionBand, VoltagePrediction
 from truckd.model.effects import Effects
 from truckd.model.params import VehicleParams
 
@@ -138,13 +139,23 @@ def restick(m: FitResult, grid: Sequence[float], data: list[Series], w: Weights)
 
 def residuals(p: VehicleParams, e: Effects, data: Sequence[Series], w: Weights) -> Array:
     """Weighted free-run residuals (speed, then current when weighted) of all chunks."""
-    parts = []
+    parts: list[Array] = []
     for s in data:
-        pred = predict(p, e, s)
-        dv = (s.v - pred.v) * w.v
-        parts.append(dv if s.fresh.all() else dv[s.fresh])  # a held speed: fresh readings
-        if w.i and s.i is not None:
-            parts.append((s.i[1:] - pred.i[1:]) * w.i)
+        parts.extend(_chunk_residuals(s, predict(p, e, s), w))
+    return _joined(parts)
+
+
+def _chunk_residuals(s: Series, pred: VoltagePrediction, w: Weights) -> list[Array]:
+    """The weighted residuals of one chunk's free run ``pred`` (speed, then current)."""
+    dv = (s.v - pred.v) * w.v
+    out = [dv if s.fresh.all() else dv[s.fresh]]  # a held speed: fresh readings
+    if w.i and s.i is not None:
+        out.append((s.i[1:] - pred.i[1:]) * w.i)
+    return out
+
+
+def _joined(parts: Sequence[Array]) -> Array:
+    """The chunks' residuals as one vector, a non-finite one scored as a large miss."""
     r = np.concatenate(parts)
     return np.where(np.isfinite(r), r, 1e6)
 
@@ -293,11 +304,24 @@ def scan_stiction(
     between the best one's coarse neighbours.
     """
     cache: dict[float, float] = {}
+    # Per chunk, the runs simulated so far with the stiction torques that give each one
+    # exactly (a chunk that never stops is the same run for every K_stiction).
+    seen: list[list[tuple[StictionBand, list[Array]]]] = [[] for _ in data]
 
     def cost(ks: float) -> float:
         ks = max(float(ks), p.K_coulomb)
         if ks not in cache:
-            r = residuals(p.replace(K_stiction=ks), e, data, w)
+            q = p.replace(K_stiction=ks)
+            parts: list[Array] = []
+            for s, runs in zip(data, seen, strict=True):
+                same = next((r for band, r in runs if band.holds(ks)), None)
+                if same is None:
+                    pred = predict(q, e, s)
+                    same = _chunk_residuals(s, pred, w)
+                    if pred.stiction is not None:
+                        runs.append((pred.stiction, same))
+                parts.extend(same)
+            r = _joined(parts)
             cache[ks] = float(r @ r)
         return cache[ks]
 

@@ -11,7 +11,7 @@
 /* The kernel's version: raise it with every change of the loops' arithmetic or of the
  * functions' arguments, together with ABI in truckd/ident/ckernel.py, which refuses a
  * library of another version (a stale build) and runs the Python loop instead. */
-#define TRUCKD_FASTRUN_ABI 2
+#define TRUCKD_FASTRUN_ABI 3
 
 int truckd_fastrun_abi(void);
 int truckd_fastrun_abi(void)
@@ -38,9 +38,19 @@ static void phi(double b, double h, double *e, double *p1, double *p2)
     *p2 = (h - *p1) / b;
 }
 
+/* The breakaway threshold (per unit inertia) and the band of thresholds that would have
+ * taken every stick-or-break decision of a run the same way: a run stuck where
+ * |net| <= sigma, so any threshold >= stuck keeps those; it broke away where |net| > sigma,
+ * so any threshold < moved keeps those.  A threshold in [stuck, moved) gives the same run. */
+struct stick {
+    double sigma;
+    double stuck;
+    double moved;
+};
+
 /* One segment of length h: end speed, *dist = integral of speed. */
-static double segment(double w, double a, double b, double c, double sigma, double d, double h,
-                      double lag, double *dist)
+static double segment(double w, double a, double b, double c, struct stick *st, double d,
+                      double h, double lag, double *dist)
 {
     double extra = 0.0;
     *dist = 0.0;
@@ -51,10 +61,13 @@ static double segment(double w, double a, double b, double c, double sigma, doub
         }
         if (w == 0.0) {
             double net = a - d + extra;
+            double mag = fabs(net);
             extra = 0.0;
-            if (fabs(net) <= sigma) {
+            if (mag <= st->sigma) {
+                st->stuck = fmax(st->stuck, mag);
                 return 0.0;
             }
+            st->moved = fmin(st->moved, mag);
             s = net > 0.0 ? 1.0 : -1.0;
         } else {
             s = w > 0.0 ? 1.0 : -1.0;
@@ -142,7 +155,8 @@ static int time_to(double w, double target, double a, double b, double c, double
 /* freerun._limited: a sub-interval that starts with the current limit binding (a_max the
  * largest drive); returns 0 when the limit does not bind at its start. */
 static int limited(double w, double a, double b, double b_mech, double a_max, double c,
-                   double sigma, double d, double h, double lag, double *w_out, double *dist)
+                   struct stick *st, double d, double h, double lag, double *w_out,
+                   double *dist)
 {
     double b_emf = b - b_mech;
     double drive = a - b_emf * w;
@@ -152,7 +166,7 @@ static int limited(double w, double a, double b, double b_mech, double a_max, do
     }
     s_l = drive > 0.0 ? 1.0 : -1.0;
     a_l = s_l * a_max;
-    w_end = segment(w, a_l, b_mech, c, sigma, d, h, lag, &dx);
+    w_end = segment(w, a_l, b_mech, c, st, d, h, lag, &dx);
     if (b_emf <= 0.0 || fabs(a - b_emf * w_end) >= a_max) {
         *w_out = w_end;
         *dist = dx;
@@ -160,8 +174,8 @@ static int limited(double w, double a, double b, double b_mech, double a_max, do
     }
     w_star = (a - a_l) / b_emf;
     if (time_to(w, w_star, a_l, b_mech, c, d, &t_rel) && 0.0 <= t_rel && t_rel <= h) {
-        w1 = segment(w, a_l, b_mech, c, sigma, d, t_rel, lag, &d1);
-        *w_out = segment(w1, a, b, c, sigma, d, h - t_rel, lag, &d2);
+        w1 = segment(w, a_l, b_mech, c, st, d, t_rel, lag, &d1);
+        *w_out = segment(w1, a, b, c, st, d, h - t_rel, lag, &d2);
         *dist = d1 + d2;
         return 1;
     }
@@ -169,7 +183,7 @@ static int limited(double w, double a, double b, double b_mech, double a_max, do
     hi = h;
     for (int it = 0; it < 40; ++it) {
         double mid = 0.5 * (lo + hi), dm;
-        double wm = segment(w, a_l, b_mech, c, sigma, d, mid, lag, &dm);
+        double wm = segment(w, a_l, b_mech, c, st, d, mid, lag, &dm);
         if ((wm - w_star) * s_l < 0.0) {
             lo = mid;
         } else {
@@ -179,8 +193,8 @@ static int limited(double w, double a, double b, double b_mech, double a_max, do
             break;
         }
     }
-    w1 = segment(w, a_l, b_mech, c, sigma, d, hi, lag, &d1);
-    *w_out = segment(w1, a, b, c, sigma, d, h - hi, lag, &d2);
+    w1 = segment(w, a_l, b_mech, c, st, d, hi, lag, &d1);
+    *w_out = segment(w1, a, b, c, st, d, h - hi, lag, &d2);
     *dist = d1 + d2;
     return 1;
 }
@@ -271,8 +285,8 @@ static double gap_free_motion(const double *gp, double *state, double w_load, do
 
 /* Rigid motion over dur seconds (no gap, no current limit): the closed form while the
  * speed keeps its sign (and b dur is not negligible), else segment(); the distance in *dx. */
-static double roll(double w, double a, double b, double c, double sigma, double d, double dur,
-                   double lag, double *dx)
+static double roll(double w, double a, double b, double c, struct stick *st, double d,
+                   double dur, double lag, double *dx)
 {
     double bh = b * dur;
     if (w != 0.0 && bh >= 1e-5) {
@@ -286,23 +300,32 @@ static double roll(double w, double a, double b, double c, double sigma, double 
             return w1;
         }
     }
-    return segment(w, a, b, c, sigma, d, dur, lag, dx);
+    return segment(w, a, b, c, st, d, dur, lag, dx);
 }
 
 /* See freerun.run.  scale may be NULL (1 everywhere), ter NULL (no terrain), stb NULL (no
  * Stribeck friction), lim NULL (no current limit; else {a_max, b_mech}), gp NULL (no
  * backlash; else as gap_opens, with gvolts, gr per command, gstate the gap's state, which
- * the run changes, and rotor_out the rotor speed at each sample).  Returns 0. */
+ * the run changes, and rotor_out the rotor speed at each sample), band NULL or two
+ * doubles that receive the run's band of breakaway thresholds (struct stick): with scale
+ * and stb NULL the threshold is ksigma throughout, and any ksigma in [band[0], band[1])
+ * gives this run exactly.  Returns 0. */
 int truckd_fastrun(const double *a, const double *b, double a_idle, double b_idle, double kc,
                    double ksigma, double kd, double kdrag, const double *scale, double lag,
                    const double *dt, const int64_t *cmd, const int64_t *sample_end, int64_t m,
                    int64_t n, double w0, double sensor_lag, double *out, double *raw, double *pos,
                    const double *ter, const double *stb, const double *lim, const double *gp,
-                   const double *gvolts, const double *gr, double *gstate, double *rotor_out)
+                   const double *gvolts, const double *gr, double *gstate, double *rotor_out,
+                   double *band)
 {
     double w = w0, v_lag = w0, x = 0.0, x_step0 = 0.0, h_step = 0.0;
-    double c = kc, sigma = ksigma, d = kd, drag = kdrag;
+    double c = kc, d = kd, drag = kdrag;
+    struct stick st = {ksigma, -INFINITY, INFINITY};
     double last_h = -1.0, last_alpha = 0.0;
+    if (band != 0) {
+        band[0] = -INFINITY;
+        band[1] = INFINITY;
+    }
     if (n < 1) {
         return 0;
     }
@@ -318,7 +341,7 @@ int truckd_fastrun(const double *a, const double *b, double a_idle, double b_idl
             if (scale != 0) {
                 f = scale[k];
                 c = kc * f;
-                sigma = ksigma * f;
+                st.sigma = ksigma * f;
                 d = kd * f;
                 drag = kdrag * f;
             }
@@ -332,11 +355,11 @@ int truckd_fastrun(const double *a, const double *b, double a_idle, double b_idl
         if (stb != 0) {
             /* Breakaway takes at least the sliding friction at zero speed; the sliding
              * friction at the speed halfway through the sub-interval (midpoint). */
-            sigma = fmax(ksigma, kc + stribeck(stb, 0.0)) * f;
+            st.sigma = fmax(ksigma, kc + stribeck(stb, 0.0)) * f;
             c = (kc + stribeck(stb, w)) * f;
             if (h > 0.0) {
                 double dh;
-                double w_half = segment(w, aa, bb, c, sigma, d, 0.5 * h, lag, &dh);
+                double w_half = segment(w, aa, bb, c, &st, d, 0.5 * h, lag, &dh);
                 c = (kc + stribeck(stb, w != 0.0 ? 0.5 * (w + w_half) : w_half)) * f;
             }
         }
@@ -383,17 +406,17 @@ int truckd_fastrun(const double *a, const double *b, double a_idle, double b_idl
             if (rigid > 0.0) {
                 double b_m = b_mech * f + (b_eff - bb);
                 if (lim != 0 &&
-                    limited(w, aa, b_eff, b_m, lim[0], c, sigma, d_eff, rigid, lag, &wl, &dl)) {
+                    limited(w, aa, b_eff, b_m, lim[0], c, &st, d_eff, rigid, lag, &wl, &dl)) {
                     w = wl;
                     x += dl;
                 } else {
-                    w = roll(w, aa, b_eff, c, sigma, d_eff, rigid, lag, &dl);
+                    w = roll(w, aa, b_eff, c, &st, d_eff, rigid, lag, &dl);
                     x += dl;
                 }
             }
         } else {
             double dx;
-            w = roll(w, aa, b_eff, c, sigma, d_eff, h, lag, &dx);
+            w = roll(w, aa, b_eff, c, &st, d_eff, h, lag, &dx);
             x += dx;
         }
         h_step += h;
@@ -417,6 +440,10 @@ int truckd_fastrun(const double *a, const double *b, double a_idle, double b_idl
             h_step = 0.0;
         }
     }
+    if (band != 0) {
+        band[0] = st.stuck;
+        band[1] = st.moved;
+    }
     return 0;
 }
 
@@ -438,6 +465,27 @@ int truckd_winding_rises(const double *h, const double *sq, int64_t n, double ri
         double e = exp(-h[k] / tau);
         rise = rise * e + drift * power * (1.0 - e);
         out[k + 1] = rise;
+    }
+    return 0;
+}
+
+/* scipy.signal.lfilter([0, b1], [1, a1], x, axis=0) of the rows x cols row-major x into y,
+ * in the arithmetic of scipy's direct form II transposed (y = z + 0 x; z = x b1 - y a1 per
+ * column, z from 0): terrain._filtered's first-order filter without importing scipy.signal.
+ * Returns 0. */
+int truckd_first_order(const double *x, int64_t rows, int64_t cols, double b1, double a1,
+                       double *z, double *y)
+{
+    for (int64_t c = 0; c < cols; ++c) {
+        z[c] = 0.0;
+    }
+    for (int64_t r = 0; r < rows; ++r) {
+        const double *xr = x + r * cols;
+        double *yr = y + r * cols;
+        for (int64_t c = 0; c < cols; ++c) {
+            yr[c] = z[c] + 0.0 * xr[c];
+            z[c] = xr[c] * b1 - yr[c] * a1;
+        }
     }
     return 0;
 }
