@@ -32,7 +32,7 @@ from truckd.runtime.mcap_log import to_json
 from truckd.runtime.monitor import MAX_VEHICLES
 from truckd.runtime.msg_schemas import KINDS, MESSAGE_ENCODING, SCHEMA_ENCODING, schema_bytes
 from truckd.runtime.msg_schemas import topic as topic_of
-from truckd.runtime.stopping import StopRequested, stop_signals
+from truckd.runtime.stopping import stop_signals, ticks
 from truckd.runtime.telemetry import open_session, zenoh_config
 
 if TYPE_CHECKING:
@@ -225,23 +225,17 @@ def run_relay(
     # (Zenoh, the Foxglove server) set up their runtimes there, and with Python's own
     # SIGINT handler beneath them a Ctrl-C was now and then not seen (the relay kept
     # running; about 1 run in 20 beside a busy core).
-    try:
-        with stop_signals():
-            try:
-                out.write(f"foxglove: serving on ws://{relay.host}:{port} (open it in Foxglove)\n")
-                out.flush()
-                t_end = None if duration is None else clock() + duration
-                last = ""
-                while t_end is None or clock() < t_end:
-                    left = None if t_end is None else max(0.0, min(interval, t_end - clock()))
-                    time.sleep(interval if left is None else left)
-                    line = ", ".join(f"{t} {n}" for t, n in sorted(relay.stats.messages.items()))
-                    if line and line != last:
-                        out.write(f"relayed: {line}\n")
-                        out.flush()
-                        last = line
-            finally:
-                relay.close()
-    except StopRequested:
-        pass
+    with stop_signals():
+        try:
+            out.write(f"foxglove: serving on ws://{relay.host}:{port} (open it in Foxglove)\n")
+            out.flush()
+            last = ""
+            for _ in ticks(interval, duration, clock):
+                line = ", ".join(f"{t} {n}" for t, n in sorted(relay.stats.messages.items()))
+                if line and line != last:
+                    out.write(f"relayed: {line}\n")
+                    out.flush()
+                    last = line
+        finally:
+            relay.close()
     return relay.stats

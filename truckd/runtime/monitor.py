@@ -29,7 +29,7 @@ from typing import Any, TextIO
 import zenoh
 
 from truckd.runtime.platoon_view import platoon_lines
-from truckd.runtime.stopping import StopRequested, stop_signals
+from truckd.runtime.stopping import stop_signals, ticks
 from truckd.runtime.telemetry import open_session, zenoh_config
 
 
@@ -255,22 +255,16 @@ def run_monitor(
         session.liveliness().declare_subscriber("truckd/*/alive", on_alive, history=True),
     ]
     view.endpoints = tuple(connect)
-    t_end = None if duration is None else clock() + duration
-    try:
-        with stop_signals():
-            try:
-                while t_end is None or clock() < t_end:
-                    left = None if t_end is None else max(0.0, min(interval, t_end - clock()))
-                    time.sleep(interval if left is None else left)
-                    info = session.info
-                    view.connected = bool(info.peers_zid() or info.routers_zid())
-                    text = view.render(clock())
-                    out.write(("\x1b[H\x1b[2J" if clear else "") + text + "\n\n")
-                    out.flush()
-            finally:
-                for s in subs:
-                    s.undeclare()  # type: ignore[no-untyped-call]
-                session.close()  # type: ignore[no-untyped-call]
-    except StopRequested:
-        pass
+    with stop_signals():
+        try:
+            for _ in ticks(interval, duration, clock):
+                info = session.info
+                view.connected = bool(info.peers_zid() or info.routers_zid())
+                text = view.render(clock())
+                out.write(("\x1b[H\x1b[2J" if clear else "") + text + "\n\n")
+                out.flush()
+        finally:
+            for s in subs:
+                s.undeclare()  # type: ignore[no-untyped-call]
+            session.close()  # type: ignore[no-untyped-call]
     return view

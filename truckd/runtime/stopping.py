@@ -4,14 +4,16 @@ hears the signals that stop it.
 SIGTERM (a service manager, ``kill``) is the orderly stop: the loop ends, the tool closes
 what it holds and exits 0 (reference section 1).  SIGINT (Ctrl-C) stays an interruption:
 KeyboardInterrupt, exit 130.  Only the main thread can install handlers; from another
-thread the process's handlers stay as they are.
+thread the process's handlers stay as they are.  :func:`ticks` is the tools' loop: a
+period's sleep, then one round, until a duration has passed.
 """
 
 from __future__ import annotations
 
 import signal
 import threading
-from collections.abc import Iterator
+import time
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from types import FrameType
 
@@ -31,7 +33,8 @@ def _interrupted(_signum: int, _frame: FrameType | None) -> None:
 
 @contextmanager
 def stop_signals() -> Iterator[None]:
-    """SIGTERM raises :class:`StopRequested` and SIGINT KeyboardInterrupt in the main
+    """SIGTERM ends the block (:class:`StopRequested`, taken here: the code after the
+    block runs as after its normal end) and SIGINT raises KeyboardInterrupt, in the main
     thread while the block runs; the previous handlers come back after."""
     if threading.current_thread() is not threading.main_thread():
         yield
@@ -42,6 +45,17 @@ def stop_signals() -> Iterator[None]:
     }
     try:
         yield
+    except StopRequested:
+        pass
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+
+
+def ticks(interval: float, duration: float | None, clock: Callable[[], float]) -> Iterator[None]:
+    """Sleep ``interval`` s, then yield, until ``duration`` s of ``clock`` have passed
+    (the last sleep shortened to end there; None: forever)."""
+    t_end = None if duration is None else clock() + duration
+    while t_end is None or clock() < t_end:
+        time.sleep(interval if t_end is None else max(0.0, min(interval, t_end - clock())))
+        yield
