@@ -60,26 +60,24 @@ def electrical_correction(
     unchanged) and the fast pole's time constant (s), kept as a pure lag of the input.
     """
     if resistance is None:
+        # in floats: the same operations in the same order (IEEE doubles either way),
+        # without numpy's overhead on scalars
         try:
-            return _correction_at_r_m(p, viscous)
+            return _correction(float(p.R_m), p, viscous, math.sqrt, max)
         except ZeroDivisionError:
             pass  # numpy's inf and nan, as for an array
     r = np.asarray(p.R_m if resistance is None else resistance, float)
-    tr = -(r / p.L_m + viscous / p.J_S)
-    det = (r * viscous + p.K_v * p.K_T) / (p.L_m * p.J_S)
-    disc = np.sqrt(np.maximum(tr * tr / 4.0 - det, 0.0))
-    lam_s, lam_f = tr / 2.0 + disc, tr / 2.0 - disc
-    beta = (p.K_T * p.K_v / r + viscous) / p.J_S
-    return -lam_s / beta, -1.0 / lam_f
+    return _correction(r, p, viscous, np.sqrt, np.maximum)
 
 
-def _correction_at_r_m(p: VehicleParams, viscous: float) -> tuple[float, float]:
-    """:func:`electrical_correction` at ``R_m`` in floats: the same operations in the
-    same order (IEEE doubles either way), without numpy's overhead on scalars."""
-    r = float(p.R_m)
+def _correction(
+    r: Any, p: VehicleParams, viscous: float, sqrt: Callable[[Any], Any], most: Callable[..., Any]
+) -> tuple[Any, Any]:
+    """:func:`electrical_correction` at the resistance ``r`` (a float or an array, with
+    the ``sqrt`` and ``most`` (max) of its kind)."""
     tr = -(r / p.L_m + viscous / p.J_S)
     det = (r * viscous + p.K_v * p.K_T) / (p.L_m * p.J_S)
-    disc = math.sqrt(max(tr * tr / 4.0 - det, 0.0))
+    disc = sqrt(most(tr * tr / 4.0 - det, 0.0))
     lam_s, lam_f = tr / 2.0 + disc, tr / 2.0 - disc
     beta = (p.K_T * p.K_v / r + viscous) / p.J_S
     return -lam_s / beta, -1.0 / lam_f
