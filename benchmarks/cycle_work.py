@@ -41,7 +41,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import re
 import shutil
 import subprocess
 import sys
@@ -49,6 +48,7 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
+from callgrind import counted
 from results import machine, write_json
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -158,18 +158,13 @@ def _child(
         cmd = [sys.executable, str(script), str(root), str(LOG), str(reps), str(pace),
                "1" if spin else "0"]  # fmt: skip
         env = {**os.environ, "OPENBLAS_NUM_THREADS": "1"}
-        if valgrind:
-            out_file = Path(tmp) / "callgrind.out"
-            cmd = ["valgrind", "--tool=callgrind", f"--callgrind-out-file={out_file}", *cmd]
-        proc = subprocess.run(cmd, capture_output=True, text=True, env=env, check=False)
-        if proc.returncode != 0:
-            raise RuntimeError(f"replay failed: {proc.stderr[-2000:]}")
         instructions = 0
         if valgrind:
-            m = re.search(r"Collected : (\d+)", proc.stderr)
-            if m is None:
-                raise RuntimeError("callgrind printed no instruction count")
-            instructions = int(m.group(1))
+            proc, instructions = counted(cmd, env, "replay")
+        else:
+            proc = subprocess.run(cmd, capture_output=True, text=True, env=env, check=False)
+            if proc.returncode != 0:
+                raise RuntimeError(f"replay failed: {proc.stderr[-2000:]}")
         return json.loads(proc.stdout.splitlines()[-1]), instructions
 
 

@@ -16,13 +16,12 @@ from __future__ import annotations
 
 import argparse
 import shutil
-import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 from typing import Any
 
+from callgrind import counted
 from results import machine, write_json
 
 import truckd
@@ -62,17 +61,8 @@ def instructions(path: str) -> int | None:
     no valgrind)."""
     if shutil.which("valgrind") is None:
         return None
-    with tempfile.TemporaryDirectory() as tmp:
-        out = Path(tmp) / "callgrind.out"
-        subprocess.run(
-            ["valgrind", "--tool=callgrind", f"--callgrind-out-file={out}", sys.executable,
-             "-m", "truckd", "diagnose", path, "--jobs", "1"],
-            check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-        )  # fmt: skip
-        for line in out.read_text().splitlines():
-            if line.startswith("totals:"):
-                return int(line.split()[1])
-    raise RuntimeError("callgrind wrote no totals")
+    cmd = [sys.executable, "-m", "truckd", "diagnose", path, "--jobs", "1"]
+    return counted(cmd, what="diagnose")[1]
 
 
 def main() -> int:

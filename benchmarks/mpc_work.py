@@ -16,14 +16,13 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import re
 import shutil
-import subprocess
 import sys
 import tempfile
 from pathlib import Path
 from typing import Any
 
+from callgrind import counted
 from results import machine, write_json
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -52,18 +51,11 @@ def _count(compiled: bool, cycles: int, reps: int) -> tuple[dict[str, Any], int]
     with tempfile.TemporaryDirectory() as tmp:
         script = Path(tmp) / "child.py"
         script.write_text(CHILD)
-        out = Path(tmp) / "callgrind.out"
-        cmd = ["valgrind", "--tool=callgrind", f"--callgrind-out-file={out}", sys.executable,
-               str(script), str(ROOT / "benchmarks"), "1" if compiled else "0", str(cycles),
-               str(reps)]  # fmt: skip
+        cmd = [sys.executable, str(script), str(ROOT / "benchmarks"), "1" if compiled else "0",
+               str(cycles), str(reps)]  # fmt: skip
         env = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "PYTHONHASHSEED": "0"}
-        proc = subprocess.run(cmd, capture_output=True, text=True, env=env, check=False)
-        if proc.returncode != 0:
-            raise RuntimeError(f"child failed: {proc.stderr[-2000:]}")
-        m = re.search(r"Collected : (\d+)", proc.stderr)
-        if m is None:
-            raise RuntimeError("callgrind printed no instruction count")
-        return json.loads(proc.stdout.splitlines()[-1]), int(m.group(1))
+        proc, instructions = counted(cmd, env)
+        return json.loads(proc.stdout.splitlines()[-1]), instructions
 
 
 def run(cycles: int) -> dict[str, Any]:
