@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import ctypes
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -78,28 +79,46 @@ def available() -> bool:
     return library() is not None
 
 
+def _data(a: NDArray[np.float64] | NDArray[np.int64]) -> int:
+    """The address of a contiguous array's data (a writable one through the buffer
+    protocol: a third of the time ``a.ctypes.data`` takes)."""
+    if a.flags.writeable and a.size:
+        # an ndarray exports the buffer protocol (numpy's stubs do not declare it)
+        return ctypes.addressof(ctypes.c_char.from_buffer(a))  # type: ignore[arg-type]
+    return int(a.ctypes.data)
+
+
 def _dp(a: NDArray[np.float64] | NDArray[np.int64] | None) -> int | None:
     """The address of a contiguous array's data (None: a NULL pointer)."""
-    return None if a is None else int(a.ctypes.data)
+    return None if a is None else _data(a)
 
 
-ADDRESSES_KEPT = 32
-"""Arrays whose data address :func:`_address` keeps (a fit passes the same per-command
-coefficients and timeline to run after run while only its friction or loads change)."""
+ADDRESSES_KEPT = 64
+"""Arrays whose data address :func:`_address` keeps, the least recently used dropped first
+(a fit passes the same per-command coefficients and timelines run after run while only its
+friction or loads change; the arrays of one run do not push those out)."""
 _ADDRESSES: dict[int, tuple[NDArray[np.float64] | NDArray[np.int64], int]] = {}
 
 
 def _address(a: NDArray[np.float64] | NDArray[np.int64]) -> int:
-    """:func:`_dp` of a contiguous array, kept for the last :data:`ADDRESSES_KEPT` arrays
-    (the cache holds each array: its identity is not reused, its data does not move)."""
-    hit = _ADDRESSES.get(id(a))
-    if hit is not None and hit[0] is a:
-        return hit[1]
-    addr = int(a.ctypes.data)
+    """:func:`_dp` of a contiguous array, kept for the :data:`ADDRESSES_KEPT` arrays used
+    last (the cache holds each array: its identity is not reused, its data does not move)."""
+    key = id(a)
+    hit = _ADDRESSES.pop(key, None)
+    if hit is None or hit[0] is not a:
+        hit = (a, _data(a))
+        if len(_ADDRESSES) >= ADDRESSES_KEPT:
+            del _ADDRESSES[next(iter(_ADDRESSES))]
+    _ADDRESSES[key] = hit  # the most recently used last
+    return hit[1]
+
+
+def _known(a: NDArray[Any], addr: int) -> None:
+    """Keep ``addr`` as the data address of ``a`` (a view into a block whose address is
+    known: the run it goes to does not convert it again)."""
     if len(_ADDRESSES) >= ADDRESSES_KEPT:
         del _ADDRESSES[next(iter(_ADDRESSES))]
     _ADDRESSES[id(a)] = (a, addr)
-    return addr
 
 
 def run(
@@ -150,7 +169,7 @@ def run(
     # The three outputs in one block: one address to convert, the rows at fixed offsets.
     block = np.empty((3, n))
     out, raw, pos = block[0], block[1], block[2]
-    at = int(block.ctypes.data)
+    at = _data(block)
     row = 8 * n  # bytes per row of float64
     ter = None if terrain is None else np.array(terrain, dtype=np.float64)
     stb = None if stribeck is None else np.array(stribeck, dtype=np.float64)
@@ -196,17 +215,21 @@ def shift_merge(
     subs = len(cmd)
     # The three outputs in one block (one address to convert): dt, then cmd and sample_end.
     block = np.empty(3 * subs)
-    at = int(block.ctypes.data)
+    at = _data(block)
     f = float
     count = lib.truckd_shift_merge(
         _address(t), len(t), _address(t_cmd), len(t_cmd), f(delay), first, stop,
-        _address(order), f(eps), _address(cmd), _address(sample_end), _dp(a), _dp(b),
+        _address(order), f(eps), _address(cmd), _address(sample_end),
+        None if a is None else _address(a), None if b is None else _address(b),
         at, at + 8 * subs, at + 16 * subs,
     )  # fmt: skip
     if count < 0:
         return None
     ints = block[subs:].view(np.int64)
-    return block[:count], ints[:count], ints[subs : subs + count]
+    out = block[:count], ints[:count], ints[subs : subs + count]
+    for k, view in enumerate(out):  # the free run that follows passes them on
+        _known(view, at + 8 * subs * k)
+    return out
 
 
 def winding_rises(

@@ -59,6 +59,11 @@ class Series:
         return fresh_mask(self.v)
 
     @functools.cached_property
+    def all_fresh(self) -> bool:
+        """Whether every sample holds a new speed reading (no sample and hold)."""
+        return bool(self.fresh.all())
+
+    @functools.cached_property
     def start_speed(self) -> float:
         """:func:`initial_speed` of ``v`` (computed once: every free run starts there)."""
         return initial_speed(self.v)

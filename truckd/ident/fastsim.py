@@ -363,7 +363,7 @@ def _simulate(
     # friction; the backlash gap reads K_stiction itself.
     banded = kin.scale is None and kin.stribeck is None and kin.gap is None
     # the run's own (ctypes lets other threads run during the call); NaN where Python runs
-    band = np.full(2, np.nan) if banded else None
+    band = _NO_BAND.copy() if banded else None
     meas, raw, pos = run(kin, tl, n, w0, eff.sensor_lag, band=band)
     rotor = raw if kin.gap is None else kin.gap.rotor_out
     idx = _active(t, t_hist, hist, eff.input_delay)
@@ -373,10 +373,14 @@ def _simulate(
         stuck, moved = band.tolist()
         if stuck == stuck and moved == moved:  # not NaN: the kernel ran
             stiction = StictionBand(stuck, moved, kappa, p.J_S)
-    # v, v_true, x; the current and driver voltage when read
+    # v; the true speed, the position, the current and the driver voltage when read
     return VoltagePrediction(
-        meas * p.ratio, raw * p.ratio, pos * p.ratio, partial(sampled, raw, rotor), stiction
+        meas * p.ratio, raw, pos, p.ratio, partial(sampled, raw, rotor), stiction
     )
+
+
+_NO_BAND = np.array([np.nan, np.nan])
+"""What a band reads before the kernel writes it (copied per run)."""
 
 
 TIMING_CACHE = 64

@@ -76,7 +76,7 @@ def hill_support(p: VehicleParams, e: Effects, data: Sequence[Series], w: Weight
         on = np.zeros(len(s), dtype=bool) if s.x is None else (s.x >= lo) & (s.x < hi)
         last = np.maximum.accumulate(np.where(on, s.t, -np.inf))
         near = s.t - last <= settle
-        parts.append(near if s.fresh.all() else near[s.fresh])  # as residuals() counts
+        parts.append(near if s.all_fresh else near[s.fresh])  # as residuals() counts
         if w.i and s.i is not None:
             parts.append(near[1:])
     return np.concatenate(parts) if parts else np.zeros(0, dtype=bool)

@@ -45,14 +45,26 @@ class VoltagePrediction:
 
     v: Array
     """Speed as the sensor reports it (m/s)."""
-    v_true: Array
-    """True speed (m/s)."""
-    x: Array
-    """Position (m)."""
+    rotor_speed: Array
+    """The motor's true speed (rad/s)."""
+    rotor_angle: Array
+    """The motor's angle from the start (rad)."""
+    ratio: float
+    """Travel per motor radian (m/rad)."""
     sampled: Callable[[], tuple[Array, Array]] = field(repr=False, compare=False)
     """Computes ``(i, volts)``: the run's current and driver voltage at each sample."""
     stiction: StictionBand | None = field(default=None, repr=False, compare=False)
     """The breakaway torques that give this same run (None: not known)."""
+
+    @cached_property
+    def v_true(self) -> Array:
+        """True speed (m/s), computed when first read (a fit reads ``v`` only)."""
+        return self.rotor_speed * self.ratio
+
+    @cached_property
+    def x(self) -> Array:
+        """Position (m), computed when first read."""
+        return self.rotor_angle * self.ratio
 
     @cached_property
     def _at_samples(self) -> tuple[Array, Array]:

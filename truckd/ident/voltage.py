@@ -148,7 +148,7 @@ def residuals(p: VehicleParams, e: Effects, data: Sequence[Series], w: Weights) 
 def _chunk_residuals(s: Series, pred: VoltagePrediction, w: Weights) -> list[Array]:
     """The weighted residuals of one chunk's free run ``pred`` (speed, then current)."""
     dv = (s.v - pred.v) * w.v
-    out = [dv if s.fresh.all() else dv[s.fresh]]  # a held speed: fresh readings
+    out = [dv if s.all_fresh else dv[s.fresh]]  # a held speed: fresh readings
     if w.i and s.i is not None:
         out.append((s.i[1:] - pred.i[1:]) * w.i)
     return out
@@ -220,11 +220,13 @@ def fit(
             max_nfev=max_nfev,
             method="trf",
         )
-        th, nfev = sol.x, int(sol.nfev)
+        # sol.fun: the residuals at sol.x, as fun computed them (not simulated again)
+        th, nfev, r = sol.x, int(sol.nfev), np.asarray(sol.fun, float)
     else:
-        th, nfev = x0, 0
+        th, nfev, r = x0, 0, None
     p, e = apply(p0, e0, free, th)
-    r = residuals(p, e, data, w)
+    if r is None:
+        r = residuals(p, e, data, w)
     if progress is not None:
         progress(f"  fit {[f.name for f in free]}: {nfev} evaluations, sse {float(r @ r):.4g}")
     return FitResult(p, e, float(r @ r), len(r), nfev)

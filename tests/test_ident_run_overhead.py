@@ -1,0 +1,111 @@
+"""What a free run costs around the C kernel, without changing what it computes: the
+arrays' addresses (kept for the arrays used last, a timeline's known from its block),
+the fit's residuals at its solution taken from the solver, the true speed and position
+computed when read."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from labkit.synth import draw_truck, plant_log
+
+from truckd.config.truck import load_config
+from truckd.ident import ckernel, fastsim, voltage
+from truckd.ident.data import Series
+from truckd.model.effects import Effects
+from truckd.model.params import VehicleParams
+
+
+def test_the_kernel_is_there() -> None:
+    """Without the kernel nothing below runs the paths it checks."""
+    assert ckernel.available(), f"{ckernel.LIBRARY} missing: run `make firmware`"
+
+
+def test_an_address_is_the_arrays_data_whatever_the_array() -> None:
+    block = np.arange(30.0).reshape(3, 10)
+    frozen = np.arange(5.0)
+    frozen.flags.writeable = False
+    ints = np.arange(7, dtype=np.int64)
+    for a in (block, block[1], block[2, 3:], frozen, ints, ints[2:], np.empty(0)):
+        assert ckernel._data(a) == a.ctypes.data
+
+
+def test_the_arrays_used_last_keep_their_address(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A fit's coefficients and timelines stay while each run's own arrays pass through:
+    the least recently used go first (dropping the oldest stored would drop them)."""
+    monkeypatch.setattr(ckernel, "_ADDRESSES", {})
+    looked_up: list[int] = []
+    data = ckernel._data
+
+    def counted(a: np.ndarray) -> int:
+        looked_up.append(id(a))
+        return data(a)
+
+    monkeypatch.setattr(ckernel, "_data", counted)
+    kept = np.arange(10.0)
+    passing = [np.arange(10.0) for _ in range(3 * ckernel.ADDRESSES_KEPT)]
+    for a in passing:
+        assert ckernel._address(kept) == kept.ctypes.data
+        assert ckernel._address(a) == a.ctypes.data
+    assert looked_up.count(id(kept)) == 1
+    assert len(ckernel._ADDRESSES) == ckernel.ADDRESSES_KEPT
+
+
+def _truck_log(k: int, eff: Effects) -> tuple[VehicleParams, Series]:
+    p = draw_truck(load_config().vehicle, np.random.default_rng(700 + k)).params
+    c = plant_log(p, eff, seed=k, n=1200).columns
+    return p, Series(t=c["t"], inp=c["u"], v=c["v"], i=c.get("i"), x=None)
+
+
+def test_a_timelines_addresses_are_known_from_its_block(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The merged timeline's three arrays are views of one block: the run that follows
+    reads their addresses without converting them again, and they are the right ones."""
+    p, s = _truck_log(0, Effects(input_delay=0.02))
+    got: list[tuple[np.ndarray, ...]] = []
+    converted: list[np.ndarray] = []  # the arrays themselves: an id can be reused
+    merge, data = ckernel.shift_merge, ckernel._data
+
+    def kept(*a: object) -> object:
+        out = merge(*a)  # type: ignore[arg-type]
+        if out is not None:
+            got.append(out)
+        return out
+
+    def counted(a: np.ndarray) -> int:
+        converted.append(a)
+        return data(a)
+
+    monkeypatch.setattr(ckernel, "shift_merge", kept)
+    monkeypatch.setattr(ckernel, "_data", counted)
+    for scale in (1.0123, 1.0456):  # the first run lays the series out, the next merge in C
+        fastsim.predict(p.replace(J_S=p.J_S * scale), Effects(input_delay=0.02), s)
+    assert got, "the run did not merge its timeline in C"
+    assert converted  # the count sees conversions (the run's own block)
+    for view in got[-1]:
+        assert not any(a is view for a in converted)
+        assert ckernel._address(view) == view.ctypes.data
+
+
+@pytest.mark.parametrize("k", range(4))
+def test_a_fits_residuals_are_those_at_its_solution(k: int) -> None:
+    """The fit's sum of squares is the one a free run of its result gives, bit for bit."""
+    eff = (Effects(), Effects(input_delay=0.02), Effects(battery_sag=0.2), Effects(load_force=1.0))[
+        k
+    ]
+    p, s = _truck_log(k, eff)
+    data = [s.slice(lo, lo + 300) for lo in range(0, 1200, 300)]
+    w = voltage.weights_for(data)
+    start = p.replace(J_S=p.J_S * 1.3, K_v=p.K_v * 0.9)
+    free = voltage.seed_params(start, with_current=False)
+    got = voltage.fit(start, eff, free, data, w)
+    assert got.nfev > 1  # the solver moved
+    r = voltage.residuals(got.params, got.effects, data, w)
+    assert got.sse == float(r @ r) and got.n == len(r)
+
+
+def test_the_true_speed_and_position_are_the_rotors_in_metres() -> None:
+    p, s = _truck_log(5, Effects(sensor_lag=0.05))
+    pred = fastsim.predict(p, Effects(sensor_lag=0.05), s)
+    assert np.array_equal(pred.v_true, pred.rotor_speed * p.ratio)
+    assert np.array_equal(pred.x, pred.rotor_angle * p.ratio)
+    assert not np.array_equal(pred.v, pred.v_true)  # the lag: the sensor's speed differs
