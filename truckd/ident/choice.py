@@ -75,6 +75,9 @@ class _Selecting:
     """Fits done, by start model (identity), parameters freed and candidate: the greedy
     joint refit of two causes and the pair of the same two from the same start are one
     fit (the start is kept with the result, so its identity is not reused)."""
+    ahead: dict[tuple[int, tuple[Param, ...], str], list[str]] = field(default_factory=dict)
+    """The progress lines of fits done ahead of their turn (:meth:`fit_ahead`), said when
+    :meth:`fit_all` reaches them."""
 
     def fit(self, base: FitResult, extra: list[Param], cand: Candidate) -> FitResult:
         """``base`` + ``cand`` fitted (:func:`fit_candidate`) with ``extra`` freed; the
@@ -94,14 +97,10 @@ class _Selecting:
             fresh = hit is None or hit[0] is not base
             if fresh and keys[k] not in (keys[j] for j in todo):
                 todo.append(k)
-        p = self.prep
 
         def one(k: int, say: Progress) -> FitResult:
             base, extra, cand, _ = jobs[k]
-            return fit_candidate(
-                base, self.seed.free, extra, cand, p.fit_data, p.w, self.seed.grid, say,
-                p.val_data,
-            )  # fmt: skip
+            return self._fitted(base, extra, cand, say)
 
         said: dict[int, list[str]] = {}
         if self.mapper is not in_order and len(todo) > 1:
@@ -123,10 +122,49 @@ class _Selecting:
                     self.progress(line)
             elif k in todo:
                 self.fitted[keys[k]] = (base, one(k, self.progress))
+            elif keys[k] in self.ahead:  # fitted ahead: its lines now, as the loop says them
+                for line in self.ahead.pop(keys[k]):
+                    self.progress(line)
             else:
                 self.progress(f"  {cand.name} with {[x.name for x in extra]} freed: fitted above")
             results.append(self.fitted[keys[k]][1])
         return results
+
+    def fit_ahead(self, jobs: Sequence[tuple[FitResult, list[Param], Candidate]]) -> None:
+        """:meth:`fit` of each ``(base, extra, cand)`` now, side by side through
+        :attr:`mapper`, each kept with its progress lines for when :meth:`fit_all` reaches
+        it: a guess at the fits that come next, which costs a worker's time when wrong,
+        never a result (a fit is deterministic).  Nothing with the plain loop."""
+        if self.mapper is in_order:
+            return
+        todo: list[tuple[FitResult, list[Param], Candidate]] = []
+        for base, extra, cand in jobs:
+            key = (id(base), tuple(extra), cand.name)
+            hit = self.fitted.get(key)
+            if (hit is None or hit[0] is not base) and all(
+                (id(b), tuple(e), c.name) != key for b, e, c in todo
+            ):
+                todo.append((base, extra, cand))
+        if len(todo) < 2:
+            return
+
+        def one(job: tuple[FitResult, list[Param], Candidate], say: Progress) -> FitResult:
+            return self._fitted(*job, say)
+
+        ran = kept_lines(self.mapper, one, todo, lambda j: fit_work(j[2]) + len(j[1]))
+        for (base, extra, cand), (out, lines) in zip(todo, ran, strict=True):
+            key = (id(base), tuple(extra), cand.name)
+            self.fitted[key] = (base, as_start(out, base))
+            self.ahead[key] = lines
+
+    def _fitted(
+        self, base: FitResult, extra: list[Param], cand: Candidate, say: Progress
+    ) -> FitResult:
+        """:func:`fit_candidate` of ``base`` + ``cand`` with ``extra`` freed."""
+        p = self.prep
+        return fit_candidate(
+            base, self.seed.free, extra, cand, p.fit_data, p.w, self.seed.grid, say, p.val_data
+        )
 
     def smooth_params(self, names: Sequence[str]) -> list[Param]:
         """The parameters of ``names`` a joint refit frees (the smooth ones)."""
@@ -192,6 +230,12 @@ def _greedy(s: _Selecting) -> None:
         (n for n, r in s.rows.items() if r.note == "passes alone"),
         key=lambda n: _evidence(tried[n], s.seed.model),
     )
+    if len(passing) > 2:
+        # Through workers, the joint refits that follow the strongest fitted side by side,
+        # on the guess that it is taken and each of them is not (they all start from it).
+        top = passing[0]
+        extra = s.smooth_params([top])
+        s.fit_ahead([(tried[top].fit, extra, by_name[n]) for n in passing[1:]])
     for name in passing:
         cand = by_name[name]
         if not s.accepted:
