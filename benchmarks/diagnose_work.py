@@ -5,8 +5,9 @@ the next; two counts do not. For each log: the free runs the diagnosis simulates
 this process, one worker: ``truckd.ident.fastsim`` runs counted) and the instructions of
 the whole command (``valgrind --tool=callgrind`` on ``python -m truckd diagnose LOG --jobs
 1``: start-up, reading, every fit and the report; about 60 times slower than the command).
-Run it on two trees side by side (``PYTHONPATH=OTHER_TREE`` makes this script and the
-command run the other tree's ``truckd``) to compare code, not machines.
+Run it on two trees side by side (``PYTHONPATH=OTHER_TREE python OTHER_TREE/benchmarks/...``
+makes this script, and the command it counts, run the other tree's ``truckd``) to compare
+code, not machines.
 
     nice .venv/bin/python benchmarks/diagnose_work.py [LOG ...] [--no-callgrind]
         [--json FILE [--key NAME]]
@@ -15,6 +16,7 @@ command run the other tree's ``truckd``) to compare code, not machines.
 from __future__ import annotations
 
 import argparse
+import os
 import shutil
 import sys
 import time
@@ -61,8 +63,15 @@ def instructions(path: str) -> int | None:
     no valgrind)."""
     if shutil.which("valgrind") is None:
         return None
-    cmd = [sys.executable, "-m", "truckd", "diagnose", path, "--jobs", "1"]
-    return counted(cmd, what="diagnose")[1]
+    # The command runs this process's truckd: its tree first on the path, and no current
+    # directory there (-P: run from another tree's top, -m would import that tree's).
+    tree = str(Path(truckd.__file__).resolve().parents[1])
+    env = {
+        **os.environ,
+        "PYTHONPATH": os.pathsep.join(filter(None, (tree, os.environ.get("PYTHONPATH")))),
+    }
+    cmd = [sys.executable, "-P", "-m", "truckd", "diagnose", path, "--jobs", "1"]
+    return counted(cmd, env=env, what="diagnose")[1]
 
 
 def main() -> int:
