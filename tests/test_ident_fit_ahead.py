@@ -4,6 +4,7 @@ one never reached says nothing; with the plain loop nothing is fitted ahead."""
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable, Sequence
 from types import SimpleNamespace
 from typing import Any, TypeVar, cast
@@ -14,6 +15,7 @@ from truckd.ident import choice
 from truckd.ident.candidates import Candidate
 from truckd.ident.fanout import in_order
 from truckd.ident.voltage import FitResult, Param
+from truckd.workers import ForkMap, can_fork
 
 T = TypeVar("T")
 R = TypeVar("R")
@@ -107,3 +109,34 @@ def test_a_fit_done_already_is_not_fitted_ahead(stub_fits: list[str]) -> None:
     s.fit_all([(top, [PARAMS["a"]], CANDS["b"], None)])
     s.fit_ahead([(top, [PARAMS["a"]], CANDS[n]) for n in ("b", "c", "d")])
     assert sorted(stub_fits) == ["b+['a']", "c+['a']", "d+['a']"]
+
+
+def test_nothing_is_fitted_ahead_where_the_fits_would_run_one_after_another(
+    stub_fits: list[str],
+) -> None:
+    """Workers that cannot fork here (another thread runs) run the fits in this process:
+    a guess would cost this process's time."""
+
+    class Here:
+        def side_by_side(self) -> bool:
+            return False
+
+        def __call__(self, fn: Callable[[T], R], items: Sequence[T], /) -> list[R]:
+            return [fn(x) for x in items]
+
+    s = _selecting(Here(), [])
+    s.fit_ahead([(_base(100.0), [PARAMS["a"]], CANDS[n]) for n in ("b", "c", "d")])
+    assert stub_fits == []
+
+
+def test_workers_say_whether_they_run_side_by_side() -> None:
+    assert ForkMap(2).side_by_side() == can_fork()
+    assert not ForkMap(1).side_by_side()
+    stop = threading.Event()
+    other = threading.Thread(target=stop.wait)
+    other.start()
+    try:
+        assert not ForkMap(2).side_by_side()  # a lock held at the fork would stay held
+    finally:
+        stop.set()
+        other.join()

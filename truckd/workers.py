@@ -65,6 +65,10 @@ class ForkMap:
         self.fallbacks = 0
         """Calls that ran here although they asked for children (a child died)."""
 
+    def side_by_side(self) -> bool:
+        """Whether a call now runs its items on children (not here, one after another)."""
+        return self.workers > 1 and can_fork()
+
     def __call__(self, fn: Callable[[T], R], items: Sequence[T]) -> list[R]:
         n = min(self.workers, len(items))
         if n < 2 or not can_fork():

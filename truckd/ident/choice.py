@@ -18,7 +18,7 @@ from truckd.ident.candidates import (
     fit_work,
 )
 from truckd.ident.extend import fit_candidate
-from truckd.ident.fanout import Mapper, as_start, in_order, kept_lines
+from truckd.ident.fanout import Mapper, as_start, in_order, kept_lines, side_by_side
 from truckd.ident.judge import passes_over
 from truckd.ident.pairs import PAIR_TOP, best_pair, pair_order
 from truckd.ident.result import (
@@ -134,8 +134,9 @@ class _Selecting:
         """:meth:`fit` of each ``(base, extra, cand)`` now, side by side through
         :attr:`mapper`, each kept with its progress lines for when :meth:`fit_all` reaches
         it: a guess at the fits that come next, which costs a worker's time when wrong,
-        never a result (a fit is deterministic).  Nothing with the plain loop."""
-        if self.mapper is in_order:
+        never a result (a fit is deterministic).  Nothing where the fits would run one
+        after another (the plain loop, or workers that cannot fork here)."""
+        if not side_by_side(self.mapper):
             return
         todo: list[tuple[FitResult, list[Param], Candidate]] = []
         for base, extra, cand in jobs:

@@ -31,6 +31,16 @@ def in_order(fn: Callable[[T], R], items: Sequence[T], /) -> list[R]:
     return [fn(x) for x in items]
 
 
+def side_by_side(mapper: Mapper) -> bool:
+    """Whether ``mapper`` runs a list's items at once: not the plain loop; another mapper
+    may say with a ``side_by_side()`` method (:class:`truckd.workers.ForkMap` does: not
+    where it cannot fork), else it is taken to."""
+    if mapper is in_order:
+        return False
+    ask = getattr(mapper, "side_by_side", None)
+    return True if ask is None else bool(ask())
+
+
 def as_start(result: T, start: T) -> T:
     """``start`` itself when ``result`` equals it: a fit no better than its start is
     its start, and a worker hands back an equal copy, not the object (the identity keys
