@@ -109,3 +109,55 @@ def test_the_true_speed_and_position_are_the_rotors_in_metres() -> None:
     assert np.array_equal(pred.v_true, pred.rotor_speed * p.ratio)
     assert np.array_equal(pred.x, pred.rotor_angle * p.ratio)
     assert not np.array_equal(pred.v, pred.v_true)  # the lag: the sensor's speed differs
+
+
+def _stepped(k: int) -> tuple[VehicleParams, list[Series]]:
+    """A drawn truck driven through many small command levels (ramps' worth), in chunks."""
+    p = draw_truck(load_config().vehicle, np.random.default_rng(800 + k)).params
+    c = plant_log(p, Effects(dead_zone=0.8), seed=k, n=1600).columns
+    s = Series(t=c["t"], inp=c["u"], v=c["v"], i=None, x=None)
+    return p, [s.slice(lo, lo + 400) for lo in range(0, 1600, 400)]
+
+
+@pytest.mark.parametrize("k", range(3))
+def test_dead_zones_that_zero_the_same_commands_give_the_same_runs(k: int) -> None:
+    p, data = _stepped(k)
+    w = voltage.weights_for(data)
+    key = voltage.same_runs("dead_zone", data)
+    assert key is not None and voltage.same_runs("load_force", data) is None
+    u = np.abs(np.concatenate([x for s in data for x in (s.hist_inp, s.inp) if x is not None]))
+    grid = np.linspace(0.0, float(np.max(u)), 60)
+    groups: dict[int, list[float]] = {}
+    for g in grid:
+        groups.setdefault(key(float(g)), []).append(float(g))
+        assert key(float(g)) == int(np.count_nonzero(u < g))  # the commands it zeroes
+    shared = [vals for vals in groups.values() if len(vals) > 1]
+    assert shared and len(groups) > 3  # the grid has both: values alike and values apart
+    for vals in shared:
+        runs = [voltage.residuals(p, Effects(dead_zone=v), data, w) for v in vals]
+        assert all(np.array_equal(r, runs[0]) for r in runs[1:])
+
+
+def test_a_dead_zone_scan_runs_each_set_of_zeroed_commands_once(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The same choice and cost as running every value, with fewer free runs."""
+    p, data = _stepped(0)
+    w = voltage.weights_for(data)
+    u = np.abs(np.concatenate([s.inp for s in data]))
+    grid = tuple(float(g) for g in np.linspace(0.0, float(np.max(u)), 80))
+    calls = {"n": 0}
+    residuals = voltage.residuals
+
+    def counted(*a: object) -> np.ndarray:
+        calls["n"] += 1
+        return residuals(*a)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(voltage, "residuals", counted)
+    grouped = voltage.scan(p, Effects(), "dead_zone", grid, data, w, coarse=200)
+    runs_grouped = calls["n"]
+    calls["n"] = 0
+    monkeypatch.setattr(voltage, "same_runs", lambda name, data: None)
+    every = voltage.scan(p, Effects(), "dead_zone", grid, data, w, coarse=200)
+    assert grouped == every
+    assert runs_grouped < calls["n"] == len(grid)

@@ -27,6 +27,7 @@ from truckd.ident.voltage import (
     fit_with_stiction,
     residuals,
     scan,
+    value_cost,
 )
 from truckd.model.effects import Effects
 
@@ -190,10 +191,8 @@ def _settle_tie(
     w: Weights,
 ) -> FitResult:
     """Among grid values of ``name`` that fit ``fit_data`` equally, the validation-best."""
-    costs = {}
-    for val in values:
-        r = residuals(m.params, dataclasses.replace(m.effects, **{name: float(val)}), fit_data, w)
-        costs[float(val)] = float(r @ r)
+    cost = value_cost(m.params, m.effects, name, fit_data, w)
+    costs = {float(val): cost(float(val)) for val in values}
     low = min(costs.values())
     ties = [v for v, c in costs.items() if c <= low * (1.0 + 1e-9) + 1e-12]
     if len(ties) < 2:

@@ -247,6 +247,39 @@ def _coarse_then_fine(
         cost(g[k])
 
 
+def same_runs(name: str, data: Sequence[Series]) -> Callable[[float], int] | None:
+    """For an effect parameter whose values can give the same free runs of ``data``: the
+    key two such values share (None: every value is run).  The dead zone's threshold
+    enters a run only where the driver zeroes a command below it
+    (:func:`truckd.model.effects.driver_output`): two thresholds that zero the same
+    commands, history included, give the same runs bit for bit; the key is how many
+    command magnitudes lie below the threshold."""
+    if name != "dead_zone":
+        return None
+    parts = [x for s in data for x in (s.hist_inp, s.inp) if x is not None]
+    mags = np.sort(np.abs(np.concatenate(parts))) if parts else np.zeros(0)
+    return lambda v: int(np.searchsorted(mags, v, side="left"))
+
+
+def value_cost(
+    p: VehicleParams, e: Effects, name: str, data: Sequence[Series], w: Weights
+) -> Callable[[float], float]:
+    """The weighted sum of squared residuals of ``data`` with the effect parameter ``name``
+    at a value, the rest held; values that give the same runs (:func:`same_runs`) are
+    simulated once."""
+    key = same_runs(name, data)
+    done: dict[float | int, float] = {}
+
+    def cost(val: float) -> float:
+        k = float(val) if key is None else key(float(val))
+        if k not in done:
+            r = residuals(p, dataclasses.replace(e, **{name: float(val)}), data, w)
+            done[k] = float(r @ r)
+        return done[k]
+
+    return cost
+
+
 def scan(
     p: VehicleParams,
     e: Effects,
@@ -263,11 +296,11 @@ def scan(
     the best one's coarse neighbours.
     """
     cache: dict[float, float] = {}
+    run_cost = value_cost(p, e, name, data, w)
 
     def cost(val: float) -> float:
         if val not in cache:
-            r = residuals(p, dataclasses.replace(e, **{name: float(val)}), data, w)
-            cache[val] = float(r @ r)
+            cache[val] = run_cost(val)
         return cache[val]
 
     g = [float(v) for v in values]
