@@ -217,7 +217,12 @@ def _auto_phases(
     )
     wait(lambda: plat("p2") == "CACC", 15.0, f"p2 CACC behind {ahead_of_p1}")
     time.sleep(2.0)  # drive on behind the new predecessor
-    result["leave_phase_end_s"] = time.monotonic() - t0  # then the daemons are stopped
+    # A plan late on a loaded machine drops p2 to ACC for a moment (the designed fallback,
+    # counted in p2_acc_after_leave): the phase ends with p2 in CACC again, or the wait
+    # says it never came back.  Then the daemons are stopped.
+    result["leave_phase_end_s"] = wait(
+        lambda: plat("p2") == "CACC", 15.0, f"p2 CACC behind {ahead_of_p1} at the end"
+    )
 
 
 def main() -> int:
