@@ -1,9 +1,11 @@
 """What a free run costs around the C kernel, without changing what it computes: the
 arrays' addresses (kept for the arrays used last, a timeline's known from its block),
 the fit's residuals at its solution taken from the solver, the true speed and position
-computed when read."""
+computed when read, the dead zones that give the same runs run once."""
 
 from __future__ import annotations
+
+import dataclasses
 
 import numpy as np
 import pytest
@@ -161,3 +163,20 @@ def test_a_dead_zone_scan_runs_each_set_of_zeroed_commands_once(
     every = voltage.scan(p, Effects(), "dead_zone", grid, data, w, coarse=200)
     assert grouped == every
     assert runs_grouped < calls["n"] == len(grid)
+
+
+def test_the_commands_of_the_run_a_stretch_was_cut_from_count() -> None:
+    """With a winding's drift, a stretch starts as warm as the run before it made the
+    winding: a dead zone that zeroes a command only there changes the stretch's run."""
+    p = load_config().vehicle
+    t = np.arange(4000) * 0.005
+    u = np.where(t < 10.0, 3.0, 5.0)
+    whole = Series(t=t, inp=u, v=np.zeros_like(t), i=None, x=None)
+    data = [whole.slice(lo, lo + 500) for lo in (3000, 3500)]  # 5 V only, history too
+    eff = Effects(resistance_drift=3.0, winding_time_constant=20.0)
+    w = voltage.Weights(v=1.0)
+    key = voltage.same_runs("dead_zone", data)
+    assert key is not None and key(2.0) != key(4.0)  # 3 V, before the stretches, between
+    a = voltage.residuals(p, dataclasses.replace(eff, dead_zone=2.0), data, w)
+    b = voltage.residuals(p, dataclasses.replace(eff, dead_zone=4.0), data, w)
+    assert not np.array_equal(a, b)

@@ -253,10 +253,16 @@ def same_runs(name: str, data: Sequence[Series]) -> Callable[[float], int] | Non
     enters a run only where the driver zeroes a command below it
     (:func:`truckd.model.effects.driver_output`): two thresholds that zero the same
     commands, history included, give the same runs bit for bit; the key is how many
-    command magnitudes lie below the threshold."""
+    command magnitudes lie below the threshold.  The commands of the run a stretch was cut
+    from count too: a winding's heating over it sets the stretch's start."""
     if name != "dead_zone":
         return None
-    parts = [x for s in data for x in (s.hist_inp, s.inp) if x is not None]
+    parts = [
+        x
+        for s in data
+        for x in (s.hist_inp, s.inp, None if s.origin is None else s.origin.inp)
+        if x is not None
+    ]
     mags = np.sort(np.abs(np.concatenate(parts))) if parts else np.zeros(0)
     return lambda v: int(np.searchsorted(mags, v, side="left"))
 
