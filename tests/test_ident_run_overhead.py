@@ -127,7 +127,9 @@ def test_dead_zones_that_zero_the_same_commands_give_the_same_runs(k: int) -> No
     w = voltage.weights_for(data)
     key = voltage.same_runs("dead_zone", data)
     assert key is not None and voltage.same_runs("load_force", data) is None
+    cut_from = [s.origin.inp for s in data if s.origin is not None]
     u = np.abs(np.concatenate([x for s in data for x in (s.hist_inp, s.inp) if x is not None]))
+    u = np.concatenate([u, *(np.abs(x) for x in cut_from)])
     grid = np.linspace(0.0, float(np.max(u)), 60)
     groups: dict[int, list[float]] = {}
     for g in grid:
