@@ -103,19 +103,19 @@ _ADDRESSES: dict[int, tuple[NDArray[np.float64] | NDArray[np.int64], int]] = {}
 def _address(a: NDArray[np.float64] | NDArray[np.int64]) -> int:
     """:func:`_dp` of a contiguous array, kept for the :data:`ADDRESSES_KEPT` arrays used
     last (the cache holds each array: its identity is not reused, its data does not move)."""
-    key = id(a)
-    hit = _ADDRESSES.pop(key, None)
-    if hit is None or hit[0] is not a:
-        hit = (a, _data(a))
-        if len(_ADDRESSES) >= ADDRESSES_KEPT:
-            del _ADDRESSES[next(iter(_ADDRESSES))]
-    _ADDRESSES[key] = hit  # the most recently used last
-    return hit[1]
+    hit = _ADDRESSES.pop(id(a), None)
+    if hit is not None and hit[0] is a:
+        _ADDRESSES[id(a)] = hit  # the most recently used last
+        return hit[1]
+    addr = _data(a)
+    _known(a, addr)
+    return addr
 
 
 def _known(a: NDArray[Any], addr: int) -> None:
-    """Keep ``addr`` as the data address of ``a`` (a view into a block whose address is
-    known: the run it goes to does not convert it again)."""
+    """Keep ``addr`` as the data address of ``a``, the least recently used entry dropped
+    when full (also for a view into a block whose address is known: the run it goes to
+    does not convert it again)."""
     if len(_ADDRESSES) >= ADDRESSES_KEPT:
         del _ADDRESSES[next(iter(_ADDRESSES))]
     _ADDRESSES[id(a)] = (a, addr)
@@ -219,8 +219,7 @@ def shift_merge(
     f = float
     count = lib.truckd_shift_merge(
         _address(t), len(t), _address(t_cmd), len(t_cmd), f(delay), first, stop,
-        _address(order), f(eps), _address(cmd), _address(sample_end),
-        None if a is None else _address(a), None if b is None else _address(b),
+        _address(order), f(eps), _address(cmd), _address(sample_end), _address(a), _address(b),
         at, at + 8 * subs, at + 16 * subs,
     )  # fmt: skip
     if count < 0:
