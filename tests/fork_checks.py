@@ -155,8 +155,46 @@ def mixed() -> dict[str, Any]:
     return got
 
 
+def _slow_square(x: int) -> int:
+    import time
+
+    time.sleep(0.05)  # the tasks still running when the signal's exception is raised
+    return x * x
+
+
+def interrupted_at_start() -> dict[str, Any]:
+    """Ctrl-C while the pool starts: SIGINT sent to this process (and to each child, as a
+    terminal's Ctrl-C reaches the whole group) right after the children are forked and
+    before the pool's manager thread starts. What this process raised, and which of
+    its children are left."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    launch = ProcessPoolExecutor._launch_processes  # type: ignore[attr-defined]
+    forked: list[int] = []
+
+    def launch_then_interrupt(self: Any) -> None:
+        launch(self)
+        forked.extend(p.pid for p in self._processes.values())
+        for pid in [*forked, os.getpid()]:
+            os.kill(pid, signal.SIGINT)
+
+    ProcessPoolExecutor._launch_processes = launch_then_interrupt  # type: ignore[attr-defined]
+    try:
+        ForkMap(2)(_slow_square, range(8))
+        raised = None
+    except BaseException as exc:  # what was raised is the finding
+        raised = f"{type(exc).__name__}: {exc}"
+    left = [p.pid for p in multiprocessing.active_children()]
+    alive = [pid for pid in forked if os.path.exists(f"/proc/{pid}")]
+    for pid in alive:  # a child left waiting for work would keep this process from exiting
+        os.kill(pid, signal.SIGKILL)
+    return {"raised": raised, "forked": forked, "active_children": left, "alive": alive}
+
+
 CHECKS = {
     "order": order, "raised": raised, "killed": killed, "diagnosis": diagnosis, "mixed": mixed,
+    "interrupted_at_start": interrupted_at_start,
 }  # fmt: skip
 
 if __name__ == "__main__":

@@ -17,11 +17,13 @@ for the tasks already running only); nothing outlives it.
 
 from __future__ import annotations
 
+import contextlib
 import gc
 import os
+import signal
 import threading
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any, TypeVar
 
 T = TypeVar("T")
@@ -37,6 +39,38 @@ def _run(k: int) -> Any:
         raise RuntimeError("no task: a ForkMap child runs only what its parent set")
     fn, items = _TASK
     return fn(items[k])
+
+
+_HELD_SIGNALS = frozenset(
+    getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name)
+)
+"""Signals held while a pool starts (Ctrl-C, systemd's stop, a closed terminal)."""
+
+
+@contextlib.contextmanager
+def _signals_held() -> Iterator[None]:
+    """Hold :data:`_HELD_SIGNALS` in this thread for the block; one that arrives meanwhile
+    is delivered when the block ends (its handler runs then). Threads started in the block
+    inherit the held mask, so the signal is this thread's to handle."""
+    if not hasattr(signal, "pthread_sigmask"):  # pragma: no cover - not POSIX
+        yield
+        return
+    before = signal.pthread_sigmask(signal.SIG_BLOCK, _HELD_SIGNALS)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, before)
+
+
+def _release_signals() -> None:
+    """A child's first step: take the signals its parent held at the fork (a Ctrl-C to the
+    group that arrived meanwhile ends the child here, quietly: its parent has it too)."""
+    if not hasattr(signal, "pthread_sigmask"):  # pragma: no cover - not POSIX
+        return
+    pending = signal.sigpending() & _HELD_SIGNALS
+    if pending:
+        os._exit(128 + int(min(pending)))
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, _HELD_SIGNALS)
 
 
 def usable_cpus() -> int:
@@ -91,9 +125,17 @@ class ForkMap:
                     category=DeprecationWarning,
                 )  # fmt: skip
                 ctx = multiprocessing.get_context("fork")
-                pool = ProcessPoolExecutor(max_workers=n, mp_context=ctx)
+                pool = ProcessPoolExecutor(
+                    max_workers=n, mp_context=ctx, initializer=_release_signals
+                )
                 try:
-                    return list(pool.map(_run, range(len(items))))
+                    # The pool starts (children forked, its manager thread started) on the
+                    # first submit: a Ctrl-C in between would leave a pool that cannot be
+                    # shut down ("cannot join thread before it is started") and children
+                    # waiting for work. Held until the pool runs, then delivered here.
+                    with _signals_held():
+                        futures = [pool.submit(_run, k) for k in range(len(items))]
+                    return [f.result() for f in futures]
                 finally:  # on an exception (Ctrl-C, SIGTERM) the tasks not started are dropped
                     pool.shutdown(wait=True, cancel_futures=True)
         except BrokenProcessPool:
