@@ -38,6 +38,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+import host_steal
 import numpy as np
 import yaml
 import zenoh
@@ -163,6 +164,13 @@ def run(
         )  # fmt: skip
         assert fw.stdout is not None
         json.loads(fw.stdout.readline())
+    # the host's steal time, sampled beside the run (benchmarks/host_steal.py)
+    steal_probe = subprocess.Popen(
+        [sys.executable, str(Path(__file__).with_name("host_steal.py")), "0.002"],
+        stdout=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    assert steal_probe.stdout is not None
+    steal_probe.stdout.readline()  # sampling from here on
     received = 0
     lock = threading.Lock()
 
@@ -189,6 +197,8 @@ def run(
         if burner is not None:
             burner.kill()
             burner.wait(10)
+        os.kill(steal_probe.pid, signal.SIGTERM)
+        steal_out, _ = steal_probe.communicate(timeout=10)
         if session is not None:
             session.close()
         if fw is not None:
@@ -199,10 +209,31 @@ def run(
     assert daemon.recorder is not None
     logs = sorted((tmp / "logs").glob("*.csv"))
     cols: dict[str, list[np.ndarray]] = {"lateness_us": [], "compute_us": [], "solve_us": []}
+    period = 1.0 / daemon.control_cfg.rate_hz
+    miss_starts: list[float] = []
+    miss_ends: list[float] = []
+    miss_rows: list[dict[str, float]] = []  # the first 50: what each missed cycle spent
     for f in logs:
         log = read_log(f)
         for k in cols:
             cols[k].append(log[k])
+        # a row holds its cycle's wake lateness and the previous cycle's compute
+        t, lat, comp_prev = log["t"], log["lateness_us"] * 1e-6, log["compute_us"] * 1e-6
+        for j in np.flatnonzero(lat[:-1] + comp_prev[1:] > period):
+            start = daemon.t0 + float(t[j] - lat[j])
+            miss_starts.append(start)
+            miss_ends.append(start + float(lat[j] + comp_prev[j + 1]))
+            if len(miss_rows) < 50:
+                miss_rows.append({
+                    "t_s": round(float(t[j]), 4),
+                    "lateness_us": round(float(lat[j]) * 1e6),
+                    "compute_us": round(float(comp_prev[j + 1]) * 1e6),
+                    "cpu_us": round(float(log["cpu_us"][j + 1])),
+                })  # fmt: skip
+    steal_t, steal_s = host_steal.steal_times(steal_out.splitlines()[1:])
+    host = host_steal.misses_explained(miss_starts, miss_ends, steal_t, 0.015, duration)
+    host["steal_s"] = round(float(steal_s.sum()), 3)
+    host["missed_cycles"] = miss_rows
     late = np.concatenate(cols["lateness_us"])
     comp = np.concatenate(cols["compute_us"])[1:]  # the first row has no previous cycle
     solve = np.concatenate(cols["solve_us"])
@@ -218,6 +249,7 @@ def run(
         "cycles": rk.cycles,
         "deadline_misses": rk.misses,
         "skipped_periods": rk.skipped_periods,
+        "misses_and_host_steal": host,
         "lateness_us_p50": _pct(late, 50),
         "lateness_us_p99": _pct(late, 99),
         "lateness_us_max": float(late.max()),
@@ -244,6 +276,8 @@ def run(
             k: [_pct(np.array(v[1:]) * 1e6, 50), _pct(np.array(v[1:]) * 1e6, 99)]
             for k, v in times.items()
         }
+        # the stages' longest calls: where a missed cycle's time went
+        result["stages_us_max"] = {k: float(np.max(v[1:]) * 1e6) for k, v in times.items()}
     return result
 
 
@@ -276,9 +310,12 @@ def main() -> int:
         print("loop_bench: --rate must be in [1, 2000] Hz", file=sys.stderr)
         return 2
     r = run(args.duration, args.backend, args.stages, args.cpu_latency_us, args.rate, args.busy)
+    h = r["misses_and_host_steal"]
     rows = [
         ("cycles", f"{r['cycles']}"),
         ("deadline misses", f"{r['deadline_misses']} ({r['skipped_periods']} periods skipped)"),
+        ("misses during host steal (by chance) / steal", "{} ({}) of {} / {:.2f} s".format(
+            h["with_host_steal"], h["expected_by_chance"], h["misses"], h["steal_s"])),
         ("wake lateness p50 / p99 / max", "{:.0f} / {:.0f} / {:.0f} us".format(
             r["lateness_us_p50"], r["lateness_us_p99"], r["lateness_us_max"])),
         ("compute p50 / p99 / max",
@@ -297,7 +334,8 @@ def main() -> int:
     for k, v in rows:
         print(f"  {k.ljust(w)}  {v}")
     for k, (p50, p99) in r.get("stages_us_p50_p99", {}).items():
-        print(f"  stage {k.ljust(w - 6)}  {p50:.0f} / {p99:.0f} us (p50 / p99)")
+        top = r["stages_us_max"][k]
+        print(f"  stage {k.ljust(w - 6)}  {p50:.0f} / {p99:.0f} / {top:.0f} us (p50 / p99 / max)")
     if args.json:
         write_json(args.json, r, args.key)
     return 0

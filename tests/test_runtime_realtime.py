@@ -153,3 +153,55 @@ def test_helpers_and_zenoh_callback_threads_are_promoted_others_not() -> None:
     for name in ("truckd-test", "Thread-9 (pyo3-closure)"):
         promoted = policy[name] == os.SCHED_FIFO
         assert promoted or any(f"SCHED_FIFO for {name} failed" in n for n in rep.notes), rep.notes
+
+
+DYNAMIC_NONE = "CONFIG_PREEMPT_BUILD=y\nCONFIG_PREEMPT_NONE=y\n# CONFIG_PREEMPT is not set\n"
+
+
+@pytest.mark.parametrize(
+    "texts,mode",
+    [
+        # a PREEMPT_RT kernel, by its flag file or by uname
+        ({"uname_version": "#1 SMP PREEMPT_DYNAMIC", "realtime_flag": "1\n"}, "rt"),
+        ({"uname_version": "#1 SMP PREEMPT_RT Thu Nov 20"}, "rt"),
+        # a dynamic kernel: debugfs's choice first, then preempt=, then the build default
+        ({"uname_version": "#1 SMP PREEMPT_DYNAMIC", "debugfs": "none voluntary (full) lazy\n",
+          "cmdline": "preempt=none", "config": DYNAMIC_NONE}, "full"),
+        ({"uname_version": "#1 SMP PREEMPT_DYNAMIC", "cmdline": "quiet preempt=voluntary",
+          "config": DYNAMIC_NONE}, "voluntary"),
+        ({"uname_version": "#1 SMP PREEMPT_DYNAMIC @0", "config": DYNAMIC_NONE}, "none"),
+        ({"uname_version": "#1 SMP PREEMPT_DYNAMIC"}, "unknown"),
+        # preempt= means nothing to a kernel built without dynamic preemption
+        ({"uname_version": "#1 SMP Debian", "cmdline": "preempt=full",
+          "config": "CONFIG_PREEMPT_VOLUNTARY=y\n"}, "voluntary"),
+        # a Raspberry Pi OS kernel says PREEMPT; an old server kernel says nothing
+        ({"uname_version": "#1 SMP PREEMPT Debian 1:6.6.51-1+rpt3"}, "full"),
+        ({"uname_version": "#1 SMP Debian 5.10.0-28"}, "unknown"),
+    ],
+)  # fmt: skip
+def test_the_kernels_preemption_model_is_read_from_what_the_kernel_says(
+    texts: dict[str, str], mode: str
+) -> None:
+    got, how = realtime.preemption_model(**texts)
+    assert got == mode, how
+
+
+def test_a_kernel_that_does_not_preempt_is_a_warning_naming_the_remedy(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The start-up's line says the model, and where the loop can wait, as a warning; a
+    preemptible kernel is an info line."""
+    monkeypatch.setattr(realtime, "preemption_model", lambda *_a: ("none", "build default"))
+    rep = realtime.RealtimeReport()
+    with caplog.at_level(logging.INFO, logger="truckd.realtime"):
+        realtime._kernel_preemption(rep)
+    assert rep.kernel_preemption == "none" and rep.as_dict()["kernel_preemption"] == "none"
+    (record,) = caplog.records
+    assert record.levelno == logging.WARNING
+    assert "PREEMPT_RT" in record.getMessage() and "preempt=full" in record.getMessage()
+    monkeypatch.setattr(realtime, "preemption_model", lambda *_a: ("rt", "flag"))
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="truckd.realtime"):
+        realtime._kernel_preemption(rep)
+    assert rep.kernel_preemption == "rt"
+    assert [r.levelno for r in caplog.records] == [logging.INFO]

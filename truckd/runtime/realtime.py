@@ -47,6 +47,9 @@ class RealtimeReport:
     mlock: bool = False
     cpu_latency_us: int | None = None
     """The CPU wake-up latency held (µs); None when none is requested."""
+    kernel_preemption: str = "unknown"
+    """The kernel's preemption model (:func:`preemption_model`): ``rt``, ``full``,
+    ``lazy``, ``voluntary``, ``none`` or ``unknown``."""
     notes: list[str] = field(default_factory=list)
 
     def as_dict(self) -> dict[str, object]:
@@ -55,8 +58,91 @@ class RealtimeReport:
             "sched_fifo": self.sched_fifo,
             "mlock": self.mlock,
             "cpu_latency_us": self.cpu_latency_us,
+            "kernel_preemption": self.kernel_preemption,
             "notes": list(self.notes),
         }
+
+
+PREEMPTIBLE = ("rt", "full", "lazy")
+"""Preemption models under which a SCHED_FIFO thread that wakes runs at once, even while
+another task is inside the kernel (``lazy`` defers only fair tasks)."""
+
+_MODES = ("none", "voluntary", "full", "lazy")
+
+
+def preemption_model(
+    uname_version: str,
+    cmdline: str = "",
+    config: str = "",
+    debugfs: str = "",
+    realtime_flag: str = "",
+) -> tuple[str, str]:
+    """The kernel's preemption model and how it was known, from the texts the kernel
+    gives: ``/sys/kernel/realtime`` (``1`` on PREEMPT_RT), ``/sys/kernel/debug/sched/preempt``
+    (the dynamic mode in parentheses), ``uname -v``, ``/proc/cmdline`` (``preempt=``) and
+    the build configuration (``/proc/config.gz``); each may be empty (not readable).
+
+    Under ``none`` or ``voluntary`` a task inside a system call or a kernel thread keeps
+    its CPU until it reaches a preemption point: a SCHED_FIFO loop that wakes meanwhile
+    waits, for milliseconds on a busy machine."""
+    if realtime_flag.strip() == "1" or "PREEMPT_RT" in uname_version.split():
+        return "rt", "PREEMPT_RT kernel"
+    chosen = debugfs.split("(", 1)[1].split(")", 1)[0] if "(" in debugfs else ""
+    if chosen in _MODES:
+        return chosen, "sched/preempt"
+    words = uname_version.split()
+    dynamic = "PREEMPT_DYNAMIC" in words
+    if dynamic:
+        for arg in cmdline.split():
+            if arg.startswith("preempt=") and arg[8:] in _MODES:
+                return arg[8:], "preempt= on the kernel command line"
+    options = set(config.splitlines())
+    if "CONFIG_PREEMPT_RT=y" in options:
+        return "rt", "the kernel's configuration"
+    for mode in _MODES:  # the configuration's choice: exactly one of these is set
+        if f"CONFIG_PREEMPT{'' if mode == 'full' else '_' + mode.upper()}=y" in options:
+            return mode, "the default of the kernel's configuration"
+    if dynamic:
+        return "unknown", "a PREEMPT_DYNAMIC kernel whose mode is not readable"
+    if "PREEMPT" in words:
+        return "full", "uname"
+    if "PREEMPT_LAZY" in words:
+        return "lazy", "uname"
+    return "unknown", "neither uname nor the kernel's configuration says"
+
+
+def _read_text(path: str, gzipped: bool = False) -> str:
+    try:
+        if gzipped:
+            import gzip
+
+            with gzip.open(path, "rt", errors="replace") as f:
+                return f.read()
+        with open(path, errors="replace") as f:
+            return f.read()
+    except OSError:
+        return ""
+
+
+def _kernel_preemption(rep: RealtimeReport) -> None:
+    mode, how = preemption_model(
+        os.uname().version,
+        _read_text("/proc/cmdline"),
+        _read_text("/proc/config.gz", gzipped=True),
+        _read_text("/sys/kernel/debug/sched/preempt"),
+        _read_text("/sys/kernel/realtime"),
+    )
+    rep.kernel_preemption = mode
+    if mode in PREEMPTIBLE:
+        _note(rep, logging.INFO, f"kernel preemption: {mode} ({how})")
+        return
+    _note(
+        rep,
+        logging.WARNING,
+        f"kernel preemption: {mode} ({how}): the loop can wait behind other tasks' kernel "
+        "work and miss deadlines; use a PREEMPT_RT kernel or boot with preempt=full "
+        '(docs/daemon.md, "Performance")',
+    )
 
 
 def freeze_gc() -> int:
@@ -156,6 +242,7 @@ def setup_realtime(enabled: bool, priority: int, cpu_latency_us: int = -1) -> Re
         _note(rep, logging.INFO, "real-time scheduling disabled by configuration")
         return rep
     _sched_fifo(priority, rep)
+    _kernel_preemption(rep)
     _mlockall(rep)
     if cpu_latency_us >= 0:
         hold_cpu_latency(cpu_latency_us, rep)
