@@ -6,8 +6,8 @@ recording on: wake lateness p50/p99/max, compute p50/p99/max, deadline misses.
 
 ``serial`` (default) runs the daemon against the simulated firmware in its own process on
 a pty, as in the HIL tests (the loop's work is what it is on the car); ``sim`` steps the
-simulated truck inside the loop (more work per cycle).  A Zenoh subscriber in this process
-receives every state message, so publishing really goes over TCP.
+simulated truck inside the loop (more work per cycle).  A Zenoh subscriber in a process of
+its own receives every state message, so publishing really goes over TCP.
 
 ``--stages`` adds wall-clock timers around each stage of ``Daemon.cycle`` (p50/p99 per
 stage; about 1 us of overhead per timer): in the serial backend the whole cycle is the
@@ -171,26 +171,14 @@ def run(
     )  # fmt: skip
     assert steal_probe.stdout is not None
     steal_probe.stdout.readline()  # sampling from here on
-    received = 0
-    lock = threading.Lock()
-
-    def on_state(_s: zenoh.Sample) -> None:
-        nonlocal received
-        with lock:
-            received += 1
-
-    session = None
+    # the monitoring side in a process of its own, as on the car (opening a Zenoh session
+    # holds this interpreter's GIL for some 20 ms: in the daemon's process it was a miss)
+    sub = subprocess.Popen(
+        [sys.executable, __file__, "--subscriber", str(port)], stdout=subprocess.PIPE, text=True
+    )
     try:
         daemon = Daemon(load_config(cfg_path), backend, duration=duration)
         times = _instrument(daemon) if stages else None
-
-        def subscribe() -> None:
-            nonlocal session
-            time.sleep(1.0)  # the daemon's session is listening by then
-            session = zenoh.open(zenoh_config(listen=[], connect=[f"tcp/127.0.0.1:{port}"]))
-            session.declare_subscriber("truckd/truck1/state", on_state)
-
-        threading.Thread(target=subscribe, daemon=True).start()
         daemon.run()
         unfreeze_gc()
     finally:
@@ -199,8 +187,9 @@ def run(
             burner.wait(10)
         os.kill(steal_probe.pid, signal.SIGTERM)
         steal_out, _ = steal_probe.communicate(timeout=10)
-        if session is not None:
-            session.close()
+        os.kill(sub.pid, signal.SIGTERM)
+        sub_out, _ = sub.communicate(timeout=30)
+        received = int(sub_out.split()[-1]) if sub_out.split() else 0
         if fw is not None:
             os.kill(fw.pid, signal.SIGTERM)
             fw.wait(10)
@@ -281,7 +270,32 @@ def run(
     return result
 
 
+def subscriber(port: int) -> None:
+    """The monitoring side (``--subscriber PORT``): connect to the daemon's session once it
+    listens, count its state messages, print the count on SIGTERM."""
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_a: stop.set())
+    received = 0
+    lock = threading.Lock()
+
+    def on_state(_s: zenoh.Sample) -> None:
+        nonlocal received
+        with lock:
+            received += 1
+
+    time.sleep(1.0)  # the daemon's session is listening by then
+    session = zenoh.open(zenoh_config(listen=[], connect=[f"tcp/127.0.0.1:{port}"]))
+    session.declare_subscriber("truckd/truck1/state", on_state)
+    stop.wait()
+    session.close()
+    with lock:
+        print(received, flush=True)
+
+
 def main() -> int:
+    if sys.argv[1:2] == ["--subscriber"]:
+        subscriber(int(sys.argv[2]))
+        return 0
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--duration", type=float, default=60.0)
     ap.add_argument("--backend", choices=("serial", "sim"), default="serial")
