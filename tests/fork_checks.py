@@ -170,6 +170,9 @@ def interrupted_at_start() -> dict[str, Any]:
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor
 
+    # Python's own Ctrl-C handler, whatever this process inherited (a test runner's
+    # workers may ignore SIGINT, and an ignored signal stays ignored across exec)
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     launch = ProcessPoolExecutor._launch_processes  # type: ignore[attr-defined]
     forked: list[int] = []
 
