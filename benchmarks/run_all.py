@@ -18,6 +18,7 @@ ORDER = (
     "firmware_bench",
     "mpc_bench",
     "loop_bench",
+    "wakeup_floor",
     "cycle_work",
     "mpc_settings",
     "recorder_bench",
