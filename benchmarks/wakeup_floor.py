@@ -1,8 +1,10 @@
 """The machine's wake-up floor: a bare periodic sleeper, as the daemon's loop sleeps, with
 no work at all (in the spirit of ``cyclictest``).
 
-A SCHED_FIFO thread (when permitted) holds the CPU wake-up latency at 0 us, as the daemon
-does, and sleeps to each deadline of a fixed-rate grid; each wake-up's lateness is kept.
+The thread takes the daemon's real-time set-up with the shipped configuration's priority
+and wake-up latency (``truckd.runtime.realtime.setup_realtime``: SCHED_FIFO, mlockall and
+the CPU wake-up latency request, when permitted) and sleeps to each deadline of a
+fixed-rate grid; each wake-up's lateness is kept.
 A wake-up later than ``period - compute`` would make the daemon's cycle miss its deadline
 even if the cycle itself took only ``compute`` (its p50, ``--compute-us``): those are the
 misses the machine makes, whatever the loop does. ``benchmarks/loop_bench.py`` at the
@@ -15,28 +17,28 @@ same rate, run before or after, gives the loop's own count.
 from __future__ import annotations
 
 import argparse
-import os
-import struct
 import sys
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 from results import KEY, machine, write_json
 
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from truckd.config.truck import load_config
+from truckd.runtime.realtime import (
+    release_cpu_latency,
+    setup_realtime,
+    unfreeze_gc,
+)
+
 
 def run(rate_hz: float, duration_s: float, compute_us: float) -> dict[str, Any]:
     """Sleep to each deadline of the grid for ``duration_s``; the lateness of each wake."""
-    fifo = True
-    try:
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(50))
-    except OSError:
-        fifo = False
-    try:
-        fd: int | None = os.open("/dev/cpu_dma_latency", os.O_WRONLY)
-        os.write(fd, struct.pack("=i", 0))
-    except OSError:
-        fd = None
+    rt = load_config().runtime
+    rep = setup_realtime(True, rt.rt_priority, rt.cpu_latency_us)
     period = 1.0 / rate_hz
     n = int(duration_s * rate_hz)
     late = np.empty(n)
@@ -48,15 +50,16 @@ def run(rate_hz: float, duration_s: float, compute_us: float) -> dict[str, Any]:
         if wait > 0:
             sleep(wait)
         late[k] = clock() - target
-    if fd is not None:
-        os.close(fd)
+    release_cpu_latency()
+    unfreeze_gc()
     budget = period - compute_us * 1e-6
     over = np.flatnonzero(late > budget)
     return {
         "rate_hz": rate_hz,
         "duration_s": duration_s,
-        "sched_fifo": fifo,
-        "cpu_latency_held": fd is not None,
+        "sched_fifo": rep.sched_fifo,
+        "cpu_latency_held": rep.cpu_latency_us is not None,
+        "kernel_preemption": rep.kernel_preemption,
         "wakeups": n,
         "lateness_us_p50": float(np.percentile(late, 50) * 1e6),
         "lateness_us_p99": float(np.percentile(late, 99) * 1e6),
