@@ -66,6 +66,37 @@ def raised() -> dict[str, Any]:
     return {"raised": None}
 
 
+def torn() -> dict[str, Any]:
+    """A child killed halfway through writing a result (the first result a child sends
+    is cut after half its bytes): the results and the fallbacks counted."""
+    import truckd.workers as workers
+
+    write_all = workers._write_all
+
+    def half_then_die(fd: int, data: bytes) -> None:
+        if os.getpid() != PARENT and len(data) > 8:
+            os.write(fd, data[: len(data) // 2])
+            os.kill(os.getpid(), signal.SIGKILL)
+        write_all(fd, data)
+
+    workers._write_all = half_then_die
+    pool = ForkMap(2)
+    return {"out": pool(_pid_and_square, range(6)), "fallbacks": pool.fallbacks}
+
+
+def _unpicklable(x: int) -> Any:
+    return (lambda: x) if x == 2 else x
+
+
+def unpicklable() -> dict[str, Any]:
+    """A task whose result cannot be pickled back: what this process raises."""
+    try:
+        ForkMap(2)(_unpicklable, range(5))
+    except RuntimeError as exc:
+        return {"raised": f"RuntimeError: {exc}"}
+    return {"raised": None}
+
+
 def killed() -> dict[str, Any]:
     """A child killed by SIGKILL: the results and the fallbacks counted."""
     pool = ForkMap(2)
@@ -163,41 +194,102 @@ def _slow_square(x: int) -> int:
 
 
 def interrupted_at_start() -> dict[str, Any]:
-    """Ctrl-C while the pool starts: SIGINT sent to this process (and to each child, as a
-    terminal's Ctrl-C reaches the whole group) right after the children are forked and
-    before the pool's manager thread starts. What this process raised, and which of
-    its children are left."""
-    import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor
+    """Ctrl-C while the children start: SIGINT sent to this process and to each child (as
+    a terminal's Ctrl-C reaches the whole group) right after they are forked, before any
+    task is handed out. What this process raised, and which of its children are left."""
+    import truckd.workers as workers
 
     # Python's own Ctrl-C handler, whatever this process inherited (a test runner's
     # workers may ignore SIGINT, and an ignored signal stays ignored across exec)
     signal.signal(signal.SIGINT, signal.default_int_handler)
-    launch = ProcessPoolExecutor._launch_processes  # type: ignore[attr-defined]
+    fork = workers._fork
     forked: list[int] = []
 
-    def launch_then_interrupt(self: Any) -> None:
-        launch(self)
-        forked.extend(p.pid for p in self._processes.values())
+    def fork_then_interrupt(n: int) -> list[Any]:
+        children = fork(n)
+        forked.extend(c.pid for c in children)
         for pid in [*forked, os.getpid()]:
             os.kill(pid, signal.SIGINT)
+        return children
 
-    ProcessPoolExecutor._launch_processes = launch_then_interrupt  # type: ignore[attr-defined]
+    workers._fork = fork_then_interrupt
     try:
         ForkMap(2)(_slow_square, range(8))
         raised = None
     except BaseException as exc:  # what was raised is the finding
         raised = f"{type(exc).__name__}: {exc}"
-    left = [p.pid for p in multiprocessing.active_children()]
     alive = [pid for pid in forked if os.path.exists(f"/proc/{pid}")]
-    for pid in alive:  # a child left waiting for work would keep this process from exiting
+    for pid in alive:  # a child left waiting for work would outlive this process
         os.kill(pid, signal.SIGKILL)
-    return {"raised": raised, "forked": forked, "active_children": left, "alive": alive}
+    return {"raised": raised, "forked": forked, "alive": alive}
+
+
+def _report_then_sleep(x: int) -> int:
+    """A task that says its pid on the inherited pipe, then would run for an hour."""
+    import time
+
+    assert _PIDS_WRITE is not None
+    os.write(_PIDS_WRITE, f"{os.getpid()}\n".encode())
+    time.sleep(3600)
+    return x
+
+
+_PIDS_WRITE: int | None = None
+
+
+def interrupted_while_running() -> dict[str, Any]:
+    """Ctrl-C to the whole group (this process in a group of its own, as a terminal
+    gives a command) while both children run a task that would take an hour: what this
+    process raised, the seconds the call took, and the processes of the group left."""
+    import time
+
+    global _PIDS_WRITE
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    os.setpgid(0, 0)
+    read, _PIDS_WRITE = os.pipe()
+    signaller = os.fork()
+    if signaller == 0:  # once both children said their pid: Ctrl-C to the group
+        os.close(_PIDS_WRITE)
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        seen = b""
+        while seen.count(b"\n") < 2:
+            seen += os.read(read, 64)
+        os.killpg(0, signal.SIGINT)
+        os._exit(0)
+    t0 = time.monotonic()
+    try:
+        ForkMap(2)(_report_then_sleep, range(4))
+        raised = None
+    except BaseException as exc:  # what was raised is the finding
+        raised = f"{type(exc).__name__}: {exc}"
+    took = time.monotonic() - t0
+    os.waitpid(signaller, 0)
+    left = [p for p in _group_members(os.getpgid(0)) if p != os.getpid()]
+    for p in left:  # a child left running would outlive this check
+        os.kill(p, signal.SIGKILL)
+    return {"raised": raised, "took_s": took, "left": left}
+
+
+def _group_members(pgid: int) -> list[int]:
+    """The live processes (not zombies) of process group ``pgid`` (Linux /proc)."""
+    from pathlib import Path
+
+    out = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[2]) == pgid and fields[0] != "Z":
+            out.append(int(stat.parent.name))
+    return out
 
 
 CHECKS = {
-    "order": order, "raised": raised, "killed": killed, "diagnosis": diagnosis, "mixed": mixed,
+    "order": order, "raised": raised, "killed": killed, "unpicklable": unpicklable, "torn": torn,
+    "diagnosis": diagnosis, "mixed": mixed,
     "interrupted_at_start": interrupted_at_start,
+    "interrupted_while_running": interrupted_while_running,
 }  # fmt: skip
 
 if __name__ == "__main__":

@@ -2,17 +2,25 @@
 
 :class:`ForkMap` is a ``map`` that runs ``fn`` over ``items`` on up to ``workers`` child
 processes forked for the call: each child starts as a copy of the parent (its data and
-caches, nothing pickled on the way in) and sends back only the results, in order. It
-falls back to running the tasks here, one after another, with the same results:
+caches, nothing pickled on the way in) and sends back only the results, which come back
+in order. It falls back to running the tasks here, one after another, with the same
+results:
 
 - with fewer than two workers or two tasks, or where ``fork`` does not exist;
 - when this process runs other Python threads (a lock one of them holds at the fork
   would stay held in the child: pytest's workers, a daemon's threads);
 - when a child dies (killed, out of memory): the whole list is run here again.
 
-An exception a task raises in a child is raised here, as ``map`` would. The children
-end with the call (the executor waits for them; on an exception here, Ctrl-C or SIGTERM,
-for the tasks already running only); nothing outlives it.
+An exception a task raises in a child is raised here, as ``map`` would (the first item's
+in order), with the child's traceback as a note.
+
+Each child has two pipes of its own (its task numbers in, its pickled results out) and
+shares no lock with anybody, so a child that dies at any instant, even halfway through a
+result, costs only its own pipe. The children ignore Ctrl-C: the terminal's SIGINT reaches
+the whole group, and this process, on Ctrl-C, SIGTERM or any exception, kills its
+children (SIGKILL) and reaps them before the exception goes on. SIGTERM and SIGHUP end a
+child at once. Nothing outlives the call; a child whose parent is gone reads the end of
+its task pipe and exits.
 """
 
 from __future__ import annotations
@@ -20,11 +28,17 @@ from __future__ import annotations
 import contextlib
 import gc
 import os
+import pickle
+import select
 import signal
+import struct
+import sys
 import threading
+import traceback
 import warnings
 from collections.abc import Callable, Iterator, Sequence
-from typing import Any, TypeVar
+from dataclasses import dataclass, field
+from typing import Any, NoReturn, TypeVar
 
 T = TypeVar("T")
 R = TypeVar("R")
@@ -32,26 +46,25 @@ R = TypeVar("R")
 _TASK: tuple[Callable[[Any], Any], Sequence[Any]] | None = None
 """The call's function and items, set before the children fork (they inherit it)."""
 
-
-def _run(k: int) -> Any:
-    """Run the ``k``-th task of the inherited call (in a child)."""
-    if _TASK is None:  # pragma: no cover - only a child started outside ForkMap sees this
-        raise RuntimeError("no task: a ForkMap child runs only what its parent set")
-    fn, items = _TASK
-    return fn(items[k])
-
-
 _HELD_SIGNALS = frozenset(
     getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name)
 )
-"""Signals held while a pool starts (Ctrl-C, systemd's stop, a closed terminal)."""
+"""Signals held while the children are forked (Ctrl-C, systemd's stop, a closed terminal)."""
+
+_INDEX = struct.Struct("<i")
+"""A task number on a child's task pipe (-1: none left)."""
+_LENGTH = struct.Struct("<Q")
+"""The length in bytes of the pickled result that follows it on a result pipe."""
+
+
+class _ChildDiedError(Exception):
+    """A child ended before it sent every result it owed."""
 
 
 @contextlib.contextmanager
 def _signals_held() -> Iterator[None]:
-    """Hold :data:`_HELD_SIGNALS` in this thread for the block; one that arrives meanwhile
-    is delivered when the block ends (its handler runs then). Threads started in the block
-    inherit the held mask, so the signal is this thread's to handle."""
+    """Hold :data:`_HELD_SIGNALS` for the block; one that arrives meanwhile is delivered
+    when the block ends (its handler runs then)."""
     if not hasattr(signal, "pthread_sigmask"):  # pragma: no cover - not POSIX
         yield
         return
@@ -60,17 +73,6 @@ def _signals_held() -> Iterator[None]:
         yield
     finally:
         signal.pthread_sigmask(signal.SIG_SETMASK, before)
-
-
-def _release_signals() -> None:
-    """A child's first step: take the signals its parent held at the fork (a Ctrl-C to the
-    group that arrived meanwhile ends the child here, quietly: its parent has it too)."""
-    if not hasattr(signal, "pthread_sigmask"):  # pragma: no cover - not POSIX
-        return
-    pending = signal.sigpending() & _HELD_SIGNALS
-    if pending:
-        os._exit(128 + int(min(pending)))
-    signal.pthread_sigmask(signal.SIG_UNBLOCK, _HELD_SIGNALS)
 
 
 def usable_cpus() -> int:
@@ -82,11 +84,81 @@ def usable_cpus() -> int:
 
 
 def can_fork() -> bool:
-    """Whether a fork here is safe: the ``fork`` start method exists and no other
-    Python thread runs."""
-    import multiprocessing  # here: importing this module costs nothing until a fork
+    """Whether a fork here is safe: ``os.fork`` exists and no other Python thread runs."""
+    return hasattr(os, "fork") and threading.active_count() == 1
 
-    return "fork" in multiprocessing.get_all_start_methods() and threading.active_count() == 1
+
+def _read_exactly(fd: int, n: int) -> bytes | None:
+    """``n`` bytes from ``fd``; None at its end (the writer is gone)."""
+    parts: list[bytes] = []
+    while n > 0:
+        chunk = os.read(fd, min(n, 1 << 20))
+        if not chunk:
+            return None
+        parts.append(chunk)
+        n -= len(chunk)
+    return b"".join(parts)
+
+
+def _write_all(fd: int, data: bytes) -> None:
+    view = memoryview(data)
+    while view:
+        view = view[os.write(fd, view) :]
+
+
+def _child(tasks: int, results: int, inherited: Sequence[int]) -> NoReturn:
+    """A child's life: run the task numbers read from ``tasks``, send each outcome on
+    ``results`` (``(True, value)`` or ``(False, exception, traceback text)``), exit at
+    the end of ``tasks`` or on -1. Never returns; no exit handler of the parent runs."""
+    code = 0
+    try:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent answers Ctrl-C
+        for sig in _HELD_SIGNALS - {signal.SIGINT}:
+            signal.signal(sig, signal.SIG_DFL)  # a pending SIGTERM ends the child here
+        if hasattr(signal, "pthread_sigmask"):
+            signal.pthread_sigmask(signal.SIG_UNBLOCK, _HELD_SIGNALS)
+        for fd in inherited:  # the parent's ends of the other children's pipes
+            os.close(fd)
+        assert _TASK is not None, "a ForkMap child runs only what its parent set"
+        fn, items = _TASK
+        while True:
+            head = _read_exactly(tasks, _INDEX.size)
+            k = -1 if head is None else _INDEX.unpack(head)[0]
+            if k < 0:
+                break
+            try:
+                outcome: tuple[Any, ...] = (True, fn(items[k]))
+            except BaseException as exc:  # the parent raises it
+                outcome = (False, exc, traceback.format_exc())
+            try:
+                body = pickle.dumps(outcome, pickle.HIGHEST_PROTOCOL)
+            except Exception as exc:  # a result or exception that does not pickle
+                text = f"{type(exc).__name__}: {exc}"
+                body = pickle.dumps((False, RuntimeError(f"a task's outcome: {text}"), ""))
+            _write_all(results, _LENGTH.pack(len(body)) + body)
+    except BrokenPipeError:  # the parent is gone
+        code = 1
+    except BaseException:  # pragma: no cover - a fault of this module: say it, end
+        traceback.print_exc()
+        code = 70
+    finally:
+        with contextlib.suppress(Exception):
+            sys.stdout.flush()
+            sys.stderr.flush()
+    os._exit(code)
+
+
+@dataclass
+class _Child:
+    """One forked child, as the parent sees it."""
+
+    pid: int
+    tasks: int
+    """The parent's end of its task pipe (write)."""
+    results: int
+    """The parent's end of its result pipe (read)."""
+    running: list[int] = field(default_factory=list)
+    """The task numbers sent and not yet answered, oldest first."""
 
 
 class ForkMap:
@@ -107,40 +179,128 @@ class ForkMap:
         n = min(self.workers, len(items))
         if n < 2 or not can_fork():
             return [fn(x) for x in items]
-        import multiprocessing
-        from concurrent.futures import ProcessPoolExecutor
-        from concurrent.futures.process import BrokenProcessPool
-
         global _TASK
         _TASK = (fn, items)
         # The children's collector then leaves the inherited objects alone: it would
         # write to every one and copy each page the fork shares.
         gc.freeze()
+        children: list[_Child] = []
         try:
-            with warnings.catch_warnings():
-                # Python 3.12+ warns on a fork beside native threads (OpenBLAS's pool,
-                # idle under threadpoolctl's limit): the children run no code of theirs.
-                warnings.filterwarnings(
-                    "ignore", message=r".*use of fork\(\) may lead to deadlocks",
-                    category=DeprecationWarning,
-                )  # fmt: skip
-                ctx = multiprocessing.get_context("fork")
-                pool = ProcessPoolExecutor(
-                    max_workers=n, mp_context=ctx, initializer=_release_signals
-                )
-                try:
-                    # The pool starts (children forked, its manager thread started) on the
-                    # first submit: a Ctrl-C in between would leave a pool that cannot be
-                    # shut down ("cannot join thread before it is started") and children
-                    # waiting for work. Held until the pool runs, then delivered here.
-                    with _signals_held():
-                        futures = [pool.submit(_run, k) for k in range(len(items))]
-                    return [f.result() for f in futures]
-                finally:  # on an exception (Ctrl-C, SIGTERM) the tasks not started are dropped
-                    pool.shutdown(wait=True, cancel_futures=True)
-        except BrokenProcessPool:
+            try:
+                with _signals_held():
+                    children = _fork(n)
+                return _collect(children, len(items))
+            finally:
+                with _signals_held():  # a second Ctrl-C waits until they are reaped
+                    _end(children)
+        except _ChildDiedError:
             self.fallbacks += 1
-            return [fn(x) for x in items]
         finally:
             gc.unfreeze()
             _TASK = None
+        return [fn(x) for x in items]
+
+
+def _fork(n: int) -> list[_Child]:
+    """Fork ``n`` children (signals held by the caller: the list is whole when one of
+    them is delivered)."""
+    # nothing the parent buffered is written twice (a child flushes its own at exit)
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):
+            stream.flush()
+    children: list[_Child] = []
+    for _ in range(n):
+        task_r, task_w = os.pipe()
+        result_r, result_w = os.pipe()
+        inherited = [fd for c in children for fd in (c.tasks, c.results)]
+        with warnings.catch_warnings():
+            # Python 3.12+ warns on a fork beside native threads (OpenBLAS's pool, idle
+            # under threadpoolctl's limit): the children run no code of theirs.
+            warnings.filterwarnings(
+                "ignore", message=r".*use of fork\(\) may lead to deadlocks",
+                category=DeprecationWarning,
+            )  # fmt: skip
+            try:
+                pid = os.fork()
+            except OSError:
+                for fd in (task_r, task_w, result_r, result_w):
+                    os.close(fd)
+                if children:
+                    break  # fewer children than asked (out of processes): still a pool
+                raise _ChildDiedError("no child could be forked") from None
+        if pid == 0:  # pragma: no cover - the child (coverage does not follow a fork)
+            os.close(task_w)
+            os.close(result_r)
+            _child(task_r, result_w, inherited)
+        os.close(task_r)
+        os.close(result_w)
+        children.append(_Child(pid, task_w, result_r))
+    return children
+
+
+def _collect(children: list[_Child], count: int) -> list[Any]:
+    """Hand the task numbers 0..count-1 out, the next to whichever child answers first
+    (the costliest tasks come first, so the last ones even out), and gather the
+    outcomes; the first exception in the items' order is raised once every item before
+    it is in."""
+    results: list[Any] = [None] * count
+    answered = [False] * count
+    failed: dict[int, tuple[BaseException, str]] = {}
+    next_k = 0
+
+    def send(c: _Child) -> None:
+        nonlocal next_k
+        if next_k < count and not failed:
+            _write_all(c.tasks, _INDEX.pack(next_k))
+            c.running.append(next_k)
+            next_k += 1
+
+    for c in children:
+        send(c)
+    by_fd = {c.results: c for c in children}
+    poll = select.poll()
+    for c in children:
+        poll.register(c.results, select.POLLIN)
+    while not all(answered[: min(failed, default=count)]):
+        for fd, _ in poll.poll():
+            c = by_fd[fd]
+            head = _read_exactly(fd, _LENGTH.size)
+            body = None if head is None else _read_exactly(fd, _LENGTH.unpack(head)[0])
+            if body is None:
+                raise _ChildDiedError(f"child {c.pid} ended with tasks {c.running} unanswered")
+            k = c.running.pop(0)
+            outcome = pickle.loads(body)
+            answered[k] = True
+            if outcome[0]:
+                results[k] = outcome[1]
+            else:
+                failed[k] = (outcome[1], outcome[2])
+            send(c)
+    if failed:
+        exc, text = failed[min(failed)]
+        if text:
+            exc.add_note(f"raised in a worker process:\n{text.rstrip()}")
+        raise exc
+    return results
+
+
+def _end(children: list[_Child]) -> None:
+    """Close the pipes, end the children and reap them: those that finished exit at the
+    end of their task pipe; any still working (an exception here, Ctrl-C) is killed."""
+    for c in children:
+        with contextlib.suppress(OSError):
+            os.close(c.tasks)
+        with contextlib.suppress(OSError):
+            os.close(c.results)
+        if c.running:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(c.pid, signal.SIGKILL)
+    for c in children:
+        while True:
+            try:
+                os.waitpid(c.pid, 0)
+                break
+            except InterruptedError:  # pragma: no cover - PEP 475 retries this itself
+                continue
+            except ChildProcessError:
+                break
