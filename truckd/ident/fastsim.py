@@ -193,7 +193,11 @@ def simulate_voltage(
 
     A resistance drift is slow (a thermal time constant of seconds to minutes): the run
     is simulated cold, the winding's heating computed from that run's copper loss, and
-    the run simulated again with each command's resistance (:data:`DRIFT_PASSES` times).
+    the run simulated again with each command's resistance, until the heating the
+    current makes is the heating the run was simulated with (:data:`DRIFT_TOLERANCE`;
+    at most :data:`DRIFT_PASSES_MAX` passes). The coupling is causal, so the passes
+    converge whatever the heating; a winding heated by 200 K takes about 20, one heated
+    by 15 K about 6.
     """
     unsupported = unsupported_effects(eff)
     if unsupported:
@@ -211,16 +215,25 @@ def simulate_voltage(
         # Each command sees the winding as it was when the command was issued.
         t_cmd = t if not hist else np.concatenate([np.asarray(t_hist, float), t])
         k = np.clip(np.searchsorted(t, t_cmd, "right") - 1, 0, len(t) - 1)
-        for _ in range(DRIFT_PASSES):
-            rise = winding_rises(p, eff, t, out.i, rise0)
+        rise = winding_rises(p, eff, t, out.i, rise0)
+        for _ in range(DRIFT_PASSES_MAX):
             r_at = p.R_m * (1.0 + COPPER_TEMPCO * rise)  # winding_resistance, elementwise
             r_cmd = np.where(t_cmd < t[0], winding_resistance(p, eff, rise0), r_at[k])
             out = _simulate(p, eff, t, u, v0, t_hist, u_hist, v_pre, x0, r_cmd - p.R_m)
+            used, rise = rise, winding_rises(p, eff, t, out.i, rise0)
+            change = float(np.max(np.abs(rise - used)))
+            if not change > DRIFT_TOLERANCE * (1.0 + float(np.max(np.abs(used)))):
+                break  # converged, or a trial that overflowed (NaN): no pass mends it
         return out
 
 
-DRIFT_PASSES = 2
-"""Re-simulations with the winding's resistance from the previous pass's current."""
+DRIFT_TOLERANCE = 1e-4
+"""Largest change of the winding's rise (relative to 1 K plus the largest rise) between
+the last two passes of a drift: 0.01 K in a 100 K rise, a resistance right to 4e-5 (the
+passes converge faster than geometrically, so the last one is far closer). A tolerance
+of 1e-9 named and recovered the same drifts over 30 drawn trucks at 1.4x the time."""
+DRIFT_PASSES_MAX = 60
+"""Re-simulations of a drift at most (a winding heated by 200 K converges in about 20)."""
 
 
 def winding_rises(p: VehicleParams, eff: Effects, t: Array, i: Array, rise0: float) -> Array:
