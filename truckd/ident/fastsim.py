@@ -196,8 +196,8 @@ def simulate_voltage(
     the run simulated again with each command's resistance, until the heating the
     current makes is the heating the run was simulated with (:data:`DRIFT_TOLERANCE`;
     at most :data:`DRIFT_PASSES_MAX` passes). The coupling is causal, so the passes
-    converge whatever the heating; a winding heated by 200 K takes about 20, one heated
-    by 15 K about 6.
+    converge whatever the heating; a winding heated by 200 K takes about 14 simulations,
+    one heated by 15 K about 4.
     """
     unsupported = unsupported_effects(eff)
     if unsupported:
@@ -229,11 +229,11 @@ def simulate_voltage(
 
 DRIFT_TOLERANCE = 1e-4
 """Largest change of the winding's rise (relative to 1 K plus the largest rise) between
-the last two passes of a drift: 0.01 K in a 100 K rise, a resistance right to 4e-5 (the
+the last two passes of a drift: 0.01 K in a 100 K rise, a resistance right to 3e-5 (the
 passes converge faster than geometrically, so the last one is far closer). A tolerance
 of 1e-9 named and recovered the same drifts over 30 drawn trucks at 1.4x the time."""
 DRIFT_PASSES_MAX = 60
-"""Re-simulations of a drift at most (a winding heated by 200 K converges in about 20)."""
+"""Re-simulations of a drift at most (a winding heated by 200 K converges in about 13)."""
 
 
 def winding_rises(p: VehicleParams, eff: Effects, t: Array, i: Array, rise0: float) -> Array:
