@@ -191,13 +191,9 @@ def simulate_voltage(
     :func:`truckd.sim.plant.simulate_open_loop`, see :func:`prelog_voltage` for a log.
     ``rise0``: the winding's temperature rise (K) at ``t[0]`` (``resistance_drift``).
 
-    A resistance drift is slow (a thermal time constant of seconds to minutes): the run
-    is simulated cold, the winding's heating computed from that run's copper loss, and
-    the run simulated again with each command's resistance, until the heating the
-    current makes is the heating the run was simulated with (:data:`DRIFT_TOLERANCE`;
-    at most :data:`DRIFT_PASSES_MAX` passes). The coupling is causal, so the passes
-    converge whatever the heating; a winding heated by 200 K takes about 14 simulations,
-    one heated by 15 K about 4.
+    A resistance drift: the run is simulated cold, then again with each command's
+    resistance from the pass before's current until that heating converges
+    (:data:`DRIFT_TOLERANCE`; causal, so it does: 200 K in about 14 simulations).
     """
     unsupported = unsupported_effects(eff)
     if unsupported:
@@ -221,19 +217,15 @@ def simulate_voltage(
             r_cmd = np.where(t_cmd < t[0], winding_resistance(p, eff, rise0), r_at[k])
             out = _simulate(p, eff, t, u, v0, t_hist, u_hist, v_pre, x0, r_cmd - p.R_m)
             used, rise = rise, winding_rises(p, eff, t, out.i, rise0)
-            change = float(np.max(np.abs(rise - used)))
-            if not change > DRIFT_TOLERANCE * (1.0 + float(np.max(np.abs(used)))):
+            if not np.max(np.abs(rise - used)) > DRIFT_TOLERANCE * (1 + np.max(np.abs(used))):
                 break  # converged, or a trial that overflowed (NaN): no pass mends it
         return out
 
 
 DRIFT_TOLERANCE = 1e-4
-"""Largest change of the winding's rise (relative to 1 K plus the largest rise) between
-the last two passes of a drift: 0.01 K in a 100 K rise, a resistance right to 3e-5 (the
-passes converge faster than geometrically, so the last one is far closer). A tolerance
-of 1e-9 named and recovered the same drifts over 30 drawn trucks at 1.4x the time."""
+"""Largest change of the rise between two passes, relative to 1 K plus the largest rise
+(0.01 K in 100 K: the resistance right to 3e-5; 1e-9 found the same drifts, 1.4x slower)."""
 DRIFT_PASSES_MAX = 60
-"""Re-simulations of a drift at most (a winding heated by 200 K converges in about 13)."""
 
 
 def winding_rises(p: VehicleParams, eff: Effects, t: Array, i: Array, rise0: float) -> Array:
