@@ -37,7 +37,7 @@ import threading
 import traceback
 import warnings
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, NoReturn, TypeVar
 
 T = TypeVar("T")
@@ -52,7 +52,7 @@ _HELD_SIGNALS = frozenset(
 """Signals held while the children are forked (Ctrl-C, systemd's stop, a closed terminal)."""
 
 _INDEX = struct.Struct("<i")
-"""A task number on a child's task pipe (-1: none left)."""
+"""A task number on a child's task pipe."""
 _LENGTH = struct.Struct("<Q")
 """The length in bytes of the pickled result that follows it on a result pipe."""
 
@@ -109,7 +109,7 @@ def _write_all(fd: int, data: bytes) -> None:
 def _child(tasks: int, results: int, inherited: Sequence[int]) -> NoReturn:
     """A child's life: run the task numbers read from ``tasks``, send each outcome on
     ``results`` (``(True, value)`` or ``(False, exception, traceback text)``), exit at
-    the end of ``tasks`` or on -1. Never returns; no exit handler of the parent runs."""
+    the end of ``tasks``. Never returns; no exit handler of the parent runs."""
     code = 0
     try:
         signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent answers Ctrl-C
@@ -123,9 +123,9 @@ def _child(tasks: int, results: int, inherited: Sequence[int]) -> NoReturn:
         fn, items = _TASK
         while True:
             head = _read_exactly(tasks, _INDEX.size)
-            k = -1 if head is None else _INDEX.unpack(head)[0]
-            if k < 0:
+            if head is None:
                 break
+            (k,) = _INDEX.unpack(head)
             try:
                 outcome: tuple[Any, ...] = (True, fn(items[k]))
             except BaseException as exc:  # the parent raises it
@@ -157,8 +157,8 @@ class _Child:
     """The parent's end of its task pipe (write)."""
     results: int
     """The parent's end of its result pipe (read)."""
-    running: list[int] = field(default_factory=list)
-    """The task numbers sent and not yet answered, oldest first."""
+    running: int | None = None
+    """The task number sent and not yet answered (one at a time)."""
 
 
 class ForkMap:
@@ -252,7 +252,7 @@ def _collect(children: list[_Child], count: int) -> list[Any]:
         nonlocal next_k
         if next_k < count and not failed:
             _write_all(c.tasks, _INDEX.pack(next_k))
-            c.running.append(next_k)
+            c.running = next_k
             next_k += 1
 
     for c in children:
@@ -266,9 +266,9 @@ def _collect(children: list[_Child], count: int) -> list[Any]:
             c = by_fd[fd]
             head = _read_exactly(fd, _LENGTH.size)
             body = None if head is None else _read_exactly(fd, _LENGTH.unpack(head)[0])
-            if body is None:
-                raise _ChildDiedError(f"child {c.pid} ended with tasks {c.running} unanswered")
-            k = c.running.pop(0)
+            if body is None or c.running is None:
+                raise _ChildDiedError(f"child {c.pid} ended with task {c.running} unanswered")
+            k, c.running = c.running, None
             outcome = pickle.loads(body)
             answered[k] = True
             if outcome[0]:
@@ -292,15 +292,9 @@ def _end(children: list[_Child]) -> None:
             os.close(c.tasks)
         with contextlib.suppress(OSError):
             os.close(c.results)
-        if c.running:
+        if c.running is not None:
             with contextlib.suppress(ProcessLookupError):
                 os.kill(c.pid, signal.SIGKILL)
     for c in children:
-        while True:
-            try:
-                os.waitpid(c.pid, 0)
-                break
-            except InterruptedError:  # pragma: no cover - PEP 475 retries this itself
-                continue
-            except ChildProcessError:
-                break
+        with contextlib.suppress(ChildProcessError):
+            os.waitpid(c.pid, 0)
