@@ -18,6 +18,7 @@ from typing import Any, TypeVar
 
 import numpy as np
 from labkit.synth import plant_log, random_effects
+from runtime_support import group_members
 
 from truckd.config.truck import load_config
 from truckd.ident.api import one_blas_thread
@@ -264,25 +265,10 @@ def interrupted_while_running() -> dict[str, Any]:
         raised = f"{type(exc).__name__}: {exc}"
     took = time.monotonic() - t0
     os.waitpid(signaller, 0)
-    left = [p for p in _group_members(os.getpgid(0)) if p != os.getpid()]
+    left = [p for p in group_members(os.getpgid(0)) if p != os.getpid()]
     for p in left:  # a child left running would outlive this check
         os.kill(p, signal.SIGKILL)
     return {"raised": raised, "took_s": took, "left": left}
-
-
-def _group_members(pgid: int) -> list[int]:
-    """The live processes (not zombies) of process group ``pgid`` (Linux /proc)."""
-    from pathlib import Path
-
-    out = []
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
-        except OSError:
-            continue
-        if int(fields[2]) == pgid and fields[0] != "Z":
-            out.append(int(stat.parent.name))
-    return out
 
 
 CHECKS = {

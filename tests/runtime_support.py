@@ -49,6 +49,19 @@ def write_config(path: Path, overrides: Mapping[str, Any]) -> Path:
     return path
 
 
+def group_members(pgid: int) -> list[int]:
+    """The live processes (not zombies) of process group ``pgid`` (Linux /proc)."""
+    out = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:  # ended meanwhile
+            continue
+        if int(fields[2]) == pgid and fields[0] != "Z":
+            out.append(int(stat.parent.name))
+    return out
+
+
 def wait_for(pred: Callable[[], object], timeout: float) -> bool:
     """Poll ``pred`` every 10 ms until it is true or ``timeout`` s have passed; its last
     value (a condition to wait on, not a fixed sleep)."""

@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from runtime_support import wait_for
+from runtime_support import group_members, wait_for
 
 from truckd.cli.main import main
 from truckd.ident.fanout import as_start
@@ -153,19 +153,6 @@ def test_jobs_outside_its_range_is_exit_2(value: str, capsys: pytest.CaptureFixt
 SWERVE = Path(__file__).resolve().parent / "data" / "sysid" / "frc_swerve_12_12.json"
 
 
-def _group(pgid: int) -> list[int]:
-    """The live processes (not zombies) of process group ``pgid`` (Linux /proc)."""
-    out = []
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
-        except OSError:  # ended meanwhile
-            continue
-        if int(fields[2]) == pgid and fields[0] != "Z":
-            out.append(int(stat.parent.name))
-    return out
-
-
 @pytest.mark.parametrize("sig,code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
 def test_a_signal_during_the_fits_ends_the_command_and_its_workers(
     sig: signal.Signals, code: int
@@ -181,7 +168,10 @@ def test_a_signal_during_the_fits_ends_the_command_and_its_workers(
         try:
             # its workers are fitting: more than the command in its group (the progress
             # lines of a stage come only once its workers are done, too late to signal)
-            if not wait_for(lambda: len(_group(proc.pid)) > 1 or proc.poll() is not None, 60):
+            def fitting() -> bool:
+                return len(group_members(proc.pid)) > 1 or proc.poll() is not None
+
+            if not wait_for(fitting, 60):
                 pytest.fail("no worker started within 60 s")
             assert proc.poll() is None, "the diagnosis ended before a worker was seen"
             if sig == signal.SIGINT:
@@ -191,7 +181,7 @@ def test_a_signal_during_the_fits_ends_the_command_and_its_workers(
             # 128 + the signal from the command's handler; a signal that lands as the
             # interpreter exits ends it by the default action (a negative code)
             assert proc.wait(timeout=60) in (code, -sig)
-            assert _group(proc.pid) == [], "processes of the command's group left behind"
+            assert group_members(proc.pid) == [], "processes of the command's group left behind"
         finally:
             if proc.poll() is None:
                 os.killpg(proc.pid, signal.SIGKILL)
