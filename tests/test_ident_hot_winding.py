@@ -3,8 +3,9 @@ heating, and the diagnosis names the drift and recovers it.
 
 A small motor (0.1x-0.35x the default motor constant) draws a large current for long:
 its winding heats by up to the 200 K its insulation survives, and its resistance nearly
-doubles. The fast simulator finds the heating by passes (each simulates the run with the
-resistance the previous one's current made); a fixed two passes left such a run far
+doubles. The C kernel steps the heating beside the speed in one run; without it the fast
+simulator finds the heating by passes (each simulates the run with the resistance the
+previous one's current made) until they converge. A fixed two passes left such a run far
 from the plant (a free-run fit of 77 % for the true model), and the drift went unnamed.
 Trucks and magnitudes are drawn from a fixed seed until the hidden drift heats the
 winding that much (a condition, not a seed picked per case).
@@ -18,6 +19,7 @@ import numpy as np
 import pytest
 from labkit.synth import DrawnTruck, draw_truck, drawn_log, excitation, random_effects
 
+from truckd.ident import ckernel, fastsim, freerun
 from truckd.ident.api import diagnose_log
 from truckd.ident.fastsim import simulate_voltage, winding_rises
 from truckd.model.effects import Effects
@@ -86,3 +88,40 @@ def test_a_hot_winding_is_named_and_its_drift_recovered(
     tau = found["winding_time_constant"]
     assert abs(tau / eff.winding_time_constant - 1.0) < 0.25, (case, found)
     assert d.extended.fit_percent > d.baseline.fit_percent + 2.0
+
+
+@pytest.mark.parametrize(
+    "extra",
+    [{}, {"input_delay": 0.021, "battery_sag": 0.15, "current_limit": 6.0, "sensor_lag": 0.02}],
+)
+def test_the_kernels_heated_run_is_where_the_passes_converge(
+    hot: tuple[DrawnTruck, Effects, int], extra: dict[str, float], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A stretch cut from the hot run (commands before it, its winding already 60 K
+    warm): the kernel's one run gives the speed and the current that the passes reach
+    converged far below the shipped tolerance (and the passes need many simulations)."""
+    truck, eff, log_seed = hot
+    eff = dataclasses.replace(eff, **extra)
+    rng = np.random.default_rng(log_seed)
+    t, u = excitation(rng, int(SECONDS * truck.rate_hz), h=1.0 / truck.rate_hz)
+    cut = len(t) // 3
+    args = (truck.params, eff, t[cut:], u[cut:], 0.4, t[cut - 8 : cut], u[cut - 8 : cut], 1.0)
+    runs: list[int] = []
+    counted = freerun.run
+
+    def counting(*a: object, **kw: object) -> object:
+        runs.append(1)
+        return counted(*a, **kw)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(fastsim, "run", counting)
+    hot_run = simulate_voltage(*args, rise0=60.0)
+    assert len(runs) == 1
+    monkeypatch.setattr(ckernel, "available", lambda: False)
+    monkeypatch.setattr(fastsim, "DRIFT_TOLERANCE", 1e-14)
+    passes = simulate_voltage(*args, rise0=60.0)
+    assert len(runs) > 6, "the heating hardly couples this run: the check shows nothing"
+    v_scale = float(np.max(np.abs(passes.v)))
+    i_scale = float(np.max(np.abs(passes.i)))
+    assert v_scale > 0.0 and i_scale > 0.0
+    assert float(np.max(np.abs(hot_run.v - passes.v))) <= 1e-9 * v_scale
+    assert float(np.max(np.abs(hot_run.i - passes.i))) <= 1e-9 * i_scale

@@ -9,6 +9,7 @@ besides computing.
 from __future__ import annotations
 
 import ctypes
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -20,7 +21,7 @@ Array = NDArray[np.float64]
 LIBRARY = Path(__file__).resolve().parent / "kernel" / "build" / "libtruckd_fastrun.so"
 """Where ``make firmware`` puts the kernel."""
 
-ABI = 3
+ABI = 4
 """The kernel version this module calls (``TRUCKD_FASTRUN_ABI`` in ``fastrun.c``): a
 library built from another version (or before versions) is refused, the Python loop runs."""
 
@@ -48,7 +49,7 @@ def library() -> ctypes.CDLL | None:
         fn.restype = ctypes.c_int
         fn.argtypes = [
             dp, dp, d, d, d, d, d, d, dp, d, dp, ip, ip, i, i, d, d, dp, dp, dp, dp, dp, dp,
-            dp, dp, dp, dp, dp, dp,
+            dp, dp, dp, dp, dp, dp, dp, i, dp, dp, ip, ip, ip, dp, dp, dp, dp,
         ]  # fmt: skip
         sm = lib.truckd_shift_merge
         sm.restype = ctypes.c_int64
@@ -143,6 +144,7 @@ def run(
     limit: tuple[float, float] | None = None,
     gap: tuple[tuple[float, ...], Array, Array, Array, Array] | None = None,
     band: Array | None = None,
+    heat: HeatArrays | None = None,
 ) -> tuple[Array, Array, Array] | None:
     """:func:`truckd.ident.freerun.run` in C (None: the kernel is not built).
 
@@ -156,10 +158,13 @@ def run(
     None for none.  ``band``: two contiguous float64 that receive the run's band of
     breakaway thresholds ``[stuck, moved)`` (per unit inertia, as ``sigma``): without
     ``scale`` and ``stribeck`` every ``sigma`` in it gives this run exactly (None: not
-    asked)."""
+    asked).  ``heat``: a resistance drift stepped beside the speed (:class:`HeatArrays`;
+    ``a``, ``b`` and ``scale`` are then written, and must be contiguous float64)."""
     lib = library()
     if lib is None:
         return None
+    if heat is not None and not all(_writable(x) for x in (a, b, scale, heat.r, heat.rise)):
+        raise ValueError("a heated run writes a, b, scale, r and rise: contiguous float64")
     a = np.ascontiguousarray(a, dtype=np.float64)
     b = np.ascontiguousarray(b, dtype=np.float64)
     sc = None if scale is None else np.ascontiguousarray(scale, dtype=np.float64)
@@ -187,9 +192,60 @@ def run(
         None if sc is None else _address(sc), f(lag), _address(dt), _address(cmd),
         _address(se), len(dt), n, f(w0), f(sensor_lag), at, at + row, at + 2 * row,
         _dp(ter), _dp(stb), _dp(lim), _dp(gp), _dp(gvolts), _dp(gr), _dp(gstate),
-        _dp(rotor_out), _dp(band),
+        _dp(rotor_out), _dp(band), *(_heat_args(heat) if heat is not None else _NO_HEAT),
     )  # fmt: skip
     return out, raw, pos
+
+
+@dataclass(frozen=True)
+class HeatArrays:
+    """A resistance drift stepped beside the speed in one run (``struct heat`` of
+    ``fastrun.c``; built by :func:`truckd.ident.fastsim.simulate_voltage`).
+
+    ``constants``: R_m (ohm), tempco (1/K), drift (K/W), tau (s), rise0 (K), L_m (H),
+    J_S (kg m^2), K_T, K_v, viscous (N m s/rad), the cold electrical correction, the
+    current limit (A, 0: none), v_pre (V), the history commands' extra resistance (ohm).
+    Per command: ``volts`` (V), ``sag`` (ohm), ``kk`` (the sample whose rise it sees, -1:
+    issued before the log), ``r`` (written: its resistance, ohm).  Per sample: ``at``,
+    ``prev`` (the active command and the one before, -1: none), ``since`` (minus the
+    time since the active one acted, s), ``h`` (the steps, s), ``rise`` (written, K).
+    """
+
+    constants: Array
+    volts: Array
+    sag: Array
+    kk: NDArray[np.int64]
+    at: NDArray[np.int64]
+    prev: NDArray[np.int64]
+    since: Array
+    h: Array
+    r: Array
+    rise: Array
+
+
+_NO_HEAT = (None, 0, None, None, None, None, None, None, None, None, None)
+
+
+def _writable(x: Array | None) -> bool:
+    return x is not None and x.dtype == np.float64 and x.flags.c_contiguous and x.flags.writeable
+
+
+def _heat_args(ht: HeatArrays) -> tuple[Any, ...]:
+    """``truckd_fastrun``'s heat arguments: the arrays' addresses (each must already be
+    contiguous, of its type and size: no temporary copy outlives its address)."""
+    m, n = len(ht.volts), len(ht.rise)
+    want = [
+        (ht.constants, np.float64, 14), (ht.volts, np.float64, m), (ht.sag, np.float64, m),
+        (ht.kk, np.int64, m), (ht.at, np.int64, n), (ht.prev, np.int64, n),
+        (ht.since, np.float64, n), (ht.h, np.float64, max(n - 1, 0)), (ht.r, np.float64, m),
+    ]  # fmt: skip
+    for x, kind, size in want:
+        if x.dtype != kind or not x.flags.c_contiguous or len(x) != size:
+            raise ValueError("heat: contiguous arrays of the commands' and the samples' sizes")
+    return (
+        _dp(ht.constants), m, _dp(ht.volts), _dp(ht.sag), _dp(ht.kk), _dp(ht.at),
+        _dp(ht.prev), _dp(ht.since), _dp(ht.h), _dp(ht.r), _dp(ht.rise),
+    )  # fmt: skip
 
 
 def shift_merge(

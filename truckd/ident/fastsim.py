@@ -11,7 +11,6 @@ neglected electrical pole is kept as a pure lag of ``L_m/R_tot``.  Pure numerics
 from __future__ import annotations
 
 import dataclasses
-import math
 import operator
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -23,12 +22,15 @@ from numpy.typing import NDArray
 
 from truckd.ident import ckernel
 from truckd.ident.data import Series
+from truckd.ident.electrical import electrical_correction as electrical_correction
 from truckd.ident.freerun import GapRun, Stribeck, merge_equal
 from truckd.ident.freerun import Kinetics as Kinetics  # re-exported: the run's inputs
 from truckd.ident.freerun import Terrain as Terrain
 from truckd.ident.freerun import Timeline as Timeline
 from truckd.ident.freerun import run as run
 from truckd.ident.freerun import timeline as timeline
+from truckd.ident.heating import heat_arrays
+from truckd.ident.heating import winding_rises as winding_rises
 from truckd.ident.prediction import StictionBand as StictionBand  # re-exported: the result
 from truckd.ident.prediction import VoltagePrediction as VoltagePrediction
 from truckd.ident.timing import Layout, layout_of, merged, shifted
@@ -42,45 +44,10 @@ from truckd.model.effects import (
     limited_torque,
     position_dependent,
     winding_resistance,
-    winding_rise_step,
 )
 from truckd.model.params import VehicleParams
 
 Array = NDArray[np.float64]
-
-
-def electrical_correction(
-    p: VehicleParams, viscous: float = 0.0, resistance: Array | float | None = None
-) -> tuple[Array | float, Array | float]:
-    """What the neglected electrical pole does to the first-order model.
-
-    Returns ``(kappa, lag)`` for the armature circuit resistance ``resistance`` (ohm,
-    default ``R_m``; an array gives arrays): the exact slow eigenvalue of the two-state
-    model over the quasi-static one (time runs ``kappa`` times faster, steady states
-    unchanged) and the fast pole's time constant (s), kept as a pure lag of the input.
-    """
-    if resistance is None:
-        # in floats: the same operations in the same order (IEEE doubles either way),
-        # without numpy's overhead on scalars
-        try:
-            return _correction(float(p.R_m), p, viscous, math.sqrt, max)
-        except ZeroDivisionError:
-            pass  # numpy's inf and nan, as for an array
-    r = np.asarray(p.R_m if resistance is None else resistance, float)
-    return _correction(r, p, viscous, np.sqrt, np.maximum)
-
-
-def _correction(
-    r: Any, p: VehicleParams, viscous: float, sqrt: Callable[[Any], Any], most: Callable[..., Any]
-) -> tuple[Any, Any]:
-    """:func:`electrical_correction` at the resistance ``r`` (a float or an array, with
-    the ``sqrt`` and ``most`` (max) of its kind)."""
-    tr = -(r / p.L_m + viscous / p.J_S)
-    det = (r * viscous + p.K_v * p.K_T) / (p.L_m * p.J_S)
-    disc = sqrt(most(tr * tr / 4.0 - det, 0.0))
-    lam_s, lam_f = tr / 2.0 + disc, tr / 2.0 - disc
-    beta = (p.K_T * p.K_v / r + viscous) / p.J_S
-    return -lam_s / beta, -1.0 / lam_f
 
 
 def prelog_voltage(p: VehicleParams, eff: Effects, w0: float, i0: float | None) -> float:
@@ -191,9 +158,11 @@ def simulate_voltage(
     :func:`truckd.sim.plant.simulate_open_loop`, see :func:`prelog_voltage` for a log.
     ``rise0``: the winding's temperature rise (K) at ``t[0]`` (``resistance_drift``).
 
-    A resistance drift: the run is simulated cold, then again with each command's
-    resistance from the pass before's current until that heating converges
-    (:data:`DRIFT_TOLERANCE`; causal, so it does: 200 K in about 14 simulations).
+    A resistance drift: the C kernel steps the winding beside the speed, in one run
+    (:mod:`truckd.ident.heating`); with backlash, or without the kernel, the run is
+    simulated cold, then again with each command's resistance from the pass before's
+    current until that heating converges (:data:`DRIFT_TOLERANCE`: 200 K in about 14
+    simulations).
     """
     unsupported = unsupported_effects(eff)
     if unsupported:
@@ -205,6 +174,8 @@ def simulate_voltage(
     # A fit's trial parameters can be absurd (a winding heated without bound): the run
     # then overflows to inf or NaN, which the residuals score as a miss; no warning.
     with np.errstate(over="ignore", invalid="ignore"):
+        if eff.resistance_drift != 0.0 and eff.backlash == 0.0 and ckernel.available():
+            return _simulate(p, eff, t, u, v0, t_hist, u_hist, v_pre, x0, None, rise0)
         out = _simulate(p, eff, t, u, v0, t_hist, u_hist, v_pre, x0, None)
         if eff.resistance_drift == 0.0:
             return out
@@ -226,31 +197,6 @@ DRIFT_TOLERANCE = 1e-4
 """Largest change of the rise between two passes, relative to 1 K plus the largest rise
 (0.01 K in 100 K: the resistance right to 3e-5; 1e-9 found the same drifts, 1.4x slower)."""
 DRIFT_PASSES_MAX = 60
-
-
-def winding_rises(p: VehicleParams, eff: Effects, t: Array, i: Array, rise0: float) -> Array:
-    """The winding's temperature rise (K) at each sample under the current ``i`` (A),
-    from ``rise0`` at ``t[0]`` (copper loss over a step: the mean of the squared currents
-    at its ends, as the plant counts it).  The C kernel runs the loop when built (the
-    same arithmetic as :func:`winding_resistance` and :func:`winding_rise_step`)."""
-    sq_arr = np.asarray(i, float) ** 2
-    if eff.resistance_drift != 0.0 and len(t) > 0:
-        done = ckernel.winding_rises(
-            np.diff(t), sq_arr, rise0, p.R_m, COPPER_TEMPCO, eff.resistance_drift,
-            eff.winding_time_constant,
-        )  # fmt: skip
-        if done is not None:
-            return done
-    out = np.empty(len(t))
-    rise = rise0
-    out[0] = rise
-    sq = sq_arr.tolist()
-    dts = np.diff(t).tolist()
-    for k, h in enumerate(dts):
-        r = winding_resistance(p, eff, rise)
-        rise = winding_rise_step(eff, rise, 0.5 * (sq[k] + sq[k + 1]) * r, h)
-        out[k + 1] = rise
-    return out
 
 
 DRIVER_FIELDS = ("dead_zone", "dead_zone_offset", "voltage_saturation", "battery_sag")
@@ -288,6 +234,7 @@ def _prepare(
     hist: int,
     r_drift: Array | None,
     same_r: bool,
+    merge: bool = True,
 ) -> tuple[Array, Array, Array | float, float, float, Array, Array, Timeline]:
     """A free run's input side, kept per series and model: driver voltage (V), resistance
     (ohm), electrical correction (per command; the scalar when ``same_r``: every command
@@ -304,7 +251,11 @@ def _prepare(
     a = k * p.K_T / p.J_S * volts / r_tot
     b = k * (p.K_T * p.K_v / r_tot + eff.viscous_friction) / p.J_S
     lag_cmd = lag_e if eff.backlash == 0.0 else 0.0
-    tl = _merged_timeline(t, t_hist, eff.input_delay + lag_cmd, hist, t_cmd, a, b)
+    ids = None if merge else np.arange(len(t_cmd), dtype=float)  # distinct: none merged
+    tl = _merged_timeline(
+        t, t_hist, eff.input_delay + lag_cmd, hist, t_cmd, a if ids is None else ids,
+        b if ids is None else ids,
+    )  # fmt: skip
     return volts, r_tot, k, kappa, lag_e, a, b, tl
 
 
@@ -319,23 +270,25 @@ def _simulate(
     v_pre: float,
     x0: float,
     r_drift: Array | None,
+    heated: float | None = None,
 ) -> VoltagePrediction:
     """:func:`simulate_voltage` with each command's extra winding resistance ``r_drift``
-    (ohm, over the history and the log's commands; None = cold)."""
+    (ohm, over the history and the log's commands; None = cold), or (``heated``: the
+    rise at ``t[0]``, K) the winding stepped beside the speed by the kernel."""
     n = len(t)
     hist = 0 if t_hist is None or u_hist is None else len(t_hist)
     # The gap opens on the command itself (the plant decides it on the quasi-static
     # current): no electrical lag before the command acts.  A winding's resistance
     # changes per pass: neither is cached.
-    cached = r_drift is None and eff.backlash == 0.0
+    cached = r_drift is None and eff.backlash == 0.0 and heated is None
     # No battery sag and no winding drift: every command sees R_m (fewer arrays).
-    same_r = eff.battery_sag == 0.0 and r_drift is None
+    same_r = eff.battery_sag == 0.0 and r_drift is None and heated is None
     key = _prep_key(p, eff, t, u, t_hist, u_hist)
     hit = _PREP.get(key) if cached else None
     if hit is not None and hit[0] is t and hit[1] is u and hit[2] is t_hist and hit[3] is u_hist:
         volts, r_tot, k, kappa, lag_e, a, b, tl = hit[4]
     else:
-        prepared = _prepare(p, eff, t, u, t_hist, u_hist, hist, r_drift, same_r)
+        prepared = _prepare(p, eff, t, u, t_hist, u_hist, hist, r_drift, same_r, heated is None)
         volts, r_tot, k, kappa, lag_e, a, b, tl = prepared
         if cached:
             _put(_PREP, key, (t, u, t_hist, u_hist, prepared), PREP_CACHE)
@@ -364,12 +317,16 @@ def _simulate(
         else GapRun(p, eff, volts, r_tot, v_pre, kappa, n, p.omega(v0)),
     )
     w0 = p.omega(v0)
+    heat = None
+    if heated is not None:  # the kernel writes each command's a, b, scale and resistance
+        heat = _heat(p, eff, t, t_hist, hist, volts, r_tot, v_pre, heated, kin)
+        r_tot = heat.r
     # The threshold is kin.sigma throughout only without a per-command scale or a Stribeck
     # friction; the backlash gap reads K_stiction itself.
     banded = kin.scale is None and kin.stribeck is None and kin.gap is None
     # the run's own (ctypes lets other threads run during the call); NaN where Python runs
     band = _NO_BAND.copy() if banded else None
-    meas, raw, pos = run(kin, tl, n, w0, eff.sensor_lag, band=band)
+    meas, raw, pos = run(kin, tl, n, w0, eff.sensor_lag, band=band, heat=heat)
     rotor = raw if kin.gap is None else kin.gap.rotor_out
     idx = _active(t, t_hist, hist, eff.input_delay)
     sampled = partial(_sample_currents, p, eff, idx, volts, None if same_r else r_tot, v_pre)
@@ -382,6 +339,30 @@ def _simulate(
     return VoltagePrediction(
         meas * p.ratio, raw, pos, p.ratio, partial(sampled, raw, rotor), stiction
     )
+
+
+def _heat(
+    p: VehicleParams,
+    eff: Effects,
+    t: Array,
+    t_hist: Array | None,
+    hist: int,
+    volts: Array,
+    r_tot: Array,
+    v_pre: float,
+    rise0: float,
+    kin: Kinetics,
+) -> ckernel.HeatArrays:
+    """The kernel's arrays for a run heated from ``rise0`` (K), ``r_tot`` the commands'
+    cold resistance (ohm); ``kin.scale`` set to NaN (the kernel writes it as each command
+    first acts)."""
+    assert isinstance(kin.scale, np.ndarray)
+    kin.scale[:] = np.nan
+    idx = _active(t, t_hist, hist, eff.input_delay)
+    active = np.where(idx.on, idx.at, -1), np.where(idx.prev_on, idx.prev, -1), idx.neg_since
+    t_cmd = t if not hist else np.concatenate([np.asarray(t_hist, float), t])
+    kappa = float(electrical_correction(p, eff.viscous_friction)[0])
+    return heat_arrays(p, eff, t, t_cmd, volts, r_tot - p.R_m, active, v_pre, rise0, kappa)
 
 
 _NO_BAND = np.array([np.nan, np.nan])

@@ -299,27 +299,37 @@ def run(
     sensor_lag: float = 0.0,
     use_kernel: bool = True,
     band: Array | None = None,
+    heat: ckernel.HeatArrays | None = None,
 ) -> tuple[Array, Array, Array]:
     """Free run from speed w0; returns per-sample (speed, mean speed, position).
 
     The C kernel runs it when built and it models ``kin`` (:func:`kernel_handles`;
     ``use_kernel=False``: always the Python loop, the reference).  ``band``: two floats
     the kernel fills with the run's band of breakaway thresholds (see
-    :func:`truckd.ident.ckernel.run`); the Python loop leaves them as they are.
+    :func:`truckd.ident.ckernel.run`); the Python loop leaves them as they are.  ``heat``:
+    a resistance drift stepped beside the speed, by the kernel only (it must be built).
 
     ``speed[k]`` at ``t[k]`` as the sensor reports it (low-pass ``sensor_lag`` s applied
     to the mean speed over each sample step, as the plant does), ``mean`` the raw
     instantaneous speed, ``pos`` the integral of speed.
     """
     if use_kernel and kernel_handles(kin):
-        done = _run_in_c(kin, tl, n, w0, sensor_lag, band)
+        done = _run_in_c(kin, tl, n, w0, sensor_lag, band, heat)
         if done is not None:
             return done
+    if heat is not None:
+        raise RuntimeError("a heated run needs the C kernel (make firmware) and a run it models")
     return _run_in_python(kin, tl, n, w0, sensor_lag)
 
 
 def _run_in_c(
-    kin: Kinetics, tl: Timeline, n: int, w0: float, sensor_lag: float, band: Array | None = None
+    kin: Kinetics,
+    tl: Timeline,
+    n: int,
+    w0: float,
+    sensor_lag: float,
+    band: Array | None = None,
+    heat: ckernel.HeatArrays | None = None,
 ) -> tuple[Array, Array, Array] | None:
     """:func:`run` by the C kernel (None: it is not built)."""
     tr = kin.terrain
@@ -341,7 +351,7 @@ def _run_in_c(
     return ckernel.run(
         kin.a, kin.b, kin.a_idle, kin.b_idle, kin.c, kin.sigma, kin.d, kin.drag,
         kin.scale, kin.lag, tl.dt, tl.cmd, tl.sample_end, n, w0, sensor_lag, ter, stb, lim, gap,
-        band,
+        band, heat,
     )  # fmt: skip
 
 

@@ -11,7 +11,7 @@
 /* The kernel's version: raise it with every change of the loops' arithmetic or of the
  * functions' arguments, together with ABI in truckd/ident/ckernel.py, which refuses a
  * library of another version (a stale build) and runs the Python loop instead. */
-#define TRUCKD_FASTRUN_ABI 3
+#define TRUCKD_FASTRUN_ABI 4
 
 int truckd_fastrun_abi(void);
 int truckd_fastrun_abi(void)
@@ -303,20 +303,108 @@ static double roll(double w, double a, double b, double c, struct stick *st, dou
     return segment(w, a, b, c, st, d, dur, lag, dx);
 }
 
+/* A resistance drift stepped beside the speed (fastsim._heated_run): the winding's rise at
+ * each sample from the current the run itself draws, each command's resistance from the
+ * rise when it was issued, and from it the command's a, b and scale (written on first use;
+ * scale NaN until then).  hp: R_m, tempco, drift (K/W), tau (s), rise0 (K), L_m, J_S, K_T,
+ * K_v, viscous, kappa (the cold electrical correction), current limit (0: none), v_pre,
+ * the history commands' extra resistance.  Per command: volts, sag (the battery's
+ * resistance), kk (the sample whose rise it sees; -1: issued before the log), r (written;
+ * NaN until known).  Per sample: at and prev (the active command and the one before it,
+ * -1: none), since (minus the time since the active command acted), h (the steps, one
+ * fewer), rise (written). */
+struct heat {
+    const double *hp, *volts, *sag, *since, *h;
+    const int64_t *kk, *at, *prev;
+    double *r, *rise, *a, *b, *scale;
+    int64_t done; /* the last sample whose rise is known */
+    double i_prev; /* the current at that sample */
+};
+
+static double heat_r(struct heat *ht, int64_t k)
+{
+    if (isnan(ht->r[k])) {
+        const double *hp = ht->hp;
+        double extra = hp[13];
+        if (ht->kk[k] >= 0) {
+            int64_t s = ht->kk[k] <= ht->done ? ht->kk[k] : ht->done;
+            extra = hp[0] * (1.0 + hp[1] * ht->rise[s]) - hp[0];
+        }
+        ht->r[k] = hp[0] + ht->sag[k] + extra;
+    }
+    return ht->r[k];
+}
+
+/* fastsim.electrical_correction and fastsim._prepare's a, b and scale of command k */
+static void heat_coefficients(struct heat *ht, int64_t k)
+{
+    const double *hp = ht->hp;
+    double r = heat_r(ht, k), el = hp[5], j = hp[6], kt = hp[7], kv = hp[8], visc = hp[9];
+    double tr = -(r / el + visc / j);
+    double det = (r * visc + kv * kt) / (el * j);
+    double disc = sqrt(fmax(tr * tr / 4.0 - det, 0.0));
+    double lam_s = tr / 2.0 + disc;
+    double beta = (kt * kv / r + visc) / j;
+    double kc = -lam_s / beta;
+    ht->a[k] = kc * kt / j * ht->volts[k] / r;
+    ht->b[k] = kc * (kt * kv / r + visc) / j;
+    ht->scale[k] = kc / hp[10];
+}
+
+/* fastsim._sample_currents at sample s, the rotor at w */
+static double heat_current(struct heat *ht, int64_t s, double w)
+{
+    const double *hp = ht->hp;
+    int64_t at = ht->at[s], pv = ht->prev[s];
+    double v_at = at >= 0 ? ht->volts[at] : hp[12];
+    double v_old = pv >= 0 ? ht->volts[pv] : hp[12];
+    double r_at = at >= 0 ? heat_r(ht, at) : hp[0];
+    double r_old = pv >= 0 ? heat_r(ht, pv) : hp[0];
+    double settle = exp(ht->since[s] * r_at / hp[5]);
+    double emf = hp[8] * w;
+    double cur = (v_at - emf) / r_at;
+    double old = (v_old - emf) / r_old;
+    cur = cur + (old - cur) * settle;
+    if (hp[11] != 0.0) {
+        cur = fmin(fmax(cur, -hp[11]), hp[11]);
+    }
+    return cur;
+}
+
+/* the rise at samples done + 1 .. s (the rotor at w there), as truckd_winding_rises */
+static void heat_samples(struct heat *ht, int64_t s, double w)
+{
+    const double *hp = ht->hp;
+    for (int64_t q = ht->done + 1; q <= s; ++q) {
+        double i = heat_current(ht, q, w);
+        double before = ht->rise[q - 1];
+        double r = hp[0] * (1.0 + hp[1] * before);
+        double power = 0.5 * (ht->i_prev * ht->i_prev + i * i) * r;
+        double e = exp(-ht->h[q - 1] / hp[3]);
+        ht->rise[q] = before * e + hp[2] * power * (1.0 - e);
+        ht->done = q;
+        ht->i_prev = i;
+    }
+}
+
 /* See freerun.run.  scale may be NULL (1 everywhere), ter NULL (no terrain), stb NULL (no
  * Stribeck friction), lim NULL (no current limit; else {a_max, b_mech}), gp NULL (no
  * backlash; else as gap_opens, with gvolts, gr per command, gstate the gap's state, which
  * the run changes, and rotor_out the rotor speed at each sample), band NULL or two
  * doubles that receive the run's band of breakaway thresholds (struct stick): with scale
  * and stb NULL the threshold is ksigma throughout, and any ksigma in [band[0], band[1])
- * gives this run exactly.  Returns 0. */
-int truckd_fastrun(const double *a, const double *b, double a_idle, double b_idle, double kc,
-                   double ksigma, double kd, double kdrag, const double *scale, double lag,
+ * gives this run exactly.  hp NULL: no resistance drift; else struct heat's arrays, a, b
+ * and scale written as each command first acts (m_cmd commands).  Returns 0. */
+int truckd_fastrun(double *a, double *b, double a_idle, double b_idle, double kc,
+                   double ksigma, double kd, double kdrag, double *scale, double lag,
                    const double *dt, const int64_t *cmd, const int64_t *sample_end, int64_t m,
                    int64_t n, double w0, double sensor_lag, double *out, double *raw, double *pos,
                    const double *ter, const double *stb, const double *lim, const double *gp,
                    const double *gvolts, const double *gr, double *gstate, double *rotor_out,
-                   double *band)
+                   double *band, const double *hp, int64_t m_cmd, const double *hvolts,
+                   const double *hsag, const int64_t *hkk, const int64_t *hat,
+                   const int64_t *hprev, const double *hsince, const double *hh, double *hr,
+                   double *hrise)
 {
     double w = w0, v_lag = w0, x = 0.0, x_step0 = 0.0, h_step = 0.0;
     double c = kc, d = kd, drag = kdrag;
@@ -331,11 +419,21 @@ int truckd_fastrun(const double *a, const double *b, double a_idle, double b_idl
     }
     out[0] = raw[0] = w0;
     pos[0] = 0.0;
+    struct heat heat_run = {hp, hvolts, hsag, hsince, hh, hkk, hat, hprev, hr, hrise, a, b,
+                            scale, 0, 0.0};
+    struct heat *ht = hp != 0 ? &heat_run : 0;
+    if (ht != 0) {
+        hrise[0] = hp[4];
+        ht->i_prev = heat_current(ht, 0, w0);
+    }
     for (int64_t j = 0; j < m; ++j) {
         double h = dt[j], aa, bb, b_eff, d_eff;
         int64_t k = cmd[j], se = sample_end[j];
         double f = 1.0;
         if (k >= 0) {
+            if (ht != 0 && isnan(scale[k])) {
+                heat_coefficients(ht, k);
+            }
             aa = a[k];
             bb = b[k];
             if (scale != 0) {
@@ -423,6 +521,9 @@ int truckd_fastrun(const double *a, const double *b, double a_idle, double b_idl
         if (gp != 0 && se >= 0 && se < n) {
             rotor_out[se] = gstate[0] == 0.0 ? gstate[2] : w;
         }
+        if (ht != 0 && se > ht->done && se < n) {
+            heat_samples(ht, se, w);
+        }
         if (se >= 0 && se < n) {
             raw[se] = w;
             pos[se] = x;
@@ -443,6 +544,14 @@ int truckd_fastrun(const double *a, const double *b, double a_idle, double b_idl
     if (band != 0) {
         band[0] = st.stuck;
         band[1] = st.moved;
+    }
+    if (ht != 0) { /* commands that never acted: from the last rise known */
+        heat_samples(ht, n - 1, w);
+        for (int64_t k = 0; k < m_cmd; ++k) {
+            if (isnan(scale[k])) {
+                heat_coefficients(ht, k);
+            }
+        }
     }
     return 0;
 }
