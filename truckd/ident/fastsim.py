@@ -238,7 +238,8 @@ def _prepare(
 ) -> tuple[Array, Array, Array | float, float, float, Array, Array, Timeline]:
     """A free run's input side, kept per series and model: driver voltage (V), resistance
     (ohm), electrical correction (per command; the scalar when ``same_r``: every command
-    sees ``R_m``, so it is theirs), the scalar, its lag (s), input terms, timeline."""
+    sees ``R_m``, so it is theirs), the scalar, its lag (s), input terms, timeline (no
+    two commands' sub-intervals merged when not ``merge``: a heated run's differ)."""
     volts, r_sag = _driver(p, eff, u, u_hist, hist)
     t_cmd = t if not hist else np.concatenate([t_hist, t])
     r_tot = p.R_m + r_sag
