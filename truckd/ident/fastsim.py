@@ -318,16 +318,15 @@ def _simulate(
         else GapRun(p, eff, volts, r_tot, v_pre, kappa, n, p.omega(v0)),
     )
     w0 = p.omega(v0)
-    heat = None
     if heated is not None:  # the kernel writes each command's a, b, scale and resistance
         heat = _heat(p, eff, t, t_hist, hist, volts, r_tot, v_pre, heated, kin)
-        r_tot = heat.r
+        kin, r_tot = dataclasses.replace(kin, heat=heat), heat.r
     # The threshold is kin.sigma throughout only without a per-command scale or a Stribeck
     # friction; the backlash gap reads K_stiction itself.
     banded = kin.scale is None and kin.stribeck is None and kin.gap is None
     # the run's own (ctypes lets other threads run during the call); NaN where Python runs
     band = _NO_BAND.copy() if banded else None
-    meas, raw, pos = run(kin, tl, n, w0, eff.sensor_lag, band=band, heat=heat)
+    meas, raw, pos = run(kin, tl, n, w0, eff.sensor_lag, band=band)
     rotor = raw if kin.gap is None else kin.gap.rotor_out
     idx = _active(t, t_hist, hist, eff.input_delay)
     sampled = partial(_sample_currents, p, eff, idx, volts, None if same_r else r_tot, v_pre)

@@ -136,6 +136,8 @@ class Kinetics:
     evaluated at the start of each sub-interval as the plant does."""
     gap: GapRun | None = None
     """The backlash gap (None = no backlash)."""
+    heat: ckernel.HeatArrays | None = None
+    """A resistance drift stepped beside the speed (by the kernel only; None = none)."""
 
 
 def _limited(
@@ -267,7 +269,7 @@ def _segment(
 KERNEL_FIELDS = frozenset(
     (
         "a", "b", "a_idle", "b_idle", "c", "sigma", "d", "drag", "scale", "lag", "terrain",
-        "a_max", "b_mech", "stribeck", "gap",
+        "a_max", "b_mech", "stribeck", "gap", "heat",
     )
 )  # fmt: skip
 """The :class:`Kinetics` fields the C kernel (:mod:`truckd.ident.ckernel`) models."""
@@ -299,37 +301,29 @@ def run(
     sensor_lag: float = 0.0,
     use_kernel: bool = True,
     band: Array | None = None,
-    heat: ckernel.HeatArrays | None = None,
 ) -> tuple[Array, Array, Array]:
     """Free run from speed w0; returns per-sample (speed, mean speed, position).
 
     The C kernel runs it when built and it models ``kin`` (:func:`kernel_handles`;
     ``use_kernel=False``: always the Python loop, the reference).  ``band``: two floats
     the kernel fills with the run's band of breakaway thresholds (see
-    :func:`truckd.ident.ckernel.run`); the Python loop leaves them as they are.  ``heat``:
-    a resistance drift stepped beside the speed, by the kernel only (it must be built).
+    :func:`truckd.ident.ckernel.run`); the Python loop leaves them as they are.
 
     ``speed[k]`` at ``t[k]`` as the sensor reports it (low-pass ``sensor_lag`` s applied
     to the mean speed over each sample step, as the plant does), ``mean`` the raw
     instantaneous speed, ``pos`` the integral of speed.
     """
     if use_kernel and kernel_handles(kin):
-        done = _run_in_c(kin, tl, n, w0, sensor_lag, band, heat)
+        done = _run_in_c(kin, tl, n, w0, sensor_lag, band)
         if done is not None:
             return done
-    if heat is not None:
+    if kin.heat is not None:
         raise RuntimeError("a heated run needs the C kernel (make firmware) and a run it models")
     return _run_in_python(kin, tl, n, w0, sensor_lag)
 
 
 def _run_in_c(
-    kin: Kinetics,
-    tl: Timeline,
-    n: int,
-    w0: float,
-    sensor_lag: float,
-    band: Array | None = None,
-    heat: ckernel.HeatArrays | None = None,
+    kin: Kinetics, tl: Timeline, n: int, w0: float, sensor_lag: float, band: Array | None = None
 ) -> tuple[Array, Array, Array] | None:
     """:func:`run` by the C kernel (None: it is not built)."""
     tr = kin.terrain
@@ -351,7 +345,7 @@ def _run_in_c(
     return ckernel.run(
         kin.a, kin.b, kin.a_idle, kin.b_idle, kin.c, kin.sigma, kin.d, kin.drag,
         kin.scale, kin.lag, tl.dt, tl.cmd, tl.sample_end, n, w0, sensor_lag, ter, stb, lim, gap,
-        band, heat,
+        band, kin.heat,
     )  # fmt: skip
 
 
