@@ -252,11 +252,10 @@ def _prepare(
     a = k * p.K_T / p.J_S * volts / r_tot
     b = k * (p.K_T * p.K_v / r_tot + eff.viscous_friction) / p.J_S
     lag_cmd = lag_e if eff.backlash == 0.0 else 0.0
-    ids = None if merge else np.arange(len(t_cmd), dtype=float)  # distinct: none merged
-    tl = _merged_timeline(
-        t, t_hist, eff.input_delay + lag_cmd, hist, t_cmd, a if ids is None else ids,
-        b if ids is None else ids,
-    )  # fmt: skip
+    ma, mb = a, b
+    if not merge:  # distinct values: no two commands' sub-intervals merged
+        ma = mb = np.arange(len(t_cmd), dtype=float)
+    tl = _merged_timeline(t, t_hist, eff.input_delay + lag_cmd, hist, t_cmd, ma, mb)
     return volts, r_tot, k, kappa, lag_e, a, b, tl
 
 
@@ -319,7 +318,7 @@ def _simulate(
     )
     w0 = p.omega(v0)
     if heated is not None:  # the kernel writes each command's a, b, scale and resistance
-        heat = _heat(p, eff, t, t_hist, hist, volts, r_tot, v_pre, heated, kin)
+        heat = _heat(p, eff, t, t_hist, hist, volts, r_tot, v_pre, heated, kin, kappa)
         kin, r_tot = dataclasses.replace(kin, heat=heat), heat.r
     # The threshold is kin.sigma throughout only without a per-command scale or a Stribeck
     # friction; the backlash gap reads K_stiction itself.
@@ -352,16 +351,16 @@ def _heat(
     v_pre: float,
     rise0: float,
     kin: Kinetics,
+    kappa: float,
 ) -> ckernel.HeatArrays:
     """The kernel's arrays for a run heated from ``rise0`` (K), ``r_tot`` the commands'
-    cold resistance (ohm); ``kin.scale`` set to NaN (the kernel writes it as each command
-    first acts)."""
+    cold resistance (ohm), ``kappa`` the electrical correction at ``R_m``; ``kin.scale``
+    set to NaN (the kernel writes it as each command first acts)."""
     assert isinstance(kin.scale, np.ndarray)
     kin.scale[:] = np.nan
     idx = _active(t, t_hist, hist, eff.input_delay)
     active = np.where(idx.on, idx.at, -1), np.where(idx.prev_on, idx.prev, -1), idx.neg_since
     t_cmd = t if not hist else np.concatenate([np.asarray(t_hist, float), t])
-    kappa = float(electrical_correction(p, eff.viscous_friction)[0])
     return heat_arrays(p, eff, t, t_cmd, volts, r_tot - p.R_m, active, v_pre, rise0, kappa)
 
 

@@ -303,7 +303,7 @@ static double roll(double w, double a, double b, double c, struct stick *st, dou
     return segment(w, a, b, c, st, d, dur, lag, dx);
 }
 
-/* A resistance drift stepped beside the speed (fastsim._heated_run): the winding's rise at
+/* A resistance drift stepped beside the speed (heating.heat_arrays builds the inputs): the winding's rise at
  * each sample from the current the run itself draws, each command's resistance from the
  * rise when it was issued, and from it the command's a, b and scale (written on first use;
  * scale NaN until then).  hp: R_m, tempco, drift (K/W), tau (s), rise0 (K), L_m, J_S, K_T,
