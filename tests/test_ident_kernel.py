@@ -34,6 +34,15 @@ EFFECTS = [
     ),
     Effects(backlash=0.4, rotor_inertia_fraction=0.3),
     Effects(backlash=0.3, current_limit=5.0, stribeck=0.01, stribeck_speed=0.1, sensor_lag=0.02),
+    Effects(
+        backlash=0.4,
+        rotor_inertia_fraction=0.3,
+        resistance_drift=3.0,
+        winding_time_constant=3.0,
+        current_limit=8.0,
+        battery_sag=0.2,
+        input_delay=0.012,
+    ),
 ]
 
 

@@ -240,10 +240,12 @@ def visibility(
     seed: int,
     seconds: float = 50.0,
     with_current: bool = True,
+    base: Effects | None = None,
 ) -> float:
     """How far hidden ``effects`` move the log of ``truck`` (same seed, no noise) in units
     of its noise: ``sqrt(mean(dv^2)/noise_v^2 + mean(di^2)/(0.3 A)^2)`` (the current's
-    term only ``with_current``).  Below about 0.3
+    term only ``with_current``), from the log with ``base`` hidden (default: none; a
+    pair's cause is seen beside the other cause).  Below about 0.3
     the validation cost changes by less than the 5 % a cause must earn: the log cannot
     show it."""
     rng = np.random.default_rng(seed)
@@ -252,7 +254,7 @@ def visibility(
     t, u = excitation(rng, n, h=h)
     dt = h * (1.0 + truck.jitter * rng.uniform(-1.0, 1.0, n - 1))
     t = np.concatenate([[0.0], np.cumsum(dt)])
-    clean = simulate_open_loop(truck.params, t, u)
+    clean = simulate_open_loop(truck.params, t, u, PlantConfig(effects=base or Effects()))
     hidden = simulate_open_loop(truck.params, t, u, PlantConfig(effects=effects))
     dv = float(np.mean((hidden.v - clean.v) ** 2)) / truck.noise_v**2
     di = float(np.mean((hidden.i - clean.i) ** 2)) / 0.3**2 if with_current else 0.0

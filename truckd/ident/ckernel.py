@@ -21,7 +21,7 @@ Array = NDArray[np.float64]
 LIBRARY = Path(__file__).resolve().parent / "kernel" / "build" / "libtruckd_fastrun.so"
 """Where ``make firmware`` puts the kernel."""
 
-ABI = 4
+ABI = 5
 """The kernel version this module calls (``TRUCKD_FASTRUN_ABI`` in ``fastrun.c``): a
 library built from another version (or before versions) is refused, the Python loop runs."""
 

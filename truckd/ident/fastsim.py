@@ -159,10 +159,9 @@ def simulate_voltage(
     ``rise0``: the winding's temperature rise (K) at ``t[0]`` (``resistance_drift``).
 
     A resistance drift: the C kernel steps the winding beside the speed, in one run
-    (:mod:`truckd.ident.heating`); with backlash, or without the kernel, the run is
-    simulated cold, then again with each command's resistance from the pass before's
-    current until that heating converges (:data:`DRIFT_TOLERANCE`: 200 K in about 14
-    simulations).
+    (:mod:`truckd.ident.heating`); without the kernel the run is simulated cold, then
+    again with each command's resistance from the pass before's current until that
+    heating converges (:data:`DRIFT_TOLERANCE`: 200 K in about 14 simulations).
     """
     unsupported = unsupported_effects(eff)
     if unsupported:
@@ -174,7 +173,7 @@ def simulate_voltage(
     # A fit's trial parameters can be absurd (a winding heated without bound): the run
     # then overflows to inf or NaN, which the residuals score as a miss; no warning.
     with np.errstate(over="ignore", invalid="ignore"):
-        if eff.resistance_drift != 0.0 and eff.backlash == 0.0 and ckernel.available():
+        if eff.resistance_drift != 0.0 and ckernel.available():
             return _simulate(p, eff, t, u, v0, t_hist, u_hist, v_pre, x0, None, rise0)
         out = _simulate(p, eff, t, u, v0, t_hist, u_hist, v_pre, x0, None)
         if eff.resistance_drift == 0.0:

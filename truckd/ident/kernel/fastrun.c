@@ -11,7 +11,7 @@
 /* The kernel's version: raise it with every change of the loops' arithmetic or of the
  * functions' arguments, together with ABI in truckd/ident/ckernel.py, which refuses a
  * library of another version (a stale build) and runs the Python loop instead. */
-#define TRUCKD_FASTRUN_ABI 4
+#define TRUCKD_FASTRUN_ABI 5
 
 int truckd_fastrun_abi(void);
 int truckd_fastrun_abi(void)
@@ -304,7 +304,8 @@ static double roll(double w, double a, double b, double c, struct stick *st, dou
 }
 
 /* A resistance drift stepped beside the speed (heating.heat_arrays builds the inputs): the winding's rise at
- * each sample from the current the run itself draws, each command's resistance from the
+ * each sample from the current the run itself draws (the rotor's back-EMF: across a
+ * backlash gap the rotor's speed, not the load's), each command's resistance from the
  * rise when it was issued, and from it the command's a, b and scale (written on first use;
  * scale NaN until then).  hp: R_m, tempco, drift (K/W), tau (s), rise0 (K), L_m, J_S, K_T,
  * K_v, viscous, kappa (the cold electrical correction), current limit (0: none), v_pre,
@@ -389,7 +390,8 @@ static void heat_samples(struct heat *ht, int64_t s, double w)
 
 /* See freerun.run.  scale may be NULL (1 everywhere), ter NULL (no terrain), stb NULL (no
  * Stribeck friction), lim NULL (no current limit; else {a_max, b_mech}), gp NULL (no
- * backlash; else as gap_opens, with gvolts, gr per command, gstate the gap's state, which
+ * backlash; else as gap_opens, with gvolts, gr per command (hp set: the heated resistance
+ * of struct heat instead), gstate the gap's state, which
  * the run changes, and rotor_out the rotor speed at each sample), band NULL or two
  * doubles that receive the run's band of breakaway thresholds (struct stick): with scale
  * and stb NULL the threshold is ksigma throughout, and any ksigma in [band[0], band[1])
@@ -476,7 +478,7 @@ int truckd_fastrun(double *a, double *b, double a_idle, double b_idle, double kc
             if (gp != 0) {
                 double b_m = b_mech * f + (b_eff - bb);
                 double volts = k >= 0 ? gvolts[k] : gp[9];
-                double r = k >= 0 ? gr[k] : gp[4];
+                double r = k < 0 ? gp[4] : ht != 0 ? heat_r(ht, k) : gr[k];
                 double coulomb = c / f * gp[8], load = d_eff / f * gp[8];
                 double viscous = b_m / f * gp[8];
                 int moves = 1;
@@ -522,7 +524,7 @@ int truckd_fastrun(double *a, double *b, double a_idle, double b_idle, double kc
             rotor_out[se] = gstate[0] == 0.0 ? gstate[2] : w;
         }
         if (ht != 0 && se > ht->done && se < n) {
-            heat_samples(ht, se, w);
+            heat_samples(ht, se, gp != 0 ? rotor_out[se] : w); /* the rotor's back-EMF */
         }
         if (se >= 0 && se < n) {
             raw[se] = w;
@@ -546,7 +548,7 @@ int truckd_fastrun(double *a, double *b, double a_idle, double b_idle, double kc
         band[1] = st.moved;
     }
     if (ht != 0) { /* commands that never acted: from the last rise known */
-        heat_samples(ht, n - 1, w);
+        heat_samples(ht, n - 1, gp != 0 && gstate[0] == 0.0 ? gstate[2] : w);
         for (int64_t k = 0; k < m_cmd; ++k) {
             if (isnan(scale[k])) {
                 heat_coefficients(ht, k);
