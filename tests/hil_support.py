@@ -19,7 +19,9 @@ from typing import Any
 import zenoh
 from runtime_support import endpoint, free_port, write_config
 from stall_probe import StallProbe as StallProbe
+from stall_probe import daemon_stalls
 
+from truckd.logfile import Log
 from truckd.runtime.telemetry import zenoh_config
 from truckd.sim.firmware_proc import FirmwareProcess
 
@@ -41,6 +43,16 @@ def hil_config(tmp: Path, pty: str, port: int, **runtime: Any) -> Path:
         {"link": {"serial_device": pty, "reconnect_interval": 0.1},
          "control": {"on_lead_lost": "stop"}, "runtime": rt},
     )  # fmt: skip
+
+
+def daemon_waits(log: Log, t_daemon0: float) -> list[tuple[float, float]]:
+    """The host's stalls as the daemon's log shows them (``stall_probe.daemon_stalls``:
+    late wake-ups, cycles that waited for the CPU), on ``time.monotonic``; the log's time
+    base starts at ``t_daemon0`` there."""
+    return [
+        (a + t_daemon0, b + t_daemon0)
+        for a, b in daemon_stalls(log["t"], log["lateness_us"], log["compute_us"], log["cpu_us"])
+    ]
 
 
 class Firmware(FirmwareProcess):

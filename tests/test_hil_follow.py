@@ -35,13 +35,14 @@ from hil_support import (
     ROOT,
     StallProbe,
     Watch,
+    daemon_waits,
     end_process,
     hil_config,
     new_port,
     start_follow_rig,
 )
 from runtime_support import endpoint
-from stall_probe import daemon_stalls, excused
+from stall_probe import excused
 from stall_probe import stalled as stalled_s
 
 from truckd.config.truck import TruckConfig, load_config
@@ -157,9 +158,7 @@ def test_follow_15s_rate_safety_and_steady_state(tmp_path: Path) -> None:
     probes = probe.stalls + [tuple(s) for r in lines for s in r.get("stalls", [])]
     logs = sorted((tmp_path / "logs").glob("*.csv"))
     log = read_log(logs[-1], require=("t", "u", "v"))
-    stalls = [(a + t0, b + t0) for a, b in daemon_stalls(
-        log["t"], log["lateness_us"], log["compute_us"], log["cpu_us"]
-    )] + probes  # fmt: skip
+    stalls = daemon_waits(log, t0) + probes
     t1 = t_lead + RUN_S
     stalled = stalled_s(stalls, t_lead, t1)
     host = (
