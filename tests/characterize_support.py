@@ -5,13 +5,18 @@ the feedforward constants its parameters imply."""
 from __future__ import annotations
 
 import json
+import math
 import random
 import re
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from truckd.model.params import VehicleParams
+
+if TYPE_CHECKING:
+    from truckd.runtime.backend import Backend
+    from truckd.sim.firmware import SimulatedFirmware
 
 EFFECT_RANGES: dict[str, tuple[float, float]] = {
     "load_force": (0.5, 0.9),  # of the sliding friction force: a slope it stops on at 0 V
@@ -90,6 +95,25 @@ report.html; the tests' is :func:`sim_gap_rms` on the true plant) on one scenari
 WALL_M = 3.6
 """The tests' target ahead of a drawn truck: a wall (a lead at 0 m/s) this far from the
 start (m)."""
+
+
+class Track:
+    """The simulated world ahead: a wall at ``wall`` m from the start (None: nothing),
+    recording how far forward the true truck ever got."""
+
+    def __init__(self, wall: float | None) -> None:
+        self.wall = wall
+        self.x_max = -math.inf
+        self.fw: SimulatedFirmware | None = None
+
+    def __call__(self, t: float, x: float) -> float | None:
+        self.x_max = max(self.x_max, x)
+        return None if self.wall is None else self.wall - x
+
+    def prepare(self, backend: Backend) -> None:
+        assert backend.firmware is not None
+        self.fw = backend.firmware
+        backend.firmware.range_fn = self
 
 
 def determined_in(notes: list[str], lead: str) -> set[str]:

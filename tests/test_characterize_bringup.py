@@ -9,39 +9,19 @@ tests/test_hil_characterize.py checks it)."""
 from __future__ import annotations
 
 import json
-import math
 import re
 from pathlib import Path
 from typing import Any
 
 import pytest
+from characterize_support import Track
 from runtime_support import write_config
 
 from truckd.config.truck import load_config
 from truckd.runtime.backend import Backend
 from truckd.runtime.ratekeeper import SteppedClock
-from truckd.sim.firmware import SimulatedFirmware
 
 pytestmark = pytest.mark.slow
-
-
-class Track:
-    """The simulated world ahead: a wall at ``wall`` m from the start (None: nothing),
-    recording how far forward the true truck ever got."""
-
-    def __init__(self, wall: float | None) -> None:
-        self.wall = wall
-        self.x_max = -math.inf
-        self.fw: SimulatedFirmware | None = None
-
-    def __call__(self, t: float, x: float) -> float | None:
-        self.x_max = max(self.x_max, x)
-        return None if self.wall is None else self.wall - x
-
-    def prepare(self, backend: Backend) -> None:
-        assert backend.firmware is not None
-        self.fw = backend.firmware
-        backend.firmware.range_fn = self
 
 
 def run(

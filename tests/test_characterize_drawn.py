@@ -11,42 +11,21 @@ delay and load over real links, in real time: tests/test_hil_characterize.py."""
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 
 import pytest
-from characterize_support import DRAWN_DRIVE, WALL_M, assert_found, draw_truck
+from characterize_support import DRAWN_DRIVE, WALL_M, Track, assert_found, draw_truck
 from runtime_support import write_config
 
 from truckd.cli.characterize import characterize
 from truckd.config.truck import load_config
-from truckd.runtime.backend import Backend
 from truckd.runtime.ratekeeper import SteppedClock
-from truckd.sim.firmware import SimulatedFirmware
 
 pytestmark = pytest.mark.slow
 
 IN_PROCESS = {"backend": "sim", "realtime": False, "telemetry": {"enabled": False}}
 """The ``runtime:`` section: no SCHED_FIFO for pytest (every later test would inherit it),
 nothing on the network."""
-
-
-class Wall:
-    """The range sensor's view of a wall :data:`WALL_M` ahead of the start; the firmware
-    the routine drove, to read the true truck's state afterwards."""
-
-    def __init__(self) -> None:
-        self.x_max = -math.inf
-        self.fw: SimulatedFirmware | None = None
-
-    def __call__(self, t: float, x: float) -> float:
-        self.x_max = max(self.x_max, x)
-        return WALL_M - x
-
-    def prepare(self, backend: Backend) -> None:
-        assert backend.firmware is not None
-        self.fw = backend.firmware
-        backend.firmware.range_fn = self
 
 
 @pytest.mark.parametrize(("seed", "effect"), [(37, "dead_zone"), (41, "battery_sag")])
@@ -62,7 +41,7 @@ def test_characterize_finds_a_drawn_trucks_hidden_effect(
             {"plant": truck.plant_section(), "characterize": DRAWN_DRIVE, "runtime": IN_PROCESS},
         )
     )
-    wall = Wall()
+    wall = Track(WALL_M)
     lines: list[str] = []
     out = tmp_path / "out"
     code = characterize(cfg, "sim", out, lines.append, wall.prepare, SteppedClock())
