@@ -32,7 +32,6 @@ import platform
 import signal
 import subprocess
 import sys
-import tempfile
 import threading
 import time
 from pathlib import Path
@@ -43,6 +42,7 @@ import numpy as np
 import yaml
 import zenoh
 from results import write_json
+from scratch import scratch_dir
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
@@ -147,8 +147,9 @@ def run(
     cpu_latency_us: int | None = None,
     rate_hz: float | None = None,
     busy: bool = False,
+    work_dir: str | None = None,
 ) -> dict[str, Any]:
-    tmp = Path(tempfile.mkdtemp(prefix="loop_bench_"))
+    tmp = scratch_dir("loop_bench_", work_dir)
     pty = str(tmp / "ttyTRUCK")
     port = _free_port()
     cfg_path = _config(tmp, backend, pty, port, cpu_latency_us, rate_hz)
@@ -301,6 +302,12 @@ def main() -> int:
     ap.add_argument("--backend", choices=("serial", "sim"), default="serial")
     ap.add_argument("--json", metavar="FILE")
     ap.add_argument(
+        "--work-dir",
+        metavar="DIR",
+        help="keep the run's configuration and logs in DIR "
+        "(default: a temporary directory, removed at the end)",
+    )
+    ap.add_argument(
         "--key",
         metavar="NAME",
         help="store the run under NAME in --json's file (what_YYYY-MM-DD), not at its top level",
@@ -323,7 +330,10 @@ def main() -> int:
     if args.rate is not None and not 1.0 <= args.rate <= 2000.0:
         print("loop_bench: --rate must be in [1, 2000] Hz", file=sys.stderr)
         return 2
-    r = run(args.duration, args.backend, args.stages, args.cpu_latency_us, args.rate, args.busy)
+    r = run(
+        args.duration, args.backend, args.stages, args.cpu_latency_us, args.rate, args.busy,
+        args.work_dir,
+    )  # fmt: skip
     h = r["misses_and_host_steal"]
     rows = [
         ("cycles", f"{r['cycles']}"),

@@ -38,7 +38,6 @@ import socket
 import statistics
 import subprocess
 import sys
-import tempfile
 import threading
 import time
 from pathlib import Path
@@ -47,6 +46,7 @@ from typing import Any
 import yaml
 import zenoh
 from results import write_json
+from scratch import scratch_dir
 
 from truckd.config.truck import default_config_path, load_config
 from truckd.logfile import read_log
@@ -145,7 +145,7 @@ def _mcap_core(node: str, path: Path) -> dict[str, Any]:
     return doc
 
 
-def run(seconds: float) -> dict[str, Any]:
+def run(seconds: float, work_dir: str | None = None) -> dict[str, Any]:
     res: dict[str, Any] = {
         "date": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
         "machine": f"{platform.machine()} {os.cpu_count()} cpus, {platform.system()}",
@@ -158,7 +158,7 @@ def run(seconds: float) -> dict[str, Any]:
     readers = node is not None and (JS / "node_modules" / "@mcap" / "core").exists()
     elf = build_pil_elf()
     cfg = load_config(None)
-    tmp = Path(tempfile.mkdtemp(prefix="pil-bench-"))
+    tmp = scratch_dir("pil-bench-", work_dir)
     lead = CuedLead(LEAD_GAP, LEAD_SPEED)  # sets off once the daemon publishes
     board = emulated_board(truck_spec(cfg), lead, tmp / "ttyPIL", elf=elf)
     plant = board.plant
@@ -270,6 +270,12 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--json", default=None, help="write the figures to this file")
     ap.add_argument(
+        "--work-dir",
+        metavar="DIR",
+        help="keep the runs' configurations and logs, one directory each, in DIR "
+        "(default: a temporary directory, removed at the end)",
+    )
+    ap.add_argument(
         "--key",
         metavar="NAME",
         help="store the run under NAME in --json's file (what_YYYY-MM-DD), not at its top level",
@@ -288,7 +294,10 @@ def main() -> int:
             print(f"pil_bench: {tool} not found (apt-get install -y qemu-system-arm "
                   "gcc-arm-none-eabi libnewlib-arm-none-eabi)", file=sys.stderr)  # fmt: skip
             return 2
-    runs = [run(args.seconds) for _ in range(args.runs)]
+    runs = [
+        run(args.seconds, f"{args.work_dir}/run{k}" if args.work_dir else None)
+        for k in range(args.runs)
+    ]
     keys = ["boot_s", *(f"pil.{k}" for k in runs[0]["pil"])]
 
     def value(r: dict[str, Any], key: str) -> Any:

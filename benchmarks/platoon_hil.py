@@ -38,7 +38,6 @@ import signal
 import socket
 import subprocess
 import sys
-import tempfile
 import threading
 import time
 from collections.abc import Callable
@@ -47,6 +46,7 @@ from typing import Any
 
 import yaml
 import zenoh
+from scratch import scratch_dir
 
 from truckd.config.truck import default_config_path
 from truckd.runtime.telemetry import zenoh_config
@@ -228,6 +228,12 @@ def _auto_phases(
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--json", help="write the results here")
+    ap.add_argument(
+        "--work-dir",
+        metavar="DIR",
+        help="keep the daemons' configurations, logs and stderr in DIR "
+        "(default: a temporary directory, removed at the end)",
+    )
     ap.add_argument("--key", help="store the result under this key of the --json file")
     ap.add_argument("--trucks", type=int, default=3, help="trucks and daemons (3..10)")
     ap.add_argument("--router", action="store_true", help="every daemon a client of one router")
@@ -260,7 +266,7 @@ def main() -> int:
         raise KeyboardInterrupt  # run the finally below: every child ended by its pid
 
     signal.signal(signal.SIGTERM, _term)
-    tmp = Path(tempfile.mkdtemp(prefix="truckd-platoon-hil-"))
+    tmp = scratch_dir("truckd-platoon-hil-", args.work_dir)
     ports = [_free_port() for _ in range(N)]
     world = World(tmp, parked=N - n_start)
     daemons: list[subprocess.Popen[Any]] = []
