@@ -169,7 +169,7 @@ def _parse_companions(items: list[str]) -> list[dict[str, float]]:
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()))
     ap.add_argument("--json", metavar="FILE")
     ap.add_argument("--key", help="store the run under this key (what_YYYY-MM-DD)")
     ap.add_argument("--note", help="a note stored with the run")

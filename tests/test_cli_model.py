@@ -105,6 +105,11 @@ def test_bad_usage_exits_2(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["simulate"]) == 2  # usage error: a return code, one line
     assert len(capsys.readouterr().err.splitlines()) == 1
     assert main(["params", "--config", "/nonexistent/truck.yaml"]) == 2
+    capsys.readouterr()
+    # an option the command does not have: named by that command (reference section 1)
+    assert main(["replay", "x.csv", "--config", "c.yaml"]) == 2
+    (line,) = capsys.readouterr().err.splitlines()
+    assert line.startswith("truckd replay: error: unrecognized arguments: --config c.yaml"), line
 
 
 def test_a_model_with_numpy_values_is_written_and_reads_back(tmp_path: Path) -> None:

@@ -74,6 +74,12 @@ def test_cli_on_emps_csv(tmp_path: Path) -> None:
     assert [e["name"] for e in j["effects"]] == ["viscous_friction", "load_force"]
     assert j["extended"]["force_relerr_percent"] == pytest.approx(5.98, abs=0.1)
     assert "force_relerr_percent" in j["baseline"]
+    # SysId's equation with the force as input, F = kS sign(v) + kV v + kA a, by OLS:
+    # the published IDIM-LS values without the offset, and below the extended model
+    ls = j["least_squares"]
+    assert ls["kA"] == pytest.approx(95.11, rel=0.01) and ls["kS"] == pytest.approx(20.4, rel=0.03)
+    assert ls["kV"] == pytest.approx(203.5, rel=0.02) and 0.0 < ls["kA_se"] < 0.01 * ls["kA"]
+    assert ls["fit_percent"] < j["extended"]["fit_percent"]
     # --out needs a truck (voltage) model: a clear error, exit 2.
     code = main(["diagnose", str(tmp_path / "train.csv"), "--out", str(tmp_path / "m.yaml")])
     assert code == 2

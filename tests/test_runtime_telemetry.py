@@ -66,6 +66,9 @@ def test_state_health_params_and_liveliness_over_zenoh() -> None:
         ok = replies[0].ok
         assert ok is not None
         assert json.loads(ok.payload.to_bytes())["vehicle"]["R_m"] == 0.0847
+        # a query across the fleet: each reply on its truck's own key
+        (fleet,) = list(s.get("truckd/*/params", timeout=5.0))
+        assert fleet.ok is not None and str(fleet.ok.key_expr) == "truckd/truckT/params"
         tel.close()
         assert _wait(lambda: ("truckd/truckT/alive", False) in alive)
     finally:

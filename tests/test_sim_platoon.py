@@ -320,9 +320,12 @@ def test_steady_start_begins_in_the_steady_state_of_the_starting_speed() -> None
     err = np.asarray(tr.gap, dtype=float)[:, 1:] - np.asarray(tr.gap_ref, dtype=float)[:, 1:]
     assert np.max(np.abs(err)) < 0.005, np.max(np.abs(err))
     assert m["supervisor_modes"] == [["ACTIVE"], ["ACTIVE"]]
+    assert [row["ACTIVE"] for row in m["mode_time_s"]] == [1.0, 1.0] and m["transitions"] == [0, 0]
     assert all(mode == CACC for row in tr.mode for mode in row[1:])
     # three links (truck 2 also listens to truck 0, its standby), counted from 0 s
     assert m["plans_sent"] <= 3 * 100 and max(m["mode_switches"]) == 0
     cold, tc = run_platoon(sc, _setup(), pcfg, 3, duration=1.0)
     assert "INIT" in cold["supervisor_modes"][0]
+    assert all(row["INIT"] > 0.0 for row in cold["mode_time_s"]) and min(cold["transitions"]) >= 1
+    assert all(abs(sum(row.values()) - 1.0) < 1e-9 for row in cold["mode_time_s"])
     assert np.min(np.asarray(tc.v, dtype=float)) < sc.v0 - 0.3

@@ -25,6 +25,8 @@ from typing import Any
 import pytest
 from runtime_support import write_config
 
+from firmware_protocol.codec import encode
+from firmware_protocol.messages import MotorCommand
 from truckd.cli.main import main
 from truckd.config.truck import TruckConfig, load_config
 from truckd.model.params import VehicleParams
@@ -32,10 +34,10 @@ from truckd.model.plant_config import PlantConfig
 from truckd.runtime.backend import open_backend
 from truckd.sim.closed_loop import SimSetup
 from truckd.sim.firmware import SimulatedFirmware, constant_speed_lead
-from truckd.sim.firmware_main import serve_truck
+from truckd.sim.firmware_main import _handle, serve_truck
 from truckd.sim.platoon import make_platoon_scenario
 from truckd.sim.platoon_world import World
-from truckd.sim.truck import emulated_board, truck_spec
+from truckd.sim.truck import build_truck, emulated_board, truck_spec
 
 Built = tuple[VehicleParams, PlantConfig, int, float, float]
 """(plant parameters, plant section, encoder ticks/rev, range min m, range max m)."""
@@ -171,3 +173,18 @@ def test_the_emulated_board_has_the_configured_truck(tmp_path: Path) -> None:
     # encoder counts per metre of the configured ticks on the plant's wheel
     ticks_per_m = board._ticks_per_m
     assert math.isclose(ticks_per_m, ticks / (2.0 * math.pi * vehicle.r_w))
+
+
+def test_status_reports_the_last_command_before_and_after_the_first() -> None:
+    """The HIL firmware process's ``status`` (the contract: ``last_command`` with ``voltage``
+    and ``enable``): before any command, what the firmware holds (0 V, disabled), never
+    null; after one, that command."""
+    truck = build_truck(truck_spec(load_config()), constant_speed_lead(1.0, 0.0))
+    reply, stop = _handle(truck.firmware, {"cmd": "status"})
+    assert reply["ok"] and not stop
+    assert reply["last_command"] == {"voltage": 0.0, "enable": False}
+    assert truck.link is not None
+    truck.link.send(encode(MotorCommand(2.5, True), 1))
+    truck.firmware.step(0.01)
+    after, _ = _handle(truck.firmware, {"cmd": "status"})
+    assert after["last_command"] == {"voltage": 2.5, "enable": True}, after["last_command"]

@@ -103,9 +103,10 @@ def _run(args: argparse.Namespace) -> int:
     print(f"{diag.samples} samples in {diag.runs} run(s) ({diag.input} input)")
     ls = diag.least_squares
     if ls is not None and ls.get("fit_percent") is not None:
+        u = ("N", "N s/m", "kg") if diag.input == "force" else ("V", "V s/m", "V s^2/m")
         print(
-            f"least squares:  fit {ls['fit_percent']:7.2f} %  (SysId's kS={ls['kS']:.4g} V, "
-            f"kV={ls['kV']:.4g} V s/m, kA={ls['kA']:.4g} V s^2/m)"
+            f"least squares:  fit {ls['fit_percent']:7.2f} %  (SysId's kS={ls['kS']:.4g} "
+            f"{u[0]}, kV={ls['kV']:.4g} {u[1]}, kA={ls['kA']:.4g} {u[2]})"
         )
     print(f"seed model:     fit {b.fit_percent:7.2f} %  rmse {b.rmse:.4g}")
     for f in diag.effects:

@@ -56,6 +56,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     for name, module in chosen.items():
         importlib.import_module(module).add_subparser(sub)
         assert name in sub.choices, f"{module} must register '{name}'"
+        sub.choices[name].set_defaults(command_parser=sub.choices[name])  # its own errors
     return parser
 
 
@@ -96,7 +97,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     parser = build_parser(args_list[0] if args_list else None)
     try:
-        args = parser.parse_args(args_list)
+        args, unknown = parser.parse_known_args(args_list)
+        if unknown:  # named by the command they were given to: `truckd CMD: error: ...`
+            args.command_parser.error(f"unrecognized arguments: {' '.join(unknown)}")
     except SystemExit as exc:  # bad usage (one line printed) or --help: a code, not a raise
         return exc.code if isinstance(exc.code, int) else 2
     try:

@@ -181,6 +181,7 @@ def diagnose_force(
         )
         prev = ext_sum.fit_percent
     ext_sum = _summary(current, d_rep, report)[0]
+    ls_json, below = _least_squares(d_est, d_rep, report, ext_sum)
     # Structure left in the force residual of the final inverse model.
     r_f = d_rep.F - d_rep.regressors(current.names) @ current.theta
     noise_f = noise_std(d_rep.F)
@@ -202,6 +203,7 @@ def diagnose_force(
             "not candidates for a force input: " + ", ".join(NOT_APPLICABLE),
             "fit_percent: free-run speed from the measured force (viscous friction "
             "stabilises it; without it the seed's speed drifts)",
+            *([below] if below else []),
         ],
         traces=Traces(
             t=report.t,
@@ -212,6 +214,7 @@ def diagnose_force(
             x=report.x,
             input_name="F",
         ),
+        least_squares=ls_json,
         residual_stats={
             "force_rms": wt.rms,
             "force_noise": wt.noise,
@@ -220,6 +223,34 @@ def diagnose_force(
             "ccf_outside_fraction": wt.ccf_outside,
         },
     )
+
+
+def _least_squares(
+    d_est: Idm, d_rep: Idm, report: Series, ext: ModelSummary
+) -> tuple[dict[str, float | None], str | None]:
+    """SysId's equation with a force input, ``F = kS sign(v) + kV v + kA a`` (kS N, kV
+    N s/m, kA kg), fitted by ordinary least squares on the estimation signals with
+    nothing from the configuration: the ``least_squares`` JSON object (standard errors
+    from the residual, the fit of its free run on the report data), and a note when the
+    extended model's fit is below it."""
+    ls = fit_idm(d_est, ("viscous_friction",))
+    x = d_est.regressors(ls.names)
+    cov = ls.sse / max(ls.n - x.shape[1], 1) * np.linalg.pinv(x.T @ x)
+    se = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    fit = _summary(ls, d_rep, report)[0].fit_percent
+    order = (("kS", 1), ("kV", 2), ("kA", 0))  # the columns of F_c, F_v and M
+    out: dict[str, float | None] = {k: float(ls.theta[j]) for k, j in order}
+    for k, j in order:
+        out[f"{k}_se"] = float(se[j]) if np.isfinite(se[j]) else None
+    out["fit_percent"] = fit
+    below = None
+    if ext.fit_percent < fit:
+        below = (
+            f"the extended model's free run ({ext.fit_percent:.1f} %) is below the data's "
+            f"own least-squares model's ({fit:.1f} %) on the report data: its causes were "
+            "chosen on the force error (inverse dynamics), not on the free run"
+        )
+    return out, below
 
 
 def _dbic(new: IdmFit, old: IdmFit) -> float:

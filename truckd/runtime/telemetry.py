@@ -247,7 +247,9 @@ class Telemetry:
     def _on_query(self, query: zenoh.Query) -> None:
         self.queries += 1
         try:
-            query.reply(query.key_expr, json.dumps(self._params()))
+            # on this truck's own key: a query on ``truckd/*/params`` tells the replies
+            # apart by their keys
+            query.reply(self.keys["params"], json.dumps(self._params()))
         except Exception as exc:  # a bad query must not kill zenoh's callback thread
             log.warning("params query failed: %s", exc)
 

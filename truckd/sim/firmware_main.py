@@ -113,7 +113,8 @@ def _handle(
             "v": fw.plant.v,
             "x": fw.plant.x,
             "voltage": fw.voltage,
-            "last_command": None
+            # before the first command: what the firmware holds (0 V, motor disabled)
+            "last_command": {"voltage": 0.0, "enable": False}
             if last is None
             else {"voltage": last.voltage, "enable": last.enable},
             "firmware": vars(fw.stats),

@@ -3,6 +3,7 @@ minimum gaps, switches, accelerations."""
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass, field
 from typing import Any
@@ -10,6 +11,7 @@ from typing import Any
 import numpy as np
 
 from truckd.control.platoon import ACC, CACC, PlatoonConfig
+from truckd.control.supervisor import Mode
 from truckd.sim.plan_channel import PlanChannel
 from truckd.sim.platoon_scenarios import SETTLE_S
 from truckd.sim.platoon_truck import PlatoonTruck
@@ -125,6 +127,11 @@ def string_ratios(
     return l2, mx
 
 
+def _changes(seq: list[str]) -> int:
+    """How often consecutive entries of ``seq`` differ."""
+    return sum(a != b for a, b in itertools.pairwise(seq))
+
+
 def platoon_metrics(
     name: str,
     n_trucks: int,
@@ -198,5 +205,15 @@ def platoon_metrics(
         "plans_lost": sum(c.lost for c in channels),
         "solver_failures": [f.cyc.controller.solver_failures for f in followers],
         "supervisor_modes": [sorted(set(m)) for m in zip(*tr.supervisor, strict=True)],
+        # per follower, as a single truck's run reports them: s in each supervisor mode
+        # (every mode named) and the count of mode changes from one cycle to the next,
+        # while the truck is on the road
+        "mode_time_s": [
+            {mode.value: round(seq.count(mode.value) * dt, 9) for mode in Mode}
+            for seq in zip(*tr.supervisor, strict=True)
+        ],
+        "transitions": [
+            _changes([m for m in seq if m != "OUT"]) for seq in zip(*tr.supervisor, strict=True)
+        ],
         "duration_s": round(float(t[-1] + dt), 6),
     }
