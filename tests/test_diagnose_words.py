@@ -62,6 +62,25 @@ def test_sysid_logs_in_every_unit_system(tmp_path: Path, units: str) -> None:
     assert v[10] == pytest.approx((0.5 + 0.01) * UNIT[units])
 
 
+@pytest.mark.parametrize("test", ["Drivetrain", "Drivetrain (Angular)"])
+def test_a_drivetrain_is_its_straight_line_or_its_spin(tmp_path: Path, test: str) -> None:
+    """A drivetrain's sides: their mean on the straight-line test; on the spin test, where
+    the left side is driven backwards, half the difference (right minus left): the mean
+    of a spin is noise about 0 V and 0 m/s."""
+    rows = []
+    for k in range(50):
+        u, x, v = 2.0 + 0.01 * k, 0.02 * k, 0.4 + 0.001 * k
+        side = -1.0 if "Angular" in test else 1.0  # the left side's sign
+        rows.append([0.01 * k, side * 0.98 * u, 1.02 * u, side * x, x, side * 0.99 * v, 1.01 * v,
+                     0.0, 0.0])  # fmt: skip
+    path = tmp_path / "dt.json"
+    path.write_text(json.dumps({"test": test, "units": "Meters", "fast-forward": rows}))
+    (log,) = read_sysid(str(path))
+    assert log.columns["u"][10] == pytest.approx(2.1)
+    assert log.columns["v"][10] == pytest.approx(0.41)
+    assert log.columns["x"][10] == pytest.approx(0.2)
+
+
 def test_an_unknown_unit_system_is_refused(tmp_path: Path) -> None:
     path = tmp_path / "sysid.json"
     rows = [[0.01 * k, 1.0, 0.0, 0.5] for k in range(5)]
@@ -93,3 +112,46 @@ def test_a_sampled_and_held_speed_is_explained_by_the_clean_model(hold: int) -> 
     ls = d.least_squares
     assert ls is not None and ls["fit_percent"] is not None
     assert d.extended.fit_percent >= ls["fit_percent"]
+
+
+def test_isolated_speed_spikes_are_replaced_and_said() -> None:
+    """A clean truck's log with a few wild speed samples (a sensor's glitch: 50 times the
+    top speed for one sample): the spikes are replaced by their neighbours' mean and said
+    in the alerts, and the diagnosis is the clean log's (nothing named, the fit within
+    0.2 points of it); a white residual far above the noise would not explain the data."""
+    from labkit.synth import plant_log
+
+    from truckd.config.truck import load_config
+    from truckd.ident.api import diagnose_log
+    from truckd.ident.data import despiked
+    from truckd.logfile import Log
+    from truckd.model.effects import Effects
+
+    p = load_config().vehicle
+    log = plant_log(p, Effects(), seed=5, n=3000, with_current=False)
+    cols = dict(log.columns)
+    v = np.array(cols["v"], dtype=float)
+    wild = [400, 1300, 2200]
+    v[wild] = [50.0 * np.max(np.abs(v)), -30.0 * np.max(np.abs(v)), 9.0]
+    cols["v"] = v
+    clean = diagnose_log(log, p)
+    d = diagnose_log(Log(cols, "<spiked>"), p)
+    assert [f.name for f in d.effects] == [f.name for f in clean.effects] == []
+    assert abs(d.extended.fit_percent - clean.extended.fit_percent) < 0.2
+    assert any("3 isolated spike(s)" in a for a in d.alerts), d.alerts
+    # the speed's own steps and a held (staircase) speed are not spikes
+    from truckd.ident.data import Series
+
+    t = np.arange(200) * 0.01
+    steps = Series(t=t, inp=np.ones(200), v=np.repeat(np.arange(50.0), 4), i=None, x=None)
+    assert despiked(steps)[1] == 0
+
+
+def test_a_white_residual_far_above_the_noise_does_not_explain_the_data() -> None:
+    """White (no lag outside the band) but 100 times the noise: not at the noise level."""
+    from truckd.ident.selection import at_noise_level
+
+    loud = Whiteness(rms=1.0, noise=0.01, structure=1.0, acf_outside=0.0, ccf_outside=0.0)
+    assert white(loud) and not at_noise_level(loud, 0.01, 0.0)
+    quiet = Whiteness(rms=0.012, noise=0.01, structure=0.007, acf_outside=0.0, ccf_outside=0.0)
+    assert at_noise_level(quiet, 0.01, 0.0)

@@ -299,6 +299,52 @@ def noise_std(y: Array) -> float:
     return mad / 0.6745 / float(np.sqrt(6.0))
 
 
+SPIKE_NOISE = 20.0
+"""A speed sample this many noise levels off the mean of its two neighbours ..."""
+SPIKE_SHARE = 0.1
+"""... and this share of the speed's range (5th to 95th percentile) ..."""
+SPIKE_AGREE = 0.25
+"""... while the neighbours agree within this share of its departure, is a spike: no
+truck's speed leaves and comes back in one sample (a sensor's glitch, a dropped bit)."""
+
+
+def despiked(s: Series) -> tuple[Series, int]:
+    """``s`` with each isolated spike of its speed (:data:`SPIKE_NOISE`) replaced by the
+    mean of its neighbours, and how many there were (the least squares and the fits
+    weigh one wild sample like thousands of good ones)."""
+    v = s.v
+    if len(v) < 5:
+        return s, 0
+    mid = 0.5 * (v[:-2] + v[2:])
+    dev = np.abs(v[1:-1] - mid)
+    lo, hi = np.percentile(v, [5.0, 95.0])
+    thr = max(SPIKE_NOISE * noise_std(v), SPIKE_SHARE * float(hi - lo))
+    bad = np.flatnonzero((dev > thr) & (np.abs(v[2:] - v[:-2]) < SPIKE_AGREE * dev))
+    if not len(bad):
+        return s, 0
+    out = v.copy()
+    out[bad + 1] = mid[bad]
+    return dataclasses.replace(s, v=out), len(bad)
+
+
+def despiked_runs(runs: Sequence[Series], what: str) -> tuple[list[Series], str | None]:
+    """:func:`despiked` on every run, and the note saying how many spikes ``what`` (``the
+    data``, ``the validation data``) had (None: none)."""
+    out, n = [], 0
+    for r in runs:
+        d, k = despiked(r)
+        out.append(d)
+        n += k
+    if not n:
+        return out, None
+    return out, (
+        f"{n} isolated spike(s) of the speed in {what} (a sample that leaves its "
+        "two neighbours by over "
+        f"{SPIKE_NOISE:g} noise levels and comes back: a sensor's glitch) replaced by "
+        "the mean of their neighbours"
+    )
+
+
 def initial_speed(v: Array) -> float:
     """Speed to start a free run from: the first sample, or 0 (at rest) when that is
     within the measurement noise (a noisy 0 would start the model sliding)."""

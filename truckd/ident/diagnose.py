@@ -31,7 +31,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 from truckd.ident.choice import selection_stage
-from truckd.ident.data import Series, chunks_of_runs, merged
+from truckd.ident.data import Series, chunks_of_runs, despiked_runs, merged
 from truckd.ident.fanout import Mapper, in_order
 from truckd.ident.linear import least_squares_model, least_squares_stage, linear_start
 from truckd.ident.refit import refit_stage
@@ -74,6 +74,9 @@ def identify_voltage(
     p0, supply_note = supply_for(p0, runs)
     if supply_note is not None:
         progress(supply_note)
+    runs, spikes = despiked_runs(runs, "the data")
+    if spikes is not None:
+        progress(spikes)
     whole = merged(runs)
     fit_data = chunks_of_runs(runs, budget(runs, FIT_BUDGET))
     w = weights_for(fit_data)

@@ -15,6 +15,7 @@ import numpy as np
 from truckd.ident.data import (
     Series,
     chunks_of_runs,
+    despiked_runs,
     merged,
     split_runs_for_validation,
     with_position,
@@ -80,6 +81,8 @@ class Prepared:
     """The configured truck, its supply raised to the largest command (:func:`supply_for`)."""
     supply_note: str | None
     """What :func:`supply_for` says about the supply (None: it was high enough)."""
+    spike_notes: list[str]
+    """The isolated speed spikes replaced (:func:`truckd.ident.data.despiked_runs`)."""
     runs: list[Series]
     """The runs to diagnose, with positions."""
     validate: list[Series] | None
@@ -115,6 +118,13 @@ def prepare(
     p0, supply_note = supply_for(p0, [*runs, *(validate or [])])
     if supply_note is not None:
         progress(supply_note)
+    runs, spikes = despiked_runs(runs, "the estimation data" if validate else "the data")
+    spike_notes = [spikes] if spikes else []
+    if validate:
+        validate, spikes_val = despiked_runs(validate, "the validation data")
+        spike_notes += [spikes_val] if spikes_val else []
+    for note in spike_notes:
+        progress(note)
     runs = [with_position(r) for r in runs]
     validate = [with_position(r) for r in validate] if validate else None
     if validate:
@@ -126,6 +136,7 @@ def prepare(
     return Prepared(
         p0=p0,
         supply_note=supply_note,
+        spike_notes=spike_notes,
         runs=runs,
         validate=validate,
         est=est,

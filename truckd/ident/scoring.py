@@ -23,9 +23,7 @@ from truckd.ident.residuals import Whiteness, whiteness
 from truckd.ident.result import (
     ModelSummary,
 )
-from truckd.ident.selection import (
-    structured,
-)
+from truckd.ident.selection import at_noise_level, structured
 from truckd.ident.voltage import (
     FitResult,
     Weights,
@@ -130,8 +128,9 @@ def residual_signals(runs: Sequence[Series]) -> dict[str, np.ndarray]:
     return {k: np.concatenate(v) for k, v in sig.items()}
 
 
-def whiteness_of(r: np.ndarray, runs: Sequence[Series]) -> tuple[Whiteness, bool]:
-    """Whiteness statistics of a residual over ``runs`` and whether it is structured.
+def whiteness_of(r: np.ndarray, runs: Sequence[Series]) -> tuple[Whiteness, bool, bool]:
+    """Whiteness statistics of a residual over ``runs``, whether it is structured, and
+    whether it is at the noise level (:func:`truckd.ident.selection.at_noise_level`).
     A sampled-and-held speed is judged at its fresh readings only (between them the
     held value is stale by construction, a staircase no model of the truck explains)."""
     whole = merged(runs)
@@ -140,7 +139,8 @@ def whiteness_of(r: np.ndarray, runs: Sequence[Series]) -> tuple[Whiteness, bool
     r, inp, t = r[fresh], whole.inp[fresh], whole.t[fresh]
     h = float(np.median(np.diff(t))) if len(t) > 1 else 1.0
     wt = whiteness(r, inp, noise, max_lag=max(10, round(1.0 / h)))
-    return wt, structured(wt, noise, 2e-3 * float(np.std(whole.v)))
+    floor = 2e-3 * float(np.std(whole.v))
+    return wt, structured(wt, noise, floor), at_noise_level(wt, noise, floor)
 
 
 def summary(

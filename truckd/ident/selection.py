@@ -22,6 +22,9 @@ ACF_MAX = 0.2
 """Residual is called structured when more than this fraction of lags is outside the band."""
 STRUCT_MIN = 0.5
 """... and its RMS beyond the noise exceeds this multiple of the noise level."""
+EXPLAINS_RMS = 3.0
+"""A white residual explains the data only at the noise level: its RMS within this many
+noise levels (a few wild samples, white but far above the noise, do not)."""
 
 
 def delta_bic(sse_new: float, sse_old: float, n: int, extra: int) -> float:
@@ -48,6 +51,11 @@ def structured(wt: Whiteness, noise: float, floor: float) -> bool:
     noise above ``max(STRUCT_MIN noise, floor)``."""
     corr = wt.acf_outside > ACF_MAX or wt.ccf_outside > ACF_MAX
     return bool(corr and wt.structure > max(STRUCT_MIN * noise, floor))
+
+
+def at_noise_level(wt: Whiteness, noise: float, floor: float) -> bool:
+    """The residual's RMS is within :data:`EXPLAINS_RMS` noise levels (or ``floor``)."""
+    return bool(wt.rms <= max(EXPLAINS_RMS * noise, floor))
 
 
 def white(wt: Whiteness) -> bool:

@@ -4,7 +4,10 @@ A SysId data file holds up to four tests, ``slow-forward``, ``slow-backward`` (q
 voltage ramps) and ``fast-forward``, ``fast-backward`` (voltage steps), each a list of rows.
 Drivetrain rows are ``[t, V_left, V_right, x_left, x_right, v_left, v_right, angle,
 angular_rate]``; the other mechanisms' rows are ``[t, V, x, v]``.  A drivetrain becomes
-the mean of its left and right sides (the robot's straight-line voltage and speed);
+the mean of its left and right sides (the robot's straight-line voltage and speed); the
+spin test (``Drivetrain (Angular)``: the sides driven against each other) half their
+difference, right minus left (each side's voltage and wheel speed as the robot turns
+counter-clockwise, SysId's angular model in linear units);
 ``units`` any of SysId's unit systems (:data:`UNITS`): linear ones converted to m,
 rotational ones (``Radians``, ``Rotations``, ``Degrees``) to rad, whose speed in rad/s
 then stands for the speed (the fitted constants are per radian; the configured gearing
@@ -69,7 +72,9 @@ def read_sysid(path: str) -> list[Log]:
             "Degrees"
         )
     scale = UNITS[unit_name]
-    drivetrain = "drivetrain" in str(raw.get("test", "")).lower()
+    test_kind = str(raw.get("test", "")).lower()
+    drivetrain = "drivetrain" in test_kind
+    sign = -1.0 if drivetrain and "angular" in test_kind else 1.0  # left side's weight
     width = 9 if drivetrain else 4
     logs = []
     for name in wanted:
@@ -96,9 +101,9 @@ def read_sysid(path: str) -> list[Log]:
         keep = np.concatenate([[True], np.diff(a[:, 0]) > 0])
         a = a[keep]
         if drivetrain:
-            u = 0.5 * (a[:, 1] + a[:, 2])
-            x = 0.5 * (a[:, 3] + a[:, 4]) * scale
-            v = 0.5 * (a[:, 5] + a[:, 6]) * scale
+            u = 0.5 * (a[:, 2] + sign * a[:, 1])
+            x = 0.5 * (a[:, 4] + sign * a[:, 3]) * scale
+            v = 0.5 * (a[:, 6] + sign * a[:, 5]) * scale
         else:
             u, x, v = a[:, 1], a[:, 2] * scale, a[:, 3] * scale
         logs.append(Log({"t": a[:, 0].copy(), "u": u, "v": v, "x": x}, f"{file}:{name}"))

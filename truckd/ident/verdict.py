@@ -209,7 +209,7 @@ def report_stage(
     alerts.extend([*binding, *machine])
     notes.extend(vehicle_problems(ext_params, prep.runs))
     y_all = np.concatenate([r.v for r in prep.report])
-    wt, unexplained = whiteness_of(y_all - y_ext, prep.report)
+    wt, unexplained, at_noise = whiteness_of(y_all - y_ext, prep.report)
     looks = looks_like(y_all - y_ext, residual_signals(prep.report))
     if unexplained:
         line = _unexplained_line(wt, looks)
@@ -217,6 +217,8 @@ def report_stage(
         alerts.append(line)
     if prep.supply_note is not None:
         notes.insert(0, prep.supply_note)
+    notes[:0] = prep.spike_notes
+    alerts[:0] = prep.spike_notes
     rep = merged(prep.report)
     return Diagnosis(
         input="voltage",
@@ -239,7 +241,7 @@ def report_stage(
         least_squares=ls_json,
         alerts=alerts,
         runs=len(prep.runs),
-        explains=not unexplained and white(wt),
+        explains=not unexplained and white(wt) and at_noise,
     )
 
 
