@@ -155,3 +155,40 @@ def test_a_white_residual_far_above_the_noise_does_not_explain_the_data() -> Non
     assert white(loud) and not at_noise_level(loud, 0.01, 0.0)
     quiet = Whiteness(rms=0.012, noise=0.01, structure=0.007, acf_outside=0.0, ccf_outside=0.0)
     assert at_noise_level(quiet, 0.01, 0.0)
+
+
+def _first_order_sysid(path: Path) -> None:
+    """A noise-free first-order drivetrain in SysId's JSON (both sides alike): ramps at
+    0.25 V/s and 6 V steps each way, breakaway 0.3 V, 0.5 m/s per volt above it, time
+    constant 0.3 s, Euler-integrated at 5 ms."""
+    doc: dict[str, object] = {"sysid": True, "test": "Drivetrain", "units": "Meters"}
+    for name, sign, ramp in [
+        ("slow-forward", 1.0, True),
+        ("slow-backward", -1.0, True),
+        ("fast-forward", 1.0, False),
+        ("fast-backward", -1.0, False),
+    ]:
+        n, dt = (1000 if ramp else 300), 0.005
+        t = np.arange(n) * dt + (0.0 if ramp else 50.0) + (100.0 if sign < 0 else 0.0)
+        u = sign * 0.25 * np.arange(n) * dt if ramp else np.full(n, sign * 6.0)
+        drive = np.where(np.abs(u) > 0.3, u - sign * 0.3, 0.0)
+        v, x = np.zeros(n), np.zeros(n)
+        for j in range(1, n):
+            v[j] = v[j - 1] + dt * (0.5 * drive[j - 1] - v[j - 1]) / 0.3
+            x[j] = x[j - 1] + dt * v[j - 1]
+        doc[name] = np.c_[t, u, u, x, x, v, v, np.zeros(n), np.zeros(n)].tolist()
+    path.write_text(json.dumps(doc), encoding="utf-8")
+
+
+def test_a_cause_that_moves_nothing_is_not_named(tmp_path: Path) -> None:
+    """On a noise-free log that the seed model fits to a few 1e-4 m/s, a cause whose
+    fitted size is nothing (a backlash of 1e-12 rad, a resistance drift of 1e-6) must not
+    be named on the strength of what the joint refit moved in the seed's parameters."""
+    from truckd.config.truck import load_config
+    from truckd.ident.api import diagnose_log
+
+    path = tmp_path / "first_order.json"
+    _first_order_sysid(path)
+    d = diagnose_log(read_sysid(str(path)), load_config().vehicle)
+    assert [(f.name, f.params) for f in d.effects] == []
+    assert d.extended.fit_percent > 99.9

@@ -39,6 +39,11 @@ from truckd.ident.voltage import (
     weights_for,
 )
 
+ACTS_MIN = 2e-3
+"""A cause whose switching on moves the simulated speed on the report data by less
+than this share of the speed's spread (RMS over std) acts on nothing (the residual
+floor of :func:`truckd.ident.scoring.whiteness_of`)."""
+
 FINAL_NFEV = 80
 """Evaluations of the final joint refit (R_m and battery sag correlate: they need room)."""
 
@@ -62,6 +67,9 @@ class Refit:
     y_ext: np.ndarray
     """The extended model's figures and free-run speed on the report runs."""
     rows: dict[str, CandidateRow]
+    refitted: bool = False
+    """The extended model is ``final`` (its accepted causes not kept switched off), not
+    the seed: a cause was kept, or the refit's parameters beat the seed's without one."""
 
 
 def refit_stage(
@@ -119,7 +127,13 @@ def refit_stage(
                 accepted=False,
                 note="lowers the report fit: not accepted",
             )
-    return Refit(final, base_pol, base_sum, y_base, findings, kept, ext_sum, y_ext, rows)
+    refitted = bool(kept) or ext_sum.fit_percent > base_sum.fit_percent
+    if refitted and not kept:
+        progress(
+            f"the joint refit on more data moves the seed's parameters: report fit "
+            f"{base_sum.fit_percent:.1f} -> {ext_sum.fit_percent:.1f} % without a cause"
+        )
+    return Refit(final, base_pol, base_sum, y_base, findings, kept, ext_sum, y_ext, rows, refitted)
 
 
 _Kept = tuple[list[Finding], list[str], ModelSummary, np.ndarray]
@@ -133,17 +147,25 @@ def _keep(
     base_sum: ModelSummary,
     y_base: np.ndarray,
 ) -> _Kept:
-    """The accepted causes that earn their place in ``model`` on the report data,
-    in order: each must raise the report fit by :data:`GAIN_MIN` points (a hill, on
-    its stretch only, validated where it acts: by any gain)."""
+    """The accepted causes that earn their place in ``model`` on the report data, in
+    order: each must raise the report fit of ``model``'s own parameters (a cause's gain
+    is what switching it on adds, not what the joint refit moved in the seed's
+    parameters: a cause fitted to nothing, its parameter 1e-12 of its scale, adds
+    nothing), and the model with them must beat the seed's (``base_sum``).  With none
+    kept, the report figures of ``model``'s parameters without its causes when they beat
+    the seed's (the joint refit on more data found a better seed), else the seed's."""
     found: list[Finding] = []
     kept_: list[str] = []
-    y_e, e_sum = y_base, base_sum
+    off = {by_name[a].param.name: 0.0 for a in accepted}
+    e_sum, y_e = summary(model.params, dataclasses.replace(model.effects, **off), report)
+    least = ACTS_MIN * float(np.std(y_base))  # a change of the speed this small is none
     for name in accepted:
         later = {by_name[a].param.name: 0.0 for a in accepted if a not in (*kept_, name)}
         trial = dataclasses.replace(model.effects, **later)
         s_k, y_k = summary(model.params, trial, report)
-        if s_k.fit_percent <= e_sum.fit_percent:
+        if s_k.fit_percent <= e_sum.fit_percent or s_k.fit_percent <= base_sum.fit_percent:
+            continue
+        if float(np.sqrt(np.mean(np.square(y_k - y_e)))) < least:
             continue
         found.append(
             Finding(
@@ -156,29 +178,37 @@ def _keep(
         )
         kept_.append(name)
         e_sum, y_e = s_k, y_k
+    if not kept_ and e_sum.fit_percent <= base_sum.fit_percent:  # the seed's, as it was
+        e_sum, y_e = base_sum, y_base
     if len(kept_) < len(accepted) > 1:  # causes that act together (a pair)
-        together = _together(model, [by_name[a] for a in accepted], report, e_sum)
+        together = _together(model, [by_name[a] for a in accepted], report, e_sum, least)
         if together is not None:
             return together
     return found, kept_, e_sum, y_e
 
 
 def _together(
-    model: FitResult, causes: Sequence[Candidate], report: Sequence[Series], best: ModelSummary
+    model: FitResult,
+    causes: Sequence[Candidate],
+    report: Sequence[Series],
+    best: ModelSummary,
+    least: float,
 ) -> _Kept | None:
     """All of ``causes`` in ``model``, when they earn their place only together: the model
     with all of them beats ``best`` (what one at a time kept) on the report data, and
     switching any one of them off lowers that fit (its ``fit_gain_percent``: what it adds
-    to the others).  A cause fitted jointly with another (the battery's sag with the
-    loop's own delay) may be worse alone than none at all; None when they do not."""
+    to the others) and moves the speed by ``least`` (m/s RMS) at least.  A cause fitted
+    jointly with another (the battery's sag with the loop's own delay) may be worse alone
+    than none at all; None when they do not."""
     full, y_full = summary(model.params, model.effects, report)
     if full.fit_percent <= best.fit_percent:
         return None
     found: list[Finding] = []
     for c in causes:
         off = dataclasses.replace(model.effects, **{c.param.name: 0.0})
-        gain = full.fit_percent - summary(model.params, off, report)[0].fit_percent
-        if gain <= 0.0:
+        s_off, y_off = summary(model.params, off, report)
+        gain = full.fit_percent - s_off.fit_percent
+        if gain <= 0.0 or float(np.sqrt(np.mean(np.square(y_full - y_off)))) < least:
             return None
         found.append(
             Finding(

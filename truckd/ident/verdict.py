@@ -186,11 +186,21 @@ def report_stage(
         kept=kept,
         summary=refit.ext_sum,
         y=refit.y_ext,
-        params=final.params if kept else base_pol.params,
-        effects=dataclasses.replace(final.effects, **switched_off) if kept else base_pol.effects,
+        params=final.params if refit.refitted else base_pol.params,
+        effects=(
+            dataclasses.replace(final.effects, **switched_off)
+            if refit.refitted
+            else base_pol.effects
+        ),
         rows=dict(refit.rows),
     )
     notes = [*_notes(prep.runs, start.ff, seed.fisher)]
+    if refit.refitted and not kept:
+        notes.append(
+            "no cause named, but the seed refitted jointly on more of the data fits the "
+            f"report data better ({refit.base_sum.fit_percent:.1f} -> "
+            f"{refit.ext_sum.fit_percent:.1f} %): the extended model is that refit"
+        )
     ls_json: dict[str, float | None] | None = None
     if start.ls is not None:
         ext, ls_json, below = _against_least_squares(ext, start.ls, prep.report, progress)
@@ -205,7 +215,7 @@ def report_stage(
     notes.extend(binding)
     machine = configuration_notes(ext_params, prep.p0)
     notes.extend(machine)
-    alerts = [n for n in notes if n.startswith("the simulation-error fit")]
+    alerts = [n for n in notes if n.startswith(("the simulation-error fit", "no cause named, but"))]
     alerts.extend([*binding, *machine])
     notes.extend(vehicle_problems(ext_params, prep.runs))
     y_all = np.concatenate([r.v for r in prep.report])
