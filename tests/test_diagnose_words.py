@@ -192,3 +192,19 @@ def test_a_cause_that_moves_nothing_is_not_named(tmp_path: Path) -> None:
     d = diagnose_log(read_sysid(str(path)), load_config().vehicle)
     assert [(f.name, f.params) for f in d.effects] == []
     assert d.extended.fit_percent > 99.9
+
+
+def test_a_speed_of_the_wrong_sign_and_a_time_in_milliseconds_are_said() -> None:
+    """Columns that look wired or scaled wrongly are named with their numbers."""
+    from truckd.ident.data import Series
+    from truckd.ident.verdict import suspect_columns
+
+    t = np.arange(400) * 0.01
+    u = np.where(np.arange(400) % 200 < 100, 3.0, -3.0)
+    v = np.convolve(u, np.full(20, 0.05 / 3.0), "same")
+    good = Series(t=t, inp=u, v=v, i=None, x=None)
+    assert suspect_columns([good]) == []
+    (sign,) = suspect_columns([Series(t=t, inp=u, v=-v, i=None, x=None)])
+    assert "the speed falls as the voltage rises" in sign
+    (slow,) = suspect_columns([Series(t=1000.0 * t, inp=u, v=v, i=None, x=None)])
+    assert "median time step is 10 s" in slow

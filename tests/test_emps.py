@@ -76,6 +76,7 @@ def test_cli_on_emps_csv(tmp_path: Path) -> None:
     assert "force_relerr_percent" in j["baseline"]
     # SysId's equation with the force as input, F = kS sign(v) + kV v + kA a, by OLS:
     # the published IDIM-LS values without the offset, and below the extended model
+    assert j["linear_estimate"] is None  # a voltage drive's estimate: none, but the key is there
     ls = j["least_squares"]
     assert ls["kA"] == pytest.approx(95.11, rel=0.01) and ls["kS"] == pytest.approx(20.4, rel=0.03)
     assert ls["kV"] == pytest.approx(203.5, rel=0.02) and 0.0 < ls["kA_se"] < 0.01 * ls["kA"]

@@ -157,11 +157,12 @@ class Diagnosis:
             "rejected": [r.to_json() for r in self.rejected],
             "runs": int(self.runs),
             "explains_data": bool(self.explains),
-            **({"linear_estimate": self.linear} if self.linear is not None else {}),
-            **(
-                {"least_squares": {k: _opt(v) for k, v in self.least_squares.items()}}
-                if self.least_squares is not None
-                else {}
+            # always present (reference section 4); null when the data cannot give them
+            "linear_estimate": self.linear,
+            "least_squares": (
+                None
+                if self.least_squares is None
+                else {k: _opt(v) for k, v in self.least_squares.items()}
             ),
         }
 

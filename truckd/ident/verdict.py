@@ -108,6 +108,35 @@ def _binding_limits(
     return out
 
 
+SIGN_CORR = -0.3
+"""Speed and voltage correlated below this: one of them has the wrong sign."""
+SLOW_STEP_S = 1.0
+"""A median time step above this (s) is no motor's log in seconds."""
+
+
+def suspect_columns(runs: Sequence[Series]) -> list[str]:
+    """What looks like a column in the wrong sign or unit, said with the numbers (the
+    fit goes on: the notes a user must see)."""
+    out: list[str] = []
+    u = np.concatenate([r.inp for r in runs])
+    v = np.concatenate([r.v for r in runs])
+    if np.std(u) > 0.0 and np.std(v) > 0.0:
+        corr = float(np.corrcoef(u, v)[0, 1])
+        if corr < SIGN_CORR:
+            out.append(
+                f"the speed falls as the voltage rises (correlation {corr:+.2f}): the "
+                "encoder or the motor wired the other way round? Flip the sign of v (or "
+                "u) in the log; on a truck, plant.wiring or the firmware's encoder sign"
+            )
+    step = float(np.median(np.concatenate([np.diff(r.t) for r in runs])))
+    if step > SLOW_STEP_S:
+        out.append(
+            f"the median time step is {step:.4g} s: is t in seconds? (a log in "
+            "milliseconds reads 1000 times too slow: divide t by 1000)"
+        )
+    return out
+
+
 def _notes(
     runs: Sequence[Series],
     ff: Feedforward | None,
@@ -213,7 +242,7 @@ def report_stage(
         ext_params, ext_effects, free, prep.polish_data, prep.report, seed.grid, progress
     )
     notes.extend(binding)
-    machine = configuration_notes(ext_params, prep.p0)
+    machine = [*suspect_columns(prep.runs), *configuration_notes(ext_params, prep.p0)]
     notes.extend(machine)
     alerts = [n for n in notes if n.startswith(("the simulation-error fit", "no cause named, but"))]
     alerts.extend([*binding, *machine])
