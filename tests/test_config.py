@@ -60,6 +60,15 @@ BAD = [
     ("characterize.min_budget_m", 5.0, "min_budget_m (5.0) must not exceed track_length_m"),
     ("characterize.ramp", 1.0, "unknown key 'characterize.ramp'"),
     ("extra_section", {}, "unknown key 'extra_section'"),
+    ("platoon.predecessor", "truck1", "the truck's own vehicle_id"),
+    ("platoon.predecessor", "a b", "key 'platoon.predecessor' = 'a b'"),
+    ("platoon.predecessor", "*", "key 'platoon.predecessor' = '*'"),
+    ("control.u_max", 24.0, "expected at most vehicle.V_batt"),
+    ("control.horizon", 300, "'control.horizon' = 300"),
+    ("runtime.recorder.flush_period_s", 1e10, "'runtime.recorder.flush_period_s'"),
+    ("runtime.telemetry.queue_size", 10**30, "'runtime.telemetry.queue_size'"),
+    ("runtime.supervisor.range_timeout_s", 1e9, "'runtime.supervisor.range_timeout_s'"),
+    ("runtime.supervisor.solver_fail_limit", 10**9, "'runtime.supervisor.solver_fail_limit'"),
 ]
 
 

@@ -31,7 +31,9 @@ The rules (``docs/reference.md``, "Configuration checks across sections"):
 - ``control.estimator.ticks_modulo`` and ``sample_time_modulo`` equal to the wrap of the
   signals they decode (truck.dbc);
 - ``characterize`` voltages (``check_max_v``, ``step_voltages``, ``validation_v``) at most
-  ``control.u_max``: the command is clipped there, the experiment would not be the one asked.
+  ``control.u_max``: the command is clipped there, the experiment would not be the one asked;
+- ``control.u_max`` at most ``vehicle.V_batt``: the driver cannot apply more (a controller's
+  model file with a higher ``V_batt`` then cannot raise the command above the battery).
 """
 
 from __future__ import annotations
@@ -190,6 +192,16 @@ def _characterize_problems(cfg: TruckConfig) -> str | None:
     return None
 
 
+def _supply_problems(cfg: TruckConfig) -> str | None:
+    u_max, v_batt = cfg.control.u_max, cfg.vehicle.V_batt
+    if u_max > v_batt:
+        return (
+            f"key 'control.u_max' = {_g(u_max)}: expected at most vehicle.V_batt "
+            f"({_g(v_batt)} V): the driver cannot apply more than the battery gives"
+        )
+    return None
+
+
 def cross_section_problem(cfg: TruckConfig, t: ProtocolTiming | None = None) -> str | None:
     """The first pair of keys that cannot work together (one line naming both), or None.
     ``t``: the protocol's timing (truck.dbc's by default)."""
@@ -200,4 +212,5 @@ def cross_section_problem(cfg: TruckConfig, t: ProtocolTiming | None = None) -> 
         or _range_problems(cfg)
         or _wrap_problems(cfg)
         or _characterize_problems(cfg)
+        or _supply_problems(cfg)
     )

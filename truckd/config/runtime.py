@@ -24,11 +24,12 @@ class TelemetryConfig:
     connect: tuple[str, ...] = spec(
         "connect endpoints, overriding the Zenoh file when not empty", default=()
     )
-    state_every: int = spec("publish state every N control cycles", lo=1, default=1)
+    state_every: int = spec("publish state every N control cycles", lo=1, hi=100_000, default=1)
     health_period_s: float = spec("health message period", unit="s", lo=0.05, hi=1.0, default=0.5)
     queue_size: int = spec(
         "messages waiting for the publisher thread; the oldest is dropped beyond this",
         lo=4,
+        hi=1_000_000,
         default=256,
     )
 
@@ -42,16 +43,25 @@ class RecorderConfig:
     max_bytes: int = spec(
         "rotate to a new file beyond this size", unit="B", lo=4096, default=20_000_000
     )
-    keep: int = spec("rotated files kept (oldest deleted)", lo=1, default=20)
-    flush_period_s: float = spec("flush to disk at least this often", unit="s", lo=0.0, default=1.0)
+    keep: int = spec("rotated files kept (oldest deleted)", lo=1, hi=1_000_000, default=20)
+    flush_period_s: float = spec(
+        "flush to disk at least this often (what a crash can lose)",
+        unit="s",
+        lo=0.0,
+        hi=3600.0,
+        default=1.0,
+    )
     mcap: bool = spec(
         "also write MCAP (state, health, plan channels) beside each CSV, for Foxglove",
         default=True,
     )
-    mcap_state_every: int = spec("record the state in MCAP every N control cycles", lo=1, default=1)
+    mcap_state_every: int = spec(
+        "record the state in MCAP every N control cycles", lo=1, hi=100_000, default=1
+    )
     mcap_plan_every: int = spec(
         "record every N-th plan in MCAP (a 40-step plan costs the writer ~40 us to encode)",
         lo=1,
+        hi=100_000,
         default=10,
     )
     mcap_compression: str = spec(

@@ -57,6 +57,15 @@ class TruckConfig:
         simulated truck, and every pair of keys that cannot work together
         (:mod:`truckd.config.cross`)."""
         problem = vehicle_id_problem(self.vehicle_id)
+        ahead = self.platoon.predecessor
+        if problem is None and ahead:
+            problem = vehicle_id_problem(ahead, "platoon.predecessor")
+            if problem is None and ahead == self.vehicle_id:
+                problem = (
+                    f"key 'platoon.predecessor' = {ahead!r}: the truck's own vehicle_id "
+                    "(a truck would follow its own plan at the CACC gap); name the truck "
+                    "ahead, or leave it empty"
+                )
         if problem is None and self.plant.vehicle.given():
             why = self.plant_vehicle.validate()
             if why is not None:

@@ -132,7 +132,12 @@ class ControlConfig:
     rate_hz: float = spec(
         "control rate; the MPC step is its period", unit="Hz", lo=1.0, hi=2000.0, default=100.0
     )
-    horizon: int = spec("MPC horizon (steps)", lo=2, hi=500, default=40)
+    horizon: int = spec(
+        "MPC horizon (steps; above 200 OSQP fails to converge in some cycles)",
+        lo=2,
+        hi=200,
+        default=40,
+    )
     move_blocks: int = spec(
         "inputs held over this many blocks of the horizon (1, 1, 2, 4, .. steps) and the QP "
         "condensed to them; 0 = one input per step, the sparse QP (see docs/controller.md)",

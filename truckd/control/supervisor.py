@@ -64,13 +64,28 @@ class SupervisorConfig:
     """Thresholds of the supervisor."""
 
     encoder_timeout_s: float = spec(
-        "encoder data older than this is stale", unit="s", lo=0.0, lo_open=True, default=0.05
+        "encoder data older than this is stale",
+        unit="s",
+        lo=0.0,
+        lo_open=True,
+        hi=10.0,
+        default=0.05,
     )
     range_timeout_s: float = spec(
-        "range data older than this is stale", unit="s", lo=0.0, lo_open=True, default=0.15
+        "range data older than this is stale",
+        unit="s",
+        lo=0.0,
+        lo_open=True,
+        hi=10.0,
+        default=0.15,
     )
     link_timeout_s: float = spec(
-        "no valid message for this long: link stale", unit="s", lo=0.0, lo_open=True, default=0.05
+        "no valid message for this long: link stale",
+        unit="s",
+        lo=0.0,
+        lo_open=True,
+        hi=10.0,
+        default=0.05,
     )
     range_frozen_s: float = spec(
         "range value bit-identical for this much driving time: frozen sensor (a stuck "
@@ -78,6 +93,7 @@ class SupervisorConfig:
         "noise-free sensor, which holds one value while following steadily)",
         unit="s",
         lo=0.0,
+        hi=60.0,
         default=1.0,
     )
     frozen_min_speed: float = spec(
@@ -86,21 +102,27 @@ class SupervisorConfig:
     solver_degrade_after: int = spec(
         "consecutive solver failures before DEGRADED (one is covered by the held plan)",
         lo=1,
+        hi=1000,
         default=2,
     )
     solver_fail_limit: int = spec(
-        "consecutive solver failures before a controlled stop", lo=1, default=10
+        "consecutive solver failures before a controlled stop", lo=1, hi=1000, default=10
     )
     overrun_degrade_after: int = spec(
         "consecutive deadline misses before DEGRADED (single misses are only counted)",
         lo=1,
+        hi=1000,
         default=2,
     )
     overrun_limit: int = spec(
-        "consecutive deadline misses before a controlled stop", lo=1, default=5
+        "consecutive deadline misses before a controlled stop", lo=1, hi=1000, default=5
     )
     recovery_s: float = spec(
-        "every cause clear this long before returning to ACTIVE", unit="s", lo=0.0, default=0.5
+        "every cause clear this long before returning to ACTIVE",
+        unit="s",
+        lo=0.0,
+        hi=60.0,
+        default=0.5,
     )
 
     def validate(self) -> str | None:
