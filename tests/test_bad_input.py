@@ -350,6 +350,32 @@ def test_diagnose_checks_every_output_before_the_fit(
     assert sorted(p.name for p in tmp_path.iterdir()) == ["afile", "log.csv"]
 
 
+def test_an_output_file_where_an_output_directory_writes_is_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``--json`` on a file the ``--trace`` or ``--mcap`` directory writes (one would
+    replace the other), or inside the ``--report`` directory (published whole): refused
+    before any work; another kind of file beside a trace is fine."""
+    trace = tmp_path / "trace"
+    trace.mkdir()
+    run = ["sim", "--scenario", "follow", "--duration", "1", "--trace", str(trace)]
+    line = bad_input([*run, "--json", str(trace / "follow.csv")], capsys)
+    assert "--trace holds the --json output" in line
+    platoon = ["sim", "--platoon", "2", "--scenario", "platoon-brake", "--duration", "1"]
+    line = bad_input([*platoon, "--mcap", str(trace), "--json", str(trace / "p.mcap")], capsys)
+    assert "--mcap holds the --json output" in line
+    assert list(trace.iterdir()) == []
+    log = write(tmp_path, "log.csv", GOOD)
+    (tmp_path / "rep").mkdir()
+    line = bad_input(
+        ["diagnose", str(log), "--report", str(tmp_path / "rep"), "--json",
+         str(tmp_path / "rep" / "d.json")], capsys,
+    )  # fmt: skip
+    assert "--report holds the --json output" in line
+    assert cli([*run, "--json", str(trace / "metrics.json")], capsys)[0] == 0
+    assert sorted(p.name for p in trace.iterdir()) == ["follow.csv", "metrics.json"]
+
+
 def test_identify_and_simulate_check_out(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

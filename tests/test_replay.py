@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 from runtime_support import write_config
 
+from truckd.cli.main import main
 from truckd.config.runtime import RecorderConfig
 from truckd.config.truck import load_config
 from truckd.control.mpc import MpcResult
@@ -135,6 +136,11 @@ def test_a_run_recorded_with_the_default_configuration_replays(tmp_path: Path) -
     # exact to the CSV's 10 digits; within the solver's tolerance after a solve the car
     # stopped early (over its time budget on a loaded machine: its warm start differs)
     assert c.max_abs_du <= (1e-8 if not late else 2e-3), (c, late)
+    # the comparison's JSON never replaces the log or its received-message log
+    before = csv.read_bytes(), rx.read_bytes()
+    assert main(["replay", str(csv), "--json", str(csv)]) == 2
+    assert main(["replay", str(csv), "--json", str(rx)]) == 2
+    assert (csv.read_bytes(), rx.read_bytes()) == before
 
 
 def test_the_received_message_log_rotates_and_is_deleted_with_the_csv(tmp_path: Path) -> None:

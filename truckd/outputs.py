@@ -94,8 +94,14 @@ def check_output_dir(path: str | Path, what: str = "output directory") -> Path:
     return p
 
 
-def check_distinct(paths: Iterable[tuple[str, str | Path | None]]) -> None:
-    """Refuse one path given for two outputs (``(option, path)`` pairs; None is skipped)."""
+def check_distinct(
+    paths: Iterable[tuple[str, str | Path | None]],
+    dirs: Iterable[tuple[str, str | Path | None, tuple[str, ...]]] = (),
+) -> None:
+    """Refuse one path given for two outputs (``(option, path)`` pairs; None is skipped),
+    and an output file where an output directory writes (``dirs``: ``(option, path,
+    suffixes)``, the suffixes of the files it writes, () for a directory published whole,
+    which replaces everything in it): the one would replace the other."""
     seen: dict[str, str] = {}
     for option, path in paths:
         if path is None:
@@ -104,6 +110,18 @@ def check_distinct(paths: Iterable[tuple[str, str | Path | None]]) -> None:
         if key in seen:
             raise InputError(f"{path}: given for both {seen[key]} and {option}; expected two paths")
         seen[key] = option
+    for option, d, suffixes in dirs:
+        if d is None:
+            continue
+        root = os.path.realpath(os.fspath(d))
+        for key, other in seen.items():
+            inside = key.startswith(root.rstrip(os.sep) + os.sep)
+            if key == root or (inside and (not suffixes or key.endswith(suffixes))):
+                raise InputError(
+                    f"{d}: {option} holds the {other} output ({key}); expected a path "
+                    "outside that directory"
+                )
+        seen[root] = option
 
 
 PathLike = str | Path

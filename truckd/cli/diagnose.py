@@ -75,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run(args: argparse.Namespace) -> int:
-    check_distinct([("--out", args.out), ("--json", args.json), ("--report", args.report)])
+    check_distinct([("--out", args.out), ("--json", args.json)], [("--report", args.report, ())])
     check_gap(args.gap)
     cfg = load_config(args.config)
     logs = read_logs(args.logs, args.vbat, DIAGNOSE_MAX_ROWS)

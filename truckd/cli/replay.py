@@ -17,7 +17,7 @@ from typing import Any
 
 from truckd.errors import InputError
 from truckd.logfile import read_log
-from truckd.outputs import write_text
+from truckd.outputs import guard_inputs, write_text
 from truckd.runtime.replay import compare, replay
 from truckd.runtime.rxlog import SUFFIX, read_rx_recording, solver_failure
 
@@ -56,8 +56,14 @@ def run_files(log: Path) -> list[Path]:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Refuses a ``--json`` that is the log or one of its received-message logs."""
+    files = run_files(Path(args.log))
+    with guard_inputs([args.log, *files], [("--json", args.json)]):
+        return _run(args, files)
+
+
+def _run(args: argparse.Namespace, files: list[Path]) -> int:
     log_path = Path(args.log)
-    files = run_files(log_path)
     log = read_log(log_path, require=("t", "u"))
     missing = [c for c in ("seq", "enable", "mode") if c not in log]
     if missing:

@@ -65,10 +65,17 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run(args: argparse.Namespace) -> int:
+    mcap_file = args.mcap is not None and Path(args.mcap).suffix == ".mcap"
+    check_distinct(
+        [("--json", args.json), ("--plot", args.plot), *([("--mcap", args.mcap)] * mcap_file)],
+        [
+            ("--trace", args.trace, (".csv",)),
+            *([("--mcap", args.mcap, (".mcap",))] * (not mcap_file)),
+        ],
+    )
     if args.platoon is not None or args.scenario in PLATOON_SCENARIOS:
         return run_platoon_cli(args)
     check_platoon_only(args)
-    check_distinct([("--json", args.json), ("--plot", args.plot)])
     cfg = load_config(args.config)
     if args.model:
         mf = read_model(args.model)
