@@ -140,3 +140,21 @@ def test_the_configuration_imports_nothing_of_the_runtime() -> None:
     loaded = set(json.loads(r.stdout))
     assert "truckd.config.runtime" in loaded and "truckd.config.characterize" in loaded
     assert not {m for m in loaded if m.startswith("truckd.runtime")}
+
+
+@pytest.mark.parametrize(
+    ("old", "new", "expected"),
+    [
+        ("  horizon: 40", "  horizon: 040", "'040' has a leading zero"),
+        ("  m: 3.5", "  m: 3:30", "'3:30' is a base-60 number"),
+    ],
+)
+def test_numbers_yaml_versions_read_differently_are_refused(
+    old: str, new: str, expected: str
+) -> None:
+    """``040`` is 32 to YAML 1.1 (PyYAML) and 40 to YAML 1.2, ``3:30`` is 210 or text: a
+    key that silently took the other value would drive another truck."""
+    text = default_config_path().read_text(encoding="utf-8")
+    assert old in text
+    with pytest.raises(InputError, match=expected):
+        parse_config(text.replace(old, new, 1), "t.yaml")

@@ -7,7 +7,9 @@ On top of PyYAML's safe loader:
 - nesting deeper than :data:`MAX_DEPTH` is refused (no ``RecursionError``);
 - a key given twice in one mapping is an error naming the key and both lines;
 - numbers are read as YAML 1.2 does: ``1e308``, ``1.0e308`` and ``1E-3`` are floats
-  (PyYAML's YAML 1.1 rules read them as text);
+  (PyYAML's YAML 1.1 rules read them as text); the forms whose value the two versions
+  disagree on are refused: a leading zero (``040``: 32 in 1.1, 40 in 1.2) and base 60
+  (``3:30``: 210 in 1.1, text in 1.2);
 - a syntax error is one line: ``FILE:LINE:COL: ...``.
 
 Errors are :class:`InputError` and never render a large value.
@@ -91,8 +93,33 @@ class _Loader(yaml.SafeLoader):
             seen[key] = key_node
         return super().construct_mapping(node, deep=deep)
 
+    def construct_yaml_int(self, node: Node) -> int:
+        text = str(self.construct_scalar(node))  # type: ignore[arg-type]
+        body = text.replace("_", "").lstrip("+-")
+        self._ambiguous(node, text, body)
+        if len(body) > 1 and body[0] == "0" and body[1].isdigit():
+            raise InputError(
+                f"{self._where(node)}: {short(text, 30)} has a leading zero (YAML 1.1 reads "
+                f"it as octal, YAML 1.2 as decimal); expected {body.lstrip('0') or '0'}"
+            )
+        return int(super().construct_yaml_int(node))  # type: ignore[arg-type]
+
+    def construct_yaml_float(self, node: Node) -> float:
+        text = str(self.construct_scalar(node))  # type: ignore[arg-type]
+        self._ambiguous(node, text, text)
+        return float(super().construct_yaml_float(node))  # type: ignore[arg-type]
+
+    def _ambiguous(self, node: Node, text: str, body: str) -> None:
+        if ":" in body:
+            raise InputError(
+                f"{self._where(node)}: {short(text, 30)} is a base-60 number in YAML 1.1 "
+                "and text in YAML 1.2; expected a plain number (quote it for text)"
+            )
+
 
 _Loader.add_implicit_resolver("tag:yaml.org,2002:float", _FLOAT_12, list("-+0123456789."))
+_Loader.add_constructor("tag:yaml.org,2002:int", _Loader.construct_yaml_int)
+_Loader.add_constructor("tag:yaml.org,2002:float", _Loader.construct_yaml_float)
 
 
 def load_yaml(text: str, source: str) -> Any:
