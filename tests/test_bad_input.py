@@ -294,9 +294,14 @@ def test_huge_values_are_not_rendered(tmp_path: Path) -> None:
 @pytest.mark.parametrize(
     ("argv", "expected"),
     [
-        (["sim", "--duration", "1e308"], "expected a number of seconds in (0, 86400] (24 h)"),
-        (["sim", "--duration", "-1"], "expected a number of seconds in (0, 86400]"),
+        (["sim", "--duration", "1e308"], "expected a number of seconds in (0, 3600] (1 h)"),
+        (["sim", "--duration", "-1"], "expected a number of seconds in (0, 3600]"),
         (["sim", "--duration", "nan"], "expected a number of seconds"),
+        (
+            ["sim", "--platoon", "100", "--scenario", "platoon-brake", "--duration", "200"],
+            "20000 truck-seconds; expected at most 10800",
+        ),
+        (["sim", "--platoon", "4", "--seed", "-1"], "--seed: expected 0 or more"),
         (
             ["sim", "--platoon", "4", "--duration", "0.5"],
             "--duration: a platoon run needs at least 1 s",

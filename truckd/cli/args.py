@@ -17,8 +17,12 @@ from truckd.errors import InputError
 from truckd.outputs import IMAGE_SUFFIXES, check_output_dir, check_output_file
 
 DAY_S = 86400.0
-MAX_SIM_S = DAY_S
-"""Longest simulated run (``sim --duration``): 24 h, far beyond any scenario."""
+MAX_SIM_S = 3600.0
+"""Longest simulated run (``sim --duration``): an hour, far beyond any scenario (the
+run's time series is kept for its figures: about 0.5 MB per simulated second)."""
+MAX_PLATOON_TRUCK_S = 10800.0
+"""Longest platoon run, counted in truck-seconds (``--duration`` times ``--platoon``):
+about 0.13 MB each, so some 1.4 GB of time series at this bound."""
 MAX_RUN_S = 365 * DAY_S
 """Longest ``--duration`` of the daemon or the monitor: a year."""
 MAX_INTERVAL_S = 3600.0

@@ -34,7 +34,10 @@ def add_subparser(sub: Any) -> None:
     )
     add_platoon_arguments(p)
     p.add_argument(
-        "--duration", type=sim_duration, help="seconds, at most 24 h (default: the scenario's)"
+        "--duration",
+        type=sim_duration,
+        help="seconds, at most 1 h; a platoon's at most 10 800 truck-seconds over its "
+        "trucks (default: the scenario's)",
     )
     p.add_argument("--realtime", action="store_true", help="pace the loop in wall-clock time")
     p.add_argument("--config", help="configuration file (default: the shipped one)")

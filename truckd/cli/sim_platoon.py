@@ -8,6 +8,7 @@ import math
 from pathlib import Path
 from typing import Any
 
+from truckd.cli.args import MAX_PLATOON_TRUCK_S
 from truckd.config.truck import load_config
 from truckd.control.qp import ControlModel
 from truckd.errors import InputError, TruckdError
@@ -141,6 +142,16 @@ def _check(args: argparse.Namespace) -> None:
         raise InputError(f"--plan-loss: expected a share from 0 to 1, got {args.plan_loss}")
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
         raise InputError(f"--duration: expected a positive number of seconds, got {args.duration}")
+    if args.seed < 0:  # numpy's seeds are 0 or more: -1 drew the run of seed 1
+        raise InputError(f"--seed: expected 0 or more, got {args.seed}")
+    trucks = args.platoon
+    if args.duration is not None and args.duration * trucks > MAX_PLATOON_TRUCK_S:
+        raise InputError(
+            f"--duration: {args.duration:g} s of {trucks} trucks is "
+            f"{args.duration * trucks:g} truck-seconds; expected at most "
+            f"{MAX_PLATOON_TRUCK_S:g} (each is kept in memory for the figures, about "
+            "0.13 MB)"
+        )
     if args.duration is not None and args.duration < MIN_PLATOON_DURATION_S:
         raise InputError(
             f"--duration: a platoon run needs at least {MIN_PLATOON_DURATION_S:g} s to measure"
