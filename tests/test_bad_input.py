@@ -302,6 +302,7 @@ def test_huge_values_are_not_rendered(tmp_path: Path) -> None:
             "20000 truck-seconds; expected at most 10800",
         ),
         (["sim", "--platoon", "4", "--seed", "-1"], "--seed: expected 0 or more"),
+        (["sim", "--platoon", "3"], "--platoon 3: platoon-join needs at least 4 trucks (or run"),
         (
             ["sim", "--platoon", "4", "--duration", "0.5"],
             "--duration: a platoon run needs at least 1 s",

@@ -187,9 +187,11 @@ def run_platoon_cli(args: argparse.Namespace) -> int:
         model = ControlModel(mf.vehicle, mf.effects)
     setup = SimSetup.from_config(cfg, model)
     names = PLATOON_SCENARIOS if args.scenario == "all" else (args.scenario,)
-    low = max(MIN_TRUCKS.get(make_platoon_scenario(n).kind, 2) for n in names)
-    if args.platoon < low:
-        raise InputError(f"--platoon: {', '.join(names)} needs at least {low} trucks")
+    needs = {n: MIN_TRUCKS.get(make_platoon_scenario(n).kind, 2) for n in names}
+    short = [f"{n} needs at least {k} trucks" for n, k in needs.items() if args.platoon < k]
+    if short:
+        every = " (or run another --scenario)" if args.scenario == "all" else ""
+        raise InputError(f"--platoon {args.platoon}: {'; '.join(short)}{every}")
     trace_dir = ensure_dir(args.trace, "trace directory") if getattr(args, "trace", None) else None
     results: list[dict[str, Any]] = []
     files: list[tuple[str | Path, str | bytes]] = []
