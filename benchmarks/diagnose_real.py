@@ -24,6 +24,7 @@ from typing import Any
 from results import write_json
 
 from truckd.config.truck import load_config
+from truckd.errors import InputError
 from truckd.ident import ckernel
 from truckd.ident.api import diagnose_log, read_logs
 
@@ -77,7 +78,12 @@ def main() -> int:
     args = ap.parse_args()
     rows = []
     for case in args.cases:
-        r = _one(case, args.jobs)
+        try:
+            r = _one(case, args.jobs)
+        except InputError as exc:  # a log the diagnosis refuses: its row says why
+            print(f"{case}: refused: {exc}")
+            rows.append({"case": case, "refused": str(exc)})
+            continue
         rows.append(r)
         ls = r["least_squares_fit_percent"]
         print(

@@ -484,3 +484,14 @@ def test_outputs_over_an_input_or_each_other_exit_2(
     line = bad_input(["diagnose", str(log), "--json", str(same), "--report", str(same)], capsys)
     assert "--json" in line and "--report" in line
     assert not same.exists()
+
+
+def test_an_output_where_nothing_can_be_created_is_refused_before_any_work() -> None:
+    """/proc takes no new file, whoever asks (root passes a permission check there): an
+    output file or directory in it is refused when the arguments are read."""
+    from truckd.outputs import check_output_dir, check_output_file
+
+    with pytest.raises(InputError, match="not writable"):
+        check_output_file("/proc/truckd-out.json", "JSON output")
+    with pytest.raises(InputError, match="not writable"):
+        check_output_dir("/proc/truckd-report", "report directory")

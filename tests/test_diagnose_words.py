@@ -208,3 +208,20 @@ def test_a_speed_of_the_wrong_sign_and_a_time_in_milliseconds_are_said() -> None
     assert "the speed falls as the voltage rises" in sign
     (slow,) = suspect_columns([Series(t=1000.0 * t, inp=u, v=v, i=None, x=None)])
     assert "median time step is 10 s" in slow
+
+
+def test_sysid_rows_are_numbers_and_gravity_is_said(tmp_path: Path) -> None:
+    """A row of booleans or a short row is refused naming the row; an Elevator or Arm
+    test carries a note on what its gravity does to the fit."""
+    rows = [[0.01 * k, 1.0, 0.02 * k, 0.5] for k in range(20)]
+    path = tmp_path / "s.json"
+    bad = [*rows[:5], [0.05, True, True, True], *rows[6:]]
+    path.write_text(json.dumps({"test": "Simple", "slow-forward": bad}), encoding="utf-8")
+    with pytest.raises(InputError, match="key 'slow-forward': row 5: expected 4 numbers"):
+        read_sysid(str(path))
+    path.write_text(json.dumps({"test": "Simple", "slow-forward": rows[:3] + [[0.1]]}))
+    with pytest.raises(InputError, match="row 3"):
+        read_sysid(str(path))
+    path.write_text(json.dumps({"test": "Elevator", "slow-forward": rows}), encoding="utf-8")
+    (log,) = read_sysid(str(path))
+    assert any("gravity" in n for n in log.notes)

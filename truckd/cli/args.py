@@ -127,7 +127,7 @@ csv_file = output_file("CSV output")
 
 def report_notes(notes: Iterable[str]) -> None:
     """Print a reader's one-line notes (e.g. which input column is used) on stderr."""
-    for note in notes:
+    for note in dict.fromkeys(notes):  # each once, in order (several logs say the same)
         print(f"note: {note}", file=sys.stderr)
 
 

@@ -175,6 +175,11 @@ def runs_from_logs(logs: Sequence[Log], gap: float | None = None) -> list[Series
             )
         s = _series(log)
         got = split_runs(s, gap)
+        if not got and len(s) < MIN_RUN:
+            raise InputError(
+                f"{log.source}: {len(s)} sample(s) with distinct times; a run needs at "
+                f"least {MIN_RUN}"
+            )
         if not got:
             raise InputError(
                 f"{log.source}: no stretch of {MIN_RUN} samples without a pause "

@@ -41,6 +41,29 @@ UNITS = {
 radians (a flywheel's or arm's speed in rad/s then stands where a truck's m/s would)."""
 
 
+GRAVITY = {
+    "elevator": "a SysId Elevator test: gravity (SysId's kG) acts as a constant load against "
+    "the climb, which the diagnosis may name load_force",
+    "arm": "a SysId Arm test: gravity on the arm (SysId's kG cos(angle)) changes with the "
+    "angle; the model has no such term, it shows as a load changing with position",
+}
+"""What a mechanism's gravity does to the fit (the model is a drive on level ground)."""
+
+
+def _check_rows(rows: object, where: str, width: int, drivetrain: bool) -> None:
+    """Every row a list of at least ``width`` numbers (not booleans, not text)."""
+    if not isinstance(rows, list):
+        raise InputError(f"{where}: expected a list of rows, got {type(rows).__name__}")
+    kind = "drivetrain" if drivetrain else "simple"
+    for k, row in enumerate(rows):
+        ok = isinstance(row, list) and len(row) >= width
+        ok = ok and all(isinstance(x, int | float) and not isinstance(x, bool) for x in row[:width])
+        if not ok:
+            raise InputError(
+                f"{where}: row {k}: expected {width} numbers ({kind} test), got {str(row)[:60]}"
+            )
+
+
 def is_sysid_path(path: str) -> bool:
     """A path (optionally with ``:test,...``) that names a SysId ``.json`` file."""
     return split_selector(path)[0].lower().endswith(".json")
@@ -76,7 +99,8 @@ def read_sysid(path: str) -> list[Log]:
     drivetrain = "drivetrain" in test_kind
     sign = -1.0 if drivetrain and "angular" in test_kind else 1.0  # left side's weight
     width = 9 if drivetrain else 4
-    logs = []
+    notes = [GRAVITY[k] for k in GRAVITY if k in test_kind][:1]
+    logs: list[Log] = []
     for name in wanted:
         if name not in TESTS:
             raise InputError(f"{path}: unknown test {name!r}; expected one of {', '.join(TESTS)}")
@@ -85,11 +109,9 @@ def read_sysid(path: str) -> list[Log]:
             if wanted is TESTS:
                 continue
             raise InputError(f"{file}: key {name!r} missing")
-        try:
-            a = np.asarray(rows, dtype=float)
-        except (TypeError, ValueError):
-            raise InputError(f"{file}: key {name!r}: rows are not lists of numbers") from None
-        if a.ndim != 2 or a.shape[1] < width or len(a) < 2:
+        _check_rows(rows, f"{file}: key {name!r}", width, drivetrain)
+        a = np.asarray([row[:width] for row in rows], dtype=float).reshape(-1, width)
+        if len(a) < 2:
             raise InputError(
                 f"{file}: key {name!r}: expected rows of {width} numbers "
                 f"({'drivetrain' if drivetrain else 'simple'} test)"
@@ -106,7 +128,9 @@ def read_sysid(path: str) -> list[Log]:
             v = 0.5 * (a[:, 6] + sign * a[:, 5]) * scale
         else:
             u, x, v = a[:, 1], a[:, 2] * scale, a[:, 3] * scale
-        logs.append(Log({"t": a[:, 0].copy(), "u": u, "v": v, "x": x}, f"{file}:{name}"))
+        logs.append(
+            Log({"t": a[:, 0].copy(), "u": u, "v": v, "x": x}, f"{file}:{name}", notes=notes)
+        )
     if not logs:
         raise InputError(f"{file}: no SysId test found (expected keys {', '.join(TESTS)})")
     return logs
