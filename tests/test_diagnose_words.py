@@ -60,6 +60,10 @@ def test_sysid_logs_in_every_unit_system(tmp_path: Path, units: str) -> None:
     (log,) = read_sysid(str(path))
     v = np.asarray(log.columns["v"])
     assert v[10] == pytest.approx((0.5 + 0.01) * UNIT[units])
+    # a rotational unit says what the printed per-metre constants mean
+    assert any("per radian" in n for n in log.notes) == (
+        units in ("Radians", "Rotations", "Degrees")
+    )
 
 
 @pytest.mark.parametrize("test", ["Drivetrain", "Drivetrain (Angular)"])
@@ -219,7 +223,7 @@ def test_sysid_rows_are_numbers_and_gravity_is_said(tmp_path: Path) -> None:
     path.write_text(json.dumps({"test": "Simple", "slow-forward": bad}), encoding="utf-8")
     with pytest.raises(InputError, match="key 'slow-forward': row 5: expected 4 numbers"):
         read_sysid(str(path))
-    path.write_text(json.dumps({"test": "Simple", "slow-forward": rows[:3] + [[0.1]]}))
+    path.write_text(json.dumps({"test": "Simple", "slow-forward": [*rows[:3], [0.1]]}))
     with pytest.raises(InputError, match="row 3"):
         read_sysid(str(path))
     path.write_text(json.dumps({"test": "Elevator", "slow-forward": rows}), encoding="utf-8")

@@ -39,6 +39,7 @@ UNITS = {
 }
 """SysId's unit systems and the factor to SI: linear ones to metres; rotational ones to
 radians (a flywheel's or arm's speed in rad/s then stands where a truck's m/s would)."""
+ROTATIONAL = ("radians", "rotations", "degrees")
 
 
 GRAVITY = {
@@ -100,6 +101,13 @@ def read_sysid(path: str) -> list[Log]:
     sign = -1.0 if drivetrain and "angular" in test_kind else 1.0  # left side's weight
     width = 9 if drivetrain else 4
     notes = [GRAVITY[k] for k in GRAVITY if k in test_kind][:1]
+    if unit_name in ROTATIONAL:
+        notes.append(
+            f"units {raw.get('units')}: converted to rad, the speed in rad/s stands where a "
+            "truck's m/s would: kV and kA printed per metre (V s/m, V s^2/m) are per "
+            "radian (V s/rad, V s^2/rad), and forces and weights in the notes are the "
+            "torques over the configured wheel radius"
+        )
     logs: list[Log] = []
     for name in wanted:
         if name not in TESTS:
