@@ -114,6 +114,33 @@ SLOW_STEP_S = 1.0
 """A median time step above this (s) is no motor's log in seconds."""
 
 
+def _extended_of(refit: Refit, choice: Choice, trials: Trials) -> _Extended:
+    """The joint refit's model (its accepted causes not kept switched off), or the seed
+    when the refit neither kept a cause nor beat it."""
+    off = {trials.by_name[a].param.name: 0.0 for a in choice.accepted if a not in refit.kept}
+    final, base = refit.final, refit.base_pol
+    return _Extended(
+        findings=refit.findings,
+        kept=refit.kept,
+        summary=refit.ext_sum,
+        y=refit.y_ext,
+        params=final.params if refit.refitted else base.params,
+        effects=dataclasses.replace(final.effects, **off) if refit.refitted else base.effects,
+        rows=dict(refit.rows),
+    )
+
+
+def _refit_note(refit: Refit) -> list[str]:
+    """The note when the extended model is the seed refitted, without any cause."""
+    if not refit.refitted or refit.kept:
+        return []
+    return [
+        "no cause named, but the seed refitted jointly on more of the data fits the report "
+        f"data better ({refit.base_sum.fit_percent:.1f} -> {refit.ext_sum.fit_percent:.1f} "
+        "%): the extended model is that refit"
+    ]
+
+
 def suspect_columns(runs: Sequence[Series]) -> list[str]:
     """What looks like a column in the wrong sign or unit, said with the numbers (the
     fit goes on: the notes a user must see)."""
@@ -207,29 +234,8 @@ def report_stage(
     model, the limits it ends on, what the runs cannot determine, and whether its
     residual leaves structure (``unexplained``)."""
     by_name = trials.by_name
-    kept = refit.kept
-    switched_off = {by_name[a].param.name: 0.0 for a in choice.accepted if a not in kept}
-    final, base_pol = refit.final, refit.base_pol
-    ext = _Extended(
-        findings=refit.findings,
-        kept=kept,
-        summary=refit.ext_sum,
-        y=refit.y_ext,
-        params=final.params if refit.refitted else base_pol.params,
-        effects=(
-            dataclasses.replace(final.effects, **switched_off)
-            if refit.refitted
-            else base_pol.effects
-        ),
-        rows=dict(refit.rows),
-    )
-    notes = [*_notes(prep.runs, start.ff, seed.fisher)]
-    if refit.refitted and not kept:
-        notes.append(
-            "no cause named, but the seed refitted jointly on more of the data fits the "
-            f"report data better ({refit.base_sum.fit_percent:.1f} -> "
-            f"{refit.ext_sum.fit_percent:.1f} %): the extended model is that refit"
-        )
+    ext = _extended_of(refit, choice, trials)
+    notes = [*_notes(prep.runs, start.ff, seed.fisher), *_refit_note(refit)]
     ls_json: dict[str, float | None] | None = None
     if start.ls is not None:
         ext, ls_json, below = _against_least_squares(ext, start.ls, prep.report, progress)

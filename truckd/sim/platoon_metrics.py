@@ -132,6 +132,20 @@ def _changes(seq: list[str]) -> int:
     return sum(a != b for a, b in itertools.pairwise(seq))
 
 
+def _supervisor_figures(tr: PlatoonTrace, dt: float) -> dict[str, Any]:
+    """Per follower: the supervisor modes it was in (``OUT`` while off the road), and as
+    a single truck's run reports them, the seconds in each mode (every mode named) and
+    the count of mode changes from one cycle to the next while on the road."""
+    seqs = list(zip(*tr.supervisor, strict=True))
+    return {
+        "supervisor_modes": [sorted(set(m)) for m in seqs],
+        "mode_time_s": [
+            {mode.value: round(seq.count(mode.value) * dt, 9) for mode in Mode} for seq in seqs
+        ],
+        "transitions": [_changes([m for m in seq if m != "OUT"]) for seq in seqs],
+    }
+
+
 def platoon_metrics(
     name: str,
     n_trucks: int,
@@ -204,16 +218,6 @@ def platoon_metrics(
         "plans_sent": sum(c.sent for c in channels),
         "plans_lost": sum(c.lost for c in channels),
         "solver_failures": [f.cyc.controller.solver_failures for f in followers],
-        "supervisor_modes": [sorted(set(m)) for m in zip(*tr.supervisor, strict=True)],
-        # per follower, as a single truck's run reports them: s in each supervisor mode
-        # (every mode named) and the count of mode changes from one cycle to the next,
-        # while the truck is on the road
-        "mode_time_s": [
-            {mode.value: round(seq.count(mode.value) * dt, 9) for mode in Mode}
-            for seq in zip(*tr.supervisor, strict=True)
-        ],
-        "transitions": [
-            _changes([m for m in seq if m != "OUT"]) for seq in zip(*tr.supervisor, strict=True)
-        ],
+        **_supervisor_figures(tr, dt),
         "duration_s": round(float(t[-1] + dt), 6),
     }
