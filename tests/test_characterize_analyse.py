@@ -88,4 +88,5 @@ def test_analyse_refuses_what_is_not_a_completed_drive(
     assert len(err) == 4, err
     assert "summary.json" in err[0] and "did not complete (exit 4)" in err[1]
     assert "not a characterize summary" in err[2] and "drives nothing" in err[3]
+    assert all(line.startswith("truckd characterize: error: ") for line in err), err
     assert not any((d / "model.yaml").exists() for d in (stopped, garbled))

@@ -125,6 +125,9 @@ def test_bad_endpoint_is_an_input_error_naming_it() -> None:
         )
     with pytest.raises(InputError, match=r"listen 'nowhere'"):
         zenoh_config(listen=["nowhere"])
+    # a port above 65535, which Zenoh takes and never reaches
+    with pytest.raises(InputError, match=r"connect 'tcp/127.0.0.1:99999': port above 65535"):
+        zenoh_config(connect=["tcp/127.0.0.1:99999"])
 
 
 @pytest.mark.parametrize(

@@ -92,8 +92,7 @@ def run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     if args.analyse is not None:
         if args.out or args.backend or args.drive_only:
-            _console("characterize: --analyse drives nothing: no --out, --backend or --drive-only")
-            return 2
+            raise InputError("--analyse drives nothing: no --out, --backend or --drive-only")
         return analyse_dir(cfg, Path(args.analyse), _console)
     out = Path(args.out or time.strftime("characterize-%Y%m%dT%H%M%SZ", time.gmtime()))
     return characterize(cfg, args.backend, out, _console, drive_only=args.drive_only)
@@ -360,11 +359,8 @@ def analyse_dir(cfg: TruckConfig, d: Path, console: Callable[[str], None] = _con
         if "experiment" not in log.columns:
             raise InputError(f"{d / 'log.csv'}: no 'experiment' column: not a characterize log")
     except (ValueError, KeyError, TypeError) as exc:  # JSONDecodeError is a ValueError
-        console(f"characterize: {d / 'summary.json'}: not a characterize summary ({exc})")
-        return 2
-    except InputError as exc:
-        console(f"characterize: {exc}")
-        return 2
+        # one line, `truckd characterize: error: ...`, exit 2 (reference section 1)
+        raise InputError(f"{d / 'summary.json'}: not a characterize summary ({exc})") from None
     # no link to a truck here: the diagnosis's fits may go to forked workers
     return _analyse_into(cfg, log, result, d, summary, console, min(usable_cpus(), 4))
 

@@ -44,8 +44,19 @@ def default_zenoh_config_path() -> Path:
     return Path(__file__).resolve().parent.parent / "defaults" / "zenoh.json5"
 
 
+def _port_out_of_range(endpoint: str) -> bool:
+    """An IP endpoint (``tcp/HOST:PORT``, ``udp``, ``tls``, ``quic``) whose port is above
+    65535 (Zenoh accepts it and never connects)."""
+    head = endpoint.split("#", 1)[0].split("?", 1)[0]
+    _, sep, port = head.rpartition(":")
+    return bool(sep) and port.isdigit() and int(port) > 65535
+
+
 def _set_endpoints(conf: zenoh.Config, key: str, endpoints: Sequence[str], name: str) -> None:
     """``conf[key] = endpoints``; InputError naming ``name`` and the bad endpoint."""
+    for e in endpoints:
+        if _port_out_of_range(e):
+            raise InputError(f"{name} {e!r}: port above 65535; expected a port in 1..65535")
     try:
         conf.insert_json5(key, json.dumps(list(endpoints)))
         return
