@@ -27,7 +27,14 @@ class VehicleParams:
     n_g: float = spec("gearbox ratio (motor turns per output turn)", lo=0.0, lo_open=True, hi=1e3)
     n_fd: float = spec("final drive ratio", lo=0.0, lo_open=True, hi=1e3)
     r_w: float = spec("wheel radius", unit="m", lo=0.0, lo_open=True, hi=2.0)
-    m: float = spec("vehicle mass", unit="kg", lo=0.0, lo_open=True, hi=1e4)
+    m: float = spec(
+        "vehicle mass: the weight that bounds a load or drag an effect may have (the "
+        "inertia the dynamics use is J_S)",
+        unit="kg",
+        lo=0.0,
+        lo_open=True,
+        hi=1e4,
+    )
     K_coulomb: float = spec(
         "Coulomb friction torque at the motor shaft", unit="N m", lo=0.0, hi=100.0
     )

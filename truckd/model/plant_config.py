@@ -88,7 +88,14 @@ class PlantConfig:
     """The simulated truck's effects and sensor imperfections."""
 
     effects: Effects = spec("effects the seed model lacks", default_factory=Effects)
-    noise_v: float = spec("speed measurement noise (std)", unit="m/s", lo=0.0, hi=10.0, default=0.0)
+    noise_v: float = spec(
+        "speed measurement noise (std) of open-loop logs (truckd simulate, synthetic logs); "
+        "the closed loop measures the speed by the encoder (encoder_ticks_per_rev)",
+        unit="m/s",
+        lo=0.0,
+        hi=10.0,
+        default=0.0,
+    )
     noise_i: float = spec(
         "current measurement noise (std)", unit="A", lo=0.0, hi=100.0, default=0.0
     )
