@@ -12,6 +12,7 @@ import pytest
 
 from truckd.cli.main import main
 from truckd.config.truck import load_config
+from truckd.errors import InputError
 from truckd.logfile import read_log, write_log
 from truckd.model.effects import Effects
 from truckd.model.motor import steady_speed
@@ -121,3 +122,15 @@ def test_a_model_with_numpy_values_is_written_and_reads_back(tmp_path: Path) -> 
     back = read_model(tmp_path / "m.yaml")
     assert back.vehicle.J_S == float(fitted.J_S)
     assert back.effects.load_force == -0.22 and back.effects.input_delay == 0.03
+
+
+def test_a_model_whose_truck_cannot_move_is_refused(tmp_path: Path) -> None:
+    """A saturation of a millivolt or a dead zone above the battery leave nothing that
+    breaks the truck away: the model file is refused when read, naming why."""
+    p = load_config().vehicle
+    for eff in (Effects(voltage_saturation=0.001), Effects(dead_zone=p.V_batt + 0.5)):
+        write_model(tmp_path / "m.yaml", ModelFile(vehicle=p, effects=eff))
+        with pytest.raises(InputError, match="this model's truck cannot move"):
+            read_model(tmp_path / "m.yaml")
+    write_model(tmp_path / "m.yaml", ModelFile(vehicle=p, effects=Effects(dead_zone=0.3)))
+    assert read_model(tmp_path / "m.yaml").effects.dead_zone == 0.3

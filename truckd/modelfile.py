@@ -18,7 +18,7 @@ import yaml
 
 from truckd.config.truck import TruckConfig
 from truckd.inputs import read_text
-from truckd.model.effects import Effects
+from truckd.model.effects import Effects, driver_output
 from truckd.model.params import VehicleParams
 from truckd.outputs import write_text
 from truckd.schema import load_dataclass, spec, to_plain
@@ -32,6 +32,21 @@ class ModelFile:
     vehicle: VehicleParams = spec("motor, drivetrain and friction parameters")
     effects: Effects = spec("effects found in the data", default_factory=Effects)
     source: str = spec("where the model came from", default="")
+
+    def validate(self) -> str | None:
+        """A model whose driver passes no voltage that breaks the truck away (a saturation
+        of a millivolt, a dead zone above the battery) describes a truck that cannot move:
+        refused (called by the loader)."""
+        p = self.vehicle
+        top, _ = driver_output(p.V_batt, self.effects, p.V_batt)
+        breakaway = p.K_stiction * p.R_m / p.K_T
+        if top <= breakaway:
+            return (
+                f"effects: at most {top:.3g} V reach the motor (vehicle.V_batt {p.V_batt:g} V "
+                "through dead_zone, dead_zone_offset and voltage_saturation) and the truck "
+                f"breaks away at {breakaway:.3g} V: this model's truck cannot move"
+            )
+        return None
 
 
 def read_model(path: str | Path) -> ModelFile:
