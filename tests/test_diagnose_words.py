@@ -229,3 +229,20 @@ def test_sysid_rows_are_numbers_and_gravity_is_said(tmp_path: Path) -> None:
     path.write_text(json.dumps({"test": "Elevator", "slow-forward": rows}), encoding="utf-8")
     (log,) = read_sysid(str(path))
     assert any("gravity" in n for n in log.notes)
+
+
+def test_a_current_column_left_out_is_said() -> None:
+    """Two runs, one with current and one without: fitted together on speed alone, and
+    the alerts say that the current column was not used."""
+    from labkit.synth import plant_log
+
+    from truckd.config.truck import load_config
+    from truckd.ident.api import diagnose_log
+    from truckd.logfile import Log
+    from truckd.model.effects import Effects
+
+    p = load_config().vehicle
+    with_i = plant_log(p, Effects(), seed=3, n=1500, with_current=True)
+    without = plant_log(p, Effects(), seed=4, n=1500, with_current=False)
+    d = diagnose_log([Log(with_i.columns, "<with i>"), Log(without.columns, "<no i>")], p)
+    assert any("current column of <with i> is not used" in a for a in d.alerts), d.alerts
