@@ -82,6 +82,10 @@ def test_simulate_with_model_file_uses_its_effects(tmp_path: Path, params: Vehic
     ("text", "expected"),
     [
         ("t,v\n0,0\n0.01,0\n", "missing column 'u'"),
+        ("t;u\n0;0\n0.01;1\n", "the file looks separated by ';': expected commas"),
+        ("Time,u\n0,0\n0.01,1\n", "did you mean 'Time'? columns are named exactly 't'"),
+        ("t [s],u\n0,0\n0.01,1\n", "did you mean 't [s]'?"),
+        ("Timestamp,Name,Value\n0,/a,1\n", "a WPILib DataLog export"),
         ("t,u\n0,0\n0.01,abc\n", "line 3: column 'u': 'abc' is not a number"),
         ("t,u\n0,0\n0.01,1\n0.01,2\n", "line 4: time t=0.01 does not increase"),
         ("t,u\n0,0\n0.01,1,5\n", "line 3: 3 cells, header has 2"),

@@ -222,6 +222,11 @@ def _stream_lines(fh: BinaryIO, src: str) -> Iterator[str]:
             raise InputError(
                 f"{src}: line {at}: byte 0x{part[exc.start]:02x} at offset {offset + exc.start} "
                 "is not UTF-8; expected a UTF-8 text CSV log"
+                + (
+                    " (a .wpilog is a binary WPILib DataLog: give SysId's JSON export)"
+                    if str(src).lower().endswith(".wpilog")
+                    else ""
+                )
             ) from None
         first = False
         offset += len(part)
@@ -415,7 +420,35 @@ def _check_header(
                 "or --vbat V"
             )
         listed = _clip(", ".join(names), 80)
-        raise InputError(f"{src}: line 1: missing column '{col}' (header has: {listed})")
+        raise InputError(
+            f"{src}: line 1: missing column '{col}' (header has: {listed}){_hint(col, names)}"
+        )
+
+
+_ALIASES = {
+    "t": ("time", "timestamp", "time_s"),
+    "u": ("voltage", "volts", "voltage_v"),
+    "v": ("velocity", "speed", "velocity_m_s"),
+}
+"""Names other tools give the required columns (said as a hint, never read as them)."""
+
+
+def _hint(col: str, names: Sequence[str]) -> str:
+    """What a header that lacks ``col`` looks like it is (a wrong separator, a name in
+    another case or with its unit, a WPILib DataLog export), or ''."""
+    if len(names) == 1 and (";" in names[0] or "\t" in names[0]):
+        sep = "';'" if ";" in names[0] else "tabs"
+        return f"; the file looks separated by {sep}: expected commas"
+    if {n.lower() for n in names} >= {"timestamp", "name", "value"}:
+        return (
+            "; a WPILib DataLog export (one row per entry): give the SysId JSON, or a CSV "
+            "with one row per sample and columns t, u, v"
+        )
+    alike = {col.lower(), *_ALIASES.get(col, ())}
+    near = [n for n in names if n.split("[")[0].split("(")[0].strip().lower() in alike]
+    if near:
+        return f"; did you mean {near[0]!r}? columns are named exactly {col!r} (SI, no unit)"
+    return ""
 
 
 def _derive_u(
