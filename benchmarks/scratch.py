@@ -2,7 +2,8 @@
 
 By default a fresh temporary directory, removed when the script exits (normally, by an
 exception, or by SIGTERM where the script turns it into an exception); with a path
-(``--work-dir DIR``), that directory, created if missing and kept for reading after.
+(``--work-dir DIR``), that directory, new or empty (the run reads its own files back),
+created if missing and kept for reading after.
 """
 
 from __future__ import annotations
@@ -18,6 +19,8 @@ def scratch_dir(prefix: str, keep: str | Path | None = None) -> Path:
     is removed at the interpreter's exit."""
     if keep is not None:
         path = Path(keep)
+        if path.exists() and any(path.iterdir()):  # a run's figures come from its files
+            raise SystemExit(f"--work-dir {path}: not empty; give a new or empty directory")
         path.mkdir(parents=True, exist_ok=True)
         return path
     path = Path(tempfile.mkdtemp(prefix=prefix))

@@ -367,8 +367,9 @@ def test_an_output_file_where_an_output_directory_writes_is_refused(
     run = ["sim", "--scenario", "follow", "--duration", "1", "--trace", str(trace)]
     line = bad_input([*run, "--json", str(trace / "follow.csv")], capsys)
     assert "--trace holds the --json output" in line
-    platoon = ["sim", "--platoon", "2", "--scenario", "platoon-brake", "--duration", "1"]
-    line = bad_input([*platoon, "--mcap", str(trace), "--json", str(trace / "p.mcap")], capsys)
+    line = bad_input(
+        ["sim", "--scenario", "all", "--mcap", str(trace), "--json", str(trace / "p.mcap")], capsys
+    )
     assert "--mcap holds the --json output" in line
     assert list(trace.iterdir()) == []
     log = write(tmp_path, "log.csv", GOOD)
@@ -380,6 +381,9 @@ def test_an_output_file_where_an_output_directory_writes_is_refused(
     assert "--report holds the --json output" in line
     assert cli([*run, "--json", str(trace / "metrics.json")], capsys)[0] == 0
     assert sorted(p.name for p in trace.iterdir()) == ["follow.csv", "metrics.json"]
+    both = tmp_path / "both"  # a trace and MCAP in one directory: each its own suffix
+    assert cli([*run[:-1], str(both), "--mcap", str(both)], capsys)[0] == 0
+    assert sorted(p.name for p in both.iterdir()) == ["follow.csv", "follow.mcap"]
 
 
 def test_identify_and_simulate_check_out(

@@ -147,6 +147,8 @@ def test_the_configuration_imports_nothing_of_the_runtime() -> None:
     [
         ("  horizon: 40", "  horizon: 040", "'040' has a leading zero"),
         ("  m: 3.5", "  m: 3:30", "'3:30' is a base-60 number"),
+        ("  horizon: 40", "  horizon: -040", "expected -40"),
+        ("  horizon: 40", "  horizon: 0b101", "'0b101' is a binary number"),
     ],
 )
 def test_numbers_yaml_versions_read_differently_are_refused(

@@ -226,6 +226,11 @@ def test_sysid_rows_are_numbers_and_gravity_is_said(tmp_path: Path) -> None:
     path.write_text(json.dumps({"test": "Simple", "slow-forward": [*rows[:3], [0.1]]}))
     with pytest.raises(InputError, match="row 3"):
         read_sysid(str(path))
+    path.write_text(
+        json.dumps({"test": "Simple", "slow-forward": [*rows[:2], [0.1, 10**400, 0, 0]]})
+    )
+    with pytest.raises(InputError, match="row 2"):  # a number no float holds
+        read_sysid(str(path))
     path.write_text(json.dumps({"test": "Elevator", "slow-forward": rows}), encoding="utf-8")
     (log,) = read_sysid(str(path))
     assert any("gravity" in n for n in log.notes)

@@ -128,6 +128,11 @@ def test_bad_endpoint_is_an_input_error_naming_it() -> None:
     # a port above 65535, which Zenoh takes and never reaches
     with pytest.raises(InputError, match=r"connect 'tcp/127.0.0.1:99999': port above 65535"):
         zenoh_config(connect=["tcp/127.0.0.1:99999"])
+    from truckd.runtime.telemetry import _port_out_of_range
+
+    assert _port_out_of_range("tls/host:99999?x=y") and _port_out_of_range("tcp/[::1]:70000")
+    assert not _port_out_of_range("unixsock-stream//tmp/run:99999")
+    assert not _port_out_of_range("tcp/[::1]:7447")
 
 
 @pytest.mark.parametrize(

@@ -123,6 +123,7 @@ def check_distinct(
         if key in seen:
             raise InputError(f"{path}: given for both {seen[key]} and {option}; expected two paths")
         seen[key] = option
+    roots: list[tuple[str, str, tuple[str, ...]]] = []
     for option, d, suffixes in dirs:
         if d is None:
             continue
@@ -134,7 +135,11 @@ def check_distinct(
                     f"{d}: {option} holds the {other} output ({key}); expected a path "
                     "outside that directory"
                 )
-        seen[root] = option
+        for other_root, other, other_suffixes in roots:  # one directory, two writers
+            clash = not suffixes or not other_suffixes or set(suffixes) & set(other_suffixes)
+            if other_root == root and clash:
+                raise InputError(f"{d}: given for both {other} and {option}; expected two paths")
+        roots.append((root, option, suffixes))
 
 
 PathLike = str | Path

@@ -98,9 +98,15 @@ class _Loader(yaml.SafeLoader):
         body = text.replace("_", "").lstrip("+-")
         self._ambiguous(node, text, body)
         if len(body) > 1 and body[0] == "0" and body[1].isdigit():
+            sign = "-" if text.lstrip().startswith("-") else ""
             raise InputError(
                 f"{self._where(node)}: {short(text, 30)} has a leading zero (YAML 1.1 reads "
-                f"it as octal, YAML 1.2 as decimal); expected {body.lstrip('0') or '0'}"
+                f"it as octal, YAML 1.2 as decimal); expected {sign}{body.lstrip('0') or '0'}"
+            )
+        if body.lower().startswith("0b"):
+            raise InputError(
+                f"{self._where(node)}: {short(text, 30)} is a binary number in YAML 1.1 and "
+                "text in YAML 1.2; expected a decimal number"
             )
         return int(super().construct_yaml_int(node))  # type: ignore[arg-type]
 

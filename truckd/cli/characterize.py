@@ -338,8 +338,8 @@ SUMMARY_MAX_BYTES = 1 << 20
 
 def analyse_dir(cfg: TruckConfig, d: Path, console: Callable[[str], None] = _console) -> int:
     """``--analyse DIR``: the analysis of the completed drive in ``d`` (its ``log.csv`` and
-    ``summary.json``), written into ``d``; the exit code (0, 1 the analysis failed, 2 no
-    completed drive there)."""
+    ``summary.json``), written into ``d``; the exit code (0, 1 the analysis failed).
+    InputError (exit 2) when ``d`` holds no completed drive."""
     from truckd.inputs import read_text
 
     try:

@@ -130,14 +130,15 @@ def _diagnose(
     runs = runs_from_logs(logs, gap)
     val_runs = runs_from_logs(vals, gap) if vals else None
     d = diagnose_voltage(p0, runs, val_runs, progress, mapper)
-    with_i = [lg.source for lg in logs if "i" in lg.columns]
-    if with_i and len(with_i) < len(logs):  # runs_from_logs dropped it: said, not silent
-        note = (
-            f"the current column of {', '.join(with_i)} is not used: the other logs have "
-            "none (the runs are fitted together, on speed alone)"
-        )
-        d.notes.insert(0, note)
-        d.alerts.insert(0, note)
+    for group, what in ((logs, "fitted"), (vals, "validated")):
+        with_i = [lg.source for lg in group if "i" in lg.columns]
+        if with_i and len(with_i) < len(group):  # runs_from_logs dropped it: said
+            note = (
+                f"the current column of {', '.join(with_i)} is not used: the other logs "
+                f"{what} with it have none (those runs are taken on speed alone)"
+            )
+            d.notes.insert(0, note)
+            d.alerts.insert(0, note)
     return d
 
 

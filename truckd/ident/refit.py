@@ -116,7 +116,11 @@ def refit_stage(
         if len(alt[1]) > len(kept) or (
             len(alt[1]) == len(kept) and alt[2].fit_percent > ext_sum.fit_percent
         ):
-            progress("the final joint refit loses a cause: the selection's model stays")
+            progress(
+                "the final joint refit loses a cause: the selection's model stays"
+                if len(alt[1]) > len(kept)
+                else "the selection's model fits the report data better: it stays"
+            )
             final = sel
             findings, kept, ext_sum, y_ext = alt
     for name in accepted:

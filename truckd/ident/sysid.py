@@ -58,7 +58,10 @@ def _check_rows(rows: object, where: str, width: int, drivetrain: bool) -> None:
     kind = "drivetrain" if drivetrain else "simple"
     for k, row in enumerate(rows):
         ok = isinstance(row, list) and len(row) >= width
-        ok = ok and all(isinstance(x, int | float) and not isinstance(x, bool) for x in row[:width])
+        ok = ok and all(
+            isinstance(x, int | float) and not isinstance(x, bool) and abs(x) < 1e300
+            for x in row[:width]
+        )
         if not ok:
             raise InputError(
                 f"{where}: row {k}: expected {width} numbers ({kind} test), got {str(row)[:60]}"

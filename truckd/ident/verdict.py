@@ -235,12 +235,12 @@ def report_stage(
     residual leaves structure (``unexplained``)."""
     by_name = trials.by_name
     ext = _extended_of(refit, choice, trials)
-    notes = [*_notes(prep.runs, start.ff, seed.fisher), *_refit_note(refit)]
+    notes = _notes(prep.runs, start.ff, seed.fisher)
     ls_json: dict[str, float | None] | None = None
+    below = None
     if start.ls is not None:
         ext, ls_json, below = _against_least_squares(ext, start.ls, prep.report, progress)
-        if below is not None:
-            notes.append(below)
+    notes.extend([below] if below is not None else _refit_note(refit))  # the model it is
     findings, kept, ext_sum, y_ext = ext.findings, ext.kept, ext.summary, ext.y
     ext_params, ext_effects, rows = ext.params, ext.effects, ext.rows
     free = [*seed.free, *[by_name[a].param for a in kept]]

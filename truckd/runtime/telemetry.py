@@ -48,6 +48,8 @@ def _port_out_of_range(endpoint: str) -> bool:
     """An IP endpoint (``tcp/HOST:PORT``, ``udp``, ``tls``, ``quic``) whose port is above
     65535 (Zenoh accepts it and never connects)."""
     head = endpoint.split("#", 1)[0].split("?", 1)[0]
+    if head.split("/", 1)[0] not in ("tcp", "udp", "tls", "quic", "ws"):
+        return False
     _, sep, port = head.rpartition(":")
     return bool(sep) and port.isdigit() and int(port) > 65535
 
