@@ -499,3 +499,16 @@ def test_an_output_where_nothing_can_be_created_is_refused_before_any_work() -> 
         check_output_file("/proc/truckd-out.json", "JSON output")
     with pytest.raises(InputError, match="not writable"):
         check_output_dir("/proc/truckd-report", "report directory")
+
+
+def test_plan_delay_reads_exponents_and_refuses_underscores() -> None:
+    """``--plan-delay``: a dash inside an exponent is no range (``1e-2`` is 10 ms), a
+    range may use exponents, and ``1_0`` (which float() reads as 10) is refused."""
+    from truckd.cli.sim_platoon import parse_delay
+
+    assert parse_delay("1e-2") == (0.01, 0.01)
+    assert parse_delay("1e-3-2e-2") == (0.001, 0.02)
+    assert parse_delay("0-0.05") == (0.0, 0.05)
+    for bad in ("1_0", "0.05-0.01", "-1", "a-b"):
+        with pytest.raises(InputError, match="--plan-delay"):
+            parse_delay(bad)

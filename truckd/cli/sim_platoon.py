@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import re
 from pathlib import Path
 from typing import Any
 
@@ -164,8 +165,11 @@ def _check(args: argparse.Namespace) -> None:
 
 def parse_delay(text: str) -> tuple[float, float]:
     """``--plan-delay``: ``S`` or ``LO-HI`` (s, 0 to 10); InputError otherwise."""
-    parts = text.split("-", 1) if not text.startswith("-") else [text]
+    # the range's dash, not an exponent's (1e-2) nor a leading sign
+    parts = [text] if text.startswith("-") else re.split(r"(?<![eE])-", text, maxsplit=1)
     try:
+        if "_" in text:  # float() takes 1_0; a delay written so is a typo
+            raise ValueError(text)
         lo, hi = (float(parts[0]), float(parts[-1]))
     except ValueError:
         raise InputError(f"--plan-delay: expected S or LO-HI in seconds, got {text!r}") from None
