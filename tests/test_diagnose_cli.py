@@ -153,3 +153,18 @@ def test_validation_log_of_another_kind_is_exit_2(
     write_log(tmp_path / "f.csv", {"t": t, "F": np.sin(t), "x": np.cos(t)})
     assert main(["diagnose", str(tmp_path / "v.csv"), "--validate", str(tmp_path / "f.csv")]) == 2
     assert "f.csv" in _one_line_error(capsys)
+
+
+def test_a_large_log_is_said_before_it_is_read(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Reading a log of tens of megabytes takes seconds: the first line says so (the
+    bound lowered here so that a small log stands for a large one)."""
+    import truckd.cli.diagnose as cli_diagnose
+
+    monkeypatch.setattr(cli_diagnose, "LARGE_LOG_BYTES", 100)
+    t = np.arange(500) * 0.01
+    write_log(tmp_path / "big.csv", {"t": t, "u": np.sin(t)})  # refused after reading
+    assert main(["diagnose", str(tmp_path / "big.csv")]) == 2
+    first = capsys.readouterr().err.splitlines()[0]
+    assert first.startswith(f"reading {tmp_path / 'big.csv'} (") and first.endswith(" MB)")

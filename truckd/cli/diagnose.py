@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 from typing import Any
@@ -61,6 +62,10 @@ def add_subparser(sub: Any) -> None:
     p.set_defaults(run=run)
 
 
+LARGE_LOG_BYTES = 20_000_000
+"""A log this large takes seconds to read: the command says it is reading it."""
+
+
 def _progress(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
 
@@ -78,6 +83,10 @@ def _run(args: argparse.Namespace) -> int:
     check_distinct([("--out", args.out), ("--json", args.json)], [("--report", args.report, ())])
     check_gap(args.gap)
     cfg = load_config(args.config)
+    for path in dict.fromkeys(split_selector(p)[0] for p in [*args.logs, *(args.validate or [])]):
+        size = os.path.getsize(path) if os.path.isfile(path) else 0
+        if size > LARGE_LOG_BYTES:  # a minute's silence otherwise (3 million rows: ~25 s)
+            _progress(f"reading {path} ({size / 1e6:.0f} MB)")
     logs = read_logs(args.logs, args.vbat, DIAGNOSE_MAX_ROWS)
     val = read_logs(args.validate, args.vbat, DIAGNOSE_MAX_ROWS) if args.validate else None
     report_notes([n for lg in [*logs, *(val or [])] for n in lg.notes])
