@@ -117,6 +117,24 @@ def test_bad_usage_exits_2(capsys: pytest.CaptureFixture[str]) -> None:
     assert line.startswith("truckd replay: error: unrecognized arguments: --config c.yaml"), line
 
 
+def test_logs_after_an_option_are_logs_too(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``identify A --out m.yaml B``: a plain argument after the options joins the
+    command's list of logs (argparse alone stopped the list at the first option); a
+    command without such a list still refuses it."""
+    t = np.arange(0.0, 3.0, 0.01)
+    for name, volts in (("a", 4.0), ("b", -3.0)):
+        write_log(tmp_path / f"in-{name}.csv", {"t": t, "u": np.where(t > 0.2, volts, 0.0)})
+        assert main(["simulate", str(tmp_path / f"in-{name}.csv"), "--out",
+                     str(tmp_path / f"{name}.csv")]) == 0  # fmt: skip
+    capsys.readouterr()
+    a, b, model = tmp_path / "a.csv", tmp_path / "b.csv", tmp_path / "m.yaml"
+    assert main(["identify", str(a), "--out", str(model), str(b)]) == 0
+    assert f"identified {a} {b}:" in capsys.readouterr().out
+    assert main(["params", "--json", "extra"]) == 2
+
+
 def test_a_model_with_numpy_values_is_written_and_reads_back(tmp_path: Path) -> None:
     """Fitted values arrive as numpy scalars; the model file holds them as plain numbers."""
     p = load_config().vehicle

@@ -60,6 +60,22 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     return parser
 
 
+def _more_positionals(args: argparse.Namespace, unknown: list[str]) -> list[str]:
+    """Arguments left after the options (``diagnose A.csv --json o.json B.csv``: argparse
+    stops ``LOG ...`` at the first option): given to the command's one list-taking
+    positional when every one of them is a plain argument; else returned (unknown)."""
+    sub = getattr(args, "command_parser", None)
+    lists = [
+        a
+        for a in (sub._actions if sub is not None else [])
+        if not a.option_strings and a.nargs in ("+", "*")
+    ]
+    if len(lists) != 1 or not unknown or any(u.startswith("-") for u in unknown):
+        return unknown
+    setattr(args, lists[0].dest, [*getattr(args, lists[0].dest), *unknown])
+    return []
+
+
 DEBUG_ENV = "TRUCKD_DEBUG"
 """Set (to anything) to let an unexpected exception's traceback through."""
 
@@ -98,6 +114,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser(args_list[0] if args_list else None)
     try:
         args, unknown = parser.parse_known_args(args_list)
+        unknown = _more_positionals(args, unknown)
         if unknown:  # named by the command they were given to: `truckd CMD: error: ...`
             args.command_parser.error(f"unrecognized arguments: {' '.join(unknown)}")
     except SystemExit as exc:  # bad usage (one line printed) or --help: a code, not a raise
