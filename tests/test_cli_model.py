@@ -115,6 +115,9 @@ def test_bad_usage_exits_2(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["replay", "x.csv", "--config", "c.yaml"]) == 2
     (line,) = capsys.readouterr().err.splitlines()
     assert line.startswith("truckd replay: error: unrecognized arguments: --config c.yaml"), line
+    assert main(["--bogus", "params", "--json"]) == 2  # given to truckd, named by truckd
+    (line,) = capsys.readouterr().err.splitlines()
+    assert line.startswith("truckd: error: unrecognized arguments: --bogus"), line
 
 
 def test_logs_after_an_option_are_logs_too(

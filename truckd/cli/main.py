@@ -115,6 +115,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         args, unknown = parser.parse_known_args(args_list)
         unknown = _more_positionals(args, unknown)
+        before = args_list[: args_list.index(args.command)] if unknown else []
+        if any(u in before for u in unknown):  # given to truckd itself, not the command
+            parser.error(f"unrecognized arguments: {' '.join(u for u in unknown if u in before)}")
         if unknown:  # named by the command they were given to: `truckd CMD: error: ...`
             args.command_parser.error(f"unrecognized arguments: {' '.join(unknown)}")
     except SystemExit as exc:  # bad usage (one line printed) or --help: a code, not a raise
