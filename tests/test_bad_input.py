@@ -512,3 +512,19 @@ def test_plan_delay_reads_exponents_and_refuses_underscores() -> None:
     for bad in ("1_0", "0.05-0.01", "-1", "a-b"):
         with pytest.raises(InputError, match="--plan-delay"):
             parse_delay(bad)
+
+
+def test_a_run_stopped_before_its_outputs_leaves_no_trace_directory(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The trace directory is checked when the arguments are read and created only when
+    the traces are written: Ctrl-C during the run leaves nothing behind."""
+    import truckd.cli.sim as cli_sim
+
+    def interrupted(*_args: Any, **_kwargs: Any) -> Any:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli_sim, "run_scenario", interrupted)
+    trace = tmp_path / "new" / "trace"
+    code, _out, _err = cli(["sim", "--scenario", "follow", "--trace", str(trace)], capsys)
+    assert code == 130 and not (tmp_path / "new").exists()

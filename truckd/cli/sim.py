@@ -16,7 +16,7 @@ from truckd.control.effect_use import present_effects, startup_line
 from truckd.control.qp import ControlModel
 from truckd.errors import TruckdError
 from truckd.modelfile import read_model
-from truckd.outputs import check_distinct, ensure_dir, guard_inputs, write_set
+from truckd.outputs import check_distinct, check_output_dir, ensure_dir, guard_inputs, write_set
 from truckd.sim.closed_loop import SimSetup, run_scenario
 from truckd.sim.mcap_export import mcap_paths, trace_mcap_bytes
 from truckd.sim.platoon import PLATOON_SCENARIOS
@@ -88,7 +88,8 @@ def _run(args: argparse.Namespace) -> int:
     note = startup_line(model.effects)
     if note is not None:
         print(f"truckd sim: {note}", file=sys.stderr)
-    trace_dir = ensure_dir(args.trace, "trace directory") if args.trace else None
+    # checked now, created when the traces are written (a run that fails leaves none)
+    trace_dir = check_output_dir(args.trace, "trace directory") if args.trace else None
     setup = SimSetup.from_config(cfg, model)
     names = SCENARIO_NAMES if args.scenario == "all" else (args.scenario,)
     mcaps = mcap_paths(args.mcap, names) if args.mcap is not None else {}
@@ -115,6 +116,7 @@ def _run(args: argparse.Namespace) -> int:
         every = cfg.runtime.recorder.mcap_plan_every  # as the daemon records plans
         files.append((mcaps[name], trace_mcap_bytes(cfg.vehicle_id, name, trace, every)))
     if trace_dir is not None:
+        ensure_dir(trace_dir, "trace directory")
         for name, trace in traces:
             files.append((trace_dir / f"{name}.csv", trace_text(trace)))
     write_set(files)  # all or nothing: JSON, plot, MCAP files and traces

@@ -14,7 +14,7 @@ from truckd.config.truck import load_config
 from truckd.control.qp import ControlModel
 from truckd.errors import InputError, TruckdError
 from truckd.modelfile import read_model
-from truckd.outputs import ensure_dir, write_set
+from truckd.outputs import check_output_dir, ensure_dir, write_set
 from truckd.sim.closed_loop import SimSetup, Trace
 from truckd.sim.platoon import (
     MAX_TRUCKS,
@@ -196,7 +196,9 @@ def run_platoon_cli(args: argparse.Namespace) -> int:
     if short:
         every = " (or run another --scenario)" if args.scenario == "all" else ""
         raise InputError(f"--platoon {args.platoon}: {'; '.join(short)}{every}")
-    trace_dir = ensure_dir(args.trace, "trace directory") if getattr(args, "trace", None) else None
+    # checked now, created when the traces are written (a run that fails leaves none)
+    trace = getattr(args, "trace", None)
+    trace_dir = check_output_dir(trace, "trace directory") if trace else None
     results: list[dict[str, Any]] = []
     files: list[tuple[str | Path, str | bytes]] = []
     controllers = None
@@ -246,6 +248,8 @@ def run_platoon_cli(args: argparse.Namespace) -> int:
     if args.json:
         doc: object = results if args.scenario == "all" else results[0]
         files.append((args.json, json.dumps(doc, indent=2, allow_nan=False) + "\n"))
+    if trace_dir is not None:
+        ensure_dir(trace_dir, "trace directory")
     write_set(files)  # all or nothing: JSON and traces
     crashed = [r["scenario"] for r in results if r["collision"]]
     if crashed:
