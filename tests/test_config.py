@@ -32,6 +32,7 @@ BAD = [
     ("vehicle.R_m", 0.0, "'vehicle.R_m' = 0.0"),
     ("vehicle.K_T", "0.003", "'vehicle.K_T'"),
     ("vehicle.J_S", float("nan"), "'vehicle.J_S'"),
+    ("vehicle.m", float("nan"), "expected a finite number in (0.0, 10000.0] kg"),
     ("vehicle.m", True, "'vehicle.m'"),
     ("vehicle.K_stiction", 0.001, "K_stiction"),
     ("vehicle.Kv", 0.1, "unknown key 'vehicle.Kv'"),

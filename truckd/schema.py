@@ -75,7 +75,7 @@ def _check_number(source: str, key: str, value: Any, meta: Mapping[str, Any], is
     if is_int and not isinstance(value, int):
         raise _fail(source, key, value, "an integer")
     if not math.isfinite(float(value)):
-        raise _fail(source, key, value, "a finite " + _allowed(meta))
+        raise _fail(source, key, value, "a finite " + _allowed(meta).removeprefix("a "))
     lo, hi = meta.get("lo"), meta.get("hi")
     bad_lo = lo is not None and (value <= lo if meta.get("lo_open") else value < lo)
     bad_hi = hi is not None and value > hi
