@@ -161,3 +161,12 @@ def test_numbers_yaml_versions_read_differently_are_refused(
     assert old in text
     with pytest.raises(InputError, match=expected):
         parse_config(text.replace(old, new, 1), "t.yaml")
+
+
+def test_a_date_like_value_is_text_as_in_yaml_1_2() -> None:
+    """``vehicle_id: 2026-01-01`` is that name (YAML 1.1 would make it a date, refused
+    with its Python repr)."""
+    text = default_config_path().read_text(encoding="utf-8")
+    assert "vehicle_id: truck1" in text
+    cfg = parse_config(text.replace("vehicle_id: truck1", "vehicle_id: 2026-01-01", 1), "t.yaml")
+    assert cfg.vehicle_id == "2026-01-01"

@@ -9,7 +9,7 @@ On top of PyYAML's safe loader:
 - numbers are read as YAML 1.2 does: ``1e308``, ``1.0e308`` and ``1E-3`` are floats
   (PyYAML's YAML 1.1 rules read them as text); the forms whose value the two versions
   disagree on are refused: a leading zero (``040``: 32 in 1.1, 40 in 1.2) and base 60
-  (``3:30``: 210 in 1.1, text in 1.2);
+  (``3:30``: 210 in 1.1, text in 1.2); a date is text, as in YAML 1.2;
 - a syntax error is one line: ``FILE:LINE:COL: ...``.
 
 Errors are :class:`InputError` and never render a large value.
@@ -124,6 +124,10 @@ class _Loader(yaml.SafeLoader):
 
 
 _Loader.add_implicit_resolver("tag:yaml.org,2002:float", _FLOAT_12, list("-+0123456789."))
+# YAML 1.2's core schema has no timestamps: `vehicle_id: 2026-01-01` is that text, not a
+# date (add_implicit_resolver above gave _Loader its own copy of the table)
+for _first, _resolvers in _Loader.yaml_implicit_resolvers.items():
+    _resolvers[:] = [(tag, rx) for tag, rx in _resolvers if tag != "tag:yaml.org,2002:timestamp"]
 _Loader.add_constructor("tag:yaml.org,2002:int", _Loader.construct_yaml_int)
 _Loader.add_constructor("tag:yaml.org,2002:float", _Loader.construct_yaml_float)
 
