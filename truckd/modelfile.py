@@ -17,6 +17,7 @@ from pathlib import Path
 import yaml
 
 from truckd.config.truck import TruckConfig
+from truckd.control.feedforward import torque_to_voltage
 from truckd.inputs import read_text
 from truckd.model.effects import Effects, driver_output
 from truckd.model.params import VehicleParams
@@ -39,7 +40,7 @@ class ModelFile:
         refused (called by the loader)."""
         p = self.vehicle
         top, _ = driver_output(p.V_batt, self.effects, p.V_batt)
-        breakaway = p.K_stiction * p.R_m / p.K_T
+        breakaway = torque_to_voltage(p, p.K_stiction)
         if top <= breakaway:
             return (
                 f"effects: at most {top:.3g} V reach the motor (vehicle.V_batt {p.V_batt:g} V "

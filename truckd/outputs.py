@@ -46,17 +46,19 @@ def _nearest_existing(p: Path) -> Path:
     return q
 
 
-def _can_create_in(directory: Path) -> str | None:
-    """None when a file can be created in ``directory`` (tried: a permission check alone
-    passes for root on a read-only or virtual file system, /proc), else why not."""
+def _writable(directory: Path) -> bool:
+    """A file can be created in ``directory``: the permission bits, then tried (the bits
+    alone pass for root on a read-only or virtual file system, /proc)."""
+    if not os.access(directory, os.W_OK | os.X_OK):
+        return False
     try:
         fd, name = tempfile.mkstemp(prefix=".truckd-probe-", dir=directory)
-    except OSError as exc:
-        return _strerror(exc)
+    except OSError:
+        return False
     os.close(fd)
     with contextlib.suppress(OSError):
         os.unlink(name)
-    return None
+    return True
 
 
 def check_output_file(
@@ -82,7 +84,7 @@ def check_output_file(
     parent = p.parent
     if not parent.is_dir():
         raise InputError(f"{s}: directory {str(parent)!r} does not exist (for the {what})")
-    if not os.access(parent, os.W_OK | os.X_OK) or _can_create_in(parent) is not None:
+    if not _writable(parent):
         raise InputError(f"{s}: directory {str(parent)!r} is not writable (for the {what})")
     return p
 
@@ -96,13 +98,13 @@ def check_output_dir(path: str | Path, what: str = "output directory") -> Path:
     if p.exists():
         if not p.is_dir():
             raise InputError(f"{s}: exists and is not a directory (for the {what})")
-        if not os.access(p, os.W_OK | os.X_OK) or _can_create_in(p) is not None:
+        if not _writable(p):
             raise InputError(f"{s}: directory is not writable (for the {what})")
         return p
     base = _nearest_existing(p.absolute().parent)
     if not base.is_dir():
         raise InputError(f"{s}: {str(base)!r} is not a directory (for the {what})")
-    if not os.access(base, os.W_OK | os.X_OK) or _can_create_in(base) is not None:
+    if not _writable(base):
         raise InputError(f"{s}: cannot create it, {str(base)!r} is not writable ({what})")
     return p
 

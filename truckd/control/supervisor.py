@@ -29,6 +29,7 @@ Leaving a degraded mode for ``ACTIVE`` needs every cause clear for ``recovery_s`
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import astuple, dataclass, field
 from enum import StrEnum
 
@@ -44,6 +45,12 @@ class Mode(StrEnum):
     DEGRADED = "DEGRADED"
     SAFE_STOP = "SAFE_STOP"
     FAULT = "FAULT"
+
+
+def time_in_modes(modes: Sequence[str], dt: float) -> dict[str, float]:
+    """Seconds spent in each supervisor mode (every mode named) of a run whose cycle
+    ``k`` (period ``dt`` s) was in ``modes[k]``."""
+    return {m.value: round(list(modes).count(m.value) * dt, 9) for m in Mode}
 
 
 _SEVERITY = {Mode.ACTIVE: 0, Mode.DEGRADED: 1, Mode.SAFE_STOP: 2, Mode.FAULT: 3, Mode.INIT: 4}

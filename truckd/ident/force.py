@@ -25,6 +25,7 @@ from numpy.typing import NDArray
 
 from truckd.ident.data import Series, initial_speed, noise_std, split
 from truckd.ident.forcerun import ForceModel, simulate_force
+from truckd.ident.linear import ols_covariance
 from truckd.ident.residuals import whiteness
 from truckd.ident.result import CandidateRow, Diagnosis, Finding, ModelSummary, Traces
 from truckd.ident.selection import close, delta_bic, passes, structured
@@ -234,9 +235,7 @@ def _least_squares(
     from the residual, the fit of its free run on the report data), and a note when the
     extended model's fit is below it."""
     ls = fit_idm(d_est, ("viscous_friction",))
-    x = d_est.regressors(ls.names)
-    cov = ls.sse / max(ls.n - x.shape[1], 1) * np.linalg.pinv(x.T @ x)
-    se = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    se = np.sqrt(np.maximum(np.diag(ols_covariance(d_est.regressors(ls.names), ls.sse)), 0.0))
     fit = _summary(ls, d_rep, report)[0].fit_percent
     order = (("kS", 1), ("kV", 2), ("kA", 0))  # the columns of F_c, F_v and M
     out: dict[str, float | None] = {k: float(ls.theta[j]) for k, j in order}

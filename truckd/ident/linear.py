@@ -159,8 +159,7 @@ def _fit_windows(runs: Sequence[Series], h: float, lag: int) -> Feedforward | No
     if not free_ks:
         ks = 0.0
     res = y - x @ coef
-    dof = max(len(y) - 3, 1)
-    cov = float(res @ res) / dof * np.linalg.pinv(x.T @ x)
+    cov = ols_covariance(x, float(res @ res))
     if not free_ks:
         cov[2, 2] = np.inf
     # Delta method with the full covariance (the ramp's alpha and beta correlate).
@@ -288,7 +287,7 @@ def _finite_difference_ols(runs: Sequence[Series]) -> Feedforward | None:
     if kv <= 0.0 or ka <= 0.0:
         return None
     res = y - x @ coef
-    cov = float(res @ res) / max(len(y) - 3, 1) * np.linalg.pinv(x.T @ x)
+    cov = ols_covariance(x, float(res @ res))
     se = np.sqrt(np.maximum(np.diag(cov), 0.0))
     rel = tuple(
         float(e / abs(k)) if k != 0 else float("inf") for e, k in zip(se, coef, strict=True)
@@ -296,6 +295,13 @@ def _finite_difference_ols(runs: Sequence[Series]) -> Feedforward | None:
     return Feedforward(
         kS=max(ks, 0.0), kV=kv, kA=ka, rel_se=(rel[0], rel[1], rel[2]), samples=len(y)
     )
+
+
+def ols_covariance(x: Array, sse: float) -> Array:
+    """Covariance of ordinary least-squares coefficients: ``sse / (n - p) (X^T X)^+`` for
+    the regressors ``x`` (n samples by p columns) and the residual sum of squares ``sse``."""
+    cov: Array = sse / max(x.shape[0] - x.shape[1], 1) * np.linalg.pinv(x.T @ x)
+    return cov
 
 
 def least_squares_model(p0: VehicleParams, runs: Sequence[Series]) -> LeastSquares | None:

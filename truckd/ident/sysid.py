@@ -51,11 +51,11 @@ GRAVITY = {
 """What a mechanism's gravity does to the fit (the model is a drive on level ground)."""
 
 
-def _check_rows(rows: object, where: str, width: int, drivetrain: bool) -> None:
-    """Every row a list of at least ``width`` numbers (not booleans, not text)."""
+def _check_rows(rows: object, where: str, width: int, kind: str) -> None:
+    """Every row a list of at least ``width`` numbers (not booleans, not text); ``kind``
+    names the test (``drivetrain``, ``simple``) in the message."""
     if not isinstance(rows, list):
         raise InputError(f"{where}: expected a list of rows, got {type(rows).__name__}")
-    kind = "drivetrain" if drivetrain else "simple"
     for k, row in enumerate(rows):
         ok = isinstance(row, list) and len(row) >= width
         ok = ok and all(
@@ -103,6 +103,7 @@ def read_sysid(path: str) -> list[Log]:
     drivetrain = "drivetrain" in test_kind
     sign = -1.0 if drivetrain and "angular" in test_kind else 1.0  # left side's weight
     width = 9 if drivetrain else 4
+    kind = "drivetrain" if drivetrain else "simple"
     notes = [GRAVITY[k] for k in GRAVITY if k in test_kind][:1]
     if unit_name in ROTATIONAL:
         notes.append(
@@ -120,12 +121,11 @@ def read_sysid(path: str) -> list[Log]:
             if wanted is TESTS:
                 continue
             raise InputError(f"{file}: key {name!r} missing")
-        _check_rows(rows, f"{file}: key {name!r}", width, drivetrain)
+        _check_rows(rows, f"{file}: key {name!r}", width, kind)
         a = np.asarray([row[:width] for row in rows], dtype=float).reshape(-1, width)
         if len(a) < 2:
             raise InputError(
-                f"{file}: key {name!r}: expected rows of {width} numbers "
-                f"({'drivetrain' if drivetrain else 'simple'} test)"
+                f"{file}: key {name!r}: expected rows of {width} numbers ({kind} test)"
             )
         if not np.all(np.isfinite(a[:, :width])):
             raise InputError(f"{file}: key {name!r}: a value is not finite")

@@ -30,7 +30,7 @@ from truckd.control.config import ControlConfig
 from truckd.control.controller import Controller
 from truckd.control.platoon import Plan
 from truckd.control.qp import ControlModel
-from truckd.control.supervisor import Mode, SupervisorConfig
+from truckd.control.supervisor import SupervisorConfig, time_in_modes
 from truckd.io.config import ENCODER_TICKS_PER_REV
 from truckd.io.port import companion_port
 from truckd.model.params import VehicleParams
@@ -182,7 +182,7 @@ def run_scenario(
     return {
         **metrics,
         # s in each supervisor mode (every mode named) and the count of mode changes
-        "mode_time_s": {m.value: round(modes.count(m.value) * dt, 9) for m in Mode},
+        "mode_time_s": time_in_modes(modes, dt),
         "transitions": len(cyc.supervisor.transitions),
     }, tr
 

@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 
 from truckd.control.platoon import ACC, CACC, PlatoonConfig
-from truckd.control.supervisor import Mode
+from truckd.control.supervisor import time_in_modes
 from truckd.sim.plan_channel import PlanChannel
 from truckd.sim.platoon_scenarios import SETTLE_S
 from truckd.sim.platoon_truck import PlatoonTruck
@@ -139,9 +139,7 @@ def _supervisor_figures(tr: PlatoonTrace, dt: float) -> dict[str, Any]:
     seqs = list(zip(*tr.supervisor, strict=True))
     return {
         "supervisor_modes": [sorted(set(m)) for m in seqs],
-        "mode_time_s": [
-            {mode.value: round(seq.count(mode.value) * dt, 9) for mode in Mode} for seq in seqs
-        ],
+        "mode_time_s": [time_in_modes(seq, dt) for seq in seqs],
         "transitions": [_changes([m for m in seq if m != "OUT"]) for seq in seqs],
     }
 
