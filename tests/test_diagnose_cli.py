@@ -69,6 +69,8 @@ def test_json_follows_the_contract(run_dir: Path) -> None:
     assert set(ls) == {"kS", "kV", "kA", "kS_se", "kV_se", "kA_se", "fit_percent"}
     assert ls["kV"] > 0 and ls["kA"] > 0 and ls["kV_se"] < ls["kV"]
     assert j["extended"]["fit_percent"] >= ls["fit_percent"]
+    # What the speed's noise leaves for any model: the true model (found) reaches it.
+    assert j["extended"]["fit_percent"] - 0.5 <= j["fit_ceiling_percent"] < 100.0
 
 
 def test_model_file_carries_the_effect(run_dir: Path) -> None:

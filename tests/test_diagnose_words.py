@@ -251,3 +251,29 @@ def test_a_current_column_left_out_is_said() -> None:
     without = plant_log(p, Effects(), seed=4, n=1500, with_current=False)
     d = diagnose_log([Log(with_i.columns, "<with i>"), Log(without.columns, "<no i>")], p)
     assert any("current column of <with i> is not used" in a for a in d.alerts), d.alerts
+
+
+@pytest.mark.parametrize(("sd", "hold"), [(0.005, 1), (0.05, 1), (0.02, 4)])
+def test_the_noise_ceiling_is_the_fit_of_the_true_speed(sd: float, hold: int) -> None:
+    """The ceiling (``fit_ceiling_percent``) is what the noise-free speed itself fits the
+    measured one: the same drawn truck simulated with and without speed noise, its speed
+    sampled and held every ``hold``-th sample (compared at the fresh readings)."""
+    from labkit.synth import plant_log
+
+    from truckd.config.truck import load_config
+    from truckd.ident.data import fit_ceiling_percent, fresh_mask, series_from_log
+    from truckd.ident.voltage import fit_percent
+    from truckd.logfile import Log
+    from truckd.model.effects import Effects
+
+    p = load_config().vehicle
+    clean = plant_log(p, Effects(), seed=21, n=4000, noise_v=0.0, with_current=False)
+    noisy = plant_log(p, Effects(), seed=21, n=4000, noise_v=sd, with_current=False)
+    v = np.asarray(noisy["v"])
+    held = np.repeat(v[::hold], hold)[: len(v)]
+    fresh = fresh_mask(held)
+    truth = fit_percent(held[fresh], np.asarray(clean["v"])[fresh])
+    log = Log({**noisy.columns, "v": held}, "<noisy>")
+    ceiling = fit_ceiling_percent([series_from_log(log)])
+    assert ceiling is not None and truth < 99.9
+    assert ceiling == pytest.approx(truth, abs=0.3 + 0.05 * (100.0 - truth))

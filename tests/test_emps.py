@@ -81,6 +81,7 @@ def test_cli_on_emps_csv(tmp_path: Path) -> None:
     assert ls["kA"] == pytest.approx(95.11, rel=0.01) and ls["kS"] == pytest.approx(20.4, rel=0.03)
     assert ls["kV"] == pytest.approx(203.5, rel=0.02) and 0.0 < ls["kA_se"] < 0.01 * ls["kA"]
     assert ls["fit_percent"] < j["extended"]["fit_percent"]
+    assert j["extended"]["fit_percent"] < j["fit_ceiling_percent"] < 100.0  # room is left
     # --out needs a truck (voltage) model: a clear error, exit 2.
     code = main(["diagnose", str(tmp_path / "train.csv"), "--out", str(tmp_path / "m.yaml")])
     assert code == 2

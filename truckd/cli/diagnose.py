@@ -129,6 +129,11 @@ def _run(args: argparse.Namespace) -> int:
         else:
             print("  no cause named among the candidates")
     print(f"extended model: fit {x.fit_percent:7.2f} %  rmse {x.rmse:.4g}")
+    if diag.fit_ceiling is not None:
+        print(
+            f"noise ceiling:  fit {diag.fit_ceiling:7.2f} %  (a model that leaves only the "
+            "speed's measurement noise)"
+        )
     if b.force_relerr_percent is not None and x.force_relerr_percent is not None:
         print(
             f"force relative error: seed {b.force_relerr_percent:.3f} %, "

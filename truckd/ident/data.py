@@ -304,6 +304,24 @@ def noise_std(y: Array) -> float:
     return mad / 0.6745 / float(np.sqrt(6.0))
 
 
+def fit_ceiling_percent(runs: Sequence[Series]) -> float | None:
+    """The ``fit_percent`` (reference section 4) a model that leaves only the measurement
+    noise would reach on ``runs``: ``100 (1 - sqrt(sum_k n_k sigma_k^2) / ||y - mean(y)||)``
+    over the fresh readings (:func:`fresh_mask`), ``sigma_k`` run k's white-noise level
+    (:func:`noise_std`, m/s) and ``n_k`` its fresh samples.  No model of the truck can fit
+    the measured speed better than its noise lets it (in expectation); None when the
+    speed does not vary."""
+    if not runs:
+        return None
+    masks = [fresh_mask(r.v) for r in runs]
+    y = np.concatenate([r.v[m] for r, m in zip(runs, masks, strict=True)])
+    den = float(np.linalg.norm(y - np.mean(y)))
+    if not den > 0.0:
+        return None
+    noise = sum(noise_std(r.v) ** 2 * int(m.sum()) for r, m in zip(runs, masks, strict=True))
+    return 100.0 * (1.0 - float(np.sqrt(noise)) / den)
+
+
 SPIKE_NOISE = 20.0
 """A speed sample this many noise levels off the mean of its two neighbours ..."""
 SPIKE_SHARE = 0.1

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from truckd.ident.data import Series, initial_speed, noise_std, split
+from truckd.ident.data import Series, fit_ceiling_percent, initial_speed, noise_std, split
 from truckd.ident.forcerun import ForceModel, simulate_force
 from truckd.ident.linear import ols_covariance
 from truckd.ident.residuals import whiteness
@@ -216,6 +216,7 @@ def diagnose_force(
             input_name="F",
         ),
         least_squares=ls_json,
+        fit_ceiling=fit_ceiling_percent([report]),
         residual_stats={
             "force_rms": wt.rms,
             "force_noise": wt.noise,

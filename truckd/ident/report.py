@@ -163,10 +163,16 @@ def _html(diag: Diagnosis, images: list[tuple[str, str]], source: str) -> str:
         )
     ls = diag.least_squares
     if ls is not None and ls.get("fit_percent") is not None:
+        u = ("N", "N s/m", "kg") if diag.input == "force" else ("V", "V s/m", "V s^2/m")
         force += (
             f"<p>Least squares (WPILib SysId's model, the data's own): fit "
-            f"{ls['fit_percent']:.2f} %, kS {ls['kS']:.4g} V, kV {ls['kV']:.4g} V s/m, "
-            f"kA {ls['kA']:.4g} V s^2/m.</p>"
+            f"{ls['fit_percent']:.2f} %, kS {ls['kS']:.4g} {u[0]}, kV {ls['kV']:.4g} {u[1]}, "
+            f"kA {ls['kA']:.4g} {u[2]}.</p>"
+        )
+    if diag.fit_ceiling is not None:
+        force += (
+            f"<p>Noise ceiling: fit {diag.fit_ceiling:.2f} % (a model that leaves only the "
+            "speed's measurement noise).</p>"
         )
     if diag.alerts:
         force += "<ul>" + "".join(f"<li><b>{e(a)}</b></li>" for a in diag.alerts) + "</ul>"

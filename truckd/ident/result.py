@@ -141,6 +141,9 @@ class Diagnosis:
     runs: int = 1
     explains: bool = False
     """The extended model's residual is white at the noise level on the report data."""
+    fit_ceiling: float | None = None
+    """The ``fit_percent`` a model leaving only the measurement noise would reach on the
+    report data (:func:`truckd.ident.data.fit_ceiling_percent`); None: the speed is flat."""
 
     def to_json(self) -> dict[str, Any]:
         """The reference section 4 object (plus ``notes`` and ``residual``)."""
@@ -157,6 +160,7 @@ class Diagnosis:
             "rejected": [r.to_json() for r in self.rejected],
             "runs": int(self.runs),
             "explains_data": bool(self.explains),
+            "fit_ceiling_percent": _opt(self.fit_ceiling),
             # always present (reference section 4); null when the data cannot give them
             "linear_estimate": self.linear,
             "least_squares": (

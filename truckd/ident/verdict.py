@@ -17,6 +17,7 @@ import numpy as np
 from truckd.ident.choice import Choice
 from truckd.ident.data import (
     Series,
+    fit_ceiling_percent,
     merged,
     noise_std,
 )
@@ -287,6 +288,7 @@ def report_stage(
         alerts=alerts,
         runs=len(prep.runs),
         explains=not unexplained and white(wt) and at_noise,
+        fit_ceiling=fit_ceiling_percent(prep.report),
     )
 
 
