@@ -61,6 +61,10 @@ def test_json_follows_the_contract(run_dir: Path) -> None:
     assert set(e) == {"name", "params", "fit_percent", "fit_gain_percent"}
     assert e["params"]["battery_sag"] == pytest.approx(0.18, rel=0.1)
     assert e["fit_gain_percent"] > 0.5
+    # The causes' gains add up to what the extended model gains over the seed, at most
+    # (counted from the better of the seed and the joint refit without its causes).
+    gains = sum(f["fit_gain_percent"] for f in j["effects"])
+    assert gains <= j["extended"]["fit_percent"] - j["baseline"]["fit_percent"] + 1e-9
     assert j["extended"]["fit_percent"] > j["baseline"]["fit_percent"]
     assert j["unexplained"] is False
     assert j["ambiguous"] == []

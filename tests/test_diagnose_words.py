@@ -85,6 +85,36 @@ def test_a_drivetrain_is_its_straight_line_or_its_spin(tmp_path: Path, test: str
     assert log.columns["x"][10] == pytest.approx(0.2)
 
 
+@pytest.mark.parametrize(
+    ("head", "scale", "simple"),
+    [
+        ({}, 1.0, False),  # its first versions: drivetrains, no units
+        ({"test": "Drivetrain", "units": "Feet", "unitsPerRotation": 0.5}, 0.5 * 0.3048, False),
+        ({"test": "Simple", "units": "Rotations", "unitsPerRotation": 1.0}, 2.0 * np.pi, True),
+    ],
+)
+def test_an_frc_characterization_file_is_read_as_such(
+    tmp_path: Path, head: dict[str, object], scale: float, simple: bool
+) -> None:
+    """The older tool's rows of ten, [t, battery, autospeed, V_l, V_r, x_l, x_r, v_l, v_r,
+    gyro], in encoder rotations times unitsPerRotation: read as SysId's four-number rows,
+    the battery was the voltage and the motor's volts the speed (fits of -200 %)."""
+    rows = []
+    for k in range(50):
+        u, x, v = 2.0 + 0.01 * k, 0.02 * k, 0.4 + 0.001 * k
+        rows.append([0.02 * k, 12.3, 0.2, 0.98 * u, 1.02 * u, 0.99 * x, 1.01 * x,
+                     0.99 * v, 1.01 * v, 5.0])  # fmt: skip
+    path = tmp_path / "characterization.json"
+    path.write_text(json.dumps({**head, "slow-forward": rows}), encoding="utf-8")
+    (log,) = read_sysid(str(path))
+    side = 0.99 if simple else 1.0  # a mechanism other than a drivetrain: the left side
+    assert log.columns["u"][10] == pytest.approx((0.98 if simple else 1.0) * 2.1)
+    assert log.columns["v"][10] == pytest.approx(side * 0.41 * scale)
+    assert log.columns["x"][10] == pytest.approx(side * 0.2 * scale)
+    assert any("frc-characterization" in n for n in log.notes)
+    assert any("without units" in n for n in log.notes) == ("units" not in head)
+
+
 def test_an_unknown_unit_system_is_refused(tmp_path: Path) -> None:
     path = tmp_path / "sysid.json"
     rows = [[0.01 * k, 1.0, 0.0, 0.5] for k in range(5)]
@@ -277,3 +307,25 @@ def test_the_noise_ceiling_is_the_fit_of_the_true_speed(sd: float, hold: int) ->
     ceiling = fit_ceiling_percent([series_from_log(log)])
     assert ceiling is not None and truth < 99.9
     assert ceiling == pytest.approx(truth, abs=0.3 + 0.05 * (100.0 - truth))
+
+
+def test_the_readers_notes_are_in_the_diagnosis_once() -> None:
+    """What a reader says of its logs (a SysId file's units, the input column) is in the
+    diagnosis' notes, once however many of its tests are given: the JSON lacked it."""
+    from labkit.synth import plant_log
+
+    from truckd.config.truck import load_config
+    from truckd.ident.api import diagnose_log
+    from truckd.logfile import Log
+    from truckd.model.effects import Effects
+
+    p = load_config().vehicle
+    said = "units Rotations: converted to rad"
+    logs = [
+        Log(plant_log(p, Effects(), seed=s, n=1500, with_current=False).columns, f"<{s}>",
+            notes=[said])
+        for s in (4, 5)
+    ]  # fmt: skip
+    d = diagnose_log(logs, p)
+    assert d.notes.count(said) == 1
+    assert d.to_json()["notes"].count(said) == 1

@@ -106,6 +106,12 @@ def test_impossible_terrain_is_a_finding_not_a_cause(params: VehicleParams) -> N
     assert "shorter" in str(hill_problem(1.0, mid, 1e-4, params, runs))
     assert rolling_problem(0.2 * weight, 2.0, params, runs) is None
     assert "grade" in str(rolling_problem(0.5 * weight, 2.0, params, runs))
+    # No load exceeds the weight the fitted inertia implies, as a constant load may not:
+    # on a flywheel (inertia 0.06x) a hill above the constant load refused was named.
+    light = 0.1 * params.m
+    assert hill_problem(0.05 * weight, mid, 1.0, params, runs, light) is None
+    assert "fitted inertia" in str(hill_problem(0.2 * weight, mid, 1.0, params, runs, light))
+    assert "fitted inertia" in str(rolling_problem(0.2 * weight, 2.0, params, runs, light))
 
 
 def _hill_log(params: VehicleParams, rng: np.random.Generator) -> tuple[DrawnTruck, Effects, int]:

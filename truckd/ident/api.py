@@ -126,7 +126,7 @@ def _diagnose(
             )
         data = series_from_log(logs[0])
         val = series_from_log(vals[0]) if vals else None
-        return diagnose_force(data, val, progress)
+        return _with_log_notes(diagnose_force(data, val, progress), [*logs, *vals])
     runs = runs_from_logs(logs, gap)
     val_runs = runs_from_logs(vals, gap) if vals else None
     d = diagnose_voltage(p0, runs, val_runs, progress, mapper)
@@ -139,6 +139,14 @@ def _diagnose(
             )
             d.notes.insert(0, note)
             d.alerts.insert(0, note)
+    return _with_log_notes(d, [*logs, *vals])
+
+
+def _with_log_notes(d: Diagnosis, logs: Sequence[Log]) -> Diagnosis:
+    """``d`` with the readers' remarks on its logs first in its notes (once each: a
+    SysId file's unit conversion, which column is the input), as the CLI prints them."""
+    said = list(dict.fromkeys(n for lg in logs for n in lg.notes))
+    d.notes[:0] = [n for n in said if n not in d.notes]
     return d
 
 

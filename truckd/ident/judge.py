@@ -26,6 +26,7 @@ from truckd.ident.data import (
 )
 from truckd.ident.physics import (
     effect_problem,
+    fitted_mass,
 )
 from truckd.ident.result import (
     Rejected,
@@ -185,17 +186,20 @@ class Judge:
         for n in names:
             pn = self.by_name[n].param.name
             e = m.effects
+            mass = fitted_mass(m.params, p0)
             if pn == "hill_force":
-                why = hill_problem(e.hill_force, e.hill_start, e.hill_length, m.params, runs)
+                why = hill_problem(e.hill_force, e.hill_start, e.hill_length, m.params, runs, mass)
             elif pn == "load_force_amplitude":
                 why = rolling_problem(
-                    e.load_force_amplitude, e.load_force_wavelength, m.params, runs
+                    e.load_force_amplitude, e.load_force_wavelength, m.params, runs, mass
                 )
             else:
                 why = effect_problem(n, float(getattr(m.effects, pn)), m.params, runs, p0)
             if why is not None:
                 ok = False
-                if all(r.reason != why for r in self.rejected):
+                # one row per candidate: its first impossible fit (later tries on top of
+                # other causes repeat it with other numbers)
+                if all(r.name != n for r in self.rejected):
                     self.rejected.append(Rejected(n, {pn: float(getattr(m.effects, pn))}, why))
         return ok
 

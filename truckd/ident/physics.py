@@ -142,11 +142,13 @@ def effects_problems(
         if why is not None:
             out.append(why)
     if e.hill_force != 0.0:
-        why = hill_problem(e.hill_force, e.hill_start, e.hill_length, p, runs)
+        why = hill_problem(e.hill_force, e.hill_start, e.hill_length, p, runs, fitted_mass(p, p0))
         if why is not None:
             out.append(why)
     if e.load_force_amplitude != 0.0:
-        why = rolling_problem(e.load_force_amplitude, e.load_force_wavelength, p, runs)
+        why = rolling_problem(
+            e.load_force_amplitude, e.load_force_wavelength, p, runs, fitted_mass(p, p0)
+        )
         if why is not None:
             out.append(why)
     return out

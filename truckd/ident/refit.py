@@ -157,11 +157,17 @@ def _keep(
     parameters: a cause fitted to nothing, its parameter 1e-12 of its scale, adds
     nothing), and the model with them must beat the seed's (``base_sum``).  With none
     kept, the report figures of ``model``'s parameters without its causes when they beat
-    the seed's (the joint refit on more data found a better seed), else the seed's."""
+    the seed's (the joint refit on more data found a better seed), else the seed's.
+    Each finding's ``fit_gain_percent`` is what it adds to the ones before it, the first
+    counted from the better of the seed's fit and ``model``'s without causes: they add
+    up to the extended model's fit minus that (switching every cause off at the joint
+    refit's parameters may fit far below the seed: the first cause was credited +52
+    points where the extended model gained 2)."""
     found: list[Finding] = []
     kept_: list[str] = []
     off = {by_name[a].param.name: 0.0 for a in accepted}
     e_sum, y_e = summary(model.params, dataclasses.replace(model.effects, **off), report)
+    ref = max(e_sum.fit_percent, base_sum.fit_percent)
     least = ACTS_MIN * float(np.std(y_base))  # a change of the speed this small is none
     for name in accepted:
         later = {by_name[a].param.name: 0.0 for a in accepted if a not in (*kept_, name)}
@@ -177,7 +183,7 @@ def _keep(
                 params=params_of(by_name[name], model.effects),
                 profile=profile_of(by_name[name], model.effects),
                 fit_percent=s_k.fit_percent,
-                fit_gain_percent=s_k.fit_percent - e_sum.fit_percent,
+                fit_gain_percent=s_k.fit_percent - max(e_sum.fit_percent, ref),
             )
         )
         kept_.append(name)
@@ -185,7 +191,7 @@ def _keep(
     if not kept_ and e_sum.fit_percent <= base_sum.fit_percent:  # the seed's, as it was
         e_sum, y_e = base_sum, y_base
     if len(kept_) < len(accepted) > 1:  # causes that act together (a pair)
-        together = _together(model, [by_name[a] for a in accepted], report, e_sum, least)
+        together = _together(model, [by_name[a] for a in accepted], report, e_sum, least, ref)
         if together is not None:
             return together
     return found, kept_, e_sum, y_e
@@ -197,30 +203,36 @@ def _together(
     report: Sequence[Series],
     best: ModelSummary,
     least: float,
+    ref: float,
 ) -> _Kept | None:
     """All of ``causes`` in ``model``, when they earn their place only together: the model
     with all of them beats ``best`` (what one at a time kept) on the report data, and
-    switching any one of them off lowers that fit (its ``fit_gain_percent``: what it adds
-    to the others) and moves the speed by ``least`` (m/s RMS) at least.  A cause fitted
-    jointly with another (the battery's sag with the loop's own delay) may be worse alone
-    than none at all; None when they do not."""
+    switching any one of them off lowers that fit (what it adds to the others) and moves
+    the speed by ``least`` (m/s RMS) at least.  Their ``fit_gain_percent`` share the
+    gain over ``ref`` (the fit they are counted from, :func:`_keep`) in proportion to
+    what each adds to the others.  A cause fitted jointly with another (the battery's sag
+    with the loop's own delay) may be worse alone than none at all; None when they do
+    not."""
     full, y_full = summary(model.params, model.effects, report)
     if full.fit_percent <= best.fit_percent:
         return None
-    found: list[Finding] = []
+    adds: list[float] = []
     for c in causes:
         off = dataclasses.replace(model.effects, **{c.param.name: 0.0})
         s_off, y_off = summary(model.params, off, report)
         gain = full.fit_percent - s_off.fit_percent
         if gain <= 0.0 or float(np.sqrt(np.mean(np.square(y_full - y_off)))) < least:
             return None
-        found.append(
-            Finding(
-                name=c.output or c.name,
-                params=params_of(c, model.effects),
-                profile=profile_of(c, model.effects),
-                fit_percent=full.fit_percent,
-                fit_gain_percent=gain,
-            )
+        adds.append(gain)
+    total = max(full.fit_percent - ref, 0.0)
+    found = [
+        Finding(
+            name=c.output or c.name,
+            params=params_of(c, model.effects),
+            profile=profile_of(c, model.effects),
+            fit_percent=full.fit_percent,
+            fit_gain_percent=total * a / sum(adds),
         )
+        for c, a in zip(causes, adds, strict=True)
+    ]
     return found, [c.name for c in causes], full, y_full

@@ -146,13 +146,14 @@ def _html(diag: Diagnosis, images: list[tuple[str, str]], source: str) -> str:
         f"<td>{'yes' if c.accepted else 'no'}</td><td>{e(c.note)}</td></tr>"
         for c in diag.candidates
     )
-    found = (
-        "".join(
-            f"<li><b>{e(f.name)}</b>: {e(_fmt(f.params))}; fit {f.fit_percent:.2f} % "
-            f"({f.fit_gain_percent:+.2f})</li>"
-            for f in diag.effects
-        )
-        or "<li>none: the seed model explains the data</li>"
+    found = "".join(
+        f"<li><b>{e(f.name)}</b>: {e(_fmt(f.params))}; fit {f.fit_percent:.2f} % "
+        f"({f.fit_gain_percent:+.2f})</li>"
+        for f in diag.effects
+    ) or (
+        "<li>none: the residual is white at the noise level</li>"
+        if diag.explains
+        else "<li>none among the candidates</li>"
     )
     force = ""
     if diag.baseline.force_relerr_percent is not None:

@@ -109,31 +109,44 @@ DETERMINED = 0.1
 error is below this."""
 
 
+REF_FLOOR = 1e-3
+"""A free parameter nearer 0 than this fraction of its scale (a Coulomb friction fitted
+to its zero bound) is perturbed by this fraction of its scale, not of its value: a step
+relative to 6e-14 moved nothing, and the trade-off it hides (kS against kA on slow
+symmetric ramps) vanished from the information."""
+
+COND_FLOOR = 1e-12
+"""Eigenvalues of the information below this fraction of its largest count as this
+(a direction the data do not see has a huge variance, not none)."""
+
+
 def fisher_rel_se(
     m: FitResult, free: Sequence[Param], data: list[Series], w: Weights
 ) -> tuple[float, float, float] | None:
     """Relative standard errors of (kS, kV, kA) of the simulation-error fit ``m`` on
     ``data``, from the Fisher information (Gauss-Newton, finite differences in log
-    space), the residual's variance, and its lag-1 autocorrelation to count effectively
-    independent samples (an autocorrelated residual carries less information).  None
-    when the seed's ``K_v``, ``J_S`` or ``K_coulomb`` is not free."""
+    space; :data:`REF_FLOOR` for a parameter at 0), the residual's variance, and its
+    lag-1 autocorrelation to count effectively independent samples (an autocorrelated
+    residual carries less information).  A direction the data do not see
+    (:data:`COND_FLOOR`) has a huge variance.  None when the seed's ``K_v``, ``J_S`` or
+    ``K_coulomb`` is not free."""
     names = [f.name for f in free]
     if not {"K_v", "J_S", "K_coulomb"} <= set(names):
         return None
     r0 = residuals(m.params, m.effects, data, w)
     cols = []
+    to_log = []  # per parameter: its reference over its value (to relative units)
     step = 1e-3
-    for f in free:
+    th = theta_of(m.params, m.effects, free)
+    for k, f in enumerate(free):
         val = value_of(m.params, m.effects, f.name)
-        if f.name == "K_coulomb" and val <= 0.0:
-            val = 1e-3 * f.scale
-        th = theta_of(m.params, m.effects, free)
-        k = names.index(f.name)
+        ref = max(abs(val), REF_FLOOR * abs(f.scale))
         th_up = th.copy()
-        th_up[k] = val * (1.0 + step) / f.scale
+        th_up[k] = (val + step * ref) / f.scale
         p_up, e_up = apply(m.params, m.effects, free, th_up)
         r_up = residuals(p_up, e_up, data, w)
-        cols.append((r_up - r0) / step)  # per unit relative change (log space)
+        cols.append((r_up - r0) / step)  # per unit relative change of the reference
+        to_log.append(ref / abs(val) if val != 0.0 else float("inf"))
     jac = np.column_stack(cols)
     n = len(r0)
     if n <= len(free):
@@ -142,17 +155,22 @@ def fisher_rel_se(
     rho = float(res[:-1] @ res[1:]) / max(float(res @ res), 1e-300)
     rho = min(max(rho, 0.0), 0.99)
     var = float(r0 @ r0) / (n - len(free)) * (1.0 + rho) / (1.0 - rho)
-    try:
-        cov = var * np.linalg.pinv(jac.T @ jac)
-    except np.linalg.LinAlgError:
+    info = jac.T @ jac
+    if not np.all(np.isfinite(info)):
         return None
+    lam, vec = np.linalg.eigh(info)
+    lam = np.maximum(lam, COND_FLOOR * max(float(lam[-1]), 1e-300))
+    cov_ref = var * (vec / lam) @ vec.T
+    with np.errstate(invalid="ignore", over="ignore"):
+        scale = np.asarray(to_log)
+        cov = cov_ref * np.outer(scale, scale)  # in log units of the values
     kv, js, kc = names.index("K_v"), names.index("J_S"), names.index("K_coulomb")
     d = np.sqrt(np.maximum(np.diag(cov), 0.0))
     # kA = R_m J_S / (K_T ratio) with K_T tied to K_v: log kA = log J_S - log K_v + c.
     ka = float(np.sqrt(max(cov[js, js] + cov[kv, kv] - 2.0 * cov[js, kv], 0.0)))
     ks = float(np.sqrt(max(cov[kc, kc] + cov[kv, kv] - 2.0 * cov[kc, kv], 0.0)))
-    if m.params.K_coulomb <= 0.0:
-        ks = float("inf")
+    if not m.params.K_coulomb > REF_FLOOR * abs(free[kc].scale):
+        ks = float("inf")  # at its zero bound: no relative error to speak of
     return ks, float(d[kv]), ka
 
 

@@ -13,12 +13,21 @@ rotational ones (``Radians``, ``Rotations``, ``Degrees``) to rad, whose speed in
 then stands for the speed (the fitted constants are per radian; the configured gearing
 is only a prior, see docs/diagnosis.md).  Each test is one experiment (run).
 
+The older frc-characterization tool (2019-2021) wrote the same four tests with rows of
+ten numbers, ``[t, battery, autospeed, V_left, V_right, x_left, x_right, v_left, v_right,
+gyro_angle]`` (:data:`FRC_CHARACTERIZATION`), positions and speeds in encoder rotations
+times ``unitsPerRotation`` in its ``units`` (rotational units: one rotation); a file
+without ``units`` (its first versions, drivetrains only) keeps the file's own units,
+said in a note.  It is told from SysId's by its row width (no ``sysid`` key).
+
 ``FILE.json:slow-forward,slow-backward`` selects tests (default: all four).
 """
 
 from __future__ import annotations
 
 import json
+import math
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -81,8 +90,119 @@ def split_selector(path: str) -> tuple[str, tuple[str, ...]]:
     return path, TESTS
 
 
+@dataclass(frozen=True)
+class _Layout:
+    """Where a file's rows keep voltage, position and speed, and how to read them."""
+
+    kind: str
+    """``drivetrain`` or ``simple`` (the messages' word for the test)."""
+    width: int
+    """Numbers per row."""
+    u: tuple[int, ...]
+    """Voltage column(s): left and right of a drivetrain, else one."""
+    x: tuple[int, ...]
+    v: tuple[int, ...]
+    scale: float
+    """File units to SI (m, or rad for rotational units)."""
+    sign: float = 1.0
+    """Weight of the left side (-1: a spin test, half the sides' difference)."""
+    notes: list[str] = field(default_factory=list)
+
+
+FRC_CHARACTERIZATION: dict[str, tuple[int, ...]] = {"u": (3, 4), "x": (5, 6), "v": (7, 8)}
+"""frc-characterization's row: t, battery, autospeed, then left and right motor volts,
+encoder positions and speeds, and the gyro angle (its data_analyzer's column indices);
+a mechanism other than a drivetrain uses the left side's."""
+FRC_CHARACTERIZATION_WIDTH = 10
+"""Numbers per frc-characterization row."""
+
+
+def _first_row(raw: dict[str, object]) -> object:
+    for name in TESTS:
+        rows = raw.get(name)
+        if isinstance(rows, list) and rows:
+            return rows[0]
+    return None
+
+
+def _units(raw: dict[str, object], file: str) -> tuple[str, float]:
+    """The file's unit system (lower case) and its factor to SI (:data:`UNITS`)."""
+    unit_name = str(raw.get("units", "Meters")).lower()
+    if unit_name not in UNITS:
+        raise InputError(
+            f"{file}: key 'units': {raw.get('units')!r}; expected one of SysId's unit "
+            "systems: Meters, Feet, Inches, Centimeters, Millimeters, Radians, Rotations, "
+            "Degrees"
+        )
+    return unit_name, UNITS[unit_name]
+
+
+def _legacy_layout(raw: dict[str, object], file: str, test_kind: str) -> _Layout:
+    """An frc-characterization file's layout (:data:`FRC_CHARACTERIZATION`)."""
+    notes = ["an frc-characterization file (rows of 10 numbers): read as such"]
+    drivetrain = "drivetrain" in test_kind or "test" not in raw  # its first versions
+    if "units" in raw:
+        unit_name, scale = _units(raw, file)
+        if unit_name in ROTATIONAL:
+            scale = UNITS["rotations"]  # encoder rotations, in rad
+        else:  # encoder rotations times unitsPerRotation, in its units
+            per_rot = raw.get("unitsPerRotation", 1.0)
+            if not isinstance(per_rot, int | float) or isinstance(per_rot, bool):
+                raise InputError(f"{file}: key 'unitsPerRotation': expected a number")
+            if not (math.isfinite(per_rot) and per_rot > 0.0):
+                raise InputError(f"{file}: key 'unitsPerRotation': {per_rot!r}, expected > 0")
+            scale *= float(per_rot)
+    else:
+        scale = 1.0
+        notes.append(
+            "an frc-characterization file without units: positions and speeds are taken "
+            "in the file's own units (m and m/s if it logged metres); the fits do not "
+            "depend on them, the constants and the notes' sizes do"
+        )
+    cols = {c: FRC_CHARACTERIZATION[c][: 2 if drivetrain else 1] for c in "uxv"}
+    kind = "drivetrain" if drivetrain else "simple"
+    width = FRC_CHARACTERIZATION_WIDTH
+    return _Layout(kind, width, cols["u"], cols["x"], cols["v"], scale, 1.0, notes)
+
+
+def _layout(raw: dict[str, object], file: str) -> _Layout:
+    """The layout of a SysId file, or of an frc-characterization one (rows of 10)."""
+    test_kind = str(raw.get("test", "")).lower()
+    gravity = [GRAVITY[k] for k in GRAVITY if k in test_kind][:1]
+    first = _first_row(raw)
+    if "sysid" not in raw and isinstance(first, list) and len(first) >= FRC_CHARACTERIZATION_WIDTH:
+        out = _legacy_layout(raw, file, test_kind)
+    else:
+        scale = _units(raw, file)[1]
+        drivetrain = "drivetrain" in test_kind
+        sign = -1.0 if drivetrain and "angular" in test_kind else 1.0  # left side's weight
+        if drivetrain:
+            out = _Layout("drivetrain", 9, (1, 2), (3, 4), (5, 6), scale, sign)
+        else:
+            out = _Layout("simple", 4, (1,), (2,), (3,), scale)
+    out.notes.extend(gravity)
+    unit_name = str(raw.get("units", "")).lower()
+    if unit_name in ROTATIONAL:
+        out.notes.append(
+            f"units {raw.get('units')}: converted to rad, the speed in rad/s stands where a "
+            "truck's m/s would: kV and kA printed per metre (V s/m, V s^2/m) are per "
+            "radian (V s/rad, V s^2/rad), and forces and weights in the notes are the "
+            "torques over the configured wheel radius"
+        )
+    return out
+
+
+def _column(a: np.ndarray, cols: tuple[int, ...], sign: float) -> np.ndarray:
+    """One signal from its column(s): a drivetrain's right side plus ``sign`` times its
+    left, over two; else the one column."""
+    if len(cols) == 2:
+        return np.asarray(0.5 * (a[:, cols[1]] + sign * a[:, cols[0]]), float)
+    return np.asarray(a[:, cols[0]], float).copy()
+
+
 def read_sysid(path: str) -> list[Log]:
-    """The selected tests of a SysId JSON file, one voltage-input log each (t, u, v, x)."""
+    """The selected tests of a SysId (or frc-characterization) JSON file, one
+    voltage-input log each (t, u, v, x)."""
     file, wanted = split_selector(path)
     text = read_text(file, "SysId JSON log", MAX_LOG_BYTES)  # a regular UTF-8 file, bounded
     try:
@@ -91,27 +211,8 @@ def read_sysid(path: str) -> list[Log]:
         raise InputError(f"{file}: not a SysId JSON file: {str(exc)[:80]}") from None
     if not isinstance(raw, dict):
         raise InputError(f"{file}: not a SysId JSON file: expected an object with tests")
-    unit_name = str(raw.get("units", "Meters")).lower()
-    if unit_name not in UNITS:
-        raise InputError(
-            f"{file}: key 'units': {raw.get('units')!r}; expected one of SysId's unit "
-            "systems: Meters, Feet, Inches, Centimeters, Millimeters, Radians, Rotations, "
-            "Degrees"
-        )
-    scale = UNITS[unit_name]
-    test_kind = str(raw.get("test", "")).lower()
-    drivetrain = "drivetrain" in test_kind
-    sign = -1.0 if drivetrain and "angular" in test_kind else 1.0  # left side's weight
-    width = 9 if drivetrain else 4
-    kind = "drivetrain" if drivetrain else "simple"
-    notes = [GRAVITY[k] for k in GRAVITY if k in test_kind][:1]
-    if unit_name in ROTATIONAL:
-        notes.append(
-            f"units {raw.get('units')}: converted to rad, the speed in rad/s stands where a "
-            "truck's m/s would: kV and kA printed per metre (V s/m, V s^2/m) are per "
-            "radian (V s/rad, V s^2/rad), and forces and weights in the notes are the "
-            "torques over the configured wheel radius"
-        )
+    lay = _layout(raw, file)
+    width, kind = lay.width, lay.kind
     logs: list[Log] = []
     for name in wanted:
         if name not in TESTS:
@@ -133,14 +234,15 @@ def read_sysid(path: str) -> list[Log]:
         a = a[order]
         keep = np.concatenate([[True], np.diff(a[:, 0]) > 0])
         a = a[keep]
-        if drivetrain:
-            u = 0.5 * (a[:, 2] + sign * a[:, 1])
-            x = 0.5 * (a[:, 4] + sign * a[:, 3]) * scale
-            v = 0.5 * (a[:, 6] + sign * a[:, 5]) * scale
-        else:
-            u, x, v = a[:, 1], a[:, 2] * scale, a[:, 3] * scale
+        u = _column(a, lay.u, lay.sign)
+        x = _column(a, lay.x, lay.sign) * lay.scale
+        v = _column(a, lay.v, lay.sign) * lay.scale
         logs.append(
-            Log({"t": a[:, 0].copy(), "u": u, "v": v, "x": x}, f"{file}:{name}", notes=notes)
+            Log(
+                {"t": a[:, 0].copy(), "u": u, "v": v, "x": x},
+                f"{file}:{name}",
+                notes=list(lay.notes),
+            )
         )
     if not logs:
         raise InputError(f"{file}: no SysId test found (expected keys {', '.join(TESTS)})")

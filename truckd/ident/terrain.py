@@ -465,14 +465,26 @@ def locate_wave(p: VehicleParams, runs: Sequence[Series]) -> Wave | None:
 
 
 def rolling_problem(
-    amplitude: float, wavelength: float, p: VehicleParams, runs: Sequence[Series]
+    amplitude: float,
+    wavelength: float,
+    p: VehicleParams,
+    runs: Sequence[Series],
+    mass: float | None = None,
 ) -> str | None:
-    """Why rolling terrain of ``amplitude`` N and ``wavelength`` m is impossible."""
+    """Why rolling terrain of ``amplitude`` N and ``wavelength`` m is impossible;
+    ``mass`` (kg) the fitted machine's (:func:`truckd.ident.physics.fitted_mass`): no
+    load exceeds the weight it implies, as a constant load may not (a flywheel with its
+    wheels off the ground weighs on nothing)."""
     weight = p.m * 9.81
     if abs(amplitude) > GRADE_MAX * weight:
         return (
             f"load_force_amplitude = {abs(amplitude):.3g} N exceeds a {GRADE_MAX:.0%} grade "
             f"of the truck's weight ({GRADE_MAX * weight:.3g} N)"
+        )
+    if mass is not None and abs(amplitude) > mass * 9.81:
+        return (
+            f"load_force_amplitude = {abs(amplitude):.3g} N exceeds the weight the fitted "
+            f"inertia implies ({mass * 9.81:.3g} N)"
         )
     travel = max(float(np.median(np.abs(r.v))) * float(np.median(np.diff(r.t))) for r in runs)
     if wavelength < 2.0 * MIN_SAMPLES_TRAVEL * travel:
@@ -484,14 +496,25 @@ def rolling_problem(
 
 
 def hill_problem(
-    force: float, start: float, length: float, p: VehicleParams, runs: Sequence[Series]
+    force: float,
+    start: float,
+    length: float,
+    p: VehicleParams,
+    runs: Sequence[Series],
+    mass: float | None = None,
 ) -> str | None:
-    """Why a hill of ``force`` N on ``[start, start + length)`` m is impossible (None: fine)."""
+    """Why a hill of ``force`` N on ``[start, start + length)`` m is impossible (None:
+    fine); ``mass`` (kg) as in :func:`rolling_problem`."""
     weight = p.m * 9.81
     if abs(force) > GRADE_MAX * weight:
         return (
             f"|hill_force| = {abs(force):.3g} N exceeds a {GRADE_MAX:.0%} grade of the truck's "
             f"weight ({GRADE_MAX * weight:.3g} N)"
+        )
+    if mass is not None and abs(force) > mass * 9.81:
+        return (
+            f"|hill_force| = {abs(force):.3g} N exceeds the weight the fitted inertia "
+            f"implies ({mass * 9.81:.3g} N)"
         )
     xs = [r.x for r in runs if r.x is not None]
     if xs:

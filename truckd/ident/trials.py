@@ -91,7 +91,8 @@ def candidates_stage(
         note = "passes alone" if ok else judge.hill_notes.get(cand.name, "")
         if ok and not judge.possible(f, [cand.name]):
             ok = False
-            note = f"physically impossible: {judge.rejected[-1].reason}"
+            why = next(r.reason for r in judge.rejected if r.name == cand.name)
+            note = f"physically impossible: {why}"
         tried[cand.name] = m
         rows[cand.name] = CandidateRow(
             name=cand.name,
