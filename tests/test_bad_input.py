@@ -266,8 +266,8 @@ def test_exponent_without_dot_is_a_number(tmp_path: Path) -> None:
         with pytest.raises(InputError) as err:
             parse_config(base.replace("R_m:", f"R_m: {value} #", 1), "c.yaml")
         assert "key 'vehicle.R_m' = 1e+308: expected a number in" in str(err.value)
-    ok = parse_config(base.replace("R_m:", "R_m: 25e-1 #", 1), "c.yaml")
-    assert ok.vehicle.R_m == 2.5
+    ok = parse_config(base.replace("R_m:", "R_m: 12e-2 #", 1), "c.yaml")
+    assert ok.vehicle.R_m == 0.12
 
 
 def test_quoted_number_says_it_was_read_as_text() -> None:

@@ -25,6 +25,10 @@ def _text(overrides: Mapping[str, Any]) -> str:
     return yaml.safe_dump(deep_merge(base, overrides))
 
 
+LIGHT = {"J_S": 1.6e-6, "m": 0.35}
+"""A truck with a tenth of the default's mass and inertia."""
+
+
 REFUSED: list[tuple[dict[str, Any], str]] = [
     (
         {"control": {"rate_hz": 8.0}},
@@ -122,6 +126,16 @@ REFUSED: list[tuple[dict[str, Any], str]] = [
         "command is clipped there",
     ),
     (
+        {"vehicle": {"K_stiction": 0.5}},
+        "vehicle.K_stiction = 0.5 N m: at least the stall torque at control.u_max "
+        "(0.242012 N m, K_T u_max / R_m): the truck cannot move",
+    ),
+    (
+        {"plant": {"vehicle": {"K_stiction": 0.3}}},
+        "plant.vehicle.K_stiction = 0.3 N m: at least the stall torque at control.u_max "
+        "(0.242012 N m, K_T u_max / R_m): the truck cannot move",
+    ),
+    (
         {"characterize": {"step_voltages": [1.5, 8.0]}},
         "key 'characterize.step_voltages[1]' = 8: expected at most control.u_max (7.2 V): the "
         "command is clipped there",
@@ -140,6 +154,7 @@ def test_a_combination_that_cannot_work_is_refused_with_one_line(
 
 ACCEPTED: list[dict[str, Any]] = [
     {},
+    {"vehicle": LIGHT, "control": {"estimator": {"accel_max": 350.0}}},
     # the edges of the rules above, on the side that works
     {"control": {"rate_hz": 20.0}, "runtime": {"stall_limit_s": 0.1}},
     {"control": {"rate_hz": 249.0}},
@@ -196,3 +211,60 @@ def test_every_command_refuses_it_with_exit_2(
     line = bad_input([argv[0], "--config", str(f), *argv[1:]], capsys)
     assert f"{f}: key 'control.rate_hz' = 8: expected at least 20 Hz" in line
     assert "TruckTimeoutTime 100 ms" in line
+
+
+def _stall_acceleration(v: Mapping[str, float], u: float) -> float:
+    """At rest under ``u`` volts: (K_T u / R_m - K_coulomb) / J_S at the wheel (m/s^2)."""
+    torque = v["K_T"] * u / v["R_m"] - v["K_coulomb"]
+    return torque / v["J_S"] * v["r_w"] / (v["n_g"] * v["n_fd"])
+
+
+@pytest.mark.parametrize("section", ["vehicle", "plant"])
+def test_a_truck_quicker_than_the_estimators_bound_is_refused(section: str) -> None:
+    """A light truck's real speed steps exceed ``control.estimator.accel_max`` (30 m/s^2
+    against about 230): the estimator took them for counter resets and the truck crawled
+    at 0.67 m/s where 1.8 was asked. Refused, naming both, with a value that works."""
+    base = yaml.safe_load(default_config_path().read_text())
+    over = {"vehicle": LIGHT} if section == "vehicle" else {"plant": {"vehicle": LIGHT}}
+    with pytest.raises(InputError) as err:
+        parse_config(_text(over), "t.yaml")
+    line = str(err.value)
+    key = "vehicle" if section == "vehicle" else "plant.vehicle"
+    assert line.startswith(
+        f"t.yaml: key 'control.estimator.accel_max' = 30 m/s^2: below the stall "
+        f"acceleration of {key} ("
+    )
+    a = _stall_acceleration({**base["vehicle"], **LIGHT}, base["control"]["u_max"])
+    suggested = float(line.rsplit(" ", 1)[1])
+    assert 1.5 * a <= suggested <= 1.5 * a + 1.0
+    # the default truck is within it
+    assert _stall_acceleration(base["vehicle"], base["control"]["u_max"]) < 30.0
+
+
+def test_a_light_truck_with_its_bound_reaches_its_speed(tmp_path: Path) -> None:
+    """With ``accel_max`` above its stall acceleration the light truck cruises at the
+    asked speed (it crawled at 0.67 m/s of 1.8 with the default bound)."""
+    import json
+
+    from truckd.cli.main import main
+
+    cfg = tmp_path / "light.yaml"
+    cfg.write_text(_text({"vehicle": LIGHT, "control": {"estimator": {"accel_max": 350.0}}}))
+    out = tmp_path / "cruise.json"
+    assert main(["sim", "--config", str(cfg), "--scenario", "cruise", "--json", str(out)]) == 0
+    row = json.loads(out.read_text())
+    row = row[0] if isinstance(row, list) else row
+    assert row["final_speed_m_s"] == pytest.approx(1.8, abs=0.05)
+    assert row["collision"] is False
+
+
+def test_a_controller_model_quicker_than_the_bound_is_refused(tmp_path: Path) -> None:
+    """A model file fitted to a light truck (``run``/``sim --model``) is held to the same
+    bound: it describes the truck the estimator reads."""
+    from truckd.modelfile import ModelFile, read_controller_model, write_model
+
+    p = load_config().vehicle
+    path = tmp_path / "light.yaml"
+    write_model(path, ModelFile(vehicle=p.replace(J_S=0.1 * p.J_S, m=0.1 * p.m)))
+    with pytest.raises(InputError, match="accel_max"):
+        read_controller_model(load_config(), path)

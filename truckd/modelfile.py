@@ -16,8 +16,10 @@ from pathlib import Path
 
 import yaml
 
+from truckd.config.cross import model_vehicle_problem
 from truckd.config.truck import TruckConfig
 from truckd.control.feedforward import torque_to_voltage
+from truckd.errors import InputError
 from truckd.inputs import read_text
 from truckd.model.effects import Effects, driver_output
 from truckd.model.params import VehicleParams
@@ -55,6 +57,18 @@ def read_model(path: str | Path) -> ModelFile:
     src = str(path)
     data = load_yaml(read_text(path, "model file (YAML)", MAX_BYTES), src)
     return load_dataclass(ModelFile, data, src)
+
+
+def read_controller_model(cfg: TruckConfig, path: str | Path) -> ModelFile:
+    """A controller's model file (``run``/``sim --model``), refused when its truck cannot
+    work with ``cfg`` (:func:`truckd.config.cross.model_vehicle_problem`: a model
+    fitted to a light truck needs the estimator's ``accel_max`` above its stall
+    acceleration)."""
+    model = read_model(path)
+    why = model_vehicle_problem(cfg, model.vehicle, str(path))
+    if why is not None:
+        raise InputError(why)
+    return model
 
 
 def model_text(model: ModelFile) -> str:

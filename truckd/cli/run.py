@@ -12,7 +12,7 @@ from truckd.config.truck import load_config
 from truckd.control.effect_use import startup_line
 from truckd.control.qp import ControlModel
 from truckd.io.backends import BACKEND_NAMES
-from truckd.modelfile import read_model
+from truckd.modelfile import read_controller_model
 from truckd.runtime.daemon import Daemon
 
 
@@ -39,7 +39,7 @@ def run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     model = None
     if args.model:
-        mf = read_model(args.model)
+        mf = read_controller_model(cfg, args.model)
         model = ControlModel(mf.vehicle, mf.effects)
         note = startup_line(mf.effects)
         if note is not None:

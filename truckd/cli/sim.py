@@ -15,7 +15,7 @@ from truckd.config.truck import load_config
 from truckd.control.effect_use import present_effects, startup_line
 from truckd.control.qp import ControlModel
 from truckd.errors import TruckdError
-from truckd.modelfile import read_model
+from truckd.modelfile import read_controller_model
 from truckd.outputs import check_distinct, check_output_dir, ensure_dir, guard_inputs, write_set
 from truckd.sim.closed_loop import SimSetup, run_scenario
 from truckd.sim.mcap_export import mcap_paths, trace_mcap_bytes
@@ -81,7 +81,7 @@ def _run(args: argparse.Namespace) -> int:
     check_platoon_only(args)
     cfg = load_config(args.config)
     if args.model:
-        mf = read_model(args.model)
+        mf = read_controller_model(cfg, args.model)
         model, source = ControlModel(mf.vehicle, mf.effects), f"model file {args.model}"
     else:
         model, source = ControlModel(cfg.vehicle), "configured vehicle"

@@ -13,7 +13,7 @@ from truckd.cli.args import MAX_PLATOON_TRUCK_S
 from truckd.config.truck import load_config
 from truckd.control.qp import ControlModel
 from truckd.errors import InputError, TruckdError
-from truckd.modelfile import read_model
+from truckd.modelfile import read_controller_model
 from truckd.outputs import check_output_dir, ensure_dir, write_set
 from truckd.sim.closed_loop import SimSetup, Trace
 from truckd.sim.platoon import (
@@ -187,7 +187,7 @@ def run_platoon_cli(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     model = ControlModel(cfg.vehicle)
     if args.model:
-        mf = read_model(args.model)
+        mf = read_controller_model(cfg, args.model)
         model = ControlModel(mf.vehicle, mf.effects)
     setup = SimSetup.from_config(cfg, model)
     names = PLATOON_SCENARIOS if args.scenario == "all" else (args.scenario,)

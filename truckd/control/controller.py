@@ -249,7 +249,7 @@ class Controller:
             return self._fallback(est, v, "speed_stale", "fallback", math.nan, "not-run", 0, 0.0)
         lead = est.lead_valid and math.isfinite(est.gap) and math.isfinite(est.v_lead)
         h = cfg.time_headway if headway is None else headway
-        gap_ref = cfg.d_0 + h * v if lead else math.nan
+        gap_ref = cfg.d_0 + h * max(v, 0.0) if lead else math.nan  # reversing: d_0
         self.holding, self._release_cycles = hold_update(
             cfg, self.holding, self._release_cycles, est, v, lead
         )

@@ -227,7 +227,8 @@ static int decide(const double *c, const double *est, const double *d, double *i
     double e_gap = est[2], e_vl = est[3];
     int lead = est[4] != 0.0 && isfinite(e_gap) && isfinite(e_vl);
     double h = d[D_HEADWAY];
-    double gap_ref = lead ? c[C_D0] + h * v : NAN;
+    /* never below d_0: a truck moving backwards keeps the standstill gap */
+    double gap_ref = lead ? c[C_D0] + h * (v > 0.0 ? v : 0.0) : NAN;
     if (lead && fabs(v) <= c[C_MOVING] && e_vl <= c[C_HOLD_LEAD] &&
         e_gap <= c[C_D0] + c[C_HOLD_GAP])
         return 0; /* the hold begins: Python's */
