@@ -58,8 +58,6 @@ def _overrides(rng: random.Random) -> dict[str, Any]:
             "estimator": {
                 "range_max": round(rng.uniform(1.5, 12.0), 2),
                 "range_min": round(rng.uniform(0.0, 0.1), 3),
-                # above the drawn plant's stall acceleration (a K_T up to 7x: 155 m/s^2)
-                "accel_max": 400.0,
             }
         },
     }

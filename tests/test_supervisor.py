@@ -257,3 +257,49 @@ def test_decide_is_update_and_an_unchanged_decision_is_given_again() -> None:
     assert all(d is decisions[1] for d in decisions[2:])
     stale = sup.update(healthy(0.3, link_age=1.0))
     assert stale is not decisions[1] and stale.causes == ("link_stale",)
+
+
+def test_a_commanded_motor_that_does_not_turn_stops_and_cools() -> None:
+    """At least ``stall_command_v`` sent for ``stall_s`` while the truck stands: a stall
+    (a stalled RS-540 draws some 80 A; a truck whose stiction its model does not know
+    stood at 7.2 V for 15 s, mode DEGRADED). SAFE_STOP, held ``stall_cooldown_s``, then
+    the usual recovery; a start that moves, and a command below the bound, do not trip."""
+    sup, t = active_supervisor()
+    cfg = sup.config
+    # a start that breaks away within the time: nothing
+    ds = run(sup, t, t + 1.0, lambda tk: healthy(tk, speed=0.0, command=4.0))
+    ds += run(sup, t + 1.0, t + 2.0, lambda tk: healthy(tk, speed=0.5, command=4.0))
+    assert all(d.mode == Mode.ACTIVE for d in ds)
+    # below the bound, standing for long: nothing (a hold, a creep against a stop)
+    t += 2.0
+    ds = run(sup, t, t + 5.0, lambda tk: healthy(tk, speed=0.0, command=0.9 * cfg.stall_command_v))
+    assert all(d.mode == Mode.ACTIVE for d in ds)
+    # the stall
+    t += 5.0
+    ds = run(sup, t, t + 2.0, lambda tk: healthy(tk, speed=0.0, command=-4.0))
+    first = next(k for k, d in enumerate(ds) if d.mode != Mode.ACTIVE)
+    assert ds[first].mode == Mode.SAFE_STOP and "motor_stalled" in ds[first].causes
+    assert first * P == pytest.approx(cfg.stall_s, abs=P + 1e-9)
+    t_stall = t + first * P
+    # the motor is off now: the cause holds for the cool-down, then the recovery time
+    t += 2.0
+    ds = run(sup, t, t + 6.0, lambda tk: healthy(tk, speed=0.0, command=0.0))
+    back = next(k for k, d in enumerate(ds) if d.mode == Mode.ACTIVE)
+    t_back = t + back * P
+    want = t_stall + cfg.stall_cooldown_s + cfg.recovery_s
+    assert t_back == pytest.approx(want, abs=2 * P + 1e-9)
+
+
+def test_a_stall_needs_a_speed_to_judge() -> None:
+    """Without encoder data nothing is known of the speed: the stale encoder is the
+    cause, not a stall."""
+    sup, t = active_supervisor()
+    ds = run(sup, t, t + 3.0, lambda tk: healthy(tk, speed=0.0, command=5.0, encoder_age=1.0))
+    assert all("motor_stalled" not in d.causes for d in ds)
+    assert all("encoder_stale" in d.causes for d in ds)
+
+
+def test_the_stall_check_is_off_at_zero() -> None:
+    sup, t = active_supervisor(stall_command_v=0.0)
+    ds = run(sup, t, t + 3.0, lambda tk: healthy(tk, speed=0.0, command=7.0))
+    assert all(d.mode == Mode.ACTIVE for d in ds)

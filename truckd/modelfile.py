@@ -61,9 +61,8 @@ def read_model(path: str | Path) -> ModelFile:
 
 def read_controller_model(cfg: TruckConfig, path: str | Path) -> ModelFile:
     """A controller's model file (``run``/``sim --model``), refused when its truck cannot
-    work with ``cfg`` (:func:`truckd.config.cross.model_vehicle_problem`: a model
-    fitted to a light truck needs the estimator's ``accel_max`` above its stall
-    acceleration)."""
+    move under ``cfg``'s ``control.u_max`` (:func:`truckd.config.cross.model_vehicle_problem`:
+    its stiction above the stall torque)."""
     model = read_model(path)
     why = model_vehicle_problem(cfg, model.vehicle, str(path))
     if why is not None:

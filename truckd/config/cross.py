@@ -37,11 +37,7 @@ The rules (``docs/reference.md``, "Configuration checks across sections"):
 - the truck (``vehicle``, and the simulated one with ``plant.vehicle``) breaks away below
   ``control.u_max``: a stiction above the stall torque at ``u_max`` holds it still while
   the motor draws its stall current;
-- ``control.estimator.accel_max`` at least the truck's stall acceleration (``u_max`` on a
-  truck at rest, less Coulomb friction; of a ``--model`` file's truck too,
-  :func:`model_vehicle_problem`): its real speed steps would read as counter resets (a
-  truck with a tenth of the default's mass and inertia, 219 m/s^2 against 30, crawled at
-  0.67 m/s where 1.8 was asked, and reversed in a platoon).
+  (of a ``--model`` file's truck too, :func:`model_vehicle_problem`).
 """
 
 from __future__ import annotations
@@ -211,15 +207,9 @@ def _supply_problems(cfg: TruckConfig) -> str | None:
     return None
 
 
-def stall_acceleration(p: VehicleParams, u: float) -> float:
-    """The truck's acceleration (m/s^2) at rest under ``u`` volts: the stall torque
-    ``K_T u / R_m`` less Coulomb friction, over ``J_S``, at the wheel."""
-    return p.speed((p.K_T * u / p.R_m - p.K_coulomb) / p.J_S)
-
-
 def model_vehicle_problem(cfg: TruckConfig, p: VehicleParams, source: str) -> str | None:
-    """The truck checks (:func:`_truck_problems`) for a controller's model file's
-    vehicle ``p`` (``source`` names it): a model fitted to the truck describes it."""
+    """The truck check (:func:`_truck_problems`) for a controller's model file's vehicle
+    ``p`` (``source`` names it): a model fitted to the truck describes it."""
     return _truck_problems(cfg, [(f"{source}: vehicle", p)])
 
 
@@ -237,14 +227,6 @@ def _truck_problems(
                 f"{key}.K_stiction = {_g(p.K_stiction)} N m: at least the stall torque "
                 f"at control.u_max ({_g(stall)} N m, K_T u_max / R_m): the truck cannot move"
             )
-    a_max = cfg.control.estimator.accel_max
-    key, a = max(((k, stall_acceleration(p, u_max)) for k, p in trucks), key=lambda x: x[1])
-    if a > a_max:
-        return (
-            f"key 'control.estimator.accel_max' = {_g(a_max)} m/s^2: below the stall "
-            f"acceleration of {key} ({_g(a)} m/s^2 at control.u_max): the truck's real "
-            f"speed steps would read as counter resets; set at least {_g(math.ceil(1.5 * a))}"
-        )
     return None
 
 

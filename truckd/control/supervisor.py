@@ -16,8 +16,10 @@ Modes (the daemon maps them to commands):
   speed from the encoder data arriving for twice the encoder timeout (the estimator
   refused it, e.g. the wheels failing in turn or the counters jumping: ``speed_stale``), range
   sensor stale, frozen or reporting a fault, the solver failing ``solver_fail_limit`` cycles
-  in a row, the loop overrunning ``overrun_limit`` cycles in a row, or the lead lost with
-  action ``stop``.
+  in a row, the loop overrunning ``overrun_limit`` cycles in a row, the lead lost with
+  action ``stop``, or the motor stalled (``motor_stalled``: commanded at least
+  ``stall_command_v`` for ``stall_s`` while the truck stands; held ``stall_cooldown_s``,
+  a stalled RS-540 draws some 80 A).
 - ``FAULT``: the link is down (device gone, bus off): motor off, nothing to command
   through.  (The firmware's own fault bits are published in health, not acted on here:
   the firmware already switches the motor off on its command timeout.)
@@ -131,6 +133,30 @@ class SupervisorConfig:
         hi=60.0,
         default=0.5,
     )
+    stall_command_v: float = spec(
+        "a motor commanded at least this (|V|) while the truck stands (|speed| below "
+        "frozen_min_speed) for stall_s is stalled: SAFE_STOP (motor_stalled); 0 = off",
+        unit="V",
+        lo=0.0,
+        hi=100.0,
+        default=3.0,
+    )
+    stall_s: float = spec(
+        "how long a commanded motor may stand before it is stalled",
+        unit="s",
+        lo=0.0,
+        lo_open=True,
+        hi=60.0,
+        default=1.5,
+    )
+    stall_cooldown_s: float = spec(
+        "a stall holds SAFE_STOP this long before the motor may be commanded again (the "
+        "winding cools; a truck held by a wall or a wrong model is not retried at once)",
+        unit="s",
+        lo=0.0,
+        hi=600.0,
+        default=5.0,
+    )
 
     def validate(self) -> str | None:
         return None
@@ -155,6 +181,8 @@ class SupervisorInputs:
     lead_valid: bool = True
     solver_ok: bool = True
     loop_missed: bool = False
+    command: float = 0.0
+    """The motor command sent last cycle (V): with the truck standing, a stall."""
 
 
 @dataclass(frozen=True)
@@ -194,6 +222,9 @@ class _Counters:
     frozen_value: float | None = None
     clear_since: float | None = None
     ever_ready: bool = False
+    stall_time: float = 0.0
+    stall_last_t: float | None = None
+    stall_until: float = -math.inf
 
 
 def _stale(age: float, timeout: float) -> bool:
@@ -247,6 +278,7 @@ class Supervisor:
         lead_valid: bool,
         solver_ok: bool,
         loop_missed: bool,
+        command: float = 0.0,
     ) -> dict[str, Mode]:
         """Every active cause with the mode it calls for (updates the counters)."""
         cfg, c = self.config, self._c
@@ -286,7 +318,28 @@ class Supervisor:
             out["loop_overrun"] = _SAFE_STOP
         elif c.overruns >= cfg.overrun_degrade_after:
             out["loop_late"] = _DEGRADED
+        if self._stalled(t, command, speed, "encoder_stale" in out or "speed_stale" in out):
+            out["motor_stalled"] = _SAFE_STOP
         return out
+
+    def _stalled(self, t: float, command: float, speed: float, blind: bool) -> bool:
+        """A motor commanded at least ``stall_command_v`` while the truck stands, for
+        ``stall_s``; latched for ``stall_cooldown_s`` (the motor is off meanwhile, so the
+        condition itself clears at once).  Without a speed (``blind``) nothing is known."""
+        c, cfg = self._c, self.config
+        if t < c.stall_until:
+            return True
+        standing = not blind and math.isfinite(speed) and abs(speed) < cfg.frozen_min_speed
+        pushing = cfg.stall_command_v > 0.0 and abs(command) >= cfg.stall_command_v
+        if standing and pushing and c.stall_last_t is not None:
+            c.stall_time += max(0.0, t - c.stall_last_t)
+        elif not (standing and pushing):
+            c.stall_time = 0.0
+        c.stall_last_t = t
+        if c.stall_time >= cfg.stall_s:
+            c.stall_time, c.stall_until = 0.0, t + cfg.stall_cooldown_s
+            return True
+        return False
 
     def update(self, x: SupervisorInputs) -> Decision:
         """Decide this cycle's mode (:meth:`decide` of the record's fields, in order)."""
@@ -306,6 +359,7 @@ class Supervisor:
         lead_valid: bool = True,
         solver_ok: bool = True,
         loop_missed: bool = False,
+        command: float = 0.0,
     ) -> Decision:
         """:meth:`update` of :class:`SupervisorInputs`' fields, in their order and with
         their defaults (the cycle's call: no record built every cycle)."""
@@ -322,6 +376,7 @@ class Supervisor:
             lead_valid,
             solver_ok,
             loop_missed,
+            command,
         )
         c = self._c
         worst = max(causes.values(), key=_SEVERITY.__getitem__) if causes else _ACTIVE

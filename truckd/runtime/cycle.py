@@ -296,7 +296,7 @@ class CompanionCycle:
         # record built every cycle.
         dec = self.supervisor.decide(
             t, inp.link_up, link_age, encoder_age, range_age, s.range_raw, s.range_fault,
-            speed, speed_age, lead_valid, solver_ok, inp.loop_missed,
+            speed, speed_age, lead_valid, solver_ok, inp.loop_missed, self.u,
         )  # fmt: skip
         mode = dec.mode
         self.u, self.enable = motor_command(mode, u_ctrl, self.u, self.ramp_step, self.u_max)
