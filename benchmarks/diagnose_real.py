@@ -53,6 +53,10 @@ def _split(case: str, split: str) -> tuple[list[str], list[str]]:
     return [f"{case}:{','.join(fit_tests)}"], [f"{case}:{','.join(val_tests)}"]
 
 
+def _pct(x: float | None) -> str:
+    return "-" if x is None else f"{x:.1f} %"
+
+
 def goal(ls: float | None) -> float:
     """The validation fit the goal asks for: 90 %, and least squares + 5 points where
     least squares is below 95 % (at least least squares where it is above)."""
@@ -121,7 +125,7 @@ def main() -> int:
         ls = r["least_squares_fit_percent"]
         print(
             f"{case}: least squares {ls:.1f} %  truckd {r['extended_fit_percent']:.1f} % "
-            f"(seed {r['seed_fit_percent']:.1f} %, ceiling {r['fit_ceiling_percent']:.1f} %, "
+            f"(seed {r['seed_fit_percent']:.1f} %, ceiling {_pct(r['fit_ceiling_percent'])}, "
             f"goal {r['goal_fit_percent']:.1f} %: {'met' if r['goal_met'] else 'missed'})  "
             f"{r['effects']}  "
             f"unexplained={r['unexplained']}  {r['seconds']:.1f} s (load {r['loadavg_1min']})"

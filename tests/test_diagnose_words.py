@@ -329,3 +329,25 @@ def test_the_readers_notes_are_in_the_diagnosis_once() -> None:
     d = diagnose_log(logs, p)
     assert d.notes.count(said) == 1
     assert d.to_json()["notes"].count(said) == 1
+
+
+def test_frc_characterization_mechanisms_and_unsigned_voltages(tmp_path: Path) -> None:
+    """Its arm, elevator and simple-motor tools wrote rows of six, [t, battery,
+    autospeed, V, x, v] (read as SysId's four, the battery was the voltage); its robot
+    templates log |V| (battery times |autospeed|), so a backward test's voltage is
+    positive while the truck reverses: taken negative, and said."""
+    fwd, back = [], []
+    for k in range(50):
+        u, x, v = 2.0 + 0.01 * k, 0.02 * k, 0.4 + 0.001 * k
+        fwd.append([0.02 * k, 12.3, 0.2, u, x, v])
+        back.append([0.02 * k, 12.3, -0.2, u, -x, -v])  # |V| logged
+    path = tmp_path / "arm.json"
+    raw = {"test": "Arm", "units": "Rotations", "slow-forward": fwd, "slow-backward": back}
+    path.write_text(json.dumps(raw), encoding="utf-8")
+    f, b = read_sysid(str(path))
+    assert f.columns["u"][10] == pytest.approx(2.1)
+    assert f.columns["v"][10] == pytest.approx(0.41 * 2.0 * np.pi)
+    assert b.columns["u"][10] == pytest.approx(-2.1)
+    assert b.columns["v"][10] == pytest.approx(-0.41 * 2.0 * np.pi)
+    assert any("unsigned" in n for n in b.notes) and not any("unsigned" in n for n in f.notes)
+    assert any("gravity" in n for n in f.notes)  # an Arm: what its gravity does

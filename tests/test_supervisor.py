@@ -303,3 +303,16 @@ def test_the_stall_check_is_off_at_zero() -> None:
     sup, t = active_supervisor(stall_command_v=0.0)
     ds = run(sup, t, t + 3.0, lambda tk: healthy(tk, speed=0.0, command=7.0))
     assert all(d.mode == Mode.ACTIVE for d in ds)
+
+
+def test_a_loop_stall_does_not_end_a_stalls_cool_down() -> None:
+    """``restart`` (a loop stall) resets the counters, not the stalled motor's cool-down:
+    the truck drove into the same wall 1.2 s after the stall."""
+    sup, t = active_supervisor()
+    cfg = sup.config
+    run(sup, t, t + cfg.stall_s + 0.05, lambda tk: healthy(tk, speed=0.0, command=5.0))
+    t += cfg.stall_s + 0.05
+    sup.restart(t + 0.5)
+    ds = run(sup, t + 0.5, t + 3.0, lambda tk: healthy(tk, speed=0.0, command=0.0))
+    assert all(d.mode != Mode.ACTIVE for d in ds)
+    assert "motor_stalled" in ds[-1].causes

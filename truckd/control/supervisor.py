@@ -247,8 +247,9 @@ class Supervisor:
     def restart(self, t: float) -> None:
         """Back to ``INIT`` after a loop stall at time ``t`` (s): the cause ``loop_stall``
         holds it for ``recovery_s`` (the restarted estimator sees fresh data), then INIT
-        ends as at start-up, once everything is fresh."""
-        self._c = _Counters()
+        ends as at start-up, once everything is fresh.  A stall's cool-down carries over
+        (the winding has not cooled because the loop stalled)."""
+        self._c = _Counters(stall_until=self._c.stall_until)
         self._restart_until = t + self.config.recovery_s
 
     def _frozen(self, t: float, v: float | None, speed: float) -> bool:
@@ -328,6 +329,7 @@ class Supervisor:
         condition itself clears at once).  Without a speed (``blind``) nothing is known."""
         c, cfg = self._c, self.config
         if t < c.stall_until:
+            c.stall_last_t = t  # the cool-down is no standing time
             return True
         standing = not blind and math.isfinite(speed) and abs(speed) < cfg.frozen_min_speed
         pushing = cfg.stall_command_v > 0.0 and abs(command) >= cfg.stall_command_v

@@ -17,8 +17,10 @@ The older frc-characterization tool (2019-2021) wrote the same four tests with r
 ten numbers, ``[t, battery, autospeed, V_left, V_right, x_left, x_right, v_left, v_right,
 gyro_angle]`` (:data:`FRC_CHARACTERIZATION`), positions and speeds in encoder rotations
 times ``unitsPerRotation`` in its ``units`` (rotational units: one rotation); a file
-without ``units`` (its first versions, drivetrains only) keeps the file's own units,
-said in a note.  It is told from SysId's by its row width (no ``sysid`` key).
+without ``units`` (its first versions) keeps the file's own units, said in a note.  Its
+arm, elevator and simple-motor tools wrote rows of six, ``[t, battery, autospeed, V, x,
+v]``.  Its robot templates log the voltage unsigned: a backward test's is taken negative.
+It is told from SysId's by its row width (no ``sysid`` key).
 
 ``FILE.json:slow-forward,slow-backward`` selects tests (default: all four).
 """
@@ -107,6 +109,8 @@ class _Layout:
     sign: float = 1.0
     """Weight of the left side (-1: a spin test, half the sides' difference)."""
     notes: list[str] = field(default_factory=list)
+    legacy: bool = False
+    """An frc-characterization file (its templates log the voltage unsigned)."""
 
 
 FRC_CHARACTERIZATION: dict[str, tuple[int, ...]] = {"u": (3, 4), "x": (5, 6), "v": (7, 8)}
@@ -115,6 +119,10 @@ encoder positions and speeds, and the gyro angle (its data_analyzer's column ind
 a mechanism other than a drivetrain uses the left side's."""
 FRC_CHARACTERIZATION_WIDTH = 10
 """Numbers per frc-characterization row."""
+FRC_MECHANISM: dict[str, tuple[int, ...]] = {"u": (3,), "x": (4,), "v": (5,)}
+"""frc-characterization's arm, elevator and simple-motor tools (2020): rows of six,
+``[t, battery, autospeed, V, x, v]``."""
+FRC_MECHANISM_WIDTH = 6
 
 
 def _first_row(raw: dict[str, object]) -> object:
@@ -137,10 +145,12 @@ def _units(raw: dict[str, object], file: str) -> tuple[str, float]:
     return unit_name, UNITS[unit_name]
 
 
-def _legacy_layout(raw: dict[str, object], file: str, test_kind: str) -> _Layout:
-    """An frc-characterization file's layout (:data:`FRC_CHARACTERIZATION`)."""
-    notes = ["an frc-characterization file (rows of 10 numbers): read as such"]
-    drivetrain = "drivetrain" in test_kind or "test" not in raw  # its first versions
+def _legacy_layout(raw: dict[str, object], file: str, test_kind: str, width: int) -> _Layout:
+    """An frc-characterization file's layout: rows of ten (:data:`FRC_CHARACTERIZATION`)
+    or, from its mechanism tools, of six (:data:`FRC_MECHANISM`)."""
+    notes = [f"an frc-characterization file (rows of {width} numbers): read as such"]
+    mechanism = width < FRC_CHARACTERIZATION_WIDTH
+    drivetrain = not mechanism and ("drivetrain" in test_kind or "test" not in raw)
     if "units" in raw:
         unit_name, scale = _units(raw, file)
         if unit_name in ROTATIONAL:
@@ -159,10 +169,10 @@ def _legacy_layout(raw: dict[str, object], file: str, test_kind: str) -> _Layout
             "in the file's own units (m and m/s if it logged metres); the fits do not "
             "depend on them, the constants and the notes' sizes do"
         )
-    cols = {c: FRC_CHARACTERIZATION[c][: 2 if drivetrain else 1] for c in "uxv"}
+    table = FRC_MECHANISM if mechanism else FRC_CHARACTERIZATION
+    cols = {c: table[c][: 2 if drivetrain else 1] for c in "uxv"}
     kind = "drivetrain" if drivetrain else "simple"
-    width = FRC_CHARACTERIZATION_WIDTH
-    return _Layout(kind, width, cols["u"], cols["x"], cols["v"], scale, 1.0, notes)
+    return _Layout(kind, width, cols["u"], cols["x"], cols["v"], scale, 1.0, notes, True)
 
 
 def _layout(raw: dict[str, object], file: str) -> _Layout:
@@ -170,8 +180,11 @@ def _layout(raw: dict[str, object], file: str) -> _Layout:
     test_kind = str(raw.get("test", "")).lower()
     gravity = [GRAVITY[k] for k in GRAVITY if k in test_kind][:1]
     first = _first_row(raw)
-    if "sysid" not in raw and isinstance(first, list) and len(first) >= FRC_CHARACTERIZATION_WIDTH:
-        out = _legacy_layout(raw, file, test_kind)
+    width = len(first) if isinstance(first, list) else 0
+    if "sysid" not in raw and width >= FRC_CHARACTERIZATION_WIDTH:
+        out = _legacy_layout(raw, file, test_kind, FRC_CHARACTERIZATION_WIDTH)
+    elif "sysid" not in raw and width == FRC_MECHANISM_WIDTH:
+        out = _legacy_layout(raw, file, test_kind, FRC_MECHANISM_WIDTH)
     else:
         scale = _units(raw, file)[1]
         drivetrain = "drivetrain" in test_kind
@@ -237,11 +250,20 @@ def read_sysid(path: str) -> list[Log]:
         u = _column(a, lay.u, lay.sign)
         x = _column(a, lay.x, lay.sign) * lay.scale
         v = _column(a, lay.v, lay.sign) * lay.scale
+        notes = list(lay.notes)
+        if lay.legacy and name.endswith("backward") and np.all(u >= 0.0) and np.median(v) < 0:
+            # frc-characterization's templates log |V| (battery times |autospeed|); its
+            # analyzer gives the voltage the speed's sign
+            u = -u
+            notes.append(
+                f"{name}: the voltage is logged unsigned (as frc-characterization's robot "
+                "templates log it): taken negative, the test's direction"
+            )
         logs.append(
             Log(
                 {"t": a[:, 0].copy(), "u": u, "v": v, "x": x},
                 f"{file}:{name}",
-                notes=list(lay.notes),
+                notes=notes,
             )
         )
     if not logs:
