@@ -296,6 +296,7 @@ def test_huge_values_are_not_rendered(tmp_path: Path) -> None:
     [
         (["sim", "--duration", "1e308"], "expected a number of seconds in (0, 3600] (1 h)"),
         (["sim", "--duration", "-1"], "expected a number of seconds in (0, 3600]"),
+        (["sim", "--duration", "1e-9"], "shorter than one control period (0.01 s at"),
         (["sim", "--duration", "nan"], "expected a number of seconds"),
         (
             ["sim", "--platoon", "100", "--scenario", "platoon-brake", "--duration", "200"],

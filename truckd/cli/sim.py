@@ -14,7 +14,7 @@ from truckd.cli.sim_platoon import add_platoon_arguments, check_platoon_only, ru
 from truckd.config.truck import load_config
 from truckd.control.effect_use import present_effects, startup_line
 from truckd.control.qp import ControlModel
-from truckd.errors import TruckdError
+from truckd.errors import InputError, TruckdError
 from truckd.modelfile import read_controller_model
 from truckd.outputs import check_distinct, check_output_dir, ensure_dir, guard_inputs, write_set
 from truckd.sim.closed_loop import SimSetup, run_scenario
@@ -80,6 +80,12 @@ def _run(args: argparse.Namespace) -> int:
         return run_platoon_cli(args)
     check_platoon_only(args)
     cfg = load_config(args.config)
+    if args.duration is not None and args.duration < cfg.control.period:
+        raise InputError(
+            f"--duration {args.duration:g}: shorter than one control period "
+            f"({cfg.control.period:g} s at control.rate_hz {cfg.control.rate_hz:g}): no cycle "
+            "would run"
+        )
     if args.model:
         mf = read_controller_model(cfg, args.model)
         model, source = ControlModel(mf.vehicle, mf.effects), f"model file {args.model}"

@@ -223,4 +223,6 @@ def _metrics(
         "final_speed_m_s": float(np.mean(np.array(tr.v)[-50:])) if tr.v else 0.0,
         "all_finite": bool(np.all(np.isfinite(tr.u))),
         "feedforward": cfg.feedforward,
+        # the minimum gap is a soft constraint of the MPC: how long the true gap was below it
+        "time_below_d_min_s": round(float(np.sum(gaps[has_gap] < cfg.d_min)) * cfg.period, 6),
     }
