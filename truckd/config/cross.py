@@ -34,10 +34,10 @@ The rules (``docs/reference.md``, "Configuration checks across sections"):
   ``control.u_max``: the command is clipped there, the experiment would not be the one asked;
 - ``control.u_max`` at most ``vehicle.V_batt``: the driver cannot apply more (a controller's
   model file with a higher ``V_batt`` then cannot raise the command above the battery);
-- the truck (``vehicle``, and the simulated one with ``plant.vehicle``) breaks away below
-  ``control.u_max``: a stiction above the stall torque at ``u_max`` holds it still while
-  the motor draws its stall current;
-  (of a ``--model`` file's truck too, :func:`model_vehicle_problem`).
+- the truck (``vehicle``, the simulated one with ``plant.vehicle``, and a ``--model``
+  file's, :func:`model_vehicle_problem`) breaks away below ``control.u_max``: a stiction
+  above the stall torque at ``u_max`` holds it still while the motor draws its stall
+  current.
 """
 
 from __future__ import annotations
@@ -207,27 +207,30 @@ def _supply_problems(cfg: TruckConfig) -> str | None:
     return None
 
 
-def model_vehicle_problem(cfg: TruckConfig, p: VehicleParams, source: str) -> str | None:
-    """The truck check (:func:`_truck_problems`) for a controller's model file's vehicle
-    ``p`` (``source`` names it): a model fitted to the truck describes it."""
-    return _truck_problems(cfg, [(f"{source}: vehicle", p)])
-
-
-def _truck_problems(
-    cfg: TruckConfig, given: list[tuple[str, VehicleParams]] | None = None
-) -> str | None:
-    u_max = cfg.control.u_max
-    trucks = [("vehicle", cfg.vehicle)] if given is None else given
-    if given is None and cfg.plant.vehicle.given():
-        trucks.append(("plant.vehicle", cfg.plant_vehicle))
-    for key, p in trucks:
-        stall = p.K_T * u_max / p.R_m
-        if p.K_stiction >= stall:
-            return (
-                f"{key}.K_stiction = {_g(p.K_stiction)} N m: at least the stall torque "
-                f"at control.u_max ({_g(stall)} N m, K_T u_max / R_m): the truck cannot move"
-            )
+def _stuck(key: str, p: VehicleParams, u_max: float) -> str | None:
+    """Why the truck ``p`` (``key`` names it) cannot move under ``u_max`` volts: its
+    stiction at least the stall torque ``K_T u_max / R_m`` (None: it can)."""
+    stall = p.K_T * u_max / p.R_m
+    if p.K_stiction >= stall:
+        return (
+            f"{key}.K_stiction = {_g(p.K_stiction)} N m: at least the stall torque "
+            f"at control.u_max ({_g(stall)} N m, K_T u_max / R_m): the truck cannot move"
+        )
     return None
+
+
+def model_vehicle_problem(cfg: TruckConfig, p: VehicleParams, source: str) -> str | None:
+    """:func:`_stuck` for a controller's model file's vehicle ``p`` (``source`` names
+    it): a model fitted to the truck describes it."""
+    return _stuck(f"{source}: vehicle", p, cfg.control.u_max)
+
+
+def _truck_problems(cfg: TruckConfig) -> str | None:
+    u_max = cfg.control.u_max
+    why = _stuck("vehicle", cfg.vehicle, u_max)
+    if why is None and cfg.plant.vehicle.given():
+        why = _stuck("plant.vehicle", cfg.plant_vehicle, u_max)
+    return why
 
 
 def cross_section_problem(cfg: TruckConfig, t: ProtocolTiming | None = None) -> str | None:

@@ -333,10 +333,10 @@ class Supervisor:
             return True
         standing = not blind and math.isfinite(speed) and abs(speed) < cfg.frozen_min_speed
         pushing = cfg.stall_command_v > 0.0 and abs(command) >= cfg.stall_command_v
-        if standing and pushing and c.stall_last_t is not None:
-            c.stall_time += max(0.0, t - c.stall_last_t)
-        elif not (standing and pushing):
+        if not (standing and pushing):
             c.stall_time = 0.0
+        elif c.stall_last_t is not None:
+            c.stall_time += max(0.0, t - c.stall_last_t)
         c.stall_last_t = t
         if c.stall_time >= cfg.stall_s:
             c.stall_time, c.stall_until = 0.0, t + cfg.stall_cooldown_s

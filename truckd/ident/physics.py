@@ -15,7 +15,7 @@ import numpy as np
 
 from truckd.ident.candidates import cause_problem
 from truckd.ident.data import Series
-from truckd.ident.terrain import hill_problem, rolling_problem
+from truckd.ident.terrain import hill_problem, over_weight, rolling_problem
 from truckd.model.effects import Effects
 from truckd.model.params import VehicleParams
 
@@ -95,7 +95,8 @@ def effect_problem(
     """Why ``name = value`` is physically impossible for ``p`` on these runs (None: fine).
     Limits are relative to the fitted machine: a load above the weight its inertia
     implies against the configured truck ``p0`` (:func:`fitted_mass`) is impossible."""
-    weight = fitted_mass(p, p0) * G
+    mass = fitted_mass(p, p0)
+    weight = mass * G
     v_max = max(float(np.max(np.abs(r.v))) for r in runs)
     u_max = max(float(np.max(np.abs(r.inp))) for r in runs)
     w_max = max(v_max / p.ratio, 1e-9)
@@ -105,11 +106,8 @@ def effect_problem(
     why = cause_problem(name, value, p, runs)  # current limit, Stribeck, drift
     if why is not None:
         return why
-    if name == "load_force" and abs(value) > weight:
-        return (
-            f"|load_force| = {abs(value):.3g} N exceeds the weight the fitted inertia "
-            f"implies ({weight:.3g} N)"
-        )
+    if name == "load_force" and (why := over_weight("|load_force|", value, mass)):
+        return why
     if name == "aero_drag" and value * v_max**2 > weight:
         return (
             f"drag at {v_max:.2g} m/s = {value * v_max**2:.3g} N exceeds the weight {weight:.3g} N"

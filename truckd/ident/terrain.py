@@ -464,6 +464,19 @@ def locate_wave(p: VehicleParams, runs: Sequence[Series]) -> Wave | None:
     return None if best is None else best[1]
 
 
+def over_weight(label: str, force: float, mass: float) -> str | None:
+    """Why a load of ``force`` N (``label`` names it) is impossible on a machine of
+    ``mass`` kg (the fitted one, :func:`truckd.ident.physics.fitted_mass`): above the
+    weight it implies (None: fine).  One rule for a constant load, a hill, rolling terrain."""
+    weight = mass * 9.81
+    if abs(force) > weight:
+        return (
+            f"{label} = {abs(force):.3g} N exceeds the weight the fitted inertia implies "
+            f"({weight:.3g} N)"
+        )
+    return None
+
+
 def rolling_problem(
     amplitude: float,
     wavelength: float,
@@ -481,11 +494,8 @@ def rolling_problem(
             f"load_force_amplitude = {abs(amplitude):.3g} N exceeds a {GRADE_MAX:.0%} grade "
             f"of the truck's weight ({GRADE_MAX * weight:.3g} N)"
         )
-    if mass is not None and abs(amplitude) > mass * 9.81:
-        return (
-            f"load_force_amplitude = {abs(amplitude):.3g} N exceeds the weight the fitted "
-            f"inertia implies ({mass * 9.81:.3g} N)"
-        )
+    if mass is not None and (why := over_weight("load_force_amplitude", amplitude, mass)):
+        return why
     travel = max(float(np.median(np.abs(r.v))) * float(np.median(np.diff(r.t))) for r in runs)
     if wavelength < 2.0 * MIN_SAMPLES_TRAVEL * travel:
         return (
@@ -511,11 +521,8 @@ def hill_problem(
             f"|hill_force| = {abs(force):.3g} N exceeds a {GRADE_MAX:.0%} grade of the truck's "
             f"weight ({GRADE_MAX * weight:.3g} N)"
         )
-    if mass is not None and abs(force) > mass * 9.81:
-        return (
-            f"|hill_force| = {abs(force):.3g} N exceeds the weight the fitted inertia "
-            f"implies ({mass * 9.81:.3g} N)"
-        )
+    if mass is not None and (why := over_weight("|hill_force|", force, mass)):
+        return why
     xs = [r.x for r in runs if r.x is not None]
     if xs:
         lo = min(float(np.min(x)) for x in xs)
