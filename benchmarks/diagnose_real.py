@@ -5,7 +5,9 @@ Each argument is one case: ``FIT[+FIT...]=VALIDATE[+VALIDATE...]`` (logs or SysI
 ``ramps-steps`` (default) fits its quasistatic ramps and validates on its dynamic steps,
 as SysId users validate (the steps' accelerations, supply and current limits are then
 unseen in the fit); ``directions`` fits the forward ramp and step and validates on the
-backward ones (both halves hold every kind of motion).  Each case is diagnosed against
+backward ones (both halves hold every kind of motion); ``whole`` fits the whole file and
+validates as ``truckd diagnose FILE.json`` does by default (the last 30 % of each run,
+what a user who gives no ``--validate`` sees).  Each case is diagnosed against
 the default configuration (a prior: the data decide the machine).  Reported per case:
 samples, least-squares fit, seed and extended fit (free run on the validation logs), the
 noise ceiling (the fit a model leaving only the speed's measurement noise reaches),
@@ -15,7 +17,7 @@ notes a user must see, and the time.  The logs are not part of the repository: g
 their paths (and quote their source).
 
     .venv/bin/python benchmarks/diagnose_real.py CASE [CASE ...] [--jobs N]
-        [--split ramps-steps|directions] [--json FILE [--key NAME]]
+        [--split ramps-steps|directions|whole] [--json FILE [--key NAME]]
 """
 
 from __future__ import annotations
@@ -38,7 +40,8 @@ SPLITS = {
     "ramps-steps": (("slow-forward", "slow-backward"), ("fast-forward", "fast-backward")),
     "directions": (("slow-forward", "fast-forward"), ("slow-backward", "fast-backward")),
 }
-"""How a bare SysId file is split: (fitted tests, validation tests)."""
+"""How a bare SysId file is split: (fitted tests, validation tests); ``whole`` (not
+here) gives the whole file and the command's own validation."""
 
 GOAL_FIT = 90.0
 GOAL_OVER_LS = 5.0
@@ -49,6 +52,8 @@ def _split(case: str, split: str) -> tuple[list[str], list[str]]:
     if "=" in case:
         fit, val = case.split("=", 1)
         return fit.split("+"), val.split("+")
+    if split == "whole":
+        return [case], []
     fit_tests, val_tests = SPLITS[split]
     return [f"{case}:{','.join(fit_tests)}"], [f"{case}:{','.join(val_tests)}"]
 
@@ -68,7 +73,7 @@ def goal(ls: float | None) -> float:
 def _one(case: str, split: str, jobs: int = 1) -> dict[str, Any]:
     fit, val = _split(case, split)
     p = load_config().vehicle
-    logs, vals = read_logs(fit), read_logs(val)
+    logs, vals = read_logs(fit), (read_logs(val) if val else [])
     load = os.getloadavg()[0]
     t0 = time.perf_counter()
     d = diagnose_log(logs, p, vals, workers=jobs)
@@ -108,7 +113,7 @@ def main() -> int:
     )
     ap.add_argument(
         "--split",
-        choices=sorted(SPLITS),
+        choices=[*sorted(SPLITS), "whole"],
         default="ramps-steps",
         help="how a bare SysId FILE.json is split into fit and validation (default ramps-steps)",
     )
