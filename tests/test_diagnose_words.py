@@ -60,10 +60,10 @@ def test_sysid_logs_in_every_unit_system(tmp_path: Path, units: str) -> None:
     (log,) = read_sysid(str(path))
     v = np.asarray(log.columns["v"])
     assert v[10] == pytest.approx((0.5 + 0.01) * UNIT[units])
-    # a rotational unit says what the printed per-metre constants mean
-    assert any("per radian" in n for n in log.notes) == (
-        units in ("Radians", "Rotations", "Degrees")
-    )
+    # a rotational unit is carried with the log, and said
+    rotational = units in ("Radians", "Rotations", "Degrees")
+    assert log.position_unit == ("rad" if rotational else "m")
+    assert any("per radian" in n for n in log.notes) == rotational
 
 
 @pytest.mark.parametrize("test", ["Drivetrain", "Drivetrain (Angular)"])
@@ -113,6 +113,7 @@ def test_an_frc_characterization_file_is_read_as_such(
     assert log.columns["x"][10] == pytest.approx(side * 0.2 * scale)
     assert any("frc-characterization" in n for n in log.notes)
     assert any("without units" in n for n in log.notes) == ("units" not in head)
+    assert log.position_unit == ("rad" if head.get("units") == "Rotations" else "m")
 
 
 def test_an_unknown_unit_system_is_refused(tmp_path: Path) -> None:
@@ -191,11 +192,11 @@ def test_a_white_residual_far_above_the_noise_does_not_explain_the_data() -> Non
     assert at_noise_level(quiet, 0.01, 0.0)
 
 
-def _first_order_sysid(path: Path) -> None:
+def _first_order_sysid(path: Path, units: str = "Meters") -> None:
     """A noise-free first-order drivetrain in SysId's JSON (both sides alike): ramps at
-    0.25 V/s and 6 V steps each way, breakaway 0.3 V, 0.5 m/s per volt above it, time
-    constant 0.3 s, Euler-integrated at 5 ms."""
-    doc: dict[str, object] = {"sysid": True, "test": "Drivetrain", "units": "Meters"}
+    0.25 V/s and 6 V steps each way, breakaway 0.3 V, 0.5 m/s per volt above it (per
+    ``units``), time constant 0.3 s, Euler-integrated at 5 ms."""
+    doc: dict[str, object] = {"sysid": True, "test": "Drivetrain", "units": units}
     for name, sign, ramp in [
         ("slow-forward", 1.0, True),
         ("slow-backward", -1.0, True),
@@ -226,6 +227,39 @@ def test_a_cause_that_moves_nothing_is_not_named(tmp_path: Path) -> None:
     d = diagnose_log(read_sysid(str(path)), load_config().vehicle)
     assert [(f.name, f.params) for f in d.effects] == []
     assert d.extended.fit_percent > 99.9
+
+
+@pytest.mark.parametrize(("units", "per"), [("Meters", "m"), ("Radians", "rad")])
+def test_the_constants_are_printed_in_the_logs_units(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], units: str, per: str
+) -> None:
+    """A flywheel's SysId file in rad: kV and kA per radian in the text and the report,
+    and the JSON says which (they were printed per metre whatever the file's units)."""
+    from truckd.cli.main import main
+
+    path, out = tmp_path / "first_order.json", tmp_path / "d.json"
+    _first_order_sysid(path, units)
+    assert main(["diagnose", f"{path}:slow-forward,fast-forward", "--json", str(out),
+                 "--jobs", "1", "--report", str(tmp_path / "rep")]) == 0  # fmt: skip
+    text = capsys.readouterr().out
+    for line in ("least squares:", "feedforward (SysId form):"):
+        (said,) = [ln for ln in text.splitlines() if ln.startswith(line)]
+        assert f" V s/{per}," in said and f" V s^2/{per}" in said
+    assert json.loads(out.read_text())["position_unit"] == per
+    page = (tmp_path / "rep" / "index.html").read_text()
+    assert f"V s/{per}," in page
+
+
+def test_a_rotating_and_a_translating_log_are_not_fitted_together(tmp_path: Path) -> None:
+    from truckd.config.truck import load_config
+    from truckd.ident.api import diagnose_log
+
+    rad, metre = tmp_path / "rad.json", tmp_path / "m.json"
+    _first_order_sysid(rad, "Rotations")
+    _first_order_sysid(metre)
+    with pytest.raises(InputError, match="positions are in m, those of .* in rad"):
+        diagnose_log(read_sysid(f"{rad}:slow-forward"), load_config().vehicle,
+                     read_sysid(f"{metre}:fast-forward"))  # fmt: skip
 
 
 def test_a_speed_of_the_wrong_sign_and_a_time_in_milliseconds_are_said() -> None:

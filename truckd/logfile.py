@@ -67,6 +67,9 @@ class Log:
     source: str = "<memory>"
     text_columns: list[str] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
+    position_unit: str = "m"
+    """The unit of ``x`` (``m``; ``rad`` for a rotational SysId log, whose ``v`` is then
+    rad/s)."""
 
     def __getitem__(self, name: str) -> NDArray[np.float64]:
         return self.columns[name]

@@ -112,7 +112,7 @@ def _run(args: argparse.Namespace) -> int:
     print(f"{diag.samples} samples in {diag.runs} run(s) ({diag.input} input)")
     ls = diag.least_squares
     if ls is not None and ls.get("fit_percent") is not None:
-        u = ("N", "N s/m", "kg") if diag.input == "force" else ("V", "V s/m", "V s^2/m")
+        u = diag.units()[1:]
         print(
             f"least squares:  fit {ls['fit_percent']:7.2f} %  (SysId's kS={ls['kS']:.4g} "
             f"{u[0]}, kV={ls['kV']:.4g} {u[1]}, kA={ls['kA']:.4g} {u[2]})"
@@ -153,7 +153,7 @@ def _run(args: argparse.Namespace) -> int:
     ff = x.feedforward
     if ff is not None:
         print(
-            f"feedforward (SysId form): kS={ff['kS']:.4g} V, kV={ff['kV']:.4g} V s/m, "
-            f"kA={ff['kA']:.4g} V s^2/m"
+            f"feedforward (SysId form): kS={ff['kS']:.4g} V, kV={ff['kV']:.4g} "
+            f"{diag.units()[2]}, kA={ff['kA']:.4g} {diag.units()[3]}"
         )
     return 0

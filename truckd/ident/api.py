@@ -112,6 +112,13 @@ def _diagnose(
 ) -> Diagnosis:
     """:func:`diagnose_log` on lists of logs, the thread limit set."""
     kind = logs[0].input_kind if logs else "voltage"
+    for lg in [*logs, *vals]:
+        if lg.position_unit != logs[0].position_unit:
+            raise InputError(
+                f"{lg.source}: line 1: its positions are in {lg.position_unit}, those of "
+                f"{logs[0].source} in {logs[0].position_unit}: a rotating and a "
+                "translating machine cannot be fitted together"
+            )
     for v in vals:
         if v.input_kind != kind:
             raise InputError(
@@ -144,9 +151,11 @@ def _diagnose(
 
 def _with_log_notes(d: Diagnosis, logs: Sequence[Log]) -> Diagnosis:
     """``d`` with the readers' remarks on its logs first in its notes (once each: a
-    SysId file's unit conversion, which column is the input), as the CLI prints them."""
+    SysId file's unit conversion, which column is the input), as the CLI prints them,
+    and with the logs' unit of position."""
     said = list(dict.fromkeys(n for lg in logs for n in lg.notes))
     d.notes[:0] = [n for n in said if n not in d.notes]
+    d.position_unit = logs[0].position_unit if logs else "m"
     return d
 
 

@@ -33,11 +33,15 @@ def write_report(diag: Diagnosis, out_dir: str | Path, source: str) -> Path:
     out.mkdir(parents=True, exist_ok=True)
     images: list[tuple[str, str]] = []
     tr = diag.traces
+    speed = diag.units()[0]
     if tr is not None:
-        images.append(("Measured and simulated speed", _plot_fit(tr, out / "fit.png")))
-        images.append(("Residual over time", _plot_residual_time(tr, out / "residual.png")))
+        images.append(("Measured and simulated speed", _plot_fit(tr, out / "fit.png", speed)))
+        images.append(("Residual over time", _plot_residual_time(tr, out / "residual.png", speed)))
         images.append(
-            ("Residual against the signals", _plot_residual_vs(tr, out / "residual_vs.png"))
+            (
+                "Residual against the signals",
+                _plot_residual_vs(tr, out / "residual_vs.png", speed),
+            )
         )
         images.append(("Autocorrelation and cross-correlation with the input", _plot_corr(tr, out)))
     index = out / "index.html"
@@ -61,12 +65,12 @@ def _save(fig: Any, path: Path) -> str:
     return path.name
 
 
-def _plot_fit(tr: Traces, path: Path) -> str:
+def _plot_fit(tr: Traces, path: Path, speed: str = "m/s") -> str:
     fig, ax = _fig(2)
     ax[0, 0].plot(tr.t, tr.y, "k", lw=0.8, label="measured")
     ax[0, 0].plot(tr.t, tr.y_base, "C1", lw=0.8, label="seed model")
     ax[0, 0].plot(tr.t, tr.y_ext, "C0", lw=0.8, label="extended model")
-    ax[0, 0].set_ylabel("speed (m/s)")
+    ax[0, 0].set_ylabel(f"speed ({speed})")
     ax[0, 0].legend(loc="upper right")
     ax[1, 0].plot(tr.t, tr.inp, "C2", lw=0.8)
     ax[1, 0].set_ylabel("voltage (V)" if tr.input_name == "u" else "force (N)")
@@ -74,33 +78,33 @@ def _plot_fit(tr: Traces, path: Path) -> str:
     return _save(fig, path)
 
 
-def _plot_residual_time(tr: Traces, path: Path) -> str:
+def _plot_residual_time(tr: Traces, path: Path, speed: str = "m/s") -> str:
     fig, ax = _fig(1)
     ax[0, 0].plot(tr.t, tr.y - tr.y_base, "C1", lw=0.6, label="seed model")
     ax[0, 0].plot(tr.t, tr.y - tr.y_ext, "C0", lw=0.6, label="extended model")
-    ax[0, 0].set_ylabel("measured - simulated (m/s)")
+    ax[0, 0].set_ylabel(f"measured - simulated ({speed})")
     ax[0, 0].set_xlabel("time (s)")
     ax[0, 0].legend(loc="upper right")
     return _save(fig, path)
 
 
-def _signals(tr: Traces) -> list[tuple[str, np.ndarray]]:
+def _signals(tr: Traces, speed: str = "m/s") -> list[tuple[str, np.ndarray]]:
     h = np.gradient(tr.t)
     acc = np.gradient(tr.y_ext) / h
     x = tr.x if tr.x is not None else np.concatenate([[0.0], np.cumsum(tr.y[:-1] * np.diff(tr.t))])
     out = [
-        ("speed (m/s)", tr.y_ext),
-        ("acceleration, simulated (m/s^2)", acc),
+        (f"speed ({speed})", tr.y_ext),
+        (f"acceleration, simulated ({speed}^2)", acc),
         ("voltage command (V)" if tr.input_name == "u" else "force (N)", tr.inp),
-        ("position (m)", x),
+        (f"position ({speed.removesuffix('/s')})", x),
     ]
     if tr.i is not None:
         out.insert(3, ("current (A)", tr.i))
     return out
 
 
-def _plot_residual_vs(tr: Traces, path: Path) -> str:
-    sig = _signals(tr)
+def _plot_residual_vs(tr: Traces, path: Path, speed: str = "m/s") -> str:
+    sig = _signals(tr, speed)
     fig, ax = _fig(len(sig), 1, 2.4)
     for k, (name, x) in enumerate(sig):
         a = ax[k, 0]
@@ -109,7 +113,7 @@ def _plot_residual_vs(tr: Traces, path: Path) -> str:
             a.errorbar(b.centers, b.mean, yerr=b.half_width, fmt="o-", ms=3, color=col, label=lab)
         a.axhline(0.0, color="k", lw=0.5)
         a.set_xlabel(name)
-        a.set_ylabel("mean residual (m/s)")
+        a.set_ylabel(f"mean residual ({speed})")
     ax[0, 0].legend(loc="upper right")
     return _save(fig, path)
 
@@ -164,7 +168,7 @@ def _html(diag: Diagnosis, images: list[tuple[str, str]], source: str) -> str:
         )
     ls = diag.least_squares
     if ls is not None and ls.get("fit_percent") is not None:
-        u = ("N", "N s/m", "kg") if diag.input == "force" else ("V", "V s/m", "V s^2/m")
+        u = diag.units()[1:]
         force += (
             f"<p>Least squares (WPILib SysId's model, the data's own): fit "
             f"{ls['fit_percent']:.2f} %, kS {ls['kS']:.4g} {u[0]}, kV {ls['kV']:.4g} {u[1]}, "

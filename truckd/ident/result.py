@@ -144,6 +144,17 @@ class Diagnosis:
     fit_ceiling: float | None = None
     """The ``fit_percent`` a model leaving only the measurement noise would reach on the
     report data (:func:`truckd.ident.data.fit_ceiling_percent`); None: the speed is flat."""
+    position_unit: str = "m"
+    """The logs' unit of position: ``m``, or ``rad`` for a rotational SysId log (its
+    speed then rad/s, kV in V s/rad, kA in V s^2/rad)."""
+
+    def units(self) -> tuple[str, str, str, str]:
+        """The units of speed, kS, kV and kA as printed (``m/s``, ``V``, ``V s/m``,
+        ``V s^2/m``; a force-input log's kS, kV, kA are ``N``, ``N s/m``, ``kg``)."""
+        if self.input == "force":
+            return "m/s", "N", "N s/m", "kg"
+        pu = self.position_unit
+        return f"{pu}/s", "V", f"V s/{pu}", f"V s^2/{pu}"
 
     def to_json(self) -> dict[str, Any]:
         """The reference section 4 object (plus ``notes`` and ``residual``)."""
@@ -161,6 +172,7 @@ class Diagnosis:
             "runs": int(self.runs),
             "explains_data": bool(self.explains),
             "fit_ceiling_percent": _opt(self.fit_ceiling),
+            "position_unit": self.position_unit,
             # always present (reference section 4); null when the data cannot give them
             "linear_estimate": self.linear,
             "least_squares": (

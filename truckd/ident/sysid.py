@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -111,6 +111,8 @@ class _Layout:
     notes: list[str] = field(default_factory=list)
     legacy: bool = False
     """An frc-characterization file (its templates log the voltage unsigned)."""
+    position_unit: str = "m"
+    """``m``, or ``rad`` for a rotational unit system."""
 
 
 FRC_CHARACTERIZATION: dict[str, tuple[int, ...]] = {"u": (3, 4), "x": (5, 6), "v": (7, 8)}
@@ -196,11 +198,12 @@ def _layout(raw: dict[str, object], file: str) -> _Layout:
     out.notes.extend(gravity)
     unit_name = str(raw.get("units", "")).lower()
     if unit_name in ROTATIONAL:
+        out = replace(out, position_unit="rad")
         out.notes.append(
             f"units {raw.get('units')}: converted to rad, the speed in rad/s stands where a "
-            "truck's m/s would: kV and kA printed per metre (V s/m, V s^2/m) are per "
-            "radian (V s/rad, V s^2/rad), and forces and weights in the notes are the "
-            "torques over the configured wheel radius"
+            "truck's m/s would: kV and kA are per radian (V s/rad, V s^2/rad), and the "
+            "notes' m, m/s and N stand for rad, rad/s and the torque over the configured "
+            "wheel radius"
         )
     return out
 
@@ -264,6 +267,7 @@ def read_sysid(path: str) -> list[Log]:
                 {"t": a[:, 0].copy(), "u": u, "v": v, "x": x},
                 f"{file}:{name}",
                 notes=notes,
+                position_unit=lay.position_unit,
             )
         )
     if not logs:
