@@ -257,7 +257,7 @@ def test_a_rotating_and_a_translating_log_are_not_fitted_together(tmp_path: Path
     rad, metre = tmp_path / "rad.json", tmp_path / "m.json"
     _first_order_sysid(rad, "Rotations")
     _first_order_sysid(metre)
-    with pytest.raises(InputError, match="positions are in m, those of .* in rad"):
+    with pytest.raises(InputError, match=r"positions are in m, those of .* in rad"):
         diagnose_log(read_sysid(f"{rad}:slow-forward"), load_config().vehicle,
                      read_sysid(f"{metre}:fast-forward"))  # fmt: skip
 
