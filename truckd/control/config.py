@@ -69,7 +69,8 @@ class EstimatorConfig:
     accel_max: float = spec(
         "own-speed filter: a step between two encoder samples whose speed differs from the "
         "filter's by more than this acceleration allows (plus the ticks' quantisation) is a "
-        "discontinuity, not motion: the filter restarts",
+        "discontinuity, not motion: the filter restarts; raised to the controller model's "
+        "stall acceleration K_T u_max / (R_m J_S) at the wheels where that is higher",
         unit="m/s^2",
         lo=0.0,
         lo_open=True,

@@ -28,7 +28,7 @@ from truckd.control.effect_use import (
     startup_line,
     torque_terms,
 )
-from truckd.control.estimator import EncoderSample, Estimate, Estimator, RangeSample
+from truckd.control.estimator import EncoderSample, Estimate, Estimator, RangeSample, for_truck
 from truckd.control.fallback import braking_law, held_plan_move, limit_command
 from truckd.control.feedforward import breakaway_feedforward, moving_feedforward
 from truckd.control.lead import LeadSpeeds
@@ -48,9 +48,14 @@ class Controller:
         the configuration's, computed in one place)."""
         self.model, self.cfg = model, cfg
         self.mpc = MpcSolver(model, cfg)
-        reference = Estimator(cfg.estimator, model.params.r_w, ticks_per_rev)
+        self.estimator_cfg = for_truck(
+            cfg.estimator, model.params, min(cfg.u_max, model.params.V_batt)
+        )
+        """The estimator's configuration for this model (``accel_max`` at least its stall
+        acceleration)."""
+        reference = Estimator(self.estimator_cfg, model.params.r_w, ticks_per_rev)
         compiled, self._estimator_why = cestimator.bind(
-            self.mpc.compiled_cycle, cfg.estimator, reference.tick_len
+            self.mpc.compiled_cycle, self.estimator_cfg, reference.tick_len
         )
         self.estimator: Estimator | cestimator.CompiledEstimator = compiled or reference
         """The estimator: compiled with the MPC's compiled cycle, else the Python one."""
@@ -156,7 +161,7 @@ class Controller:
             self._fused = self._fused and (self._fused[0], self.estimator)
         else:
             self.estimator = Estimator(
-                self.cfg.estimator, self.model.params.r_w, self._ticks_per_rev
+                self.estimator_cfg, self.model.params.r_w, self._ticks_per_rev
             )
         self.mpc.restart()
         self._forget()

@@ -29,12 +29,14 @@ reading has been accepted for ``lead_timeout_s``.  Pure numerics: times are pass
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 from truckd.control.config import EstimatorConfig
 from truckd.control.frozen import fast_init
+from truckd.model.params import VehicleParams
 
 
 @fast_init
@@ -180,6 +182,18 @@ class _LeadState:
     outliers: int = 0
     reinits: int = 0
     samples: int = 0
+
+
+def for_truck(cfg: EstimatorConfig, p: VehicleParams, u_max: float) -> EstimatorConfig:
+    """``cfg`` for a truck whose model is ``p`` driven up to ``u_max`` V: ``accel_max`` at
+    least the model's stall acceleration (:meth:`VehicleParams.stall_acceleration`), so
+    that a light or strong truck's own acceleration is motion, not a discontinuity (a
+    tenth of the default's inertia, 234 m/s^2, crawled at 0.67 m/s of 1.8 under the
+    default 30)."""
+    stall = p.stall_acceleration(u_max)
+    if not math.isfinite(stall) or stall <= cfg.accel_max:
+        return cfg
+    return dataclasses.replace(cfg, accel_max=stall)
 
 
 class Estimator:

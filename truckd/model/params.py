@@ -94,6 +94,11 @@ class VehicleParams:
         """Speed per motor speed, ``r_w / (n_g n_fd)``, m/rad."""
         return self.r_w / (self.n_g * self.n_fd)
 
+    def stall_acceleration(self, u: float) -> float:
+        """The vehicle's acceleration (m/s^2) from rest under ``u`` volts before friction:
+        the stall torque ``K_T u / R_m`` on the inertia ``J_S``, at the wheels."""
+        return self.K_T * u / (self.R_m * self.J_S) * self.ratio
+
     def speed(self, omega_m: float) -> float:
         """Vehicle speed (m/s) from motor speed (rad/s)."""
         return omega_m * self.ratio
