@@ -50,7 +50,7 @@ def test_a_light_or_strong_truck_holds_its_set_speed(
     tmp_path: Path, inertia: float, mass: float, battery: float
 ) -> None:
     tc = load_config(_truck(tmp_path, inertia, mass, battery))
-    m, trace = run_scenario(
+    m, _trace = run_scenario(
         make_scenario("cruise", tc.vehicle, tc.control), SimSetup.from_config(tc), 15.0
     )
     assert not m["collision"] and m["all_finite"]
