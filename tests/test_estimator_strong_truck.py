@@ -35,8 +35,12 @@ def test_the_bound_is_the_models_stall_acceleration_where_that_is_higher() -> No
     assert for_truck(est, p, tc.control.u_max) is est  # the default truck: 23 < 30 m/s^2
     light = p.replace(J_S=p.J_S / 10.0)
     raised = for_truck(est, light, tc.control.u_max)
-    stall = light.K_T * tc.control.u_max / (light.R_m * light.J_S) * light.r_w / (
-        light.n_g * light.n_fd
+    stall = (
+        light.K_T
+        * tc.control.u_max
+        / (light.R_m * light.J_S)
+        * light.r_w
+        / (light.n_g * light.n_fd)
     )
     assert raised.accel_max == pytest.approx(stall) and stall > 200.0
     assert raised.speed_max == est.speed_max  # nothing else moves
