@@ -385,3 +385,63 @@ def test_frc_characterization_mechanisms_and_unsigned_voltages(tmp_path: Path) -
     assert b.columns["v"][10] == pytest.approx(-0.41 * 2.0 * np.pi)
     assert any("unsigned" in n for n in b.notes) and not any("unsigned" in n for n in f.notes)
     assert any("gravity" in n for n in f.notes)  # an Arm: what its gravity does
+
+
+@pytest.mark.parametrize(
+    ("column", "scale", "said"),
+    # the current 50x (this log's 103 A peaks in mA exceed the reader's 10 000 A bound)
+    [(None, 1.0, None), ("i", 50.0, "(not mA)?"), ("v", 225.0, "(not rpm or rad/s)?"),
+     ("t", 1000.0, "is t in seconds?")],
+)  # fmt: skip
+def test_identify_and_diagnose_say_a_column_in_the_wrong_unit(
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    column: str | None,
+    scale: float,
+    said: str | None,
+) -> None:
+    """A current in mA, a speed in rpm, a time in ms: both commands say it (identify
+    said nothing and wrote the model: R_m 0.00033 ohm from a current in mA)."""
+    from labkit.synth import plant_log
+
+    from truckd.cli.main import main
+    from truckd.config.truck import load_config
+    from truckd.ident.api import diagnose_log
+    from truckd.logfile import Log, write_log
+    from truckd.model.effects import Effects
+
+    p = load_config().vehicle
+    cols = dict(plant_log(p, Effects(), seed=7, n=1500).columns)
+    if column is not None:
+        cols[column] = cols[column] * scale
+    path = tmp_path / "log.csv"
+    write_log(path, cols)
+    assert main(["identify", str(path), "--out", str(tmp_path / "m.yaml")]) == 0
+    notes = capsys.readouterr().err
+    units = ("(not mA)?", "(not rpm or rad/s)?", "is t in seconds?")
+    assert [u for u in units if u in notes] == ([] if said is None else [said])
+    d = diagnose_log([Log(cols, str(path))], p, workers=1)
+    assert [u for u in units if any(u in a for a in d.alerts)] == ([] if said is None else [said])
+
+
+def test_identify_refuses_a_rotating_and_a_translating_log_together(tmp_path: Path) -> None:
+    from truckd.cli.main import main
+
+    rad, metre = tmp_path / "rad.json", tmp_path / "m.json"
+    _first_order_sysid(rad, "Radians")
+    _first_order_sysid(metre)
+    out = tmp_path / "m.yaml"
+    assert main(["identify", str(rad), str(metre), "--out", str(out)]) == 2
+    assert not out.exists()
+
+
+def test_identify_prints_the_constants_per_radian(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from truckd.cli.main import main
+
+    path = tmp_path / "rad.json"
+    _first_order_sysid(path, "Rotations")
+    assert main(["identify", str(path), "--out", str(tmp_path / "m.yaml")]) == 0
+    (line,) = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("feedforward")]
+    assert " V s/rad," in line and line.endswith(" V s^2/rad")

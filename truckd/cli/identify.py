@@ -10,7 +10,13 @@ from typing import Any
 from truckd.cli.args import model_file, report_notes, seconds, volts
 from truckd.config.truck import load_config
 from truckd.errors import InputError
-from truckd.ident.api import identify_log, read_logs, require_physical
+from truckd.ident.api import (
+    identify_log,
+    identify_notes,
+    position_unit,
+    read_logs,
+    require_physical,
+)
 from truckd.ident.data import runs_from_logs
 from truckd.ident.physics import vehicle_problems
 from truckd.ident.sysid import split_selector
@@ -71,6 +77,7 @@ def _run(args: argparse.Namespace) -> int:
     report_notes([n for lg in logs for n in lg.notes])
     model = identify_log(logs, cfg.vehicle, _progress, args.gap)
     require_physical(model, " ".join(args.logs), "fitted model")
+    report_notes(identify_notes(logs, cfg.vehicle, model, args.gap))
     report_notes(
         f"the fitted model may not be physical: {p}"
         for p in vehicle_problems(model.vehicle, runs_from_logs(logs, args.gap))
@@ -85,7 +92,9 @@ def _run(args: argparse.Namespace) -> int:
         f"K_coulomb={v.K_coulomb:.4g} N m, K_stiction={v.K_stiction:.4g} N m, "
         f"R_m={v.R_m:.4g} ohm -> {args.out}"
     )
+    pu = position_unit(logs)
     print(
-        f"feedforward (SysId form): kS={ff.kS:.4g} V, kV={ff.kV:.4g} V s/m, kA={ff.kA:.4g} V s^2/m"
+        f"feedforward (SysId form): kS={ff.kS:.4g} V, kV={ff.kV:.4g} V s/{pu}, "
+        f"kA={ff.kA:.4g} V s^2/{pu}"
     )
     return 0

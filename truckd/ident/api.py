@@ -13,7 +13,9 @@ from truckd.ident.data import runs_from_logs, series_from_log
 from truckd.ident.diagnose import diagnose_voltage, identify_voltage
 from truckd.ident.fanout import Mapper, in_order
 from truckd.ident.force import diagnose_force
+from truckd.ident.physics import configuration_notes
 from truckd.ident.result import Diagnosis
+from truckd.ident.verdict import suspect_columns, unit_notes
 from truckd.logfile import Log
 from truckd.model.effects import Effects
 from truckd.model.params import VehicleParams
@@ -112,13 +114,7 @@ def _diagnose(
 ) -> Diagnosis:
     """:func:`diagnose_log` on lists of logs, the thread limit set."""
     kind = logs[0].input_kind if logs else "voltage"
-    for lg in [*logs, *vals]:
-        if lg.position_unit != logs[0].position_unit:
-            raise InputError(
-                f"{lg.source}: line 1: its positions are in {lg.position_unit}, those of "
-                f"{logs[0].source} in {logs[0].position_unit}: a rotating and a "
-                "translating machine cannot be fitted together"
-            )
+    unit = position_unit([*logs, *vals])
     for v in vals:
         if v.input_kind != kind:
             raise InputError(
@@ -137,6 +133,8 @@ def _diagnose(
     runs = runs_from_logs(logs, gap)
     val_runs = runs_from_logs(vals, gap) if vals else None
     d = diagnose_voltage(p0, runs, val_runs, progress, mapper)
+    slips = unit_notes([*runs, *(val_runs or [])], p0, speed=unit == "m")
+    d.notes[:0], d.alerts[:0] = slips, slips
     for group, what in ((logs, "fitted"), (vals, "validated")):
         with_i = [lg.source for lg in group if "i" in lg.columns]
         if with_i and len(with_i) < len(group):  # runs_from_logs dropped it: said
@@ -147,6 +145,33 @@ def _diagnose(
             d.notes.insert(0, note)
             d.alerts.insert(0, note)
     return _with_log_notes(d, [*logs, *vals])
+
+
+def position_unit(logs: Sequence[Log]) -> str:
+    """The logs' unit of position (``m``; ``rad`` for rotational SysId logs); InputError
+    when they mix the two: a rotating and a translating machine are not one fit."""
+    for lg in logs:
+        if lg.position_unit != logs[0].position_unit:
+            raise InputError(
+                f"{lg.source}: line 1: its positions are in {lg.position_unit}, those of "
+                f"{logs[0].source} in {logs[0].position_unit}: a rotating and a "
+                "translating machine cannot be fitted together"
+            )
+    return logs[0].position_unit if logs else "m"
+
+
+def identify_notes(
+    logs: Sequence[Log], p0: VehicleParams, model: ModelFile, gap: float | None = None
+) -> list[str]:
+    """What ``identify`` says of its logs and its fit, as ``diagnose`` does: columns that
+    look wired or scaled wrongly (sign, t in ms, speed in rpm, current in mA) and a
+    machine unlike the configured truck ``p0``."""
+    runs = runs_from_logs(list(logs), gap)
+    return [
+        *suspect_columns(runs),
+        *unit_notes(runs, p0, speed=position_unit(logs) == "m"),
+        *configuration_notes(model.vehicle, p0),
+    ]
 
 
 def _with_log_notes(d: Diagnosis, logs: Sequence[Log]) -> Diagnosis:
@@ -167,6 +192,7 @@ def identify_log(
 ) -> ModelFile:
     """The seed model fitted to voltage-input logs (all their runs), as a model file."""
     logs = _as_list(log)
+    position_unit(logs)
     for one in logs:
         if one.input_kind != "voltage":
             raise InputError(

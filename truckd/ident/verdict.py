@@ -165,6 +165,40 @@ def suspect_columns(runs: Sequence[Series]) -> list[str]:
     return out
 
 
+UNIT_ROOM = 20.0
+"""A speed or current this many times what the configured truck could reach at the log's
+largest command is taken for a unit slip and said: a wheel's rpm reads 225 times its m/s
+on the default truck, a wheel's rad/s 24 times, the motor's 650 times, mA 1000 times A;
+other machines' shooters and drivetrains on real SysId logs reach 13-15 times."""
+
+
+def unit_notes(runs: Sequence[Series], p0: VehicleParams, speed: bool = True) -> list[str]:
+    """A speed (``speed``: the logs' positions are in m) or a current far beyond what the
+    configured truck ``p0`` reaches at the log's largest command, said with the numbers:
+    the configuration is a prior, so only a factor of :data:`UNIT_ROOM` and more, where
+    a unit slip (not another machine) is the likely cause."""
+    out: list[str] = []
+    u_top = max(float(np.max(np.abs(r.inp))) for r in runs)
+    if not u_top > 0.0:
+        return out
+    v_top = max(float(np.max(np.abs(r.v))) for r in runs)
+    v_free = u_top / p0.K_v * p0.ratio  # the configured truck's no-load speed there
+    if speed and v_top > UNIT_ROOM * v_free:
+        out.append(
+            f"the speed reaches {v_top:.4g} m/s, {v_top / v_free:.0f}x the configured truck's "
+            f"no-load speed at {u_top:.3g} V ({v_free:.3g} m/s): is v in m/s (not rpm or "
+            "rad/s)?"
+        )
+    i_top = max((float(np.max(np.abs(r.i))) for r in runs if r.i is not None), default=0.0)
+    i_stall = u_top / p0.R_m  # the configured motor's stall current there
+    if i_top > UNIT_ROOM * i_stall:
+        out.append(
+            f"the current reaches {i_top:.4g} A, {i_top / i_stall:.0f}x the configured "
+            f"motor's stall current at {u_top:.3g} V ({i_stall:.3g} A): is i in A (not mA)?"
+        )
+    return out
+
+
 def _notes(
     runs: Sequence[Series],
     ff: Feedforward | None,
