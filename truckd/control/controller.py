@@ -48,11 +48,9 @@ class Controller:
         the configuration's, computed in one place)."""
         self.model, self.cfg = model, cfg
         self.mpc = MpcSolver(model, cfg)
-        self.estimator_cfg = for_truck(
-            cfg.estimator, model.params, min(cfg.u_max, model.params.V_batt)
-        )
-        """The estimator's configuration for this model (``accel_max`` at least its stall
-        acceleration)."""
+        u_stall = min(cfg.u_max, model.params.V_batt)  # (V) the largest command at rest
+        self.estimator_cfg = for_truck(cfg.estimator, model.params, u_stall)
+        """The estimator's configuration for this model (``accel_max`` >= its stall accel)."""
         reference = Estimator(self.estimator_cfg, model.params.r_w, ticks_per_rev)
         compiled, self._estimator_why = cestimator.bind(
             self.mpc.compiled_cycle, self.estimator_cfg, reference.tick_len
@@ -160,9 +158,8 @@ class Controller:
             self.estimator = self.estimator.fresh()  # the library's state starts again
             self._fused = self._fused and (self._fused[0], self.estimator)
         else:
-            self.estimator = Estimator(
-                self.estimator_cfg, self.model.params.r_w, self._ticks_per_rev
-            )
+            r_w = self.model.params.r_w
+            self.estimator = Estimator(self.estimator_cfg, r_w, self._ticks_per_rev)
         self.mpc.restart()
         self._forget()
 
@@ -453,13 +450,10 @@ class Controller:
         """The feedforward voltage (V) at speed v (m/s), road position x (m): friction
         and the known loads (:mod:`truckd.control.effect_use`) plus the disturbance."""
         cfg = self.cfg
-        ff = (
-            moving_feedforward(
-                self.model.params, self.model.effects, v, cfg.moving_speed, x, self._terms
-            )
-            if cfg.feedforward
-            else 0.0
-        )
+        if not cfg.feedforward:
+            return self.disturbance_v
+        p, eff = self.model.params, self.model.effects
+        ff = moving_feedforward(p, eff, v, cfg.moving_speed, x, self._terms)
         return ff * self._r_scale + self.disturbance_v
 
     def _initial_state(
