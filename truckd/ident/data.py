@@ -114,7 +114,9 @@ def series_from_log(log: Log) -> Series:
 
 def _series(log: Log) -> Series:
     require_io(log)
-    t = log["t"]
+    # Times from the log's first sample: a clock's epoch (Unix time, 1.7e9 s) would leave
+    # float64 a resolution of 0.2 us, and every lag, delay and interpolation rounding to it.
+    t = log["t"] - log["t"][0] if len(log) else log["t"]
     if log.input_kind == "voltage":
         inp = log["u"]
         v = log["v"]
