@@ -77,6 +77,7 @@ def test_new_cause_is_named_and_recovered(params: VehicleParams, k: int, name: s
     case = f"k={truck.k_scale:.3g} J={truck.j_scale:.3g} {truck.rate_hz:.0f} Hz"
     value = float(getattr(eff, name))
     assert names == [name], f"{case}: hidden {name}={value:.4g}, named {names}"
+    assert name not in {r.name for r in d.rejected}  # never both accepted and rejected
     found = d.effects[0].params[name]
     assert abs(found - value) <= TOLERANCE[name] * value, f"{case}: {found:.4g} vs {value:.4g}"
     assert d.effects[0].fit_gain_percent > 0.0
@@ -105,3 +106,4 @@ def test_pair_of_causes_both_named(params: VehicleParams, k: int, pair: tuple[st
     d = diagnose_log(plant_log(params, eff, seed=SEEDS[k] + 1, n=5000), params)
     names = sorted(f.name for f in d.effects)
     assert names == sorted(pair), f"hidden {fields}, named {names}"
+    assert not set(pair) & {r.name for r in d.rejected}

@@ -316,7 +316,8 @@ def report_stage(
         vehicle=ext_params,
         model_effects=ext_effects,
         residual_stats=_residual_stats(wt, looks),
-        rejected=trials.judge.rejected,
+        # A cause impossible on top of some others but accepted in the end is no rejection.
+        rejected=[r for r in trials.judge.rejected if r.name not in {f.name for f in findings}],
         linear=None if start.ff is None else start.ff.to_json(),
         least_squares=ls_json,
         alerts=alerts,
