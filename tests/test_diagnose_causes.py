@@ -107,3 +107,37 @@ def test_pair_of_causes_both_named(params: VehicleParams, k: int, pair: tuple[st
     names = sorted(f.name for f in d.effects)
     assert names == sorted(pair), f"hidden {fields}, named {names}"
     assert not set(pair) & {r.name for r in d.rejected}
+
+
+def test_a_companion_on_its_limit_is_reported(
+    params: VehicleParams, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A winding's time constant below the range the drift's companion may take (its
+    lower limit moved to 3x the hidden one): the drift is named with its time constant on
+    that limit, and a "limit binds" note says so, as for any freed parameter."""
+    import truckd.ident.candidates as candidates
+
+    truck, eff = _hidden(params, ("resistance_drift",), SEEDS[3])
+    lo = 3.0 * eff.winding_time_constant
+    real = candidates.cause_candidates
+
+    def narrowed(p0: VehicleParams, data: object) -> list[candidates.Candidate]:
+        out = real(p0, data)  # type: ignore[arg-type]
+        return [
+            dataclasses.replace(
+                c,
+                preset=(("winding_time_constant", lo),),
+                extra=(dataclasses.replace(c.extra[0], scale=lo, lo=lo, hi=10.0 * lo),),
+            )
+            if c.name == "resistance_drift"
+            else c
+            for c in out
+        ]
+
+    monkeypatch.setattr(candidates, "cause_candidates", narrowed)
+    d = _diagnose(params, truck, eff, SEEDS[3] + 1)
+    assert [f.name for f in d.effects] == ["resistance_drift"], d.effects
+    assert d.effects[0].params["winding_time_constant"] == pytest.approx(lo, rel=1e-3)
+    said = [n for n in d.notes if n.startswith("limit binds: winding_time_constant")]
+    assert said, d.notes
+    assert said == [n for n in d.alerts if n.startswith("limit binds: winding_time_constant")]

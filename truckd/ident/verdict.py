@@ -278,7 +278,7 @@ def report_stage(
     notes.extend([below] if below is not None else _refit_note(refit))  # the model it is
     findings, kept, ext_sum, y_ext = ext.findings, ext.kept, ext.summary, ext.y
     ext_params, ext_effects, rows = ext.params, ext.effects, ext.rows
-    free = [*seed.free, *[by_name[a].param for a in kept]]
+    free = [*seed.free, *[x for a in kept for x in (by_name[a].param, *by_name[a].extra)]]
     binding = _binding_limits(
         ext_params, ext_effects, free, prep.polish_data, prep.report, seed.grid, progress
     )
