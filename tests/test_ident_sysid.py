@@ -112,3 +112,24 @@ def test_unknown_sysid_test_is_refused() -> None:
     _require_data()
     with pytest.raises(InputError, match="unknown test 'medium'"):
         read_logs([f"{FILE}:medium"])
+
+
+@pytest.mark.parametrize(
+    ("selector", "said"),
+    [
+        (":", "no test named after ':'"),
+        (":slow-forward,slow-forward", "'slow-forward' named twice"),
+    ],
+)
+def test_a_selector_naming_no_test_or_one_twice_is_refused(
+    selector: str, said: str, capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    """``FILE.json:`` is no file named with a colon, and a run named twice would be
+    fitted twice: both refused with what to write instead, before anything is written."""
+    _require_data()
+    with pytest.raises(InputError, match=said):
+        read_logs([f"{FILE}{selector}"])
+    out = tmp_path / "m.yaml"
+    assert main(["identify", f"{FILE}{selector}", "--out", str(out)]) == 2
+    assert said in capsys.readouterr().err
+    assert not out.exists()

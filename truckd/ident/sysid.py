@@ -85,11 +85,23 @@ def is_sysid_path(path: str) -> bool:
 
 
 def split_selector(path: str) -> tuple[str, tuple[str, ...]]:
-    """``FILE.json:a,b`` -> ``("FILE.json", ("a", "b"))``; no selector -> all tests."""
+    """``FILE.json:a,b`` -> ``("FILE.json", ("a", "b"))``; no selector -> all tests.
+
+    A selector that names no test (``FILE.json:``) or one test twice is refused: each
+    run is fitted once, and a typo is not read as the whole file."""
     head, sep, tail = path.rpartition(":")
-    if sep and head.lower().endswith(".json") and tail:
-        return head, tuple(x.strip() for x in tail.split(",") if x.strip())
-    return path, TESTS
+    if not (sep and head.lower().endswith(".json")):
+        return path, TESTS
+    names = tuple(x.strip() for x in tail.split(",") if x.strip())
+    if not names:
+        raise InputError(
+            f"{path}: no test named after ':'; expected {head}:TEST[,TEST...] with tests "
+            f"from {', '.join(TESTS)}, or {head} alone for all of them"
+        )
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:
+        raise InputError(f"{path}: test {twice[0]!r} named twice; each run is fitted once")
+    return head, names
 
 
 @dataclass(frozen=True)
