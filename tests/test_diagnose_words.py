@@ -3,6 +3,7 @@ cross-correlation with the input too, and SysId logs come in any of its unit sys
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -341,6 +342,59 @@ def test_the_noise_ceiling_is_the_fit_of_the_true_speed(sd: float, hold: int) ->
     ceiling = fit_ceiling_percent([series_from_log(log)])
     assert ceiling is not None and truth < 99.9
     assert ceiling == pytest.approx(truth, abs=0.3 + 0.05 * (100.0 - truth))
+
+
+@pytest.mark.parametrize(
+    ("steps", "sd"), [(40, 0.0), (200, 0.0), (40, 0.01), (40, 0.1), (200, 0.02)]
+)
+def test_the_noise_ceiling_counts_a_grids_rounding(steps: int, sd: float) -> None:
+    """A speed read on a grid (``steps`` encoder counts over its range, with white noise
+    ``sd`` m/s before the rounding): the ceiling is what the true speed fits the rounded
+    one, not 100 % (its second difference is mostly zero)."""
+    from labkit.synth import plant_log
+
+    from truckd.config.truck import load_config
+    from truckd.ident.data import fit_ceiling_percent, series_from_log
+    from truckd.ident.voltage import fit_percent
+    from truckd.logfile import Log
+    from truckd.model.effects import Effects
+
+    p = load_config().vehicle
+    clean = np.asarray(plant_log(p, Effects(), seed=22, n=4000, noise_v=0.0)["v"])
+    noisy = plant_log(p, Effects(), seed=22, n=4000, noise_v=sd)
+    q = float(np.ptp(clean)) / steps
+    read = q * np.round(np.asarray(noisy["v"]) / q)
+    truth = fit_percent(read, clean)
+    ceiling = fit_ceiling_percent([series_from_log(Log({**noisy.columns, "v": read}, "<grid>"))])
+    assert ceiling is not None and truth < 99.9
+    assert ceiling == pytest.approx(truth, abs=0.3 + 0.05 * (100.0 - truth))
+
+
+@pytest.mark.parametrize("inertia", [0.3, 0.1])
+def test_the_noise_ceiling_is_never_below_the_best_fit(inertia: float) -> None:
+    """A light truck (``inertia`` times the default's) driven by levels held 0.1 s: its
+    speed moves within a sample, and the second difference counts that motion as noise
+    (the noise alone would put the ceiling below the fits).  The diagnosis' ceiling is at
+    least its best model's fit: a model that fits better shows the noise is smaller."""
+    from truckd.config.truck import load_config
+    from truckd.ident.api import diagnose_log
+    from truckd.ident.data import fit_ceiling_percent, series_from_log
+    from truckd.logfile import Log
+    from truckd.model.effects import Effects
+    from truckd.model.plant_config import PlantConfig
+    from truckd.sim.plant import simulate_open_loop
+
+    p0 = load_config().vehicle
+    p = dataclasses.replace(p0, J_S=p0.J_S * inertia, m=p0.m * inertia)
+    rng = np.random.default_rng(5)
+    t = np.arange(3000) * 0.01
+    u = np.repeat(rng.uniform(-6.0, 6.0, 300), 10)
+    cfg = PlantConfig(effects=Effects(), noise_v=0.005, noise_i=0.1, seed=5)
+    log = Log({"t": t, "u": u, "v": simulate_open_loop(p, t, u, cfg).v}, "<light truck>")
+    d = diagnose_log(log, p0)
+    noise_only = fit_ceiling_percent([series_from_log(log)])
+    assert noise_only is not None and noise_only < d.extended.fit_percent  # the case arises
+    assert d.fit_ceiling is not None and d.fit_ceiling >= d.extended.fit_percent
 
 
 def test_the_readers_notes_are_in_the_diagnosis_once() -> None:

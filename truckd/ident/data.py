@@ -271,7 +271,11 @@ def fresh_mask(y: Array) -> NDArray[np.bool_]:
     if 1.0 - float(np.mean(changed)) < HELD or not changed.any():
         return out
     # A sensor slower than the log updates at a steady interval; a coarse speed at rest
-    # or at steady state repeats irregularly and is not held (all its samples count).
+    # or at steady state repeats irregularly and is not held (all its samples count),
+    # nor is a speed read on a grid that changes by one count at a time (an encoder's
+    # speed crossing its counts at a steady acceleration changes at a steady interval).
+    if _one_count_at_a_time(y, changed):
+        return out
     gaps = np.diff(np.flatnonzero(changed))
     if len(gaps) < 3:
         return out
@@ -280,6 +284,16 @@ def fresh_mask(y: Array) -> NDArray[np.bool_]:
         return out
     out[1:] = changed
     return out
+
+
+def _one_count_at_a_time(y: Array, changed: NDArray[np.bool_]) -> bool:
+    """``y`` is read on a grid (:func:`grid_step`) and :data:`ONE_COUNT` of its changes
+    are one step of it."""
+    q = grid_step(y)
+    if q == 0.0:
+        return False
+    steps = np.abs(np.diff(y))[changed] / q
+    return float(np.mean(np.abs(steps - 1.0) <= GRID_TOL)) >= ONE_COUNT
 
 
 def fresh_samples(y: Array) -> Array:
@@ -306,13 +320,82 @@ def noise_std(y: Array) -> float:
     return mad / 0.6745 / float(np.sqrt(6.0))
 
 
-def fit_ceiling_percent(runs: Sequence[Series]) -> float | None:
+GRID_ON = 0.95
+"""A speed whose fresh readings sit this often on multiples of one step (within
+:data:`GRID_TOL` of it) is read on a grid: an encoder's counts per sample period."""
+GRID_TOL = 0.02
+"""... within this share of the step."""
+ONE_COUNT = 0.8
+"""A speed on a grid whose changes are one step this often crosses its counts: it is
+read on the grid, not sampled and held (a held sensor jumps by what moved meanwhile)."""
+
+
+def grid_step(y: Array) -> float:
+    """The step of the grid the speed ``y`` is read on (m/s; an encoder's count over the
+    sample period), 0.0 when it is not read on one: the smallest change between its
+    fresh readings, when :data:`GRID_ON` of them sit on its multiples."""
+    f = fresh_samples(np.asarray(y, float))
+    if len(f) < 10:
+        return 0.0
+    d = np.abs(np.diff(f))
+    d = d[d > 1e-9 * max(float(np.max(np.abs(f))), 1e-300)]
+    if len(d) < 5:
+        return 0.0
+    q = float(np.min(d))
+    k = (f - f[0]) / q
+    if float(np.max(np.abs(k))) > 1e6:  # a fine grid (or none) is no floor worth having
+        return 0.0
+    on = np.abs(k - np.round(k)) <= GRID_TOL
+    return q if float(np.mean(on)) >= GRID_ON else 0.0
+
+
+def grid_noise(y: Array, q: float, fresh: NDArray[np.bool_]) -> float:
+    """White-noise level (m/s) of a speed ``y`` read on a grid of step ``q`` (m/s) over
+    its fresh readings ``fresh`` (:func:`fresh_mask`): as :func:`noise_std`, with the
+    median of the absolute second differences taken as
+    grouped data (classes one step wide, interpolated within its class): those
+    differences are multiples of ``q``, and their plain median overstates a noise of
+    about one step by up to half."""
+    d2 = np.diff(np.asarray(y, float)[fresh], 2)
+    if len(d2) < 3:
+        return 0.0
+    k = np.round(np.abs(d2 - np.median(d2)) / q).astype(int)
+    counts = np.bincount(k)
+    below = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    m = int(np.searchsorted(np.cumsum(counts), len(k) / 2.0))
+    lower = max(m - 0.5, 0.0)  # class 0 is [0, q/2): the values are absolute
+    width = 0.5 if m == 0 else 1.0
+    mad = q * (lower + width * (len(k) / 2.0 - float(below[m])) / float(counts[m]))
+    return mad / 0.6745 / float(np.sqrt(6.0))
+
+
+def ceiling_noise(y: Array, fresh: NDArray[np.bool_]) -> float:
+    """The measurement noise's sum of squares (m^2/s^2) over the fresh readings
+    ``fresh`` of ``y`` that the ceiling allows for: the white noise (:func:`noise_std`)
+    on each reading; on a speed read on a grid of step ``q`` (:func:`grid_step`) its
+    noise by :func:`grid_noise`, and at least the rounding's ``q^2 / 12`` on each reading
+    off 0 (a grid's second difference is mostly zero, a noise of 0 by the MAD, and a
+    truck at rest reads its 0 exactly unless the noise exceeds the rounding)."""
+    n = int(fresh.sum())
+    q = grid_step(y)
+    if q == 0.0:
+        return noise_std(y) ** 2 * n
+    sigma2, rounding = grid_noise(y, q, fresh) ** 2, q * q / 12.0
+    moving = int(np.count_nonzero(y[fresh]))
+    at_rest = sigma2 if sigma2 > rounding else noise_std(y) ** 2
+    return max(sigma2, rounding) * moving + at_rest * (n - moving)
+
+
+def fit_ceiling_percent(runs: Sequence[Series], best_fit: float | None = None) -> float | None:
     """The ``fit_percent`` (reference section 4) a model that leaves only the measurement
     noise would reach on ``runs``: ``100 (1 - sqrt(sum_k n_k sigma_k^2) / ||y - mean(y)||)``
-    over the fresh readings (:func:`fresh_mask`), ``sigma_k`` run k's white-noise level
-    (:func:`noise_std`, m/s) and ``n_k`` its fresh samples.  No model of the truck can fit
-    the measured speed better than its noise lets it (in expectation); None when the
-    speed does not vary."""
+    over the fresh readings (:func:`fresh_mask`), ``sigma_k`` run k's noise level
+    (m/s) and ``n_k`` its fresh samples (a grid's rounding counted,
+    :func:`ceiling_noise`).  No model of the truck can fit the measured speed better
+    than its noise lets it (in expectation).  ``best_fit`` (%, the best model's fit on
+    the same runs) bounds the noise from above: a speed that changes within a sample
+    counts its motion as noise in the second difference, and a model that fits better
+    shows the noise is smaller.  None when the speed does not vary."""
     if not runs:
         return None
     masks = [fresh_mask(r.v) for r in runs]
@@ -320,8 +403,9 @@ def fit_ceiling_percent(runs: Sequence[Series]) -> float | None:
     den = float(np.linalg.norm(y - np.mean(y)))
     if not den > 0.0:
         return None
-    noise = sum(noise_std(r.v) ** 2 * int(m.sum()) for r, m in zip(runs, masks, strict=True))
-    return 100.0 * (1.0 - float(np.sqrt(noise)) / den)
+    noise = sum(ceiling_noise(r.v, m) for r, m in zip(runs, masks, strict=True))
+    ceiling = 100.0 * (1.0 - float(np.sqrt(noise)) / den)
+    return ceiling if best_fit is None else max(ceiling, best_fit)
 
 
 SPIKE_NOISE = 20.0

@@ -216,7 +216,7 @@ def diagnose_force(
             input_name="F",
         ),
         least_squares=ls_json,
-        fit_ceiling=fit_ceiling_percent([report]),
+        fit_ceiling=fit_ceiling_percent([report], _best_fit(base_sum, ext_sum, ls_json)),
         residual_stats={
             "force_rms": wt.rms,
             "force_noise": wt.noise,
@@ -225,6 +225,15 @@ def diagnose_force(
             "ccf_outside_fraction": wt.ccf_outside,
         },
     )
+
+
+def _best_fit(
+    base: ModelSummary, ext: ModelSummary, ls_json: dict[str, float | None] | None
+) -> float:
+    """The best fit (%) of the seed, the extended and the least-squares models on the
+    report data: the noise ceiling is at least that."""
+    ls = None if ls_json is None else ls_json.get("fit_percent")
+    return max(base.fit_percent, ext.fit_percent, -np.inf if ls is None else ls)
 
 
 def _least_squares(

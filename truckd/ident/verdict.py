@@ -323,7 +323,10 @@ def report_stage(
         alerts=alerts,
         runs=len(prep.runs),
         explains=not unexplained and white(wt) and at_noise,
-        fit_ceiling=fit_ceiling_percent(prep.report),
+        # the extended model is at least the least squares (_against_least_squares)
+        fit_ceiling=fit_ceiling_percent(
+            prep.report, max(refit.base_sum.fit_percent, ext_sum.fit_percent)
+        ),
     )
 
 
