@@ -178,6 +178,17 @@ def test_noise_and_encoder_quantisation(params: VehicleParams) -> None:
     assert np.mean(quant.v[T > 3]) == pytest.approx(quant.v_true[-1], rel=0.01)
 
 
+def test_the_noise_is_the_seeds_normals_in_reading_order(params: VehicleParams) -> None:
+    """Speed then current at each reading take the generator's next standard normals,
+    however many at a time the plant draws (1 000 draws here, past a block boundary)."""
+    cfg = PlantConfig(noise_v=0.02, noise_i=0.3, seed=7)
+    noisy = simulate_open_loop(params, T, step(4.0), cfg)
+    clean = simulate_open_loop(params, T, step(4.0))
+    normals = np.random.default_rng(7).standard_normal(2 * len(T))
+    np.testing.assert_allclose(noisy.v - clean.v, 0.02 * normals[0::2], atol=1e-12)
+    np.testing.assert_allclose(noisy.i - clean.i, 0.3 * normals[1::2], atol=1e-12)
+
+
 def test_non_finite_command_is_treated_as_zero(params: VehicleParams) -> None:
     plant = Plant(params)
     plant.command(5.0)

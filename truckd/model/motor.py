@@ -19,7 +19,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from truckd.model.linear import Mat2, expm2, solve2, system_matrix
+from truckd.model.linear import Mat2, expm2, system_matrix
 from truckd.model.params import VehicleParams
 
 _MAX_EVENTS = 16
@@ -59,15 +59,21 @@ class SegmentInputs:
 def _slide(
     p: VehicleParams, a: Mat2, i0: float, w0: float, s: int, u: SegmentInputs, t: float
 ) -> tuple[float, float, float]:
-    """Closed-form sliding segment of length t (s): ``(i, omega, integral of omega dt)``."""
-    f0 = u.voltage / p.L_m
-    f1 = (-s * (p.K_coulomb + u.coulomb_extra) - u.load_torque) / p.J_S
-    iss, wss = solve2(a, -f0, -f1)
+    """Closed-form sliding segment of length t (s): ``(i, omega, integral of omega dt)``.
+
+    The two solves with ``A`` (:func:`truckd.model.linear.solve2`) are written out,
+    sharing its determinant: the plant calls this twice a step."""
+    a00, a01, a10, a11 = a
+    det = a00 * a11 - a01 * a10
+    b0 = -(u.voltage / p.L_m)
+    b1 = -((-s * (p.K_coulomb + u.coulomb_extra) - u.load_torque) / p.J_S)
+    iss, wss = (a11 * b0 - a01 * b1) / det, (a00 * b1 - a10 * b0) / det
     d0, d1 = i0 - iss, w0 - wss
-    e = expm2(a, t)
-    i = iss + e[0] * d0 + e[1] * d1
-    w = wss + e[2] * d0 + e[3] * d1
-    _, y1 = solve2(a, (e[0] - 1.0) * d0 + e[1] * d1, e[2] * d0 + (e[3] - 1.0) * d1)
+    e0, e1, e2, e3 = expm2(a, t)
+    i = iss + e0 * d0 + e1 * d1
+    w = wss + e2 * d0 + e3 * d1
+    c0, c1 = (e0 - 1.0) * d0 + e1 * d1, e2 * d0 + (e3 - 1.0) * d1
+    y1 = (a00 * c1 - a10 * c0) / det
     return i, w, wss * t + y1
 
 

@@ -63,6 +63,30 @@ STRIBECK_SPAN = 4.0
 """Below this many Stribeck speeds the friction still changes: integrated in fine pieces."""
 
 
+NOISE_BLOCK = 512
+"""Standard normal draws the sensor noise takes from its generator at a time."""
+
+
+class _Normals:
+    """Standard normal draws of one generator, drawn :data:`NOISE_BLOCK` at a time and
+    handed out one by one: the same numbers in the same order as one draw per reading
+    (``rng.normal(0, s)`` is ``s`` times the generator's next standard normal)."""
+
+    __slots__ = ("_buf", "_k", "_rng")
+
+    def __init__(self, rng: np.random.Generator) -> None:
+        self._rng = rng
+        self._buf: list[float] = []
+        self._k = 0
+
+    def next(self) -> float:
+        k = self._k
+        if k == len(self._buf):
+            self._buf, k = self._rng.standard_normal(NOISE_BLOCK).tolist(), 0
+        self._k = k + 1
+        return self._buf[k]
+
+
 @dataclass
 class _SensorState:
     v_lag: float = 0.0
@@ -78,6 +102,9 @@ class Plant:
         self.p = params
         self.cfg = config or PlantConfig()
         self.rng = np.random.default_rng(self.cfg.seed)
+        self._normals = _Normals(self.rng)
+        self._driven = (math.nan, 0.0, 0.0)
+        """The last command the driver saw and its :func:`driver_output` (V, ohm)."""
         self.t = 0.0
         self.x = 0.0
         self.motor = MotorState()
@@ -158,7 +185,7 @@ class Plant:
 
     def _limit_binds(self) -> bool:
         eff = self.cfg.effects
-        volts, r_x = driver_output(self._u_active, eff, self.p.V_batt)
+        volts, r_x = self._driver_output()
         r = self.p.R_m + r_x + self._winding_extra()
         return current_limited(self.p, eff, volts, self.motor.omega, r) != volts
 
@@ -183,6 +210,14 @@ class Plant:
         m.i = (inputs.voltage - p.K_v * (g.rotor if g.side == 0 else w)) / r
         return used
 
+    def _driver_output(self) -> tuple[float, float]:
+        """:func:`driver_output` of the active command (V, ohm), kept while it stands."""
+        u, volts, r_x = self._driven
+        if u != self._u_active:
+            volts, r_x = driver_output(self._u_active, self.cfg.effects, self.p.V_batt)
+            self._driven = (self._u_active, volts, r_x)
+        return volts, r_x
+
     def _winding_extra(self) -> float:
         """Resistance (ohm) the winding's heating adds to R_m."""
         if self.winding_rise == 0.0:
@@ -190,26 +225,27 @@ class Plant:
         return winding_resistance(self.p, self.cfg.effects, self.winding_rise) - self.p.R_m
 
     def _piece(self, h: float) -> None:
-        eff = self.cfg.effects
+        eff, p, motor = self.cfg.effects, self.p, self.motor
         inputs = self._inputs
-        inputs.voltage, inputs.extra_resistance = driver_output(self._u_active, eff, self.p.V_batt)
-        inputs.extra_resistance += self._winding_extra()
+        volts, r_x = self._driver_output()
+        if self.winding_rise != 0.0:
+            r_x += self._winding_extra()
         if eff.current_limit != 0.0:
-            r = self.p.R_m + inputs.extra_resistance
-            inputs.voltage = current_limited(self.p, eff, inputs.voltage, self.motor.omega, r)
-        inputs.coulomb_extra = stribeck_torque(self.p, eff, self.motor.omega)
+            volts = current_limited(p, eff, volts, motor.omega, p.R_m + r_x)
+        inputs.voltage, inputs.extra_resistance = volts, r_x
+        inputs.coulomb_extra = stribeck_torque(p, eff, motor.omega) if eff.stribeck else 0.0
         if self._constant_load:
             inputs.load_torque = self._load0
             inputs.viscous = eff.viscous_friction
         else:
-            visc_drag, t_drag = drag_linearisation(self.p, eff, self.motor.omega)
-            inputs.load_torque = load_torque(self.p, eff, self.x) + t_drag
+            visc_drag, t_drag = drag_linearisation(p, eff, motor.omega)
+            inputs.load_torque = load_torque(p, eff, self.x) + t_drag
             inputs.viscous = eff.viscous_friction + visc_drag
-        i0 = self.motor.i
+        i0 = motor.i
         if eff.backlash != 0.0:
             h -= self._gap_piece(inputs, h)
         if h > 0.0:
-            angle = advance(self.p, self.motor, inputs, h)
+            angle = advance(p, motor, inputs, h)
             self.x += angle * self._ratio
             self.t += h
         if eff.resistance_drift != 0.0:
@@ -275,10 +311,10 @@ class Plant:
         else:
             v = self.v
         if self.cfg.noise_v:
-            v += float(self.rng.normal(0.0, self.cfg.noise_v))
+            v += self.cfg.noise_v * self._normals.next()
         i = self.motor.i
         if self.cfg.noise_i:
-            i += float(self.rng.normal(0.0, self.cfg.noise_i))
+            i += self.cfg.noise_i * self._normals.next()
         if (
             eff.battery_sag == 0.0
             and eff.dead_zone == 0.0
@@ -288,7 +324,7 @@ class Plant:
         ):
             limit = self.p.V_batt
             return v, i, limit, max(-limit, min(limit, self._u_active))
-        volts, r_x = driver_output(self._u_active, eff, self.p.V_batt)
+        volts, r_x = self._driver_output()
         if eff.current_limit != 0.0:
             r = self.p.R_m + r_x + self._winding_extra()
             volts = current_limited(self.p, eff, volts, self.motor.omega, r)
