@@ -30,6 +30,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
+from truckd.ident.chatter import chatter_where, without_chatter
 from truckd.ident.choice import selection_stage
 from truckd.ident.data import Series, chunks_of_runs, despiked_runs, merged
 from truckd.ident.fanout import Mapper, in_order
@@ -70,13 +71,17 @@ def identify_voltage(
     p0: VehicleParams, runs: Sequence[Series], progress: Progress = quiet
 ) -> FitResult:
     """Seed model fitted to all runs of voltage-input logs (no effects); the supply raised
-    to the largest command when the configured one is lower (:func:`supply_for`)."""
+    to the largest command when the configured one is lower (:func:`supply_for`); the
+    speed's chatter left out (:func:`truckd.ident.chatter.without_chatter`)."""
     p0, supply_note = supply_for(p0, runs)
     if supply_note is not None:
         progress(supply_note)
     runs, spikes = despiked_runs(runs, "the data")
     if spikes is not None:
         progress(spikes)
+    runs, chatter = without_chatter(runs)
+    if chatter:
+        progress(f"chatter left out: {chatter_where(chatter)}")
     whole = merged(runs)
     fit_data = chunks_of_runs(runs, budget(runs, FIT_BUDGET))
     w = weights_for(fit_data)

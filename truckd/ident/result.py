@@ -144,6 +144,11 @@ class Diagnosis:
     fit_ceiling: float | None = None
     """The ``fit_percent`` a model leaving only the measurement noise would reach on the
     report data (:func:`truckd.ident.data.fit_ceiling_percent`); None: the speed is flat."""
+    chatter: list[dict[str, float | int | str]] = field(default_factory=list)
+    """The stretches of chatter left out (:func:`truckd.ident.chatter.spans_json`)."""
+    fit_with_chatter: float | None = None
+    """The extended model's ``fit_percent`` on the report data with the chatter left in
+    (None: there was none)."""
     position_unit: str = "m"
     """The logs' unit of position: ``m``, or ``rad`` for a rotational SysId log (its
     speed then rad/s, kV in V s/rad, kA in V s^2/rad)."""
@@ -173,6 +178,8 @@ class Diagnosis:
             "explains_data": bool(self.explains),
             "fit_ceiling_percent": _opt(self.fit_ceiling),
             "position_unit": self.position_unit,
+            "chatter": [dict(c) for c in self.chatter],
+            "fit_percent_with_chatter": _opt(self.fit_with_chatter),
             # always present (reference section 4); null when the data cannot give them
             "linear_estimate": self.linear,
             "least_squares": (

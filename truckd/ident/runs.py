@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from truckd.ident.chatter import ChatterSpan, without_chatter
 from truckd.ident.data import (
     Series,
     chunks_of_runs,
@@ -105,6 +106,12 @@ class Prepared:
     """The runs of the final joint refit (selection done: all the estimation data)."""
     polish_data: list[Series]
     """Chunks of ``fit_runs`` within :data:`FINAL_BUDGET`: the final joint refit's data."""
+    chatter: list[ChatterSpan]
+    """The stretches of chatter cut out of the runs (:mod:`truckd.ident.chatter`)."""
+    chatter_val: list[ChatterSpan]
+    """... and out of the validation runs given."""
+    uncut_report: list[Series]
+    """``report`` with its chatter left in."""
 
 
 def prepare(
@@ -127,6 +134,16 @@ def prepare(
         progress(note)
     runs = [with_position(r) for r in runs]
     validate = [with_position(r) for r in validate] if validate else None
+    uncut_report = list(validate) if validate else list(runs)
+    runs, chatter = without_chatter(runs)
+    chatter_val: list[ChatterSpan] = []
+    if validate:
+        validate, chatter_val = without_chatter(validate)
+    if chatter or chatter_val:
+        progress(
+            f"chatter left out: {sum(s.end - s.start for s in [*chatter, *chatter_val]):.2f} s "
+            "of speed swinging fast at a steady command"
+        )
     if validate:
         est, val = list(runs), list(validate)
     else:
@@ -142,6 +159,9 @@ def prepare(
         est=est,
         val=val,
         report=list(validate) if validate else list(runs),
+        chatter=chatter,
+        chatter_val=chatter_val,
+        uncut_report=uncut_report,
         whole=merged(runs),
         fit_data=fit_data,
         val_data=chunks_of_runs(val, budget(val, VAL_BUDGET)),

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from truckd.ident.chatter import chatter_note, spans_json
 from truckd.ident.choice import Choice
 from truckd.ident.data import (
     Series,
@@ -295,6 +296,9 @@ def report_stage(
         line = _unexplained_line(wt, looks)
         notes.append(line)
         alerts.append(line)
+    chatter, fit_with = _chatter(prep, ext)
+    notes.extend(chatter)
+    alerts.extend(chatter)
     if prep.supply_note is not None:
         notes.insert(0, prep.supply_note)
     notes[:0] = prep.spike_notes
@@ -327,7 +331,19 @@ def report_stage(
         fit_ceiling=fit_ceiling_percent(
             prep.report, max(refit.base_sum.fit_percent, ext_sum.fit_percent)
         ),
+        chatter=[*spans_json(prep.chatter, "log"), *spans_json(prep.chatter_val, "validation")],
+        fit_with_chatter=fit_with,
     )
+
+
+def _chatter(prep: Prepared, ext: _Extended) -> tuple[list[str], float | None]:
+    """The note on the chatter left out (none: no note) and the extended model's fit
+    (%) on the report data with it left in (None: there was none)."""
+    if not (prep.chatter or prep.chatter_val):
+        return [], None
+    with_it = summary(ext.params, ext.effects, prep.uncut_report)[0].fit_percent
+    note = chatter_note(prep.chatter, prep.chatter_val, ext.summary.fit_percent, with_it)
+    return [note], with_it
 
 
 def _unexplained_line(wt: Whiteness, looks: dict[str, float]) -> str:
