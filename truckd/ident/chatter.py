@@ -11,11 +11,12 @@ stretches, :func:`without_chatter` cuts them out of the runs before any fit, and
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
+from numpy.typing import NDArray
 
 from truckd.ident.data import MIN_RUN, Array, Series
 
@@ -54,11 +55,17 @@ class ChatterSpan:
     """Index one past its last sample."""
 
 
-def _moving(a: Array, w: int) -> Array:
-    """Windows of ``w`` samples centred on each sample of ``a`` (edges repeated)."""
+BLOCK = 1 << 16
+"""Windows reduced at a time (the memory of a long log's windows stays a few MB)."""
+
+
+def _moving(a: Array, w: int, reduce: Callable[..., Array]) -> Array:
+    """``reduce(windows, axis=1)`` over the windows of ``w`` samples centred on each
+    sample of ``a`` (edges repeated), :data:`BLOCK` windows at a time."""
     h = w // 2
     padded = np.concatenate([np.full(h, a[0]), a, np.full(w - 1 - h, a[-1])])
-    return sliding_window_view(padded, w)
+    windows = sliding_window_view(padded, w)
+    return np.concatenate([reduce(windows[k : k + BLOCK], axis=1) for k in range(0, len(a), BLOCK)])
 
 
 def _local_noise(v: Array, w: int) -> float:
@@ -69,13 +76,13 @@ def _local_noise(v: Array, w: int) -> float:
     d2 = np.abs(np.diff(v, 2))
     if len(d2) < w:
         return 0.0
-    local = np.median(_moving(d2, w), axis=1) / 0.6745 / float(np.sqrt(6.0))
+    local = _moving(d2, w, np.median) / 0.6745 / float(np.sqrt(6.0))
     speed = np.abs(v[1:-1])
     moving = speed > MOVING_SHARE * float(np.max(speed))
     return float(np.percentile(local[moving], 25.0)) if np.any(moving) else 0.0
 
 
-def _mask(r: Series) -> tuple[Array, Array]:
+def _mask(r: Series) -> tuple[NDArray[np.bool_], Array]:
     """Which samples of ``r`` are chatter, and the local RMS about the trend (m/s)."""
     n = len(r)
     none = np.zeros(n, dtype=bool), np.zeros(n)
@@ -88,12 +95,12 @@ def _mask(r: Series) -> tuple[Array, Array]:
     if n < 3 * w:
         return none
     v = np.asarray(r.v, float)
-    resid = v - np.median(_moving(v, w), axis=1)
-    rough = np.sqrt(np.mean(_moving(resid * resid, w), axis=1))
+    resid = v - _moving(v, w, np.median)
+    rough = np.sqrt(_moving(resid * resid, w, np.mean))
     thr = max(ROUGH_NOISE * _local_noise(v, w), ROUGH_TOP * float(np.max(np.abs(v))))
     u = np.asarray(r.inp, float)
     u_range = float(np.max(u) - np.min(u))
-    held = np.ptp(_moving(u, w), axis=1) <= HELD_SHARE * u_range
+    held = _moving(u, w, np.ptp) <= HELD_SHARE * u_range
     return (rough > thr) & held & (thr > 0.0), rough
 
 

@@ -345,25 +345,26 @@ def scan_stiction(
     between the best one's coarse neighbours.
     """
     cache: dict[float, float] = {}
-    # Per chunk, the runs simulated so far with the stiction torques that give each one
-    # exactly (a chunk that never stops is the same run for every K_stiction).
-    seen: list[list[tuple[StictionBand, list[Array]]]] = [[] for _ in data]
+    # Per chunk, the sse of the runs simulated so far with the stiction torques that give
+    # each one exactly (a chunk that never stops is the same run for every K_stiction);
+    # the sums, not the residuals: a long log's residuals for every band would not fit.
+    seen: list[list[tuple[StictionBand, float]]] = [[] for _ in data]
 
     def cost(ks: float) -> float:
         ks = max(float(ks), p.K_coulomb)
         if ks not in cache:
             q = p.replace(K_stiction=ks)
-            parts: list[Array] = []
+            total = 0.0
             for s, runs in zip(data, seen, strict=True):
-                same = next((r for band, r in runs if band.holds(ks)), None)
+                same = next((c for band, c in runs if band.holds(ks)), None)
                 if same is None:
                     pred = predict(q, e, s)
-                    same = _chunk_residuals(s, pred, w)
+                    r = _joined(_chunk_residuals(s, pred, w))
+                    same = float(r @ r)
                     if pred.stiction is not None:
                         runs.append((pred.stiction, same))
-                parts.extend(same)
-            r = _joined(parts)
-            cache[ks] = float(r @ r)
+                total += same
+            cache[ks] = total
         return cache[ks]
 
     _coarse_then_fine([float(v) * (p.K_T / p.R_m) for v in grid], cost, coarse, fine)
