@@ -63,7 +63,7 @@ STRIBECK_SPAN = 4.0
 """Below this many Stribeck speeds the friction still changes: integrated in fine pieces."""
 
 
-NOISE_BLOCK = 512
+NOISE_BLOCK = 1024
 """Standard normal draws the sensor noise takes from its generator at a time."""
 
 
