@@ -9,7 +9,15 @@ from labkit.synth import plant_log
 from truckd.errors import InputError
 from truckd.ident.api import identify_log
 from truckd.ident.data import series_from_log
-from truckd.ident.residuals import autocorr, band, binned, crosscorr, whiteness
+from truckd.ident.residuals import (
+    FFT_LEN,
+    autocorr,
+    band,
+    binned,
+    crosscorr,
+    lagged_sums,
+    whiteness,
+)
 from truckd.ident.voltage import speed_fit
 from truckd.logfile import Log
 from truckd.model.effects import Effects
@@ -125,6 +133,21 @@ def test_crosscorrelation_finds_the_lag() -> None:
     c = crosscorr(r, u, 20)
     assert int(np.argmax(c)) - 20 == 7
     assert c.max() == pytest.approx(1.0, abs=0.01)
+
+
+@pytest.mark.parametrize(
+    ("n", "lags"), [(1, 0), (9, 3), (2000, 40), (FFT_LEN - 80, 40), (3 * FFT_LEN + 17, 250)]
+)
+def test_lagged_sums_are_the_direct_sums_whatever_the_length(n: int, lags: int) -> None:
+    """A long record is summed in blocks (memory that does not grow with it): every lag's
+    sum is the direct one, across the blocks' edges and at the record's ends."""
+    rng = np.random.default_rng(n)
+    a, b = rng.normal(size=n).cumsum(), rng.normal(size=n)
+    direct = [
+        float(a[max(0, lag) : n + min(0, lag)] @ b[max(0, -lag) : n - max(0, lag)])
+        for lag in range(-lags, lags + 1)
+    ]
+    assert np.allclose(lagged_sums(a, b, lags), direct, rtol=1e-9, atol=1e-9 * n)
 
 
 def test_binned_residual_shows_a_dependence() -> None:

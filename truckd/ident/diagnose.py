@@ -30,6 +30,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
+from truckd.ident import fastsim
 from truckd.ident.chatter import chatter_where, without_chatter
 from truckd.ident.choice import selection_stage
 from truckd.ident.data import Series, chunks_of_runs, despiked_runs, merged
@@ -64,6 +65,7 @@ def diagnose_voltage(
     trials = candidates_stage(prep, seed, progress, mapper)
     choice = selection_stage(prep, seed, trials, progress, mapper)
     refit = refit_stage(prep, seed, trials, choice, progress)
+    fastsim.forget()  # the fits' caches: the report simulates the report's runs
     return report_stage(prep, start, seed, trials, choice, refit, progress)
 
 

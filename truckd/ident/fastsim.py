@@ -108,6 +108,14 @@ def _put(
     return value
 
 
+def forget() -> None:
+    """Empty this module's caches (the next simulation of a series rebuilds what it
+    needs): a diagnosis calls it when the candidates' fits are done, before the report's
+    free runs of the whole log."""
+    for cache in (_PREP, _DRIVER, _TIMING, _LAYOUT, _SAMPLED, _RISES):
+        cache.clear()
+
+
 PREP_CACHE = 64
 """Series whose input-side preparation (driver voltage, coefficients, timeline) is kept:
 a stiction scan or a friction fit changes only what acts after it."""

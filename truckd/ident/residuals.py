@@ -8,6 +8,7 @@ its cross-correlation with any input.  Pure numerics.
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -19,30 +20,53 @@ Z99 = 2.576
 """Two-sided 99 % normal quantile for the confidence bands."""
 
 
+FFT_LEN = 1 << 16
+"""Samples per FFT of the lagged sums: a long record is summed in blocks of this length
+(minus the lags), so memory stays a few MB whatever its length."""
+
+
+def lagged_sums(a: Array, b: Array, max_lag: int) -> Array:
+    """``sum_k a[k] b[k - lag]`` for lags ``-max_lag..max_lag`` (b zero outside it).
+
+    Summed over blocks of ``a``, each correlated by FFT with the stretch of ``b`` it
+    meets: the same sums as one FFT of twice the record's length, in memory that does
+    not grow with it."""
+    n, lags = len(a), max_lag
+    need = n + 2 * lags
+    if need <= FFT_LEN:  # a short record: one FFT holds it
+        nfft = 1 << max(1, (need - 1).bit_length())
+    else:  # blocks at least as long as their overlap
+        nfft = max(FFT_LEN, 1 << (4 * lags + 1).bit_length())
+    step = nfft - 2 * lags
+    out = np.zeros(2 * lags + 1)
+    seg = np.empty(nfft)
+    for s in range(0, n, step):
+        e = min(n, s + step)
+        lo, hi = s - lags, e + lags  # b[lo:hi], zero where outside
+        seg[:] = 0.0
+        seg[max(0, -lo) : max(0, -lo) + min(hi, n) - max(lo, 0)] = b[max(lo, 0) : min(hi, n)]
+        c = np.fft.irfft(np.fft.rfft(seg) * np.conj(np.fft.rfft(a[s:e], nfft)), nfft)
+        out += c[2 * lags :: -1]  # c[d] pairs a[k] with b[k + d - lags]: lag = lags - d
+    return out
+
+
 def autocorr(r: Array, max_lag: int) -> Array:
     """Normalised autocorrelation of r at lags 0..max_lag."""
     r = r - np.mean(r)
-    n = len(r)
     den = float(r @ r)
     if den == 0.0:
         return np.zeros(max_lag + 1)
-    spec = np.fft.rfft(r, 2 * n)
-    acf = np.fft.irfft(spec * np.conj(spec))[: max_lag + 1]
-    return np.asarray(acf / den, float)
+    return np.asarray(lagged_sums(r, r, max_lag)[max_lag:] / den, float)
 
 
 def crosscorr(r: Array, u: Array, max_lag: int) -> Array:
     """Normalised cross-correlation of r[k] with u[k - lag], lags -max_lag..max_lag."""
     r = r - np.mean(r)
     u = u - np.mean(u)
-    n = len(r)
     den = float(np.sqrt((r @ r) * (u @ u)))
     if den == 0.0:
         return np.zeros(2 * max_lag + 1)
-    full = np.fft.irfft(np.fft.rfft(r, 2 * n) * np.conj(np.fft.rfft(u, 2 * n)))
-    pos = full[: max_lag + 1]  # r[k] u[k - lag], lag >= 0
-    neg = full[-max_lag:] if max_lag else np.zeros(0)  # negative lags
-    return np.asarray(np.concatenate([neg, pos]) / den, float)
+    return np.asarray(lagged_sums(r, u, max_lag) / den, float)
 
 
 def band(n: int) -> float:
@@ -110,7 +134,7 @@ LOOKS_MIN = 0.2
 white-noise band)."""
 
 
-def looks_like(r: Array, signals: dict[str, Array]) -> dict[str, float]:
+def looks_like(r: Array, signals: Iterable[tuple[str, Array]]) -> dict[str, float]:
     """Correlation coefficient of the residual ``r`` with each signal (speed,
     acceleration, sign of the command, time, position...), for those beyond
     :data:`LOOKS_MIN` and the 99 % band, strongest first."""
@@ -120,7 +144,7 @@ def looks_like(r: Array, signals: dict[str, Array]) -> dict[str, float]:
     nr = float(np.linalg.norm(rc))
     if nr == 0.0:
         return out
-    for name, x in signals.items():
+    for name, x in signals:
         xc = np.asarray(x, float) - np.mean(x)
         nx = float(np.linalg.norm(xc))
         if nx == 0.0 or len(xc) != len(rc):

@@ -5,7 +5,7 @@ Shared by the stages of :mod:`truckd.ident.diagnose`; pure numerics.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -110,22 +110,29 @@ def gain_where_acting(
     return max(gains)
 
 
-def residual_signals(runs: Sequence[Series]) -> dict[str, np.ndarray]:
-    """The signals a residual over ``runs`` is compared with (same length, end to end)."""
-    sig: dict[str, list[np.ndarray]] = {
-        "speed": [],
-        "acceleration": [],
-        "command_sign": [],
-        "time": [],
-        "position": [],
-    }
-    for r in runs:
-        sig["speed"].append(r.v)
-        sig["acceleration"].append(np.gradient(r.v, r.t) if len(r) > 2 else np.zeros(len(r)))
-        sig["command_sign"].append(np.sign(r.inp))
-        sig["time"].append(r.t - r.t[0])
-        sig["position"].append(r.x if r.x is not None else np.zeros(len(r)))
-    return {k: np.concatenate(v) for k, v in sig.items()}
+RESIDUAL_SIGNALS = ("speed", "acceleration", "command_sign", "time", "position")
+"""What a residual is compared with, in the order the notes list them."""
+
+
+def _signal(name: str, r: Series) -> np.ndarray:
+    """One run's ``name`` signal (:data:`RESIDUAL_SIGNALS`), SI units."""
+    if name == "speed":
+        return r.v
+    if name == "acceleration":
+        return np.asarray(np.gradient(r.v, r.t), float) if len(r) > 2 else np.zeros(len(r))
+    if name == "command_sign":
+        return np.sign(r.inp)
+    if name == "time":
+        return np.asarray(r.t - r.t[0], float)
+    return r.x if r.x is not None else np.zeros(len(r))
+
+
+def residual_signals(runs: Sequence[Series]) -> Iterator[tuple[str, np.ndarray]]:
+    """The signals a residual over ``runs`` is compared with (same length, end to end),
+    one at a time: on a long log each is as large as the log."""
+    for name in RESIDUAL_SIGNALS:
+        parts = [_signal(name, r) for r in runs]
+        yield name, parts[0] if len(parts) == 1 else np.concatenate(parts)
 
 
 def whiteness_of(r: np.ndarray, runs: Sequence[Series]) -> tuple[Whiteness, bool, bool]:

@@ -289,9 +289,10 @@ def report_stage(
     alerts = [n for n in notes if n.startswith(("the simulation-error fit", "no cause named, but"))]
     alerts.extend([*binding, *machine])
     notes.extend(vehicle_problems(ext_params, prep.runs))
-    y_all = np.concatenate([r.v for r in prep.report])
-    wt, unexplained, at_noise = whiteness_of(y_all - y_ext, prep.report)
-    looks = looks_like(y_all - y_ext, residual_signals(prep.report))
+    residual = np.concatenate([r.v for r in prep.report]) - y_ext
+    wt, unexplained, at_noise = whiteness_of(residual, prep.report)
+    looks = looks_like(residual, residual_signals(prep.report))
+    del residual
     if unexplained:
         line = _unexplained_line(wt, looks)
         notes.append(line)
