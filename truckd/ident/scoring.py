@@ -110,28 +110,26 @@ def gain_where_acting(
     return max(gains)
 
 
-RESIDUAL_SIGNALS = ("speed", "acceleration", "command_sign", "time", "position")
-"""What a residual is compared with, in the order the notes list them."""
+def _acceleration(r: Series) -> np.ndarray:
+    return np.asarray(np.gradient(r.v, r.t), float) if len(r) > 2 else np.zeros(len(r))
 
 
-def _signal(name: str, r: Series) -> np.ndarray:
-    """One run's ``name`` signal (:data:`RESIDUAL_SIGNALS`), SI units."""
-    if name == "speed":
-        return r.v
-    if name == "acceleration":
-        return np.asarray(np.gradient(r.v, r.t), float) if len(r) > 2 else np.zeros(len(r))
-    if name == "command_sign":
-        return np.sign(r.inp)
-    if name == "time":
-        return np.asarray(r.t - r.t[0], float)
-    return r.x if r.x is not None else np.zeros(len(r))
+RESIDUAL_SIGNALS: dict[str, Callable[[Series], np.ndarray]] = {
+    "speed": lambda r: r.v,
+    "acceleration": _acceleration,
+    "command_sign": lambda r: np.asarray(np.sign(r.inp), float),
+    "time": lambda r: np.asarray(r.t - r.t[0], float),
+    "position": lambda r: r.x if r.x is not None else np.zeros(len(r)),
+}
+"""What a residual is compared with (one run's signal, SI units), in the order the notes
+list them."""
 
 
 def residual_signals(runs: Sequence[Series]) -> Iterator[tuple[str, np.ndarray]]:
     """The signals a residual over ``runs`` is compared with (same length, end to end),
     one at a time: on a long log each is as large as the log."""
-    for name in RESIDUAL_SIGNALS:
-        parts = [_signal(name, r) for r in runs]
+    for name, signal in RESIDUAL_SIGNALS.items():
+        parts = [signal(r) for r in runs]
         yield name, parts[0] if len(parts) == 1 else np.concatenate(parts)
 
 
