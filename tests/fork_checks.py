@@ -238,14 +238,33 @@ def _report_then_sleep(x: int) -> int:
 _PIDS_WRITE: int | None = None
 
 
-def interrupted_while_running() -> dict[str, Any]:
+def _end_the_group_and_fail(signum: int, frame: object) -> None:
+    """SIGALRM's handler: kill every other process of this group, exit 3."""
+    for pid in group_members(os.getpgid(0)):
+        if pid != os.getpid():
+            os.kill(pid, signal.SIGKILL)
+    print(f"timed out: signal {signum}", file=sys.stderr)
+    os._exit(3)
+
+
+def interrupted_while_running(*, right_after_a_send: bool = False) -> dict[str, Any]:
     """Ctrl-C to the whole group (this process in a group of its own, as a terminal
     gives a command) while both children run a task that would take an hour: what this
-    process raised, the seconds the call took, and the processes of the group left."""
+    process raised, the seconds the call took, and the processes of the group left.
+
+    ``right_after_a_send``: the Ctrl-C lands in this process just after the second
+    child's task is written to its pipe, before anything else of the call runs (the
+    write is held there until the signal comes)."""
     import time
+
+    import truckd.workers as workers
 
     global _PIDS_WRITE
     signal.signal(signal.SIGINT, signal.default_int_handler)
+    # a call that waits for the hour-long tasks fails this check at once (the children
+    # killed: they hold its output pipe open, and the test would wait on them)
+    signal.signal(signal.SIGALRM, _end_the_group_and_fail)
+    signal.alarm(60)
     os.setpgid(0, 0)
     read, _PIDS_WRITE = os.pipe()
     signaller = os.fork()
@@ -257,6 +276,17 @@ def interrupted_while_running() -> dict[str, Any]:
             seen += os.read(read, 64)
         os.killpg(0, signal.SIGINT)
         os._exit(0)
+    if right_after_a_send:
+        write = workers._write_all
+        sent = [0]
+
+        def write_then_wait_for_the_signal(fd: int, data: bytes) -> None:
+            write(fd, data)
+            sent[0] += 1
+            if sent[0] == 2:
+                signal.pause()  # the Ctrl-C's KeyboardInterrupt is raised here
+
+        workers._write_all = write_then_wait_for_the_signal
     t0 = time.monotonic()
     try:
         ForkMap(2)(_report_then_sleep, range(4))
@@ -264,6 +294,7 @@ def interrupted_while_running() -> dict[str, Any]:
     except BaseException as exc:  # what was raised is the finding
         raised = f"{type(exc).__name__}: {exc}"
     took = time.monotonic() - t0
+    signal.alarm(0)
     os.waitpid(signaller, 0)
     left = [p for p in group_members(os.getpgid(0)) if p != os.getpid()]
     for p in left:  # a child left running would outlive this check
@@ -271,11 +302,17 @@ def interrupted_while_running() -> dict[str, Any]:
     return {"raised": raised, "took_s": took, "left": left}
 
 
+def interrupted_right_after_a_send() -> dict[str, Any]:
+    """:func:`interrupted_while_running`, the Ctrl-C landing right after a task's write."""
+    return interrupted_while_running(right_after_a_send=True)
+
+
 CHECKS = {
     "order": order, "raised": raised, "killed": killed, "unpicklable": unpicklable, "torn": torn,
     "diagnosis": diagnosis, "mixed": mixed,
     "interrupted_at_start": interrupted_at_start,
     "interrupted_while_running": interrupted_while_running,
+    "interrupted_right_after_a_send": interrupted_right_after_a_send,
 }  # fmt: skip
 
 if __name__ == "__main__":

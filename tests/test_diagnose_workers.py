@@ -100,6 +100,15 @@ def test_ctrl_c_while_the_children_run_kills_them_at_once() -> None:
     assert got["left"] == [], got
 
 
+def test_ctrl_c_right_after_a_task_is_sent_kills_that_child_too() -> None:
+    """The Ctrl-C lands just after the second child's task is written, before the call
+    notes it running: that child is killed with the other (it would hold the reaping
+    for the hour its task takes) and no process of the group is left."""
+    got = _fresh("interrupted_right_after_a_send")
+    assert got["raised"] is not None and got["raised"].startswith("KeyboardInterrupt"), got
+    assert got["left"] == [], got
+
+
 def test_with_another_thread_running_nothing_forks() -> None:
     stop = threading.Event()
     other = threading.Thread(target=stop.wait)

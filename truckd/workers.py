@@ -251,9 +251,12 @@ def _collect(children: list[_Child], count: int) -> list[Any]:
     def send(c: _Child) -> None:
         nonlocal next_k
         if next_k < count and not failed:
-            _write_all(c.tasks, _INDEX.pack(next_k))
+            # marked running before it is written: a Ctrl-C landing right after the
+            # write then kills this child too, not only the others (a child left
+            # running its task would keep the reaping waiting until the task ends)
             c.running = next_k
             next_k += 1
+            _write_all(c.tasks, _INDEX.pack(c.running))
 
     for c in children:
         send(c)
