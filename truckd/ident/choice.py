@@ -40,6 +40,11 @@ from truckd.ident.voltage import (
 MAX_EXTRA_ROUNDS = 2
 """Rounds of trying the remaining candidates on top of the accepted ones."""
 
+IDLE_GAIN = 1e-6
+"""A candidate whose fit on top of the model lowers its cost on the fit data by less than
+this fraction changes nothing there (its parameter stays where it does nothing): the
+next round, one more cause on top, does not try it again."""
+
 
 @dataclass(frozen=True)
 class Choice:
@@ -264,11 +269,14 @@ def _extra_rounds(s: _Selecting) -> None:
     residual still has structure (:func:`_structure_remains`), try the rest on top of the
     current model."""
     judge = s.trials.judge
+    idle: set[str] = set()
     for _ in range(MAX_EXTRA_ROUNDS):
         if not s.accepted or not _structure_remains(s):
             break
-        taken = set(s.accepted) | {b for _, b in s.ambiguous}
+        taken = set(s.accepted) | {b for _, b in s.ambiguous} | idle
         rest = [c for c in s.trials.cands if c.name not in taken]
+        if not rest:
+            break
         extra = s.smooth_params(s.accepted)
         best: Model | None = None
         on_top = ", ".join(s.accepted)
@@ -279,6 +287,8 @@ def _extra_rounds(s: _Selecting) -> None:
             ]
         )
         for cand, f in zip(rest, fits, strict=True):
+            if f.sse > s.current.fit.sse * (1.0 - IDLE_GAIN):
+                idle.add(cand.name)
             new = Model(f, (*s.current.names, cand.name), val_cost(f, s.prep.val_data, s.prep.w))
             if (
                 judge.takes(cand.name, new, s.current)[0]
