@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -499,3 +500,51 @@ def test_identify_prints_the_constants_per_radian(
     assert main(["identify", str(path), "--out", str(tmp_path / "m.yaml")]) == 0
     (line,) = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("feedforward")]
     assert " V s/rad," in line and line.endswith(" V s^2/rad")
+
+
+@pytest.mark.parametrize(
+    ("truck", "rotating"),
+    [
+        ("drag at 67 m/s = 0.687 N exceeds the weight 0.471 N",
+         "drag at 67 rad/s = 0.687 N m exceeds the weight 0.471 N m"),
+        ("RMS 3.68 against noise 0.0928 m/s); it", "RMS 3.68 against noise 0.0928 rad/s); it"),
+        ("residual periodic in position (488 m): rolling",
+         "residual periodic in position (488 rad): rolling"),
+        ("a peak of 2 m/s^2", "a peak of 2 rad/s^2"),
+        ("K_coulomb = 0.1 N m at or above", "K_coulomb = 0.1 N m at or above"),
+        ("(J_S = 1.6e-09 kg m^2): wheels", "(J_S = 1.6e-09 kg m^2): wheels"),
+        ("kV=0.5 V s/m, 2 N s/m", "kV=0.5 V s/m, 2 N s/m"),
+    ],
+)  # fmt: skip
+def test_a_rotating_machines_notes_speak_of_its_units(truck: str, rotating: str) -> None:
+    from truckd.ident.rotational import in_rotational_units
+
+    assert in_rotational_units(truck) == rotating
+
+
+def test_the_same_log_in_rad_is_said_in_rad_s_and_newton_metres(tmp_path: Path) -> None:
+    """The same numbers in a file in Meters and one in Radians, with a swing at 0.7 Hz
+    no input explains (the diagnosis says it with its RMS and the noise, in m/s): the
+    Radians file's notes are the Meters file's, each unit said as the shaft's."""
+    from truckd.config.truck import load_config
+    from truckd.ident.api import diagnose_log
+    from truckd.ident.rotational import in_rotational_units
+
+    notes = {}
+    for units in ("Meters", "Radians"):
+        path = tmp_path / f"{units}.json"
+        _first_order_sysid(path, units)
+        doc = json.loads(path.read_text())
+        for rows in doc.values():
+            if isinstance(rows, list):
+                for row in rows:
+                    swing = 0.1 * np.sin(2.0 * np.pi * 0.7 * row[0])
+                    row[5] += swing
+                    row[6] += swing
+        path.write_text(json.dumps(doc), encoding="utf-8")
+        d = diagnose_log(read_sysid(str(path)), load_config().vehicle)
+        notes[units] = [n for n in d.notes if not n.startswith("units ")]
+    with_speed = [n for n in notes["Meters"] if re.search(r"\d m/s\b", n)]
+    assert with_speed, notes["Meters"]
+    assert notes["Radians"] == [in_rotational_units(n) for n in notes["Meters"]]
+    assert not [n for n in notes["Radians"] if re.search(r"\d (m|m/s|N)\b(?! m)", n)]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
@@ -15,6 +16,7 @@ from truckd.ident.fanout import Mapper, in_order
 from truckd.ident.force import diagnose_force
 from truckd.ident.physics import configuration_notes
 from truckd.ident.result import Diagnosis
+from truckd.ident.rotational import in_rotational_units
 from truckd.ident.verdict import suspect_columns, unit_notes
 from truckd.logfile import Log
 from truckd.model.effects import Effects
@@ -132,7 +134,15 @@ def _diagnose(
         return _with_log_notes(diagnose_force(data, val, progress), [*logs, *vals])
     runs = runs_from_logs(logs, gap)
     val_runs = runs_from_logs(vals, gap) if vals else None
+    if unit == "rad":
+        said = progress
+
+        def progress(line: str) -> None:
+            said(in_rotational_units(line))
+
     d = diagnose_voltage(p0, runs, val_runs, progress, mapper)
+    if unit == "rad":
+        _relabel_rotational(d)
     slips = unit_notes([*runs, *(val_runs or [])], p0, speed=unit == "m")
     d.notes[:0], d.alerts[:0] = slips, slips
     for group, what in ((logs, "fitted"), (vals, "validated")):
@@ -145,6 +155,16 @@ def _diagnose(
             d.notes.insert(0, note)
             d.alerts.insert(0, note)
     return _with_log_notes(d, [*logs, *vals])
+
+
+def _relabel_rotational(d: Diagnosis) -> None:
+    """``d``'s notes, alerts and reasons in a rotating machine's units
+    (:func:`truckd.ident.rotational.in_rotational_units`)."""
+    d.notes[:] = [in_rotational_units(n) for n in d.notes]
+    d.alerts[:] = [in_rotational_units(n) for n in d.alerts]
+    d.rejected[:] = [
+        dataclasses.replace(r, reason=in_rotational_units(r.reason)) for r in d.rejected
+    ]
 
 
 def position_unit(logs: Sequence[Log]) -> str:

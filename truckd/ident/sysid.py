@@ -214,8 +214,8 @@ def _layout(raw: dict[str, object], file: str) -> _Layout:
         out.notes.append(
             f"units {raw.get('units')}: converted to rad, the speed in rad/s stands where a "
             "truck's m/s would: kV and kA are per radian (V s/rad, V s^2/rad), and the "
-            "notes' m, m/s and N stand for rad, rad/s and the torque over the configured "
-            "wheel radius"
+            "notes speak of the shaft's angle (rad), its speed (rad/s) and the torques on "
+            "it (N m) where a truck's would speak of metres, m/s and newtons"
         )
     return out
 
