@@ -141,8 +141,6 @@ def _diagnose(
             said(in_rotational_units(line))
 
     d = diagnose_voltage(p0, runs, val_runs, progress, mapper)
-    if unit == "rad":
-        _relabel_rotational(d)
     slips = unit_notes([*runs, *(val_runs or [])], p0, speed=unit == "m")
     d.notes[:0], d.alerts[:0] = slips, slips
     for group, what in ((logs, "fitted"), (vals, "validated")):
@@ -195,12 +193,14 @@ def identify_notes(
 
 
 def _with_log_notes(d: Diagnosis, logs: Sequence[Log]) -> Diagnosis:
-    """``d`` with the readers' remarks on its logs first in its notes (once each: a
-    SysId file's unit conversion, which column is the input), as the CLI prints them,
-    and with the logs' unit of position."""
+    """``d`` with the logs' unit of position (its own notes said in it) and the readers'
+    remarks on its logs first in its notes (once each: a SysId file's unit conversion,
+    which column is the input), as the CLI prints them."""
+    d.position_unit = logs[0].position_unit if logs else "m"
+    if d.position_unit == "rad":
+        _relabel_rotational(d)
     said = list(dict.fromkeys(n for lg in logs for n in lg.notes))
     d.notes[:0] = [n for n in said if n not in d.notes]
-    d.position_unit = logs[0].position_unit if logs else "m"
     return d
 
 
